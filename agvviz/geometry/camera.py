@@ -1,0 +1,134 @@
+"""Pinhole camera with OpenCV (plumb_bob / rational-free) distortion. Numpy only.
+
+Pixel convention: OpenCV — integer coordinates at pixel centres. Distortion coefficients
+are OpenCV's (k1, k2, p1, p2, k3); fewer are padded with zeros.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """Intrinsics ``K`` (3×3), distortion ``dist`` (k1, k2, p1, p2, k3), image size in px."""
+
+    K: np.ndarray
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    width_px: int = 0
+    height_px: int = 0
+
+    def __post_init__(self):
+        K = np.asarray(self.K, dtype=float).reshape(3, 3)
+        d = np.zeros(5)
+        given = np.asarray(self.dist, dtype=float).ravel()
+        if given.size > 5:
+            raise ValueError(f"only 5 plumb_bob coefficients are supported, got {given.size}")
+        d[: given.size] = given
+        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(d))):
+            raise ValueError("camera intrinsics or distortion contain NaN/inf")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
+            raise ValueError(f"invalid camera matrix K={K.tolist()}: need fx, fy > 0 and K[2,2] = 1")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", d)
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0.0))
+
+    def without_distortion(self) -> "PinholeCamera":
+        """The same camera with zero distortion (the ideal pinhole of an undistorted image)."""
+        return PinholeCamera(self.K, np.zeros(5), self.width_px, self.height_px)
+
+    # -- projection ---------------------------------------------------------------------
+    def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
+        """Apply distortion to normalised image coordinates (N, 2)."""
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.stack([xd, yd], axis=1)
+
+    def normalized_to_pixels(self, xy_d: np.ndarray) -> np.ndarray:
+        K = self.K
+        u = K[0, 0] * xy_d[:, 0] + K[0, 1] * xy_d[:, 1] + K[0, 2]
+        v = K[1, 1] * xy_d[:, 1] + K[1, 2]
+        return np.stack([u, v], axis=1)
+
+    def pixels_to_normalized_distorted(self, px: np.ndarray) -> np.ndarray:
+        K = self.K
+        yd = (px[:, 1] - K[1, 2]) / K[1, 1]
+        xd = (px[:, 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
+        return np.stack([xd, yd], axis=1)
+
+    def project(self, points_cam_m: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) of points (N, 3) in the camera frame (z must be > 0)."""
+        p = np.asarray(points_cam_m, dtype=float).reshape(-1, 3)
+        xy = p[:, :2] / p[:, 2:3]
+        return self.normalized_to_pixels(self.distort_normalized(xy))
+
+    def project_with_jacobian(self, points_cam_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (N, 2) and ``J_px_wrt_point`` (N, 2, 3), distortion included."""
+        p = np.asarray(points_cam_m, dtype=float).reshape(-1, 3)
+        X, Y, Z = p[:, 0], p[:, 1], p[:, 2]
+        x, y = X / Z, Y / Z
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dradial_dr2 = k1 + 2 * k2 * r2 + 3 * k3 * r2 * r2
+        # d(xd, yd) / d(x, y)
+        dxd_dx = radial + 2 * x * x * dradial_dr2 + 2 * p1 * y + 6 * p2 * x
+        dxd_dy = 2 * x * y * dradial_dr2 + 2 * p1 * x + 2 * p2 * y
+        dyd_dx = 2 * x * y * dradial_dr2 + 2 * p1 * x + 2 * p2 * y
+        dyd_dy = radial + 2 * y * y * dradial_dr2 + 6 * p1 * y + 2 * p2 * x
+        K = self.K
+        # d(u, v) / d(xd, yd)
+        du_dxd, du_dyd, dv_dyd = K[0, 0], K[0, 1], K[1, 1]
+        J_uv_xy = np.empty((p.shape[0], 2, 2))
+        J_uv_xy[:, 0, 0] = du_dxd * dxd_dx + du_dyd * dyd_dx
+        J_uv_xy[:, 0, 1] = du_dxd * dxd_dy + du_dyd * dyd_dy
+        J_uv_xy[:, 1, 0] = dv_dyd * dyd_dx
+        J_uv_xy[:, 1, 1] = dv_dyd * dyd_dy
+        J_xy_p = np.zeros((p.shape[0], 2, 3))
+        J_xy_p[:, 0, 0] = 1.0 / Z
+        J_xy_p[:, 0, 2] = -X / Z**2
+        J_xy_p[:, 1, 1] = 1.0 / Z
+        J_xy_p[:, 1, 2] = -Y / Z**2
+        px = self.project(p)
+        return px, J_uv_xy @ J_xy_p
+
+    # -- back-projection ------------------------------------------------------------------
+    def undistort_normalized(self, px: np.ndarray, iterations: int = 30) -> np.ndarray:
+        """Normalised, undistorted coordinates (N, 2) of distorted pixels (N, 2).
+
+        Gauss–Newton on the forward model; exact for the pinhole-only case.
+        """
+        px = np.asarray(px, dtype=float).reshape(-1, 2)
+        xy_d = self.pixels_to_normalized_distorted(px)
+        if not self.has_distortion:
+            return xy_d
+        xy = xy_d.copy()
+        for _ in range(iterations):
+            pts = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
+            pred, J = PinholeCamera(np.eye(3), self.dist).project_with_jacobian(pts)
+            r = pred - xy_d
+            J2 = J[:, :, :2]  # z = 1, so d/dx and d/dy of the point equal d/d(normalised)
+            step = np.linalg.solve(J2, r[:, :, None])[:, :, 0]
+            xy = xy - step
+            if np.max(np.abs(step)) < 1e-14:
+                break
+        return xy
+
+    def undistort_pixels(self, px: np.ndarray) -> np.ndarray:
+        """Pixels of the ideal (distortion-free) camera with the same K."""
+        return self.without_distortion().normalized_to_pixels(self.undistort_normalized(px))
+
+    def rays(self, px: np.ndarray) -> np.ndarray:
+        """Unit viewing rays (N, 3) in the camera frame through pixels (N, 2)."""
+        xy = self.undistort_normalized(px)
+        r = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
+        return r / np.linalg.norm(r, axis=1, keepdims=True)

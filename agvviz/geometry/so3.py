@@ -1,0 +1,93 @@
+"""SO(3): hat/vee, exp/log and the left Jacobian. Numpy only.
+
+Rotation vectors ``phi_rad`` are axis × angle (rad). See :mod:`agvviz.conventions`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL_ANGLE_RAD = 1e-6
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrix ``w^`` of a 3-vector, so that ``hat(w) @ v == cross(w, v)``."""
+    w = np.asarray(w, dtype=float)
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def vee(W: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`hat`: the 3-vector of a skew-symmetric matrix."""
+    W = np.asarray(W, dtype=float)
+    return np.array([W[2, 1], W[0, 2], W[1, 0]])
+
+
+def exp(phi_rad: np.ndarray) -> np.ndarray:
+    """Rotation matrix of rotation vector ``phi_rad`` (Rodrigues, paper 000 eq 29)."""
+    phi = np.asarray(phi_rad, dtype=float)
+    theta = float(np.linalg.norm(phi))
+    K = hat(phi)
+    if theta < _SMALL_ANGLE_RAD:
+        # Taylor series to second order; exact to machine precision here.
+        return np.eye(3) + K + 0.5 * K @ K
+    a = np.sin(theta) / theta
+    b = (1.0 - np.cos(theta)) / theta**2
+    return np.eye(3) + a * K + b * K @ K
+
+
+def log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad) of rotation matrix ``R``; the angle lies in [0, π].
+
+    Robust near 0 and near π (where the antisymmetric part vanishes).
+    """
+    R = np.asarray(R, dtype=float)
+    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos_theta))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < _SMALL_ANGLE_RAD:
+        return 0.5 * w
+    if np.pi - theta < 1e-3:
+        # Near π: use the symmetric part, R + I ≈ 2 a aᵀ (sign from the antisymmetric part).
+        B = (R + R.T) / 2.0 - cos_theta * np.eye(3)
+        B /= 1.0 - cos_theta
+        i = int(np.argmax(np.diag(B)))
+        axis = B[:, i] / np.sqrt(max(B[i, i], 1e-300))
+        axis /= np.linalg.norm(axis)
+        if np.dot(axis, w) < 0.0:
+            axis = -axis
+        # Refine the angle with the antisymmetric part, which keeps precision near π.
+        sin_theta = 0.5 * float(np.dot(axis, w))
+        theta = float(np.arctan2(sin_theta, cos_theta))
+        return axis * theta
+    return w * (theta / (2.0 * np.sin(theta)))
+
+
+def left_jacobian(phi_rad: np.ndarray) -> np.ndarray:
+    """Left Jacobian J_l(φ) of SO(3) (the V matrix of paper 000 eq 30)."""
+    phi = np.asarray(phi_rad, dtype=float)
+    theta = float(np.linalg.norm(phi))
+    K = hat(phi)
+    if theta < _SMALL_ANGLE_RAD:
+        return np.eye(3) + 0.5 * K + K @ K / 6.0
+    a = (1.0 - np.cos(theta)) / theta**2
+    b = (theta - np.sin(theta)) / theta**3
+    return np.eye(3) + a * K + b * K @ K
+
+
+def left_jacobian_inv(phi_rad: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`left_jacobian`."""
+    phi = np.asarray(phi_rad, dtype=float)
+    theta = float(np.linalg.norm(phi))
+    K = hat(phi)
+    if theta < _SMALL_ANGLE_RAD:
+        return np.eye(3) - 0.5 * K + K @ K / 12.0
+    half = theta / 2.0
+    c = (1.0 - half / np.tan(half)) / theta**2
+    return np.eye(3) - 0.5 * K + c * K @ K
+
+
+def project_to_so3(M: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix to ``M`` in the Frobenius norm (SVD orthonormalisation)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
