@@ -1,0 +1,154 @@
+"""Run settings and ``--set key=value`` parsing, shared by scenarios and runs.
+
+Every settings object is a frozen dataclass whose fields carry a type, a default and a
+``metadata={"help": ...}`` line (and optionally ``"choices"``). :func:`apply_overrides` turns
+``["key=value", ...]`` into a new instance with clear errors for unknown keys and bad values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass, field
+
+from agvviz.conventions import DEFAULT_GIMBAL_THRESHOLD
+
+
+class SettingsError(ValueError):
+    """A ``--set key=value`` that names no setting or carries a value of the wrong kind."""
+
+
+def _setting(default, help: str, choices: tuple[str, ...] | None = None):
+    meta = {"help": help}
+    if choices is not None:
+        meta["choices"] = choices
+    return field(default=default, metadata=meta)
+
+
+SOLVER_CHOICES = ("p4p", "lm", "ippe", "ippe_square", "sqpnp", "epnp", "iterative")
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """Settings of one replay (``agvviz run --set key=value``)."""
+
+    solver: str = _setting("lm", "pose solver", SOLVER_CHOICES)
+    objective: str = _setting(
+        "depth", "LM objective: depth = paper 000 eq 23, pixel = eq 22", ("depth", "pixel")
+    )
+    lm_max_iterations: int = _setting(50, "maximum LM iterations per frame")
+    refine: str = _setting(
+        "ecc",
+        "corner refinement: ecc (template alignment), subpix (cornerSubPix), none",
+        ("ecc", "subpix", "none"),
+    )
+    max_reproj_px: float = _setting(
+        2.0, "reject a frame whose RMS reprojection error exceeds this (px)"
+    )
+    gimbal_threshold: float = _setting(
+        DEFAULT_GIMBAL_THRESHOLD, "paper 000 eq 57 threshold T on |r32| for pitch = ±90°"
+    )
+    truth_max_dt_s: float = _setting(
+        0.005, "largest time gap between a frame and the ground truth it is scored against (s)"
+    )
+
+    def __post_init__(self):
+        validate(self)
+        if not 0.0 < self.gimbal_threshold < 1.0:
+            raise SettingsError(f"gimbal_threshold must lie in (0, 1), got {self.gimbal_threshold}")
+        if self.max_reproj_px <= 0 or not math.isfinite(self.max_reproj_px):
+            raise SettingsError(f"max_reproj_px must be a positive number, got {self.max_reproj_px}")
+        if self.lm_max_iterations < 1:
+            raise SettingsError(f"lm_max_iterations must be ≥ 1, got {self.lm_max_iterations}")
+        if self.truth_max_dt_s < 0:
+            raise SettingsError(f"truth_max_dt_s must be ≥ 0, got {self.truth_max_dt_s}")
+
+    def label(self) -> str:
+        """Short label of the settings that differ from the defaults, for names and titles."""
+        defaults = type(self)()
+        parts = [self.solver]
+        for f in dataclasses.fields(self):
+            if f.name != "solver" and getattr(self, f.name) != getattr(defaults, f.name):
+                parts.append(f"{f.name}={getattr(self, f.name)}")
+        return "-".join(parts)
+
+
+def validate(obj) -> None:
+    """Check ``choices`` metadata of every field of a settings dataclass."""
+    for f in dataclasses.fields(obj):
+        choices = f.metadata.get("choices")
+        if choices is not None and getattr(obj, f.name) not in choices:
+            raise SettingsError(
+                f"{f.name}={getattr(obj, f.name)!r} is not one of: {', '.join(choices)}"
+            )
+
+
+def _coerce(name: str, kind, text: str):
+    if kind is bool:
+        lowered = text.strip().lower()
+        if lowered in ("1", "true", "yes", "on"):
+            return True
+        if lowered in ("0", "false", "no", "off"):
+            return False
+        raise SettingsError(f"{name}={text!r}: expected true or false")
+    if kind is int:
+        try:
+            return int(text, 10)
+        except ValueError:
+            raise SettingsError(f"{name}={text!r}: expected an integer") from None
+    if kind is float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise SettingsError(f"{name}={text!r}: expected a number") from None
+        if not math.isfinite(value):
+            raise SettingsError(f"{name}={text!r}: expected a finite number")
+        return value
+    if kind is str:
+        return text
+    raise SettingsError(f"{name}: settings of type {kind} cannot be set from the command line")
+
+
+def field_types(cls) -> dict[str, type]:
+    """Field name → Python type of a settings dataclass (resolving string annotations)."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def apply_overrides(base, pairs: list[str] | tuple[str, ...]):
+    """A copy of the dataclass instance ``base`` with ``key=value`` overrides applied."""
+    types = field_types(type(base))
+    changes = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise SettingsError(f"--set {pair!r}: expected key=value")
+        if key not in types:
+            raise SettingsError(
+                f"unknown setting {key!r}; valid settings: {', '.join(sorted(types))}"
+            )
+        changes[key] = _coerce(key, types[key], value.strip())
+    try:
+        return dataclasses.replace(base, **changes)
+    except SettingsError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise SettingsError(str(exc)) from None
+
+
+def describe(cls) -> list[tuple[str, str, str, str]]:
+    """(name, type, default, help) rows of a settings dataclass, for ``--help`` and listings."""
+    rows = []
+    types = field_types(cls)
+    for f in dataclasses.fields(cls):
+        help_text = f.metadata.get("help", "")
+        if "choices" in f.metadata:
+            help_text += f" ({'|'.join(f.metadata['choices'])})"
+        rows.append((f.name, types[f.name].__name__, repr(f.default), help_text))
+    return rows
+
+
+def as_dict(obj) -> dict:
+    return dataclasses.asdict(obj)
