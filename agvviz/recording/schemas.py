@@ -1,0 +1,215 @@
+"""JSON Schemas (draft 2020-12) of agvviz's custom recording messages, and their checker.
+
+Every custom channel in a recording is JSON-encoded and carries one of these schemas under its
+``agvviz.*`` name (DESIGN §4). :func:`validate` checks a payload against a schema by hand for the
+small subset of JSON Schema used here (``type``, ``required``, ``properties``, ``items``,
+``minItems``/``maxItems``, ``minimum``/``exclusiveMinimum``, ``minLength``) — no ``jsonschema``
+dependency. Numbers must be finite; booleans are not numbers.
+
+Units follow :mod:`agvviz.conventions`: metres (``_m``), pixels (``_px``), nanoseconds (``_ns``).
+"""
+
+from __future__ import annotations
+
+import math
+
+#: Name of the MCAP metadata record describing the scenario that produced a recording.
+SCENARIO_METADATA = "agvviz.scenario"
+
+_DRAFT = "https://json-schema.org/draft/2020-12/schema"
+
+_POINT3_M = {
+    "type": "array",
+    "items": {"type": "number"},
+    "minItems": 3,
+    "maxItems": 3,
+}
+
+MARKER_MAP = {
+    "$schema": _DRAFT,
+    "title": "agvviz.MarkerMap",
+    "description": (
+        "Fiducial markers fixed in the world. Corners in world metres in OpenCV ArUco order "
+        "TL, TR, BR, BL as printed (agvviz.conventions). dictionary is 'qr' for QR codes or an "
+        "OpenCV ArUco dictionary name such as 'DICT_6X6_250'; payload is a QR code's text."
+    ),
+    "type": "object",
+    "required": ["dictionary", "markers"],
+    "properties": {
+        "dictionary": {"type": "string", "minLength": 1},
+        "markers": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "required": ["id", "side_m", "corners_world_m"],
+                "properties": {
+                    "id": {"type": "string", "minLength": 1},
+                    "side_m": {"type": "number", "exclusiveMinimum": 0},
+                    "corners_world_m": {
+                        "type": "array",
+                        "items": _POINT3_M,
+                        "minItems": 4,
+                        "maxItems": 4,
+                    },
+                    "payload": {"type": "string"},
+                },
+            },
+        },
+    },
+}
+
+UWB_RANGE = {
+    "$schema": _DRAFT,
+    "title": "agvviz.UwbRange",
+    "description": (
+        "One two-way ranging exchange (paper 003 eq 1). t1_ns: tag sends the poll (T_t1); "
+        "t2_ns: anchor receives it (T_a1); t3_ns: anchor sends the reply (T_a2); t4_ns: tag "
+        "receives the reply (T_t2). Time of flight = ((t4_ns - t1_ns) - (t3_ns - t2_ns)) / 2; "
+        "tag and anchor clocks are separate. range_m is the reported tag-anchor distance."
+    ),
+    "type": "object",
+    "required": ["tag", "anchor", "t1_ns", "t2_ns", "t3_ns", "t4_ns", "range_m"],
+    "properties": {
+        "tag": {"type": "string", "minLength": 1},
+        "anchor": {"type": "string", "minLength": 1},
+        "t1_ns": {"type": "integer"},
+        "t2_ns": {"type": "integer"},
+        "t3_ns": {"type": "integer"},
+        "t4_ns": {"type": "integer"},
+        "range_m": {"type": "number"},
+    },
+}
+
+UWB_ANCHORS = {
+    "$schema": _DRAFT,
+    "title": "agvviz.UwbAnchors",
+    "description": "UWB anchors and their positions in the world frame (metres).",
+    "type": "object",
+    "required": ["anchors"],
+    "properties": {
+        "anchors": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "required": ["id", "position_m"],
+                "properties": {
+                    "id": {"type": "string", "minLength": 1},
+                    "position_m": _POINT3_M,
+                },
+            },
+        }
+    },
+}
+
+CORNER_OBSERVATIONS = {
+    "$schema": _DRAFT,
+    "title": "agvviz.CornerObservations",
+    "description": (
+        "Marker corners seen by camera cam_name without an image (Monte-Carlo studies). "
+        "corners_px are pixels of the recorded (distorted) image, OpenCV pixel-centre "
+        "convention, order TL, TR, BR, BL, optionally followed by the edge midpoints "
+        "top, right, bottom, left (4 or 8 points)."
+    ),
+    "type": "object",
+    "required": ["cam_name", "markers"],
+    "properties": {
+        "cam_name": {"type": "string", "minLength": 1},
+        "markers": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "required": ["id", "corners_px"],
+                "properties": {
+                    "id": {"type": "string", "minLength": 1},
+                    "corners_px": {
+                        "type": "array",
+                        "items": {
+                            "type": "array",
+                            "items": {"type": "number"},
+                            "minItems": 2,
+                            "maxItems": 2,
+                        },
+                        "minItems": 4,
+                        "maxItems": 8,
+                    },
+                },
+            },
+        },
+    },
+}
+
+#: Schema name → JSON Schema, for every custom message a recording may hold.
+SCHEMAS: dict[str, dict] = {
+    "agvviz.MarkerMap": MARKER_MAP,
+    "agvviz.UwbRange": UWB_RANGE,
+    "agvviz.UwbAnchors": UWB_ANCHORS,
+    "agvviz.CornerObservations": CORNER_OBSERVATIONS,
+}
+
+
+def _type_ok(expected: str, value: object) -> bool:
+    if expected == "object":
+        return isinstance(value, dict)
+    if expected == "array":
+        return isinstance(value, list)
+    if expected == "string":
+        return isinstance(value, str)
+    if expected == "boolean":
+        return isinstance(value, bool)
+    if expected == "integer":
+        return isinstance(value, int) and not isinstance(value, bool)
+    if expected == "number":
+        return (
+            isinstance(value, (int, float))
+            and not isinstance(value, bool)
+            and math.isfinite(value)
+        )
+    raise ValueError(f"schema uses unsupported type {expected!r}")
+
+
+def validate(schema: dict, value: object, where: str = "$") -> list[str]:
+    """Problems of ``value`` against ``schema`` (empty list when it conforms).
+
+    Each problem names the JSON path (``$.markers[2].side_m``) and what was expected.
+    Properties not listed in the schema are allowed.
+    """
+    expected = schema.get("type")
+    if expected is not None and not _type_ok(expected, value):
+        shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
+        article = "an" if expected[0] in "aeiou" else "a"
+        extra = " (finite)" if expected == "number" else ""
+        return [f"{where}: expected {article} {expected}{extra}, got {shown}"]
+    problems: list[str] = []
+    if isinstance(value, dict):
+        for key in schema.get("required", []):
+            if key not in value:
+                problems.append(f"{where}: missing required key {key!r}")
+        for key, sub in schema.get("properties", {}).items():
+            if key in value:
+                problems += validate(sub, value[key], f"{where}.{key}")
+    if isinstance(value, list):
+        if "minItems" in schema and len(value) < schema["minItems"]:
+            problems.append(f"{where}: expected at least {schema['minItems']} items, got {len(value)}")
+        if "maxItems" in schema and len(value) > schema["maxItems"]:
+            problems.append(f"{where}: expected at most {schema['maxItems']} items, got {len(value)}")
+        if "items" in schema:
+            for i, item in enumerate(value):
+                problems += validate(schema["items"], item, f"{where}[{i}]")
+    if isinstance(value, str) and len(value) < schema.get("minLength", 0):
+        problems.append(f"{where}: expected a string of at least {schema['minLength']} characters")
+    if _type_ok("number", value):
+        if "minimum" in schema and value < schema["minimum"]:
+            problems.append(f"{where}: expected >= {schema['minimum']}, got {value}")
+        if "exclusiveMinimum" in schema and value <= schema["exclusiveMinimum"]:
+            problems.append(f"{where}: expected > {schema['exclusiveMinimum']}, got {value}")
+    return problems
+
+
+def validate_payload(schema_name: str, payload: object) -> list[str]:
+    """Problems of a decoded JSON ``payload`` of custom schema ``schema_name``.
+
+    Raises ``KeyError`` naming the known schemas when ``schema_name`` is not one of them.
+    """
+    if schema_name not in SCHEMAS:
+        raise KeyError(f"unknown agvviz schema {schema_name!r}; known: {', '.join(SCHEMAS)}")
+    return validate(SCHEMAS[schema_name], payload)
