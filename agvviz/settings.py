@@ -13,6 +13,7 @@ import typing
 from dataclasses import dataclass, field
 
 from agvviz.conventions import DEFAULT_GIMBAL_THRESHOLD
+from agvviz.solvers.registry import SOLVER_NAMES
 
 
 class SettingsError(ValueError):
@@ -26,14 +27,13 @@ def _setting(default, help: str, choices: tuple[str, ...] | None = None):
     return field(default=default, metadata=meta)
 
 
-SOLVER_CHOICES = ("p4p", "lm", "ippe", "ippe_square", "sqpnp", "epnp", "iterative")
 
 
 @dataclass(frozen=True)
 class RunSettings:
     """Settings of one replay (``agvviz run --set key=value``)."""
 
-    solver: str = _setting("lm", "pose solver", SOLVER_CHOICES)
+    solver: str = _setting("lm", "pose solver", SOLVER_NAMES)
     objective: str = _setting(
         "depth", "LM objective: depth = paper 000 eq 23, pixel = eq 22", ("depth", "pixel")
     )

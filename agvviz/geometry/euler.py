@@ -48,11 +48,12 @@ def hpr_from_matrix(
     r32 = float(np.clip(R[2, 1], -1.0, 1.0))
     if abs(r32) > gimbal_threshold:
         pitch = np.pi / 2 if r32 > 0 else -np.pi / 2
-        return 0.0, pitch, float(np.arctan2(R[0, 2], R[0, 0]))
+        return 0.0, pitch, wrap_angle_rad(np.arctan2(R[0, 2], R[0, 0]))
     pitch = float(np.arcsin(r32))
     # eq 40/41 divide by cos θ > 0; atan2 needs only the signs, so the division is dropped.
-    heading = float(np.arctan2(-R[0, 1], R[1, 1]))
-    roll = float(np.arctan2(-R[2, 0], R[2, 2]))
+    # atan2 returns -π for a -0.0 numerator; wrap into the documented (-π, π].
+    heading = wrap_angle_rad(np.arctan2(-R[0, 1], R[1, 1]))
+    roll = wrap_angle_rad(np.arctan2(-R[2, 0], R[2, 2]))
     return heading, pitch, roll
 
 

@@ -10,6 +10,13 @@ import numpy as np
 _SMALL_ANGLE_RAD = 1e-6
 
 
+def _one_minus_cos_over_theta_sq(theta: float) -> float:
+    """(1 − cos θ)/θ² written as 2 sin²(θ/2)/θ²: no cancellation for small θ (the direct form
+    loses ≈ε/θ² relative, ≈1e-10 absolute in J_l just above the small-angle switch)."""
+    s = np.sin(0.5 * theta)
+    return 2.0 * s * s / (theta * theta)
+
+
 def hat(w: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix ``w^`` of a 3-vector, so that ``hat(w) @ v == cross(w, v)``."""
     w = np.asarray(w, dtype=float)
@@ -31,7 +38,7 @@ def exp(phi_rad: np.ndarray) -> np.ndarray:
         # Taylor series to second order; exact to machine precision here.
         return np.eye(3) + K + 0.5 * K @ K
     a = np.sin(theta) / theta
-    b = (1.0 - np.cos(theta)) / theta**2
+    b = _one_minus_cos_over_theta_sq(theta)
     return np.eye(3) + a * K + b * K @ K
 
 
@@ -42,8 +49,11 @@ def log(R: np.ndarray) -> np.ndarray:
     """
     R = np.asarray(R, dtype=float)
     cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(cos_theta))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # 2 sin θ · axis
+    sin_theta = 0.5 * float(np.linalg.norm(w))
+    # atan2 keeps θ accurate everywhere; arccos alone loses digits near 0 and π, and dividing
+    # w by sin(arccos(·)) then turns that into ≈1e-9 rad errors at π − 1e-3.
+    theta = float(np.arctan2(sin_theta, cos_theta))
     if theta < _SMALL_ANGLE_RAD:
         return 0.5 * w
     if np.pi - theta < 1e-3:
@@ -59,7 +69,7 @@ def log(R: np.ndarray) -> np.ndarray:
         sin_theta = 0.5 * float(np.dot(axis, w))
         theta = float(np.arctan2(sin_theta, cos_theta))
         return axis * theta
-    return w * (theta / (2.0 * np.sin(theta)))
+    return w * (theta / (2.0 * sin_theta))
 
 
 def left_jacobian(phi_rad: np.ndarray) -> np.ndarray:
@@ -69,7 +79,7 @@ def left_jacobian(phi_rad: np.ndarray) -> np.ndarray:
     K = hat(phi)
     if theta < _SMALL_ANGLE_RAD:
         return np.eye(3) + 0.5 * K + K @ K / 6.0
-    a = (1.0 - np.cos(theta)) / theta**2
+    a = _one_minus_cos_over_theta_sq(theta)
     b = (theta - np.sin(theta)) / theta**3
     return np.eye(3) + a * K + b * K @ K
 
