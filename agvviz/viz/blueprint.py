@@ -1,0 +1,86 @@
+"""The default viewer layout shipped inside every run ``.rrd``.
+
+::
+
+    ┌──────────────────────────────┬─────────────────────────┐
+    │ 3D world                     │ camera image + corners  │
+    │ (markers, truth vs estimate, │ (one tab per camera)    │
+    │  trajectories, frustum)      ├─────────────────────────┤
+    │                              │ LM cost per iteration   │
+    ├──────────────┬───────────────┼─────────────┬───────────┤
+    │ position err │ heading err   │ reproj RMS  │ summary / │
+    │ (+ rejected) │ (+ rejected)  │ (+ rejected)│ manifest /│
+    │              │               │             │ rejections│
+    └──────────────┴───────────────┴─────────────┴───────────┘
+"""
+
+from __future__ import annotations
+
+import rerun.blueprint as rrb
+
+from agvviz.viz import paths
+
+
+def _error_view(entity: str, name: str) -> rrb.TimeSeriesView:
+    """Time series of one error with the rejected-frame markers along its zero line."""
+    return rrb.TimeSeriesView(
+        origin="/",
+        contents=[entity, paths.ERROR_REJECTED],
+        name=name,
+        plot_legend=rrb.PlotLegend(visible=False),
+    )
+
+
+def default_blueprint(cam_names: list[str]) -> rrb.Blueprint:
+    """Build the default layout for a run with cameras ``cam_names`` (fits 1600×1000)."""
+    image_views = [
+        rrb.Spatial2DView(
+            origin=paths.image(cam_name),
+            name=f"camera {cam_name}: detected (cyan), reprojected (magenta)",
+        )
+        for cam_name in cam_names
+    ]
+    if not image_views:
+        image_panel = rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary")
+    elif len(image_views) == 1:
+        image_panel = image_views[0]
+    else:
+        image_panel = rrb.Tabs(*image_views)
+    world_view = rrb.Spatial3DView(
+        origin=paths.WORLD,
+        name="world: truth (green) vs camera estimate (orange)",
+        # Corner dots drawn in UI points would swamp the small frustum image: 2D view only.
+        contents=["+ $origin/**"]
+        + [f"- /{paths.detected(cam_name)}" for cam_name in cam_names]
+        + [f"- /{paths.reprojected(cam_name)}" for cam_name in cam_names],
+    )
+    lm_view = rrb.BarChartView(
+        origin=paths.LM_COST_PER_ITERATION,
+        name="LM cost per iteration (this frame)",
+        plot_legend=rrb.PlotLegend(visible=False),
+    )
+    documents = rrb.Tabs(
+        rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
+        rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        rrb.TextLogView(origin=paths.EVENTS_REJECTIONS, name="rejections"),
+        active_tab=0,
+    )
+    top = rrb.Horizontal(
+        world_view,
+        rrb.Vertical(image_panel, lm_view, row_shares=[0.68, 0.32]),
+        column_shares=[0.56, 0.44],
+    )
+    bottom = rrb.Horizontal(
+        _error_view(paths.ERROR_POSITION_M, "position error [m]"),
+        _error_view(paths.ERROR_HEADING_DEG, "heading error [deg]"),
+        _error_view(paths.ERROR_REPROJ_RMS_PX, "reprojection RMS [px]"),
+        documents,
+        column_shares=[0.25, 0.25, 0.22, 0.28],
+    )
+    return rrb.Blueprint(
+        rrb.Vertical(top, bottom, row_shares=[0.64, 0.36]),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_FRAME),
+        auto_views=False,
+    )

@@ -1,0 +1,152 @@
+"""Read a run ``.rrd`` back with Rerun's own chunk API (``rerun.chunk.RrdReader``).
+
+Used by the tests and by ``agvviz diff``. Entity paths are given and returned as in
+:mod:`agvviz.viz.paths` (no leading slash). Every function accepts a path or the
+:class:`RrdContents` from :func:`read_rrd` (open once, query many times); chunk data is
+loaded only for the entity asked for.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+from rerun.chunk import LazyStore, RrdReader
+
+from agvviz.viz import paths
+
+_ROW_ID = "rerun.controls.RowId"
+
+
+class RrdReadError(ValueError):
+    """The ``.rrd`` is missing, unreadable, or lacks the entity/component asked for."""
+
+
+@dataclass
+class RrdContents:
+    """An opened run ``.rrd``: its recording store and the entity paths it holds."""
+
+    path: Path
+    store: LazyStore
+    entity_paths: set[str]
+
+
+def read_rrd(path: str | os.PathLike) -> RrdContents:
+    """Open the recording in ``path`` (chunk data stays on disk until queried)."""
+    path = Path(path)
+    if not path.is_file():
+        raise RrdReadError(f"no .rrd file at {path}")
+    try:
+        store = RrdReader(path).store()
+    except (ValueError, OSError) as exc:
+        raise RrdReadError(f"cannot read {path} as a Rerun recording with a footer: {exc}") from exc
+    entity_paths = {p.lstrip("/") for p in store.schema().entity_paths()}
+    return RrdContents(path=path, store=store, entity_paths=entity_paths)
+
+
+def _contents(src: str | os.PathLike | RrdContents) -> RrdContents:
+    return src if isinstance(src, RrdContents) else read_rrd(src)
+
+
+def _int_times(batch: pa.RecordBatch) -> pa.RecordBatch:
+    """``batch`` with timestamp/duration timelines as int64 nanoseconds (not datetime objects)."""
+    columns = [
+        col.cast(pa.int64()) if pa.types.is_timestamp(col.type) or pa.types.is_duration(col.type) else col
+        for col in batch.columns
+    ]
+    return pa.RecordBatch.from_arrays(columns, names=batch.schema.names)
+
+
+def _rows(src: str | os.PathLike | RrdContents, entity: str, component: str) -> list[dict]:
+    """Rows of ``entity`` that carry ``component``, each as {column name: value} (row id,
+    timelines present on that row's chunk, the component), sorted by row id = logging order."""
+    contents = _contents(src)
+    entity = entity.lstrip("/")
+    if entity not in contents.entity_paths:
+        raise RrdReadError(f"{contents.path} has no entity {entity!r}")
+    rows = []
+    for chunk in contents.store.stream().filter(content=f"/{entity}", components=component):
+        if chunk.entity_path.lstrip("/") == entity:
+            rows += _int_times(chunk.to_record_batch()).to_pylist()
+    rows = [row for row in rows if row.get(component) is not None]
+    if not rows:
+        raise RrdReadError(f"{contents.path}: entity {entity!r} has no {component!r} data")
+    return sorted(rows, key=lambda row: row[_ROW_ID])
+
+
+def scalar_series(
+    src: str | os.PathLike | RrdContents, entity: str, timeline: str = paths.TIMELINE_FRAME
+) -> tuple[np.ndarray, np.ndarray]:
+    """One-value Scalars of ``entity`` over ``timeline``, in logging order.
+
+    Returns
+    -------
+    indices : (N,) int64
+        Values of ``timeline``: frame index by default, ``lm_iter`` for solver columns,
+        integer nanoseconds for ``time``.
+    values : (N,) float64
+    """
+    indices, values = [], []
+    for row in _rows(src, entity, "Scalars:scalars"):
+        if row.get(timeline) is None:
+            raise RrdReadError(f"entity {entity!r} has rows without timeline {timeline!r}")
+        scalars = row["Scalars:scalars"]
+        if len(scalars) != 1:
+            raise RrdReadError(f"entity {entity!r}: expected one scalar per row, got {len(scalars)}")
+        indices.append(row[timeline])
+        values.append(scalars[0])
+    return np.array(indices, dtype=np.int64), np.array(values, dtype=np.float64)
+
+
+def points2d(src: str | os.PathLike | RrdContents, entity: str) -> dict[int, np.ndarray]:
+    """Points2D positions of ``entity`` per frame (the last logged in each frame), (N, 2) px.
+
+    Frames where an empty batch was logged map to a (0, 2) array.
+    """
+    return {
+        int(row[paths.TIMELINE_FRAME]): np.array(row["Points2D:positions"], dtype=np.float64).reshape(-1, 2)
+        for row in _rows(src, entity, "Points2D:positions")
+    }
+
+
+def encoded_images(src: str | os.PathLike | RrdContents, entity: str) -> dict[int, tuple[bytes, str]]:
+    """EncodedImage bytes and media type of ``entity`` per frame (the last logged in each frame)."""
+    contents = _contents(src)
+    media = {
+        int(row[paths.TIMELINE_FRAME]): row["EncodedImage:media_type"][0]
+        for row in _rows(contents, entity, "EncodedImage:media_type")
+    }
+    result = {}
+    for row in _rows(contents, entity, "EncodedImage:blob"):
+        frame = int(row[paths.TIMELINE_FRAME])
+        result[frame] = (bytes(row["EncodedImage:blob"][0]), media[frame])
+    return result
+
+
+def text_document(src: str | os.PathLike | RrdContents, entity: str) -> str:
+    """Text of the (last logged) TextDocument of ``entity``, e.g. ``run/summary``."""
+    return _rows(src, entity, "TextDocument:text")[-1]["TextDocument:text"][0]
+
+
+def document_json(src: str | os.PathLike | RrdContents, entity: str) -> dict:
+    """The JSON block of a run document (``run/manifest`` or ``run/summary``) as a dict."""
+    text = text_document(src, entity)
+    start = text.find("```json\n")
+    end = text.find("\n```", start + 1)
+    if start < 0 or end < 0:
+        raise RrdReadError(f"entity {entity!r} holds no ```json block")
+    return json.loads(text[start + len("```json\n") : end])
+
+
+def text_logs(src: str | os.PathLike | RrdContents, entity: str) -> list[tuple[int, str, str]]:
+    """TextLog entries of ``entity`` as (frame, level, text), in logging order."""
+    contents = _contents(src)
+    levels = {row[_ROW_ID]: row["TextLog:level"][0] for row in _rows(contents, entity, "TextLog:level")}
+    return [
+        (int(row[paths.TIMELINE_FRAME]), levels.get(row[_ROW_ID], ""), row["TextLog:text"][0])
+        for row in _rows(contents, entity, "TextLog:text")
+    ]
