@@ -1,0 +1,425 @@
+"""QR code detection and sub-pixel corner refinement (OpenCV). No file I/O, no printing.
+
+Input frames come from an ideal pinhole camera (the pipeline undistorts first). Corners are in
+OpenCV pixel coordinates (integer coordinates at pixel centres, the image's outer edge at -0.5)
+and in the order of the code as printed: TL, TR, BR, BL, where TL, TR and BL carry the finder
+patterns. They are the symbol's outer corners (the quiet zone is not part of the symbol).
+
+Refinement methods (``refine=``):
+
+``"ecc"``
+    Needs the decoded text. Template modules: the text re-encoded with ``cv2.QRCodeEncoder``
+    (OpenCV's default parameters first, then the other error-correction levels), checked
+    against the image by sampling it at the module centres the raw corners predict; when no
+    re-encoding matches (a code printed by another encoder, with another mask or mode), the
+    module grid the detector read while decoding, checked the same way (``refine_note`` says
+    so). The template is the symbol plus a one-module light border, at about the image's
+    pixels per module; a homography initialised from the detector's corners is aligned to a
+    local crop with ``cv2.findTransformECC(MOTION_HOMOGRAPHY)``, and the refined corners are the
+    template's symbol corners mapped through it.
+``"subpix"``
+    ``cv2.cornerSubPix`` on the three finder-pattern corners (TL, TR, BL: each is the outer
+    corner of a dark 7×7 finder square against the light quiet zone), with a window of about
+    0.6 modules so the finder's inner edges stay outside it. The BR corner has no finder
+    pattern (its module may be light, and when it is dark the neighbouring modules pull
+    cornerSubPix off by up to 4 px on rendered codes), so BR is left as the detector gave it.
+    Use ``"ecc"`` when all four corners matter.
+``"none"``
+    The detector's corners.
+
+When the requested method fails (ECC does not converge, its correlation is low, a corner moves
+more than :data:`MAX_REFINE_SHIFT_PX`, or the code was not decoded), the next method down the
+list ecc → subpix → none is applied; ``refine_method`` says what was applied, ``refine_ok`` is
+False and ``refine_note`` says why.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+#: Accepted values of ``refine``, from most to least accurate.
+REFINE_METHODS = ("ecc", "subpix", "none")
+#: A refinement that moves any corner further than this (pixels) is rejected.
+MAX_REFINE_SHIFT_PX = 4.0
+#: Smallest ECC correlation coefficient accepted after alignment.
+ECC_MIN_CORRELATION = 0.7
+#: Smallest correlation between a re-encoded symbol and the image sampled at module centres.
+TEMPLATE_MIN_CORRELATION = 0.6
+#: Correlation at which a re-encoded symbol is taken without trying further levels.
+TEMPLATE_GOOD_CORRELATION = 0.8
+#: Light border (modules) drawn around the template symbol so its outer edges constrain ECC.
+TEMPLATE_BORDER_MODULES = 1
+#: Template pixels per module are the image's pixels per module, clamped to this range.
+TEMPLATE_PX_PER_MODULE_RANGE = (3, 12)
+#: Module count assumed for sizing the cornerSubPix window when the code has no template
+#: (version 6; a larger guess only makes the window smaller).
+ASSUMED_MODULES_UNDECODED = 41
+
+_ECC_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-5)
+_ECC_GAUSS_FILTER_SIZE = 3
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-3)
+_CORRECTION_LEVELS = (
+    cv2.QRCODE_ENCODER_CORRECT_LEVEL_L,  # OpenCV's default
+    cv2.QRCODE_ENCODER_CORRECT_LEVEL_M,
+    cv2.QRCODE_ENCODER_CORRECT_LEVEL_Q,
+    cv2.QRCODE_ENCODER_CORRECT_LEVEL_H,
+)
+
+
+@dataclass
+class QrDetection:
+    """One QR code found in a frame.
+
+    Attributes
+    ----------
+    text : str or None
+        Decoded text, None when the code was found but not decoded.
+    corners_px : np.ndarray, shape (4, 2)
+        Refined symbol corners TL, TR, BR, BL (as printed), OpenCV pixel convention.
+    raw_corners_px : np.ndarray, shape (4, 2)
+        The corners as OpenCV's detector returned them.
+    refine_method : str
+        What was applied to get ``corners_px``: ``"ecc"``, ``"subpix"`` or ``"none"``.
+    refine_ok : bool
+        True when the requested refinement was applied; False after a fallback.
+    refine_note : str
+        Why a fallback happened, or that the ECC template came from the detector's module grid
+        rather than the re-encoded text; empty otherwise.
+    """
+
+    text: str | None
+    corners_px: np.ndarray
+    raw_corners_px: np.ndarray
+    refine_method: str
+    refine_ok: bool
+    refine_note: str = ""
+
+
+def detect_qr_codes(
+    gray: np.ndarray, refine: str = "ecc", *, fallback_detectors: bool = True
+) -> list[QrDetection]:
+    """Detect, decode and refine every QR code in a grayscale frame.
+
+    Parameters
+    ----------
+    gray : np.ndarray, shape (H, W), uint8
+        Undistorted grayscale frame.
+    refine : {"ecc", "subpix", "none"}
+        Corner refinement (module docstring).
+    fallback_detectors : bool
+        When ``QRCodeDetector.detectAndDecodeMulti`` finds nothing or leaves a code undecoded,
+        also try ``QRCodeDetector.detectAndDecode`` and ``QRCodeDetectorAruco`` and keep what
+        they decode. Costs extra time on such frames (and on frames without codes).
+
+    Returns
+    -------
+    list of QrDetection
+        Empty when nothing was found. Never raises on image content.
+
+    Raises
+    ------
+    ValueError
+        ``gray`` is not a non-empty 2-D uint8 array, or ``refine`` is unknown.
+    """
+    if not isinstance(gray, np.ndarray) or gray.dtype != np.uint8 or gray.ndim != 2:
+        description = (
+            f"{gray.dtype} array of shape {gray.shape}"
+            if isinstance(gray, np.ndarray)
+            else type(gray).__name__
+        )
+        raise ValueError(
+            f"gray must be a 2-D uint8 grayscale image, got {description}; "
+            "convert with cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) first"
+        )
+    if gray.shape[0] < 21 or gray.shape[1] < 21:
+        raise ValueError(f"gray is too small to hold a QR code: shape {gray.shape}")
+    if refine not in REFINE_METHODS:
+        raise ValueError(f"refine must be one of {REFINE_METHODS}, got {refine!r}")
+    gray = np.ascontiguousarray(gray)
+    return [_refine(gray, code, refine) for code in _find_codes(gray, fallback_detectors)]
+
+
+def qr_modules(text: str, correction_level: int = cv2.QRCODE_ENCODER_CORRECT_LEVEL_L) -> np.ndarray:
+    """The symbol ``cv2.QRCodeEncoder`` makes for ``text``, without its quiet zone.
+
+    Parameters
+    ----------
+    text : str
+        Payload to encode (OpenCV's default mode selection).
+    correction_level : int
+        ``cv2.QRCODE_ENCODER_CORRECT_LEVEL_*``; L is OpenCV's default.
+
+    Returns
+    -------
+    np.ndarray, shape (n, n), bool
+        True for dark modules; n = 17 + 4·version.
+
+    Raises
+    ------
+    cv2.error
+        When OpenCV cannot encode ``text``.
+    """
+    return _encoded_symbol(text, correction_level).copy()
+
+
+@functools.lru_cache(maxsize=256)
+def _encoded_symbol(text: str, correction_level: int) -> np.ndarray:
+    """Cached :func:`qr_modules` (one encode costs ~15 ms; a replay sees the same codes often)."""
+    params = cv2.QRCodeEncoder.Params()
+    params.correction_level = correction_level
+    image = cv2.QRCodeEncoder.create(params).encode(text)
+    dark = image < 128
+    rows = np.flatnonzero(dark.any(axis=1))
+    cols = np.flatnonzero(dark.any(axis=0))
+    symbol = dark[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    symbol.setflags(write=False)
+    return symbol
+
+
+@dataclass
+class _RawCode:
+    """What a detector reported for one code."""
+
+    text: str | None
+    corners_px: np.ndarray  # (4, 2) TL, TR, BR, BL
+    modules_seen: np.ndarray | None  # (n, n) bool, dark modules as the detector read them
+
+
+def _find_codes(gray: np.ndarray, fallback_detectors: bool) -> list[_RawCode]:
+    """Every code in the frame, primary detector first, fallbacks merged in."""
+    found = _run_detector(cv2.QRCodeDetector().detectAndDecodeMulti, gray)
+    if not fallback_detectors or (found and all(code.text is not None for code in found)):
+        return found
+    single = cv2.QRCodeDetector()
+    for detector in (
+        lambda image: _single_as_multi(single, image),
+        cv2.QRCodeDetectorAruco().detectAndDecodeMulti,
+    ):
+        for code in _run_detector(detector, gray):
+            if code.text is None:
+                continue
+            centre = tuple(float(c) for c in code.corners_px.mean(axis=0))
+            same = [
+                i
+                for i, known in enumerate(found)
+                if cv2.pointPolygonTest(known.corners_px.astype(np.float32), centre, False) >= 0
+            ]
+            if not same:
+                found.append(code)
+            elif found[same[0]].text is None:
+                found[same[0]] = code
+    return found
+
+
+def _single_as_multi(detector: cv2.QRCodeDetector, gray: np.ndarray):
+    """``detectAndDecode`` with ``detectAndDecodeMulti``'s return layout."""
+    text, points, straight_code = detector.detectAndDecode(gray)
+    if points is None:
+        return False, (), None, None
+    return True, (text,), points.reshape(1, 4, 2), (straight_code,)
+
+
+def _run_detector(detect_and_decode_multi, gray: np.ndarray) -> list[_RawCode]:
+    try:
+        ok, texts, points, straight_codes = detect_and_decode_multi(gray)
+    except cv2.error:
+        return []
+    if not ok or points is None:
+        return []
+    corners_all = np.asarray(points, dtype=float).reshape(-1, 4, 2)
+    if straight_codes is None or len(straight_codes) != len(corners_all):
+        straight_codes = [None] * len(corners_all)
+    found = []
+    for text, corners_px, straight_code in zip(texts, corners_all, straight_codes):
+        if np.all(np.isfinite(corners_px)) and _is_convex(corners_px):
+            found.append(_RawCode(text or None, corners_px, _module_grid(straight_code)))
+    return found
+
+
+def _module_grid(straight_code: np.ndarray | None) -> np.ndarray | None:
+    """The detector's binarised code as a dark-module grid, if it has a QR symbol's size."""
+    if straight_code is None or straight_code.ndim != 2:
+        return None
+    n = straight_code.shape[0]
+    if straight_code.shape != (n, n) or n < 21 or (n - 17) % 4 != 0:
+        return None
+    return straight_code < 128
+
+
+def _is_convex(corners_px: np.ndarray) -> bool:
+    edges = np.roll(corners_px, -1, axis=0) - corners_px
+    following = np.roll(edges, -1, axis=0)
+    turns = edges[:, 0] * following[:, 1] - edges[:, 1] * following[:, 0]
+    return bool(np.all(turns > 0) or np.all(turns < 0))
+
+
+def _refine(gray: np.ndarray, code: _RawCode, refine: str) -> QrDetection:
+    """Apply ``refine``, falling back ecc → subpix → none."""
+    notes = []
+    symbol, symbol_note = _symbol_for(gray, code) if refine != "none" else (None, "")
+    corners_px = None
+    method = refine
+    if method == "ecc":
+        if symbol is None:
+            notes.append(f"ecc: {symbol_note}")
+            method = "subpix"
+        else:
+            if symbol_note:
+                notes.append(symbol_note)
+            corners_px, note = _refine_ecc(gray, symbol, code.corners_px)
+            if corners_px is None:
+                notes.append(f"ecc: {note}")
+                method = "subpix"
+    if method == "subpix":
+        corners_px, note = _refine_subpix(gray, code.corners_px, symbol)
+        if corners_px is None:
+            notes.append(f"subpix: {note}")
+            method = "none"
+    if method == "none":
+        corners_px = code.corners_px.copy()
+    return QrDetection(
+        text=code.text,
+        corners_px=corners_px,
+        raw_corners_px=code.corners_px,
+        refine_method=method,
+        refine_ok=method == refine,
+        refine_note="; ".join(notes),
+    )
+
+
+def _symbol_for(gray: np.ndarray, code: _RawCode) -> tuple[np.ndarray | None, str]:
+    """The module grid of a decoded code, checked against the image, and a note on its source.
+
+    First choice: ``text`` re-encoded by OpenCV (exact; error-correction levels tried in order,
+    OpenCV's default L first; the first correlating at ``TEMPLATE_GOOD_CORRELATION`` wins, else
+    the best above ``TEMPLATE_MIN_CORRELATION``). Second: the grid the detector read while
+    decoding (codes printed by other encoders use other masks or modes), if it correlates.
+    """
+    if code.text is None:
+        return None, "code not decoded, no template"
+    best_symbol, best_correlation = None, TEMPLATE_MIN_CORRELATION
+    for level in _CORRECTION_LEVELS:
+        try:
+            symbol = _encoded_symbol(code.text, level)
+        except cv2.error:
+            break
+        correlation = _module_correlation(gray, symbol, code.corners_px)
+        if correlation >= TEMPLATE_GOOD_CORRELATION:
+            return symbol, ""
+        if correlation > best_correlation:
+            best_symbol, best_correlation = symbol, correlation
+    if best_symbol is not None:
+        return best_symbol, ""
+    if code.modules_seen is not None:
+        if _module_correlation(gray, code.modules_seen, code.corners_px) > TEMPLATE_MIN_CORRELATION:
+            return code.modules_seen, "template from the detector's module grid (re-encoding differs)"
+    return None, "no template: neither re-encoding nor the detector's grid matches the image"
+
+
+def _module_correlation(gray: np.ndarray, symbol: np.ndarray, raw_corners_px: np.ndarray) -> float:
+    """Correlation of module darkness with the image sampled at the predicted module centres.
+
+    A wrong version or mask correlates only through the shared finder patterns (≈0.2).
+    """
+    n = len(symbol)
+    H_image_module = cv2.getPerspectiveTransform(
+        np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=np.float32),
+        raw_corners_px.astype(np.float32),
+    )
+    centres = np.stack(np.meshgrid(np.arange(n), np.arange(n)), axis=-1).reshape(1, -1, 2) + 0.5
+    centres_px = cv2.perspectiveTransform(centres.astype(np.float32), H_image_module)
+    samples = cv2.remap(
+        gray, centres_px[..., 0], centres_px[..., 1], cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    ).reshape(-1).astype(float)
+    darkness = symbol.reshape(-1).astype(float)
+    if samples.std() == 0 or darkness.std() == 0:
+        return 0.0
+    return -float(np.corrcoef(samples, darkness)[0, 1])
+
+
+def _refine_ecc(
+    gray: np.ndarray, symbol: np.ndarray, raw_corners_px: np.ndarray
+) -> tuple[np.ndarray | None, str]:
+    """ECC-aligned symbol corners, or (None, reason)."""
+    n = len(symbol)
+    side_px = _mean_side_px(raw_corners_px)
+    low, high = TEMPLATE_PX_PER_MODULE_RANGE
+    scale = int(np.clip(round(side_px / n), low, high))
+    border = TEMPLATE_BORDER_MODULES
+    padded = np.pad(symbol, border, constant_values=False)
+    template = np.where(np.kron(padded, np.ones((scale, scale), dtype=bool)), 0.0, 255.0)
+    template = template.astype(np.float32)
+    # Template pixel centres are integers, so module coordinate m sits at (m + border)·scale − 0.5.
+    symbol_corners_template = (
+        np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=float) + border
+    ) * scale - 0.5
+
+    margin_px = (border + 1) * side_px / n + 4
+    x0 = int(max(np.floor(raw_corners_px[:, 0].min() - margin_px), 0))
+    y0 = int(max(np.floor(raw_corners_px[:, 1].min() - margin_px), 0))
+    x1 = int(min(np.ceil(raw_corners_px[:, 0].max() + margin_px) + 1, gray.shape[1]))
+    y1 = int(min(np.ceil(raw_corners_px[:, 1].max() + margin_px) + 1, gray.shape[0]))
+    crop = gray[y0:y1, x0:x1].astype(np.float32)
+    offset = np.array([x0, y0], dtype=float)
+
+    H_crop_template = cv2.getPerspectiveTransform(
+        symbol_corners_template.astype(np.float32), (raw_corners_px - offset).astype(np.float32)
+    ).astype(np.float32)
+    try:
+        correlation, H_crop_template = cv2.findTransformECC(
+            template, crop, H_crop_template, cv2.MOTION_HOMOGRAPHY, _ECC_CRITERIA, None,
+            _ECC_GAUSS_FILTER_SIZE,
+        )
+    except cv2.error as exc:
+        return None, f"did not converge ({_last_line(exc)})"
+    if not np.isfinite(correlation) or correlation < ECC_MIN_CORRELATION:
+        return None, f"correlation {correlation:.2f} < {ECC_MIN_CORRELATION}"
+    corners_px = cv2.perspectiveTransform(
+        symbol_corners_template.reshape(1, 4, 2), H_crop_template.astype(float)
+    ).reshape(4, 2) + offset
+    return _accept_shift(corners_px, raw_corners_px)
+
+
+def _refine_subpix(
+    gray: np.ndarray, raw_corners_px: np.ndarray, symbol: np.ndarray | None
+) -> tuple[np.ndarray | None, str]:
+    """cornerSubPix on the finder corners TL, TR, BL; BR stays as detected. Or (None, reason).
+
+    The window half-size is 0.6 modules so the finder's inner edges (one module in) stay out.
+    """
+    modules = len(symbol) if symbol is not None else ASSUMED_MODULES_UNDECODED
+    half_window = int(np.clip(round(0.6 * _mean_side_px(raw_corners_px) / modules), 2, 10))
+    finder_index = [0, 1, 3]
+    initial = raw_corners_px[finder_index].astype(np.float32).reshape(-1, 1, 2)
+    try:
+        refined = cv2.cornerSubPix(
+            gray, initial, (half_window, half_window), (-1, -1), _SUBPIX_CRITERIA
+        )
+    except cv2.error as exc:
+        return None, f"cornerSubPix failed ({_last_line(exc)})"
+    corners_px = raw_corners_px.copy()
+    corners_px[finder_index] = refined.reshape(-1, 2)
+    return _accept_shift(corners_px, raw_corners_px)
+
+
+def _mean_side_px(corners_px: np.ndarray) -> float:
+    return float(np.mean(np.linalg.norm(np.roll(corners_px, -1, axis=0) - corners_px, axis=1)))
+
+
+def _last_line(exc: Exception) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[-1][:100] if lines else type(exc).__name__
+
+
+def _accept_shift(corners_px: np.ndarray, raw_corners_px: np.ndarray) -> tuple[np.ndarray | None, str]:
+    if not np.all(np.isfinite(corners_px)):
+        return None, "non-finite corners"
+    shift_px = float(np.max(np.linalg.norm(corners_px - raw_corners_px, axis=1)))
+    if shift_px > MAX_REFINE_SHIFT_PX:
+        return None, f"moved a corner {shift_px:.1f} px > {MAX_REFINE_SHIFT_PX} px"
+    return corners_px, ""
