@@ -1,0 +1,237 @@
+"""qr_floor — paper 000: an AGV with a forward, downward-tilted camera drives over a floor grid
+of QR codes whose payloads carry their own world coordinates.
+
+World: codes on a square grid (``grid_spacing_m``) covering the track with a margin, each
+rotated in the floor plane by a seeded multiple of 90°, printed black on white with a 4-module
+quiet zone, on a grey floor. Path: a rounded rectangle (straights and quarter turns) driven
+at ``speed_mps``. Camera ``front`` sits ``cam_height_m`` above the AGV origin and looks
+forward so its optical axis meets the floor ``cam_lookahead_m`` ahead (paper 000 §7: 1500 mm
+height, 1000 mm horizontal distance).
+
+Recorded: calibration, ``/tf_static`` (agv → cam_front) and the marker map once at the first
+time stamp; then per frame ``/agv/ground_truth`` (world), ``/agv/odometry`` (odom) and the
+JPEG frame, all at the frame's log time, in that order.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
+from agvviz.geometry.camera import PinholeCamera
+from agvviz.sim.qr_texture import PAYLOAD_RESOLUTION_M, QUIET_ZONE_MODULES, make_floor_code
+from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
+from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track
+
+NAME = "qr_floor"
+DESCRIPTION = "Paper 000: AGV with a tilted camera over a floor grid of QR codes carrying their world coordinates"
+
+CAM_NAME = "front"
+#: Codes cover the track's outer extent plus this margin on every side (the camera sees up to
+#: ~2.7 m ahead and ~1.7 m sideways with the default mount).
+GRID_MARGIN_M = 3.0
+#: Smallest QR symbol (version 1) is 21 modules: the label (symbol + quiet zone) is at most
+#: this many times the symbol side.
+MAX_LABEL_TO_SYMBOL = (21 + 2 * QUIET_ZONE_MODULES) / 21
+
+
+def _opt(default, help_text: str):
+    return field(default=default, metadata={"help": help_text})
+
+
+@dataclass(frozen=True)
+class Options:
+    duration_s: float = _opt(20.0, "recording length in seconds")
+    rate_hz: float = _opt(10.0, "camera frame rate (also ground-truth and odometry rate)")
+    speed_mps: float = _opt(1.0, "AGV speed along the track in m/s")
+    track_length_m: float = _opt(6.0, "length of the track's straights along world x")
+    track_width_m: float = _opt(3.0, "length of the track's straights along world y")
+    turn_radius_m: float = _opt(1.0, "radius of the track's quarter turns")
+    cam_height_m: float = _opt(1.5, "camera height above the floor")
+    cam_lookahead_m: float = _opt(1.0, "horizontal distance from the camera to where its optical axis meets the floor")
+    code_size_m: float = _opt(0.5, "QR symbol side between its outer vertices (quiet zone excluded)")
+    grid_spacing_m: float = _opt(1.5, "distance between neighbouring code centres")
+    with_midpoints: bool = _opt(False, "payload carries the 4 edge midpoints too (8 points)")
+    width_px: int = _opt(1280, "image width")
+    height_px: int = _opt(1024, "image height")
+    focal_px: float = _opt(1000.0, "focal length fx = fy in pixels (principal point at the image centre)")
+    k1: float = _opt(-0.05, "radial distortion k1 (OpenCV plumb_bob)")
+    k2: float = _opt(0.01, "radial distortion k2 (OpenCV plumb_bob)")
+    blur_sigma_px: float = _opt(0.8, "Gaussian optical blur sigma in pixels")
+    noise_sigma_dn: float = _opt(2.0, "Gaussian sensor noise sigma in digital numbers")
+    jpeg_quality: int = _opt(95, "JPEG quality 1..100")
+    supersample: int = _opt(4, "s x s samples per pixel for area integration")
+    odom_scale_error: float = _opt(0.01, "odometry distance scale error (0.01 = +1 %)")
+    odom_heading_bias_deg_per_s: float = _opt(0.1, "odometry heading drift in deg/s")
+    odom_step_noise_m: float = _opt(0.002, "odometry position noise per step and axis (sigma, m)")
+    odom_heading_noise_deg: float = _opt(0.05, "odometry heading noise per step (sigma, deg)")
+
+
+#: Accepted Python types per annotated option type (an int is a valid float; a bool is neither).
+_FIELD_TYPES = {"float": (float, int), "int": (int,), "bool": (bool,), "str": (str,)}
+
+
+def validate(options: Options) -> None:
+    """Raise ``ValueError`` naming the first impossible option and what to do about it."""
+    for f in fields(Options):
+        value = getattr(options, f.name)
+        expected = _FIELD_TYPES[f.type]
+        if isinstance(value, bool) != (bool in expected) or not isinstance(value, expected):
+            raise ValueError(f"{f.name} must be of type {f.type}, got {value!r}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"{f.name} must be a finite number, got {value}")
+    o = options
+    positive = ("duration_s", "rate_hz", "turn_radius_m", "code_size_m", "grid_spacing_m", "focal_px")
+    for name in positive:
+        if getattr(o, name) <= 0:
+            raise ValueError(f"{name} must be > 0, got {getattr(o, name)}")
+    non_negative = (
+        "speed_mps", "track_length_m", "track_width_m", "cam_lookahead_m", "blur_sigma_px",
+        "noise_sigma_dn", "odom_step_noise_m", "odom_heading_noise_deg",
+    )
+    for name in non_negative:
+        if getattr(o, name) < 0:
+            raise ValueError(f"{name} must be ≥ 0, got {getattr(o, name)}")
+    if round(o.duration_s * o.rate_hz) < 1:
+        raise ValueError(f"duration_s · rate_hz = {o.duration_s * o.rate_hz:g} < 1: no frame to record")
+    if o.cam_height_m <= 0:
+        raise ValueError(f"cam_height_m must be > 0 (camera above the floor), got {o.cam_height_m}")
+    if o.width_px < 16 or o.height_px < 16:
+        raise ValueError(f"image must be at least 16×16 px, got {o.width_px}×{o.height_px}")
+    if not 1 <= o.jpeg_quality <= 100:
+        raise ValueError(f"jpeg_quality must lie in 1..100, got {o.jpeg_quality}")
+    if not 1 <= o.supersample <= 16:
+        raise ValueError(f"supersample must lie in 1..16, got {o.supersample}")
+    if abs(o.odom_scale_error) >= 0.5:
+        raise ValueError(f"odom_scale_error must lie in (-0.5, 0.5), got {o.odom_scale_error}")
+    for name, value, step in (("code_size_m", o.code_size_m / 2.0, "0.2 mm"), ("grid_spacing_m", o.grid_spacing_m, "0.1 mm")):
+        if abs(value / PAYLOAD_RESOLUTION_M - round(value / PAYLOAD_RESOLUTION_M)) > 1e-6:
+            raise ValueError(
+                f"{name} must be a multiple of {step} so code vertices sit on the payload's 0.1 mm grid"
+            )
+    if o.code_size_m * MAX_LABEL_TO_SYMBOL >= o.grid_spacing_m:
+        raise ValueError(
+            f"codes would overlap: a {o.code_size_m} m code with its quiet zone is up to "
+            f"{o.code_size_m * MAX_LABEL_TO_SYMBOL:.3f} m wide, grid_spacing_m is {o.grid_spacing_m}; "
+            "increase grid_spacing_m or decrease code_size_m"
+        )
+    # The lens model must be one-to-one over the image: d(r·(1 + k1 r² + k2 r⁴))/dr > 0 up to
+    # beyond the image corner's normalised radius.
+    corner_r = math.hypot(o.width_px / 2.0, o.height_px / 2.0) / o.focal_px
+    r = np.linspace(0.0, 1.5 * corner_r, 200)
+    if np.any(1.0 + 3.0 * o.k1 * r**2 + 5.0 * o.k2 * r**4 <= 0.0):
+        raise ValueError(
+            f"k1 = {o.k1}, k2 = {o.k2} fold the lens model over inside the image "
+            f"(normalised corner radius {corner_r:.2f}); use smaller distortion"
+        )
+
+
+def make_camera(options: Options) -> PinholeCamera:
+    """The ``front`` camera: fx = fy = focal_px, principal point at the image centre."""
+    K = np.array(
+        [
+            [options.focal_px, 0.0, (options.width_px - 1) / 2.0],
+            [0.0, options.focal_px, (options.height_px - 1) / 2.0],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    return PinholeCamera(K, np.array([options.k1, options.k2, 0.0, 0.0, 0.0]), options.width_px, options.height_px)
+
+
+def make_track(options: Options) -> RoundedRectangleTrack:
+    return RoundedRectangleTrack(options.track_length_m, options.track_width_m, options.turn_radius_m)
+
+
+def build_scene(options: Options, rng: np.random.Generator) -> FloorScene:
+    """The floor: codes ``Q000``, ``Q001``… on the grid (row-major from the lower-left), each
+    rotated by a random multiple of 90°, and seeded floor/ink/paper grey levels.
+
+    Draws one integer per code, then three uniforms, from ``rng``.
+    """
+    track = make_track(options)
+    half_x = options.track_length_m / 2.0 + options.turn_radius_m + GRID_MARGIN_M
+    half_y = options.track_width_m / 2.0 + options.turn_radius_m + GRID_MARGIN_M
+    spacing_mm = round(options.grid_spacing_m * 1e4) / 10.0  # exact on the 0.1 mm grid
+    nx = int(half_x // options.grid_spacing_m)
+    ny = int(half_y // options.grid_spacing_m)
+    centers = [
+        (track.center_xy_m[0] + i * spacing_mm / 1000.0, track.center_xy_m[1] + j * spacing_mm / 1000.0)
+        for j in range(-ny, ny + 1)
+        for i in range(-nx, nx + 1)
+    ]
+    quarter_turns = rng.integers(0, 4, size=len(centers))
+    codes = tuple(
+        make_floor_code(f"Q{k:03d}", center, int(turns), options.code_size_m, options.with_midpoints)
+        for k, (center, turns) in enumerate(zip(centers, quarter_turns))
+    )
+    floor_dn, black_dn, white_dn = rng.uniform([110.0, 20.0, 210.0], [140.0, 30.0, 230.0])
+    return FloorScene(codes=codes, floor_dn=float(floor_dn), black_dn=float(black_dn), white_dn=float(white_dn))
+
+
+def marker_map(scene: FloorScene) -> dict:
+    """The ``agvviz.MarkerMap`` message of the scene's codes."""
+    return {
+        "dictionary": "qr",
+        "markers": [
+            {
+                "id": code.marker_id,
+                "side_m": code.side_m,
+                "corners_world_m": code.points_world_m[:4].tolist(),
+                "payload": code.payload,
+            }
+            for code in scene.codes
+        ],
+    }
+
+
+def record(
+    writer,
+    options: Options,
+    seed: int,
+    progress: Callable[[int, int], None] | None = None,
+) -> None:
+    """Write the whole recording to ``writer`` (an open :class:`RecordingWriter`).
+
+    Random draws, all from ``np.random.default_rng(seed)`` in this order: scene, odometry,
+    then the sensor noise of each frame — the same seed and options give identical messages.
+    """
+    validate(options)
+    rng = np.random.default_rng(seed)
+    scene = build_scene(options, rng)
+    camera = make_camera(options)
+    T_agv_cam = forward_camera_mount(options.cam_height_m, options.cam_lookahead_m)
+    trajectory = sample_track(make_track(options), options.speed_mps, options.rate_hz, options.duration_s)
+    T_odom_agv = dead_reckoning(
+        trajectory,
+        rng,
+        scale_error=options.odom_scale_error,
+        heading_bias_rad_per_s=math.radians(options.odom_heading_bias_deg_per_s),
+        step_noise_m=options.odom_step_noise_m,
+        heading_noise_rad=math.radians(options.odom_heading_noise_deg),
+    )
+    t0_ns = int(trajectory.log_time_ns[0])
+    writer.write_calibration(CAM_NAME, camera, t0_ns)
+    writer.write_tf_static([(AGV_FRAME, camera_frame(CAM_NAME), T_agv_cam)], t0_ns)
+    writer.write_marker_map(marker_map(scene), t0_ns)
+    total = len(trajectory.log_time_ns)
+    for k in range(total):
+        t_ns = int(trajectory.log_time_ns[k])
+        T_world_agv = trajectory.T_world_agv[k]
+        writer.write_pose("/agv/ground_truth", T_world_agv, WORLD_FRAME, t_ns)
+        writer.write_pose("/agv/odometry", T_odom_agv[k], "odom", t_ns)
+        image = render_frame(
+            scene,
+            camera,
+            T_world_agv @ T_agv_cam,
+            rng,
+            supersample=options.supersample,
+            blur_sigma_px=options.blur_sigma_px,
+            noise_sigma_dn=options.noise_sigma_dn,
+        )
+        writer.write_image(CAM_NAME, encode_jpeg(image, options.jpeg_quality), "jpeg", t_ns)
+        if progress is not None:
+            progress(k + 1, total)
