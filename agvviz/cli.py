@@ -26,7 +26,7 @@ app = typer.Typer(
     "Quick start:  agvviz demo   (records qr_floor, runs the lm solver, writes an .rrd).",
 )
 console = Console()
-err_console = Console(stderr=True)
+err_console = Console(stderr=True, soft_wrap=True)
 
 SET_HELP = "key=value (repeatable); see `agvviz scenarios` / `agvviz run --help` for keys"
 
@@ -155,7 +155,7 @@ def _run(recording: Path, solver: Optional[str], sets: list[str], out: Optional[
         _fail(str(exc))
     _print_summary(outcome.summary, f"run {outcome.manifest['recording_name']}")
     console.print(f"run written: [bold]{outcome.out_path}[/]")
-    console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]   (or: rerun {outcome.out_path})")
+    console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]")
     return outcome.out_path
 
 
