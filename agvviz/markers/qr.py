@@ -28,7 +28,7 @@ Refinement methods (``refine=``):
     The detector's corners.
 
 When the requested method fails (ECC does not converge, its correlation is low, a corner moves
-more than :data:`MAX_REFINE_SHIFT_PX`, or the code was not decoded), the next method down the
+more than :data:`MAX_REFINE_SHIFT_PX` / :data:`MAX_REFINE_SHIFT_MODULES`, or the code was not decoded), the next method down the
 list ecc → subpix → none is applied; ``refine_method`` says what was applied, ``refine_ok`` is
 False and ``refine_note`` says why.
 """
@@ -43,8 +43,11 @@ import numpy as np
 
 #: Accepted values of ``refine``, from most to least accurate.
 REFINE_METHODS = ("ecc", "subpix", "none")
-#: A refinement that moves any corner further than this (pixels) is rejected.
+#: A refinement that moves any corner further than this many pixels — or, on large codes,
+#: further than :data:`MAX_REFINE_SHIFT_MODULES` module widths — is rejected. OpenCV's raw
+#: bottom-right corner is often 4–5 px off on a 300 px code, which ECC corrects.
 MAX_REFINE_SHIFT_PX = 4.0
+MAX_REFINE_SHIFT_MODULES = 1.0
 #: Smallest ECC correlation coefficient accepted after alignment.
 ECC_MIN_CORRELATION = 0.7
 #: Smallest correlation between a re-encoded symbol and the image sampled at module centres.
@@ -382,7 +385,7 @@ def _refine_ecc(
     corners_px = cv2.perspectiveTransform(
         symbol_corners_template.reshape(1, 4, 2), H_crop_template.astype(float)
     ).reshape(4, 2) + offset
-    return _accept_shift(corners_px, raw_corners_px)
+    return _accept_shift(corners_px, raw_corners_px, side_px / n)
 
 
 def _refine_subpix(
@@ -404,7 +407,7 @@ def _refine_subpix(
         return None, f"cornerSubPix failed ({_last_line(exc)})"
     corners_px = raw_corners_px.copy()
     corners_px[finder_index] = refined.reshape(-1, 2)
-    return _accept_shift(corners_px, raw_corners_px)
+    return _accept_shift(corners_px, raw_corners_px, _mean_side_px(raw_corners_px) / modules)
 
 
 def _mean_side_px(corners_px: np.ndarray) -> float:
@@ -416,10 +419,13 @@ def _last_line(exc: Exception) -> str:
     return lines[-1][:100] if lines else type(exc).__name__
 
 
-def _accept_shift(corners_px: np.ndarray, raw_corners_px: np.ndarray) -> tuple[np.ndarray | None, str]:
+def _accept_shift(
+    corners_px: np.ndarray, raw_corners_px: np.ndarray, module_px: float
+) -> tuple[np.ndarray | None, str]:
     if not np.all(np.isfinite(corners_px)):
         return None, "non-finite corners"
     shift_px = float(np.max(np.linalg.norm(corners_px - raw_corners_px, axis=1)))
-    if shift_px > MAX_REFINE_SHIFT_PX:
-        return None, f"moved a corner {shift_px:.1f} px > {MAX_REFINE_SHIFT_PX} px"
+    limit_px = max(MAX_REFINE_SHIFT_PX, MAX_REFINE_SHIFT_MODULES * module_px)
+    if shift_px > limit_px:
+        return None, f"moved a corner {shift_px:.1f} px > {limit_px:.1f} px"
     return corners_px, ""
