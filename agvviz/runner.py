@@ -99,33 +99,32 @@ def run_recording(
         "recording_name": recording_name,
     }
 
-    logger = RunLogger(recording_name=recording_name, recording_id=recording_id)
-    logger.log_manifest(manifest)
-    replay = Replay(settings)
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     scores: list[FrameScore] = []
-    cameras_logged: set[str] = set()
-    t_start = time.perf_counter()
-    for message in iter_messages(recording_path, report=read_report):
-        if message.topic == MARKER_MAP_TOPIC and isinstance(message.value, dict):
-            logger.log_world_static(_markers_from_map(message.value))
-        frame = replay.feed(message)
-        if isinstance(message.value, (CalibrationMsg, list)):
-            # Log each camera once both its calibration and its extrinsic are known.
-            for cam_name, cam in replay.ctx.cameras.items():
-                if cam_name not in cameras_logged and cam.camera is not None and cam.T_agv_cam is not None:
-                    logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
-                    cameras_logged.add(cam_name)
-        if frame is None:
-            continue
-        logger.log_frame(frame)
-        scores.append(FrameScore.of(frame))
-        if progress is not None:
-            progress(len(scores))
-    wall_time_s = time.perf_counter() - t_start
-
-    summary = summarize(scores, wall_time_s)
-    summary["recording_damage"] = list(read_report.problems)
-    logger.log_summary(summary)
-    logger.save(out_path)
+    with RunLogger(out_path, recording_name=recording_name, recording_id=recording_id) as logger:
+        logger.log_manifest(manifest)
+        replay = Replay(settings)
+        cameras_logged: set[str] = set()
+        t_start = time.perf_counter()
+        for message in iter_messages(recording_path, report=read_report):
+            if message.topic == MARKER_MAP_TOPIC and isinstance(message.value, dict):
+                logger.log_world_static(_markers_from_map(message.value))
+            frame = replay.feed(message)
+            if isinstance(message.value, (CalibrationMsg, list)):
+                # Log each camera once both its calibration and its extrinsic are known.
+                for cam_name, cam in replay.ctx.cameras.items():
+                    ready = cam.camera is not None and cam.T_agv_cam is not None
+                    if ready and cam_name not in cameras_logged:
+                        logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
+                        cameras_logged.add(cam_name)
+            if frame is None:
+                continue
+            logger.log_frame(frame)
+            scores.append(FrameScore.of(frame))
+            if progress is not None:
+                progress(len(scores))
+        wall_time_s = time.perf_counter() - t_start
+        summary = summarize(scores, wall_time_s)
+        summary["recording_damage"] = list(read_report.problems)
+        logger.log_summary(summary)
     return RunOutcome(out_path=out_path, summary=summary, manifest=manifest, read_report=read_report)

@@ -118,7 +118,7 @@ def _camera() -> PinholeCamera:
 
 
 def _write_run(path, frames) -> None:
-    logger = RunLogger(recording_name="synthetic-lm", recording_id=RECORDING_ID)
+    logger = RunLogger(path, recording_name="synthetic-lm", recording_id=RECORDING_ID)
     logger.log_world_static([("m1", _marker_corners(1.0, 2.0)), ("m2", _marker_corners(2.0, 2.0))])
     T_agv_cam = np.eye(4)
     T_agv_cam[:3, 3] = [0.0, 0.3, 1.2]
@@ -127,7 +127,7 @@ def _write_run(path, frames) -> None:
         logger.log_frame(frame)
     logger.log_manifest(MANIFEST)
     logger.log_summary(SUMMARY)
-    logger.save(path)
+    logger.close()
 
 
 @pytest.fixture(scope="module")
@@ -243,8 +243,21 @@ def test_save_is_atomic_and_replaces_target(tmp_path):
     assert sorted(points2d(target, paths.detected(CAM))) == [0, 1, 2]
 
 
+def test_failed_run_leaves_target_untouched(tmp_path):
+    target = tmp_path / "run.rrd"
+    target.write_bytes(b"old contents")
+    with pytest.raises(RuntimeError, match="pipeline broke"):
+        with RunLogger(target, recording_name="x", recording_id="x") as logger:
+            logger.log_frame(_frames(np.random.default_rng(1))[0])
+            raise RuntimeError("pipeline broke")
+    assert os.listdir(tmp_path) == ["run.rrd"]
+    assert target.read_bytes() == b"old contents"
+
+
 def test_bad_input_is_refused(tmp_path):
-    logger = RunLogger(recording_name="bad", recording_id="bad")
+    with pytest.raises(RunLogError, match="does not exist"):
+        RunLogger(tmp_path / "missing" / "run.rrd", recording_name="bad", recording_id="bad")
+    logger = RunLogger(tmp_path / "ok.rrd", recording_name="bad", recording_id="bad")
     frame = _frames(np.random.default_rng(2))[0]
     frame.image_format = "bmp"
     with pytest.raises(RunLogError, match="image_format 'bmp'"):
@@ -253,10 +266,8 @@ def test_bad_input_is_refused(tmp_path):
         logger.log_camera_static(CAM, _camera(), np.eye(3))
     with pytest.raises(RunLogError, match="no image size"):
         logger.log_camera_static(CAM, PinholeCamera(K=np.eye(3)), np.eye(4))
-    with pytest.raises(RunLogError, match="does not exist"):
-        logger.save(tmp_path / "missing" / "run.rrd")
-    logger.save(tmp_path / "ok.rrd")
-    with pytest.raises(RunLogError, match="already saved"):
+    logger.close()
+    with pytest.raises(RunLogError, match="already closed"):
         logger.log_summary({})
 
 
@@ -289,11 +300,11 @@ def test_same_run_gives_equal_rrd(tmp_path):
 
 def test_bad_frame_logs_nothing(tmp_path):
     """A frame refused half-way must not leave half of itself in the file."""
-    logger = RunLogger(recording_name="partial", recording_id="partial")
+    logger = RunLogger(tmp_path / "partial.rrd", recording_name="partial", recording_id="partial")
     good, bad = _frames(np.random.default_rng(3))[:2]
     logger.log_frame(good)
     bad.observations[0].reprojected_px = np.full((4, 2), np.nan)
     with pytest.raises(RunLogError, match="reprojected_px of marker 'm1' contains NaN"):
         logger.log_frame(bad)
-    logger.save(tmp_path / "partial.rrd")
+    logger.close()
     assert sorted(encoded_images(tmp_path / "partial.rrd", paths.image(CAM))) == [good.index]

@@ -64,15 +64,27 @@ class RunLogError(ValueError):
 class RunLogger:
     """Logs a run (static world, cameras, per-frame results, manifest, summary) to one ``.rrd``.
 
+    Data streams to a temporary ``.rrd`` beside ``out_path`` as it is logged (memory does not
+    grow with the run); :meth:`close` adds the default blueprint and renames the file into
+    place, :meth:`discard` deletes it. Used as a context manager, an exception discards.
+
     Parameters
     ----------
+    out_path : path
+        The ``.rrd`` to write; its folder must exist. Replaced only by a complete file.
     recording_name : str
         Shown in the viewer (scenario + setting).
     recording_id : str
         Rerun recording id; pin it so repeated runs produce comparable files.
     """
 
-    def __init__(self, *, recording_name: str, recording_id: str):
+    def __init__(self, out_path: str | os.PathLike, *, recording_name: str, recording_id: str):
+        out_path = Path(out_path)
+        if not out_path.parent.is_dir():
+            raise RunLogError(f"cannot write run to {out_path}: folder {out_path.parent} does not exist")
+        self._out_path = out_path
+        # A fresh name (not mkstemp) so Rerun creates the file with the usual permissions.
+        self._tmp_path = out_path.with_name(f".{out_path.name}.{uuid.uuid4().hex}.tmp")
         self._rec = rr.RecordingStream(
             "agvviz",
             recording_id=recording_id,
@@ -83,6 +95,7 @@ class RunLogger:
         )
         self._rec.set_log_time_enabled(False)
         self._rec.set_log_tick_enabled(False)
+        self._rec.save(self._tmp_path)
         self._rec.send_recording_name(recording_name)
         self._cam_names: list[str] = []
         self._start_time_sent = False
@@ -339,34 +352,45 @@ class RunLogger:
         self._rec.log(paths.RUN_SUMMARY, _markdown(text), static=True)
 
     # -- output ----------------------------------------------------------------------------
-    def save(self, path: str | os.PathLike) -> None:
-        """Write everything logged so far, plus the default blueprint, to ``path`` atomically.
-
-        The data goes to a temporary ``.rrd`` in the same folder, which replaces ``path``
-        only once it is complete (footer written). The logger is closed afterwards.
-        """
+    def close(self) -> None:
+        """Finish the file: ship the default blueprint, write the footer, move it into place."""
         self._check_open()
-        path = Path(path)
-        if not path.parent.is_dir():
-            raise RunLogError(f"cannot save run to {path}: folder {path.parent} does not exist")
-        # A fresh name (not mkstemp) so Rerun creates the file with the usual permissions.
-        tmp_name = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+        self._saved = True
         try:
-            # Attaching the file sink drains the in-memory buffer into it; flush + disconnect
-            # write the footer and close the file.
-            self._rec.save(tmp_name, default_blueprint=default_blueprint(self._cam_names))
+            rr.send_blueprint(
+                default_blueprint(self._cam_names),
+                make_active=False,
+                make_default=True,
+                recording=self._rec,
+            )
             self._rec.flush()
             self._rec.disconnect()
-            os.replace(tmp_name, path)
+            os.replace(self._tmp_path, self._out_path)
         except BaseException:
-            Path(tmp_name).unlink(missing_ok=True)
+            self._tmp_path.unlink(missing_ok=True)
             raise
+
+    def discard(self) -> None:
+        """Stop logging and delete the unfinished file; ``out_path`` is left untouched."""
+        if self._saved:
+            return
         self._saved = True
+        self._rec.disconnect()
+        self._tmp_path.unlink(missing_ok=True)
+
+    def __enter__(self) -> "RunLogger":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.discard()
+        elif not self._saved:
+            self.close()
 
     # -- helpers ---------------------------------------------------------------------------
     def _check_open(self) -> None:
         if self._saved:
-            raise RunLogError("this RunLogger was already saved; create a new one for another run")
+            raise RunLogError("this RunLogger was already closed; create a new one for another run")
 
     @staticmethod
     def _body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
