@@ -87,7 +87,7 @@ def record(
     scenario: str = typer.Argument("qr_floor", help="scenario name (see `agvviz scenarios`)"),
     seed: int = typer.Option(0, "--seed", help="fixes all randomness; same seed ⇒ same recording"),
     set_: List[str] = typer.Option([], "--set", help=SET_HELP),
-    out: Optional[Path] = typer.Option(None, "--out", help="output .mcap [default: recordings/<scenario>.mcap]"),
+    out: Optional[Path] = typer.Option(None, "--out", help="output .mcap (default: recordings/<scenario>.mcap)"),
 ) -> None:
     """Simulate SCENARIO and write an MCAP recording.
 
@@ -164,7 +164,7 @@ def run(
     recording: Path = typer.Argument(..., help="recording .mcap"),
     solver: Optional[str] = typer.Option(None, "--solver", help="shortcut for --set solver=NAME"),
     set_: List[str] = typer.Option([], "--set", help=SET_HELP),
-    out: Optional[Path] = typer.Option(None, "--out", help="output .rrd [default: runs/<recording>-<settings>.rrd]"),
+    out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-<settings>.rrd)"),
 ) -> None:
     _run(recording, solver, set_, out)
 
