@@ -4,7 +4,8 @@ Usage:  python bench/bench_qr_floor.py [--seed 0] [--set key=value ...] [--keep 
 
 Prints:
 1. AGV position RMSE (mm) and heading RMSE (deg) of lm, p4p and ippe on the frames all three
-   solved (same frames, same corners), plus each solver's own counts.
+   solved (same frames, same corners), plus each solver's own counts; then lm with each corner
+   refinement (ecc, subpix, none) to show what the refiner buys.
 2. Replay throughput (frames/s) of the full `agvviz run` path (decode, undistort, detect,
    refine, solve, log to .rrd) and of a bare OpenCV loop (imdecode + QRCodeDetector
    detectAndDecodeMulti + solvePnP) over the same recording, timed in the same process run,
@@ -55,6 +56,18 @@ def accuracy(recording: Path) -> None:
         print(f"{solver:6s} {rmse(pos):12.2f} {np.median(pos):14.2f} {np.percentile(pos, 95):11.2f} {rmse(hdg):17.3f}")
 
 
+def refinement_sensitivity(recording: Path) -> None:
+    """lm with each corner refinement: how much of the accuracy the refiner buys."""
+    print("\nlm by corner refinement (each on the frames it solved):")
+    print(f"{'refine':7s} {'solved':>7s} {'pos RMSE mm':>12s} {'pos p95 mm':>11s} {'heading RMSE deg':>17s}")
+    for refine in ("ecc", "subpix", "none"):
+        scores = [FrameScore.of(f) for f in replay(iter_messages(recording), RunSettings(solver="lm", refine=refine))]
+        solved = [s for s in scores if s.rejected is None and s.position_error_m is not None]
+        pos = [s.position_error_m * 1000 for s in solved]
+        hdg = [s.heading_error_deg for s in solved]
+        print(f"{refine:7s} {len(solved):7d} {rmse(pos):12.2f} {np.percentile(pos, 95):11.2f} {rmse(hdg):17.3f}")
+
+
 def bare_opencv_loop(recording: Path) -> tuple[int, float]:
     """Baseline: imdecode + detectAndDecodeMulti + solvePnP(IPPE_SQUARE) per frame, no
     refinement, no undistortion, no logging. Returns (frames, seconds)."""
@@ -92,6 +105,7 @@ def main() -> None:
     print(f"recorded qr_floor (seed {args.seed}, {args.sets or 'defaults'}) in {time.perf_counter() - t0:.1f} s → {recording}\n")
 
     accuracy(recording)
+    refinement_sensitivity(recording)
 
     print("\nthroughput (same recording, same process):")
     outcome = run_recording(recording, RunSettings(solver="lm"), workdir / "qr_floor-lm.rrd")
