@@ -1,5 +1,12 @@
-"""Errors against truth and run statistics. Numpy only."""
+"""Errors against truth and run statistics. Numpy and scipy only (no rerun, no files).
 
-from agvviz.evaluation.summary import FrameScore, summarize
+- :mod:`~agvviz.evaluation.summary`: the per-run summary stored in every ``.rrd``, and timing.
+- :mod:`~agvviz.evaluation.trajectory`: alignment (SE(3), SE(2), yaw), APE, RPE, time offset.
+- :mod:`~agvviz.evaluation.statistics`: statistics, block-bootstrap intervals, Wilcoxon.
+- :mod:`~agvviz.evaluation.comparison`: per-run metrics and the paired comparison of two runs.
+- :mod:`~agvviz.evaluation.expression`: the safe ``--fail-if`` grammar.
+"""
 
-__all__ = ["FrameScore", "summarize"]
+from agvviz.evaluation.summary import FrameScore, summarize, timing
+
+__all__ = ["FrameScore", "summarize", "timing"]

@@ -2,6 +2,8 @@
 
 Pure numpy; the pipeline's :class:`~agvviz.results.FrameResult` s are reduced to small
 :class:`FrameScore` records as they stream past, so memory does not grow with images.
+:func:`summarize` depends only on the data (it is stored in the run ``.rrd``, which must be
+reproducible); :func:`timing` holds the wall-clock figures, which are printed, never stored.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ class FrameScore:
     total_s: float
     detect_s: float
     solve_s: float
+    pitch_error_deg: float | None = None
+    roll_error_deg: float | None = None
 
     @classmethod
     def of(cls, frame: FrameResult) -> "FrameScore":
@@ -38,6 +42,8 @@ class FrameScore:
             total_s=frame.total_s,
             detect_s=frame.detect_s,
             solve_s=frame.solve_s,
+            pitch_error_deg=frame.pitch_error_deg,
+            roll_error_deg=frame.roll_error_deg,
         )
 
 
@@ -54,26 +60,37 @@ def _stats(values: np.ndarray, scale: float) -> dict:
     }
 
 
-def summarize(scores: list[FrameScore], wall_time_s: float | None = None) -> dict:
-    """Summary of a run: frames, solved, rejected by reason, position errors (mm), heading
-    errors (deg), pipeline time per frame (ms) and throughput (frames/s)."""
+def summarize(scores: list[FrameScore]) -> dict:
+    """Summary of a run: frames, solved, rejected by reason, and the statistics (RMSE, median,
+    p95, max of the absolute value) of the position (mm), heading, pitch and roll (deg) errors
+    and of the reprojection RMS (px) over the solved frames. No wall-clock figures."""
     solved = [s for s in scores if s.rejected is None]
-    pos = np.array([s.position_error_m for s in solved if s.position_error_m is not None])
-    hdg = np.array([s.heading_error_deg for s in solved if s.heading_error_deg is not None])
-    reproj = np.array([s.reproj_rms_px for s in solved if s.reproj_rms_px is not None])
-    total_s = np.array([s.total_s for s in scores])
-    summary = {
+
+    def values(attr: str) -> np.ndarray:
+        return np.array([getattr(s, attr) for s in solved if getattr(s, attr) is not None], dtype=float)
+
+    return {
         "frames": len(scores),
         "solved": len(solved),
         "rejected": dict(sorted(Counter(s.rejected for s in scores if s.rejected).items())),
-        "position_error_mm": _stats(pos, 1000.0),
-        "heading_error_deg": _stats(hdg, 1.0),
-        "reproj_rms_px": _stats(reproj, 1.0),
-        "time_per_frame_ms": float(np.mean(total_s) * 1000.0) if scores else None,
+        "position_error_mm": _stats(values("position_error_m"), 1000.0),
+        "heading_error_deg": _stats(values("heading_error_deg"), 1.0),
+        "pitch_error_deg": _stats(values("pitch_error_deg"), 1.0),
+        "roll_error_deg": _stats(values("roll_error_deg"), 1.0),
+        "reproj_rms_px": _stats(values("reproj_rms_px"), 1.0),
+    }
+
+
+def timing(scores: list[FrameScore], wall_time_s: float | None = None) -> dict:
+    """Wall-clock figures of a run: mean pipeline time per frame, detection and solve time (ms)
+    and, given the run's wall time, throughput including logging (frames/s). ``None`` when
+    there is no frame."""
+    result = {
+        "time_per_frame_ms": float(np.mean([s.total_s for s in scores]) * 1000.0) if scores else None,
         "detect_ms": float(np.mean([s.detect_s for s in scores]) * 1000.0) if scores else None,
         "solve_ms": float(np.mean([s.solve_s for s in scores]) * 1000.0) if scores else None,
     }
     if wall_time_s is not None and wall_time_s > 0:
-        summary["wall_time_s"] = float(wall_time_s)
-        summary["frames_per_s"] = len(scores) / wall_time_s
-    return summary
+        result["wall_time_s"] = float(wall_time_s)
+        result["frames_per_s"] = len(scores) / wall_time_s
+    return result

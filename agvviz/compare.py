@@ -1,0 +1,654 @@
+"""Library API behind ``agvviz diff`` and ``agvviz sweep``: returns values, prints nothing.
+
+- :func:`load_run` reads a run ``.rrd`` back through Rerun's API into a
+  :class:`~agvviz.evaluation.comparison.RunSeries` (the ``.rrd`` alone is enough).
+- :func:`diff` compares two runs (table, paired tests, intervals, most different frames),
+  optionally writes the overlay ``.rrd`` and evaluates a ``--fail-if`` condition.
+- :func:`sweep` replays one recording under the cross product of setting values in
+  parallel processes, ranks the runs, and writes one ``.rrd`` per setting, an overlay
+  ``.rrd`` and the ranking as CSV and markdown.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import math
+import multiprocessing
+import os
+import queue as queue_module
+import re
+import time
+import uuid
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from agvviz.evaluation import expression, statistics
+from agvviz.evaluation.comparison import (
+    DIRECT,
+    QUANTITIES,
+    Comparison,
+    RunSeries,
+    compare_runs,
+    match_frames,
+    metric_names,
+    quantity_values,
+    run_metrics,
+)
+from agvviz.evaluation.trajectory import ALIGNMENTS, EvaluationError
+from agvviz.settings import RunSettings, SettingsError, apply_overrides, field_types
+from agvviz.viz import paths
+from agvviz.viz.overlay import OverlayRun, OverlayTruth, write_overlay
+from agvviz.viz.readback import (
+    RrdContents,
+    RrdReadError,
+    document_json,
+    frame_times,
+    points2d,
+    read_rrd,
+    scalar_series,
+    transforms,
+)
+
+#: Per-frame error series of a run: quantity key → (entity, scale to the quantity's unit).
+ERROR_ENTITIES = {
+    "position": (paths.ERROR_POSITION_M, 1000.0),
+    "heading": (paths.ERROR_HEADING_DEG, 1.0),
+    "pitch": (paths.ERROR_PITCH_DEG, 1.0),
+    "roll": (paths.ERROR_ROLL_DEG, 1.0),
+    "reproj": (paths.ERROR_REPROJ_RMS_PX, 1.0),
+}
+#: Spellings of run settings accepted by ``sweep --set`` besides the setting names themselves.
+SETTING_ALIASES = {"lm.max_iters": "lm_max_iterations", "lm.max_iterations": "lm_max_iterations"}
+#: Metrics for which a larger value ranks higher.
+HIGHER_IS_BETTER = {"solved", "solved_pct"}
+
+_CAMERA_DETECTED = re.compile(r"^world/agv/camera/cam_(?P<cam>[^/]+)/image/detected$")
+
+
+class CompareError(ValueError):
+    """A comparison or sweep that cannot be done as asked (bad grid, unknown metric, ...)."""
+
+
+# -- reading runs --------------------------------------------------------------------------
+def cameras_of(contents: RrdContents) -> list[str]:
+    """Names of the cameras whose corners a run ``.rrd`` holds, sorted."""
+    return sorted(m["cam"] for p in contents.entity_paths if (m := _CAMERA_DETECTED.match(p)))
+
+
+def load_run(path: str | os.PathLike) -> RunSeries:
+    """Read a run ``.rrd`` back into per-frame arrays (clock, solved, errors, poses).
+
+    The frame clock comes from the detected-corner entities (logged on every frame), the
+    solved frames from the estimated pose ``world/agv/camera``, the errors from ``errors/*``
+    and the settings from ``run/manifest``.
+
+    Raises
+    ------
+    RrdReadError
+        The file is not a run ``.rrd`` (no manifest, no camera frames).
+    """
+    contents = read_rrd(path)
+    if paths.RUN_MANIFEST not in contents.entity_paths:
+        raise RrdReadError(f"{path} is not an agvviz run: it has no {paths.RUN_MANIFEST}")
+    manifest = document_json(contents, paths.RUN_MANIFEST)
+    clock: dict[int, int] = {}
+    for cam in cameras_of(contents):
+        clock.update(frame_times(contents, paths.detected(cam), "Points2D:positions"))
+    if not clock:
+        raise RrdReadError(f"{path} holds no camera frames")
+    frames = np.array(sorted(clock), dtype=np.int64)
+    time_ns = np.array([clock[f] for f in frames], dtype=np.int64)
+    where = {int(f): k for k, f in enumerate(frames)}
+
+    def poses(entity: str) -> np.ndarray:
+        T = np.full((len(frames), 4, 4), np.nan)
+        if _has_temporal(contents, entity, "Transform3D:translation"):
+            entity_frames, _, entity_T = transforms(contents, entity)
+            for f, pose in zip(entity_frames, entity_T):
+                if int(f) in where:
+                    T[where[int(f)]] = pose
+        return T
+
+    T_est = poses(paths.AGV_CAMERA)
+    errors = {}
+    for key, (entity, scale) in ERROR_ENTITIES.items():
+        values = np.full(len(frames), np.nan)
+        if _has_temporal(contents, entity, "Scalars:scalars"):
+            idx, series = scalar_series(contents, entity)
+            for f, v in zip(idx, series):
+                if int(f) in where:
+                    values[where[int(f)]] = v * scale
+        errors[key] = values
+    return RunSeries(
+        name=str(manifest.get("recording_name", Path(path).stem)),
+        frames=frames,
+        time_ns=time_ns,
+        solved=np.all(np.isfinite(T_est.reshape(len(frames), 16)), axis=1),
+        errors=errors,
+        T_truth=poses(paths.AGV_TRUTH),
+        T_est=T_est,
+        settings=dict(manifest.get("settings", {})),
+        manifest=manifest,
+    )
+
+
+def _has_temporal(contents: RrdContents, entity: str, component: str) -> bool:
+    """Whether ``entity`` has per-frame ``component`` data (run entities also carry static
+    styles or axes, so their mere presence says nothing; a run may have solved no frame)."""
+    if entity not in contents.entity_paths:
+        return False
+    chunks = contents.store.stream().filter(content=f"/{entity}", is_static=False, components=component)
+    return any(chunk.num_rows > 0 for chunk in chunks)
+
+
+def _reprojected(path: Path, cams: list[str]) -> dict[str, dict[int, np.ndarray]]:
+    contents = read_rrd(path)
+    return {
+        cam: points2d(contents, paths.reprojected(cam))
+        for cam in cams
+        if paths.reprojected(cam) in contents.entity_paths
+    }
+
+
+# -- formatting ------------------------------------------------------------------------------
+def _fmt(value, digits: int = 4) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return str(int(value))
+    if not math.isfinite(value):
+        return str(value)
+    return f"{value:.{digits}g}"
+
+
+def _p(value: float | None) -> str:
+    if value is None:
+        return "—"
+    return "<1e-4" if value < 1e-4 else f"{value:.4f}"
+
+
+def comparison_markdown(comparison: Comparison) -> str:
+    """The comparison as markdown: the metric table, the most different frames, notes."""
+    c = comparison
+    k = len(c.common)
+    lines = [
+        f"# {c.a_name} (A) vs {c.b_name} (B)",
+        "",
+        f"{len(c.matched)} frames matched by time; error metrics over the {k} frames both runs "
+        f"solved (absolute values; APE alignment `{c.align}`, RPE over {c.rpe_delta} frame(s)). "
+        f"CI: {round(c.confidence * 100)} % block-bootstrap interval of B − A; "
+        "p: Wilcoxon signed-rank, paired frames.",
+        "",
+        "| metric | A | B | B − A | CI low | CI high | p | n |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in c.rows:
+        lines.append(
+            f"| {r.name} | {_fmt(r.a)} | {_fmt(r.b)} | {_fmt(r.diff)} | {_fmt(r.ci_low)} | "
+            f"{_fmt(r.ci_high)} | {_p(r.p_value)} | {_fmt(r.n)} |"
+        )
+    if c.settings_changed:
+        lines += ["", "Settings that differ: " + ", ".join(
+            f"`{name}` {a!r} → {b!r}" for name, (a, b) in c.settings_changed.items()
+        )]
+    if c.largest:
+        lines += ["", "| frame A | frame B | ‖p_A − p_B‖ mm | position A mm | position B mm |",
+                  "| ---: | ---: | ---: | ---: | ---: |"]
+        lines += [
+            f"| {d.frame_a} | {d.frame_b} | {d.separation_mm:.3f} | {d.position_a_mm:.3f} | {d.position_b_mm:.3f} |"
+            for d in c.largest
+        ]
+    if c.solved_only_by_a or c.solved_only_by_b:
+        lines += ["", f"Solved only by A: frames {c.solved_only_by_a[:20]}; only by B: frames {c.solved_only_by_b[:20]}"]
+    lines += [f"\nNote: {note}" for note in c.notes]
+    return "\n".join(lines) + "\n"
+
+
+# -- diff ------------------------------------------------------------------------------------
+@dataclass
+class DiffOutcome:
+    """What :func:`diff` found and wrote."""
+
+    comparison: Comparison
+    overlay_path: Path | None
+    fail_if: str | None
+    failed: bool  # the --fail-if condition holds (False when there is none)
+    seconds: dict[str, float]  # wall time of each step: load, compare, overlay
+
+
+def diff(
+    a_path: str | os.PathLike,
+    b_path: str | os.PathLike,
+    *,
+    overlay_path: str | os.PathLike | None = None,
+    fail_if: str | None = None,
+    align: str = "none",
+    rpe_delta: int = 1,
+    time_offset: bool = False,
+    images: bool = True,
+    confidence: float = 0.95,
+    n_resamples: int = 2000,
+    seed: int = 0,
+    top_k: int = 5,
+) -> DiffOutcome:
+    """Compare run B with run A (both ``.rrd``), read back through Rerun's API.
+
+    ``fail_if`` is parsed before any file is read, so a typo in a metric name fails at once
+    (:class:`~agvviz.evaluation.expression.ExpressionError`, listing the known metrics).
+    The overlay (``overlay_path``) holds both runs on A's clock; ``images=False`` leaves the
+    camera images out of it.
+    """
+    if align not in ALIGNMENTS:
+        raise CompareError(f"unknown alignment {align!r}; choose one of: {', '.join(ALIGNMENTS)}")
+    if rpe_delta < 1:
+        raise CompareError(f"rpe_delta must be ≥ 1 frame, got {rpe_delta}")
+    condition = expression.parse(fail_if, metric_names(time_offset)) if fail_if is not None else None
+    if overlay_path is not None and Path(overlay_path).suffix != ".rrd":
+        raise CompareError(f"--out must be a .rrd file, got {overlay_path}")
+    seconds = {}
+    t0 = time.perf_counter()
+    a, b = load_run(a_path), load_run(b_path)
+    seconds["load"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    comparison = compare_runs(
+        a, b, align=align, rpe_delta=rpe_delta, time_offset=time_offset,
+        confidence=confidence, n_resamples=n_resamples, seed=seed, top_k=top_k,
+    )
+    seconds["compare"] = time.perf_counter() - t0
+    failed = bool(expression.evaluate(condition, comparison.metrics())) if condition is not None else False
+    written = None
+    if overlay_path is not None:
+        t0 = time.perf_counter()
+        written = _write_diff_overlay(Path(overlay_path), Path(a_path), Path(b_path), a, b, comparison, images)
+        seconds["overlay"] = time.perf_counter() - t0
+    return DiffOutcome(comparison=comparison, overlay_path=written, fail_if=fail_if, failed=failed, seconds=seconds)
+
+
+def _overlay_errors(run: RunSeries, rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    rows = np.arange(len(run.frames)) if rows is None else rows
+    return {f"{q.key}_{q.unit}": run.errors[q.key][rows] for q in DIRECT}
+
+
+def _write_diff_overlay(
+    out: Path, a_path: Path, b_path: Path, a: RunSeries, b: RunSeries, c: Comparison, images: bool
+) -> Path:
+    ia, ib = c.matched[:, 0], c.matched[:, 1]
+    cams = cameras_of(read_rrd(a_path)) if images else []
+    reproj_a = _reprojected(a_path, cams) if images else {}
+    reproj_b_own = _reprojected(b_path, cams) if images else {}
+    # B's corners go onto A's frame numbers through the time matching.
+    b_to_a = {int(b.frames[j]): int(a.frames[i]) for i, j in zip(ia, ib)}
+    reproj_b = {cam: {b_to_a[f]: pts for f, pts in per.items() if f in b_to_a} for cam, per in reproj_b_own.items()}
+    runs = [
+        OverlayRun("a", f"A {a.name}", a.frames, a.time_ns, a.T_est, _overlay_errors(a), reproj_a),
+        OverlayRun("b", f"B {b.name}", a.frames[ia], a.time_ns[ia], b.T_est[ib], _overlay_errors(b, ib), reproj_b),
+    ]
+    deltas = {
+        f"{q.key}_{q.unit}": (a.frames[c.delta_series[q.key][0]], a.time_ns[c.delta_series[q.key][0]],
+                              c.delta_series[q.key][1])
+        for q in DIRECT
+    }
+    return write_overlay(
+        out,
+        recording_name=f"diff {a.name} vs {b.name}",
+        runs=runs,
+        truth=_truth(a),
+        source=a_path,
+        cam_names=cams,
+        report_markdown=comparison_markdown(c),
+        deltas=deltas,
+    )
+
+
+def _truth(run: RunSeries) -> OverlayTruth | None:
+    known = np.all(np.isfinite(run.T_truth.reshape(len(run.frames), 16)), axis=1)
+    if not np.any(known):
+        return None
+    return OverlayTruth(run.frames[known], run.time_ns[known], run.T_truth[known])
+
+
+# -- sweep -----------------------------------------------------------------------------------
+def parse_grid(pairs: list[str] | tuple[str, ...]) -> dict[str, list[str]]:
+    """``["solver=p4p,lm", "lm_max_iterations=3,10"]`` → ``{"solver": ["p4p", "lm"], ...}``.
+
+    Names are run settings (``agvviz run --help``); :data:`SETTING_ALIASES` are accepted too.
+    Values are split at commas, duplicates dropped (order kept).
+    """
+    names = field_types(RunSettings)
+    grid: dict[str, list[str]] = {}
+    for pair in pairs:
+        key, sep, values = pair.partition("=")
+        key = SETTING_ALIASES.get(key.strip(), key.strip())
+        if not sep or not key:
+            raise CompareError(f"--set {pair!r}: expected key=value1,value2,...")
+        if key not in names:
+            raise CompareError(f"unknown setting {key!r}; valid settings: {', '.join(sorted(names))}")
+        if key in grid:
+            raise CompareError(f"setting {key!r} given twice; list all its values once: {key}=a,b,c")
+        items = [v.strip() for v in values.split(",")]
+        if any(not v for v in items):
+            raise CompareError(f"--set {pair!r}: empty value in the list")
+        grid[key] = list(dict.fromkeys(items))
+    return grid
+
+
+def grid_settings(grid: dict[str, list[str]], base: RunSettings = RunSettings()) -> list[RunSettings]:
+    """Every combination of ``grid`` applied to ``base``, validated, in grid order.
+
+    Raises
+    ------
+    CompareError
+        A value is not valid for its setting, or two combinations give the same settings.
+    """
+    combos = itertools.product(*[[f"{k}={v}" for v in values] for k, values in grid.items()])
+    result = []
+    for combo in combos:
+        try:
+            result.append(apply_overrides(base, list(combo)))
+        except SettingsError as exc:
+            raise CompareError(f"sweep setting {' '.join(combo)}: {exc}") from None
+    labels = [s.label() for s in result]
+    duplicates = sorted({label for label in labels if labels.count(label) > 1})
+    if duplicates:
+        raise CompareError(f"the grid gives the same settings more than once: {', '.join(duplicates)}")
+    return result
+
+
+@dataclass
+class SweepEntry:
+    """One setting of a sweep and how it went."""
+
+    label: str
+    settings: RunSettings
+    out_path: Path
+    error: str | None = None  # why the setting failed, None when it ran
+    metrics: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=dict)  # wall-clock figures (not in the .rrd)
+    p_vs_best: float | None = None  # Wilcoxon p of the ranking quantity vs the best setting
+    rank: int | None = None  # 1 = best; None when failed
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+@dataclass
+class SweepOutcome:
+    """Ranked entries (best first, failed last) and the files written."""
+
+    entries: list[SweepEntry]
+    rank_by: str
+    overlay_path: Path | None
+    csv_path: Path
+    markdown_path: Path
+    wall_time_s: float
+
+
+_progress_queue = None  # set in each worker process by _init_worker
+
+
+def _init_worker(progress_queue) -> None:
+    global _progress_queue
+    _progress_queue = progress_queue
+    # One OpenCV thread per worker: `jobs` workers already fill the CPUs, more threads only
+    # contend for them.
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _run_one(index: int, recording: str, settings: RunSettings, out_path: str) -> tuple[int, dict]:
+    """Worker: replay one setting (in its own process); returns its wall-clock timing."""
+    from agvviz.runner import run_recording
+
+    def progress(done: int) -> None:
+        if _progress_queue is not None:
+            _progress_queue.put((index, done))
+
+    outcome = run_recording(Path(recording), settings, Path(out_path), progress=progress)
+    return index, outcome.timing
+
+
+def _drain(progress_queue, frames_done: list[int]) -> None:
+    """Move the (setting index, frames done) reports of the workers into ``frames_done``."""
+    while True:
+        try:
+            index, done_frames = progress_queue.get_nowait()
+        except queue_module.Empty:
+            return
+        frames_done[index] = max(frames_done[index], done_frames)
+
+
+def _rank_quantity(rank_by: str) -> str:
+    """The per-frame quantity behind a metric (position for the counts)."""
+    matches = [q.key for q in QUANTITIES if rank_by.startswith(f"{q.key}_") and rank_by.endswith(f"_{q.unit}")]
+    return matches[0] if matches else "position"
+
+
+def sweep(
+    recording: str | os.PathLike,
+    grid: dict[str, list[str]],
+    *,
+    base: RunSettings = RunSettings(),
+    out_dir: str | os.PathLike | None = None,
+    jobs: int | None = None,
+    rank_by: str = "position_rmse_mm",
+    align: str = "none",
+    rpe_delta: int = 1,
+    images: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> SweepOutcome:
+    """Replay ``recording`` under every combination of ``grid`` in parallel processes.
+
+    Parameters
+    ----------
+    grid : dict
+        Setting name → values (strings, as on the command line); see :func:`parse_grid`.
+    base : RunSettings
+        Settings the grid values are applied to.
+    out_dir : path, optional
+        Default ``runs/sweep-<recording stem>``. Gets ``<stem>-<label>.rrd`` per setting,
+        ``overlay.rrd``, ``ranking.csv`` and ``ranking.md``.
+    jobs : int, optional
+        Worker processes (default: the number of CPUs).
+    rank_by : str
+        Metric to rank by (lower is better, except ``solved``/``solved_pct``).
+    progress : callable, optional
+        ``progress(frames_done, settings_finished)`` summed over all settings.
+
+    A setting that fails is reported in its entry (``error``) and ranked last; the others go on.
+    """
+    recording = Path(recording)
+    if not recording.is_file():
+        raise CompareError(f"recording not found: {recording}")
+    if rank_by not in metric_names():
+        raise CompareError(f"unknown metric {rank_by!r} to rank by; known: {', '.join(metric_names())}")
+    if align not in ALIGNMENTS:
+        raise CompareError(f"unknown alignment {align!r}; choose one of: {', '.join(ALIGNMENTS)}")
+    if not grid:
+        raise CompareError("nothing to sweep: give at least one --set key=value1,value2,...")
+    settings_list = grid_settings(grid, base)
+    jobs = jobs or os.cpu_count() or 1
+    if jobs < 1:
+        raise CompareError(f"--jobs must be ≥ 1, got {jobs}")
+    out_dir = Path(out_dir) if out_dir is not None else Path("runs") / f"sweep-{recording.stem}"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    entries = [SweepEntry(s.label(), s, out_dir / f"{recording.stem}-{s.label()}.rrd") for s in settings_list]
+
+    t_start = time.perf_counter()
+    context = multiprocessing.get_context("spawn")  # no fork of a process holding Rerun threads
+    progress_queue = context.Queue()
+    frames_done = [0] * len(entries)
+    finished = 0
+    with ProcessPoolExecutor(
+        max_workers=min(jobs, len(entries)), mp_context=context,
+        initializer=_init_worker, initargs=(progress_queue,),
+    ) as pool:
+        futures = {
+            pool.submit(_run_one, i, str(recording), e.settings, str(e.out_path)): i for i, e in enumerate(entries)
+        }
+        pending = set(futures)
+        while pending:
+            done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+            for future in done:
+                index = futures[future]
+                try:
+                    entries[index].timing = future.result()[1]
+                except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
+                    entries[index].error = f"{type(exc).__name__}: {exc}"
+                finished += 1
+            _drain(progress_queue, frames_done)
+            if progress is not None:
+                progress(sum(frames_done), finished)
+    _drain(progress_queue, frames_done)  # the workers have exited: their last counts are in
+    if progress is not None:
+        progress(sum(frames_done), finished)
+
+    series: dict[int, RunSeries] = {}
+    for index, entry in enumerate(entries):
+        if entry.ok:
+            try:
+                series[index] = load_run(entry.out_path)
+                entry.metrics = run_metrics(series[index], align=align, rpe_delta=rpe_delta)
+            except (RrdReadError, EvaluationError) as exc:
+                entry.error = f"{type(exc).__name__}: {exc}"
+    _rank(entries, series, rank_by, align, rpe_delta)
+    ranked = sorted(entries, key=lambda e: (e.rank is None, e.rank or 0))
+    csv_path, markdown_path = _write_tables(out_dir, ranked, rank_by)
+    overlay_path = None
+    ok = [e for e in ranked if e.ok]
+    if ok:
+        overlay_path = _write_sweep_overlay(out_dir / "overlay.rrd", recording, ok, series, entries, rank_by, images)
+    return SweepOutcome(
+        entries=ranked, rank_by=rank_by, overlay_path=overlay_path, csv_path=csv_path,
+        markdown_path=markdown_path, wall_time_s=time.perf_counter() - t_start,
+    )
+
+
+def _rank(entries: list[SweepEntry], series: dict[int, RunSeries], rank_by: str, align: str, rpe_delta: int) -> None:
+    sign = -1.0 if rank_by in HIGHER_IS_BETTER else 1.0
+    ok = [i for i, e in enumerate(entries) if e.ok]
+
+    def key(i: int):
+        value = entries[i].metrics.get(rank_by)
+        return (value is None, sign * value if value is not None else 0.0, entries[i].label)
+
+    order = sorted(ok, key=key)
+    for rank, i in enumerate(order, start=1):
+        entries[i].rank = rank
+    if not order:
+        return
+    best = order[0]
+    quantity = _rank_quantity(rank_by)
+    for i in order[1:]:
+        ia, ib = match_frames(series[best].time_ns, series[i].time_ns)
+        both = series[best].solved[ia] & series[i].solved[ib]
+        x = quantity_values(series[best], ia[both], align, rpe_delta)[quantity][ia[both]]
+        y = quantity_values(series[i], ib[both], align, rpe_delta)[quantity][ib[both]]
+        finite = np.isfinite(x) & np.isfinite(y)
+        entries[i].p_vs_best = statistics.wilcoxon_paired(x[finite], y[finite]) if np.any(finite) else None
+
+
+#: Columns of the ranking tables: (header, metric or attribute).
+TABLE_METRICS = (
+    "solved", "frames", "position_rmse_mm", "position_median_mm", "position_p95_mm",
+    "heading_rmse_deg", "pitch_rmse_deg", "roll_rmse_deg", "reproj_median_px",
+    "ape_trans_rmse_mm", "rpe_trans_rmse_mm", "rpe_rot_rmse_deg",
+)
+
+
+def ranking_rows(entries: list[SweepEntry], rank_by: str) -> tuple[list[str], list[list[str]]]:
+    """Header and rows (strings) of the ranking table, as written to CSV and markdown."""
+    metrics = list(dict.fromkeys([rank_by, *TABLE_METRICS]))
+    header = ["rank", "setting", *metrics, "p_vs_best", "time_per_frame_ms", "status", "file"]
+    rows = []
+    for e in entries:
+        rows.append([
+            str(e.rank) if e.rank else "—",
+            e.label,
+            *[_fmt(e.metrics.get(m)) for m in metrics],
+            _p(e.p_vs_best),
+            _fmt(e.timing.get("time_per_frame_ms")),
+            "ok" if e.ok else f"failed: {e.error}",
+            e.out_path.name if e.ok else "",
+        ])
+    return header, rows
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _write_tables(out_dir: Path, entries: list[SweepEntry], rank_by: str) -> tuple[Path, Path]:
+    header, rows = ranking_rows(entries, rank_by)
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(rows)
+    csv_path = out_dir / "ranking.csv"
+    _atomic_write(csv_path, buffer.getvalue())
+    direction = "higher" if rank_by in HIGHER_IS_BETTER else "lower"
+    lines = [
+        f"Ranked by `{rank_by}` ({direction} is better); p_vs_best: Wilcoxon signed-rank of the "
+        "per-frame errors against the best setting, on the frames both solved.",
+        "",
+        "| " + " | ".join(header) + " |",
+        "| " + " | ".join("---" for _ in header) + " |",
+    ]
+    lines += ["| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |" for row in rows]
+    markdown_path = out_dir / "ranking.md"
+    _atomic_write(markdown_path, "\n".join(lines) + "\n")
+    return csv_path, markdown_path
+
+
+def _entity_key(index: int, label: str) -> str:
+    return f"s{index + 1}_" + re.sub(r"[^A-Za-z0-9_-]+", "_", label)
+
+
+def _write_sweep_overlay(
+    out: Path, recording: Path, ok: list[SweepEntry], series: dict[int, RunSeries],
+    entries: list[SweepEntry], rank_by: str, images: bool,
+) -> Path:
+    index_of = {id(e): i for i, e in enumerate(entries)}
+    first = series[index_of[id(ok[0])]]
+    cams = cameras_of(read_rrd(ok[0].out_path)) if images else []
+    runs = []
+    for rank, entry in enumerate(ok):
+        s = series[index_of[id(entry)]]
+        ia, ib = match_frames(first.time_ns, s.time_ns)
+        to_first = {int(s.frames[j]): int(first.frames[i]) for i, j in zip(ia, ib)}
+        reprojected = {
+            cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
+            for cam, per in (_reprojected(entry.out_path, cams) if images else {}).items()
+        }
+        runs.append(OverlayRun(
+            _entity_key(rank, entry.label), f"#{entry.rank} {entry.label}",
+            first.frames[ia], first.time_ns[ia], s.T_est[ib], _overlay_errors(s, ib), reprojected,
+        ))
+    header, rows = ranking_rows(ok, rank_by)
+    report = "\n".join([
+        f"# sweep over {recording.name}", "",
+        "| " + " | ".join(header[:6]) + " |", "| " + " | ".join("---" for _ in header[:6]) + " |",
+        *["| " + " | ".join(row[:6]) + " |" for row in rows],
+    ]) + "\n"
+    return write_overlay(
+        out,
+        recording_name=f"sweep {recording.stem}",
+        runs=runs,
+        truth=_truth(first),
+        source=ok[0].out_path,
+        cam_names=cams,
+        report_markdown=report,
+    )

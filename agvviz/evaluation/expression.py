@@ -1,0 +1,304 @@
+"""The small, safe grammar of ``agvviz diff --fail-if``. Never handed to ``eval``.
+
+::
+
+    condition  := conjunction ("or" conjunction)*
+    conjunction:= comparison ("and" comparison)*
+    comparison := sum ("<" | "<=" | ">" | ">=" | "==" | "!=") sum
+                | "(" condition ")"
+    sum        := product (("+" | "-") product)*
+    product    := unary (("*" | "/") unary)*
+    unary      := "-" unary | atom
+    atom       := NUMBER | METRIC | "(" sum ")"
+    METRIC     := ("A" | "B") "." name          e.g. B.position_rmse_mm
+    NUMBER     := decimal, optional exponent    e.g. 1.05, 2e-3
+
+The whole expression must be a condition (true/false); arithmetic works on numbers,
+``and``/``or`` on conditions. A metric name that is not known is an error listing the known
+ones; a metric without a value (e.g. no common frames), a division by zero, or a chained
+comparison (``a < b < c``; write ``a < b and b < c``) is an error too.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Iterable, Mapping, Union
+
+#: Longest accepted expression (characters) and deepest parenthesis nesting.
+MAX_LENGTH = 1000
+MAX_DEPTH = 32
+
+_TOKEN = re.compile(
+    r"\s*(?:"
+    r"(?P<number>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)"
+    r"|(?P<metric>[A-Za-z_][A-Za-z0-9_]*\.[A-Za-z_][A-Za-z0-9_]*)"
+    r"|(?P<word>[A-Za-z_][A-Za-z0-9_]*)"
+    r"|(?P<op><=|>=|==|!=|<|>|\+|-|\*|/|\(|\))"
+    r")"
+)
+_COMPARISONS = ("<", "<=", ">", ">=", "==", "!=")
+RUNS = ("A", "B")
+
+
+class ExpressionError(ValueError):
+    """A ``--fail-if`` expression that does not parse or cannot be evaluated."""
+
+
+@dataclass(frozen=True)
+class _Token:
+    kind: str  # number | metric | word | op | end
+    text: str
+    column: int  # 1-based
+
+
+@dataclass(frozen=True)
+class Number:
+    value: float
+
+
+@dataclass(frozen=True)
+class Metric:
+    run: str  # "A" | "B"
+    name: str
+
+
+@dataclass(frozen=True)
+class Negate:
+    operand: "Node"
+
+
+@dataclass(frozen=True)
+class Arithmetic:
+    op: str
+    left: "Node"
+    right: "Node"
+
+
+@dataclass(frozen=True)
+class Comparison:
+    op: str
+    left: "Node"
+    right: "Node"
+
+
+@dataclass(frozen=True)
+class Logical:
+    op: str  # "and" | "or"
+    left: "Node"
+    right: "Node"
+
+
+Node = Union[Number, Metric, Negate, Arithmetic, Comparison, Logical]
+
+
+def _tokenize(text: str) -> list[_Token]:
+    tokens, pos = [], 0
+    while pos < len(text):
+        if text[pos:].strip() == "":
+            break
+        match = _TOKEN.match(text, pos)
+        if match is None or match.end() == pos:
+            column = len(text) - len(text[pos:].lstrip()) + 1
+            raise ExpressionError(f"unexpected character {text[column - 1]!r} at column {column}")
+        kind = match.lastgroup
+        tokens.append(_Token(kind, match.group(kind), match.start(kind) + 1))
+        pos = match.end()
+    tokens.append(_Token("end", "", len(text) + 1))
+    return tokens
+
+
+class _Parser:
+    def __init__(self, text: str, known: frozenset[str]):
+        self.tokens = _tokenize(text)
+        self.pos = 0
+        self.known = known
+        self.depth = 0
+
+    # -- helpers ------------------------------------------------------------------------
+    def peek(self) -> _Token:
+        return self.tokens[self.pos]
+
+    def take(self) -> _Token:
+        token = self.tokens[self.pos]
+        self.pos += 1
+        return token
+
+    def at(self, kind: str, *texts: str) -> bool:
+        token = self.peek()
+        return token.kind == kind and (not texts or token.text in texts)
+
+    def fail(self, message: str, token: _Token | None = None) -> ExpressionError:
+        token = token or self.peek()
+        where = "at the end" if token.kind == "end" else f"at column {token.column} ({token.text!r})"
+        return ExpressionError(f"{message} {where}")
+
+    def enter(self) -> None:
+        self.depth += 1
+        if self.depth > MAX_DEPTH:
+            raise self.fail(f"parentheses nested deeper than {MAX_DEPTH}")
+
+    # -- grammar ------------------------------------------------------------------------
+    def condition(self) -> Node:
+        node = self.conjunction()
+        while self.at("word", "or"):
+            self.take()
+            node = Logical("or", node, self.conjunction())
+        return node
+
+    def conjunction(self) -> Node:
+        node = self.comparison()
+        while self.at("word", "and"):
+            self.take()
+            node = Logical("and", node, self.comparison())
+        return node
+
+    def comparison(self) -> Node:
+        if self.at("op", "(") and self._parenthesised_condition():
+            self.take()
+            self.enter()
+            node = self.condition()
+            if not self.at("op", ")"):
+                raise self.fail("expected ')'")
+            self.take()
+            self.depth -= 1
+            return node
+        left = self.sum()
+        if not self.at("op", *_COMPARISONS):
+            raise self.fail("expected a comparison (<, <=, >, >=, ==, !=)")
+        op = self.take().text
+        right = self.sum()
+        if self.at("op", *_COMPARISONS):
+            raise self.fail("chained comparison; write 'x < y and y < z'")
+        return Comparison(op, left, right)
+
+    def _parenthesised_condition(self) -> bool:
+        """Whether the '(' at the cursor opens a condition (contains a comparison or and/or
+        at its own nesting level) rather than an arithmetic group."""
+        depth = 0
+        for token in self.tokens[self.pos :]:
+            if token.kind == "op" and token.text == "(":
+                depth += 1
+            elif token.kind == "op" and token.text == ")":
+                depth -= 1
+                if depth == 0:
+                    return False
+            elif depth >= 1 and (
+                (token.kind == "op" and token.text in _COMPARISONS)
+                or (token.kind == "word" and token.text in ("and", "or"))
+            ):
+                return True
+        return False
+
+    def sum(self) -> Node:
+        node = self.product()
+        while self.at("op", "+", "-"):
+            op = self.take().text
+            node = Arithmetic(op, node, self.product())
+        return node
+
+    def product(self) -> Node:
+        node = self.unary()
+        while self.at("op", "*", "/"):
+            op = self.take().text
+            node = Arithmetic(op, node, self.unary())
+        return node
+
+    def unary(self) -> Node:
+        if self.at("op", "-"):
+            self.take()
+            self.enter()
+            node = Negate(self.unary())
+            self.depth -= 1
+            return node
+        return self.atom()
+
+    def atom(self) -> Node:
+        token = self.peek()
+        if token.kind == "number":
+            self.take()
+            return Number(float(token.text))
+        if token.kind == "metric":
+            self.take()
+            run, _, name = token.text.partition(".")
+            if run not in RUNS:
+                raise self.fail(f"metrics belong to run A or B, not {run!r}", token)
+            if name not in self.known:
+                raise ExpressionError(
+                    f"unknown metric {name!r} at column {token.column}; known metrics: "
+                    + ", ".join(sorted(self.known))
+                )
+            return Metric(run, name)
+        if token.kind == "op" and token.text == "(":
+            self.take()
+            self.enter()
+            node = self.sum()
+            if not self.at("op", ")"):
+                raise self.fail("expected ')'")
+            self.take()
+            self.depth -= 1
+            return node
+        if token.kind == "word":
+            raise self.fail("expected a number or a metric such as A.position_rmse_mm, got a bare word")
+        raise self.fail("expected a number, a metric or '('")
+
+
+def parse(text: str, known_metrics: Iterable[str]) -> Node:
+    """Parse a ``--fail-if`` condition over the metric names ``known_metrics``.
+
+    Raises
+    ------
+    ExpressionError
+        With the column of the problem, or the list of known metrics for an unknown one.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise ExpressionError("empty expression; e.g. 'B.position_rmse_mm > 1.05 * A.position_rmse_mm'")
+    if len(text) > MAX_LENGTH:
+        raise ExpressionError(f"expression longer than {MAX_LENGTH} characters")
+    parser = _Parser(text, frozenset(known_metrics))
+    node = parser.condition()
+    if not parser.at("end"):
+        raise parser.fail("unexpected text")
+    return node
+
+
+def evaluate(node: Node, metrics: Mapping[str, Mapping[str, float | None]]) -> bool | float:
+    """Value of a parsed expression given ``metrics = {"A": {name: value}, "B": {...}}``."""
+    if isinstance(node, Number):
+        return node.value
+    if isinstance(node, Metric):
+        value = metrics.get(node.run, {}).get(node.name)
+        if value is None:
+            raise ExpressionError(f"{node.run}.{node.name} has no value in this comparison")
+        return float(value)
+    if isinstance(node, Negate):
+        return -evaluate(node.operand, metrics)
+    if isinstance(node, Arithmetic):
+        left, right = evaluate(node.left, metrics), evaluate(node.right, metrics)
+        if node.op == "+":
+            return left + right
+        if node.op == "-":
+            return left - right
+        if node.op == "*":
+            return left * right
+        if right == 0.0:
+            raise ExpressionError("division by zero")
+        return left / right
+    if isinstance(node, Comparison):
+        left, right = evaluate(node.left, metrics), evaluate(node.right, metrics)
+        return {
+            "<": left < right, "<=": left <= right, ">": left > right,
+            ">=": left >= right, "==": left == right, "!=": left != right,
+        }[node.op]
+    if isinstance(node, Logical):
+        left = evaluate(node.left, metrics)
+        if node.op == "and":
+            return bool(left) and bool(evaluate(node.right, metrics))
+        return bool(left) or bool(evaluate(node.right, metrics))
+    raise ExpressionError(f"unknown expression node {type(node).__name__}")
+
+
+def check(text: str, metrics: Mapping[str, Mapping[str, float | None]]) -> bool:
+    """Parse ``text`` against the metric names of run A and evaluate it on ``metrics``."""
+    node = parse(text, metrics.get("A", {}).keys() | metrics.get("B", {}).keys())
+    return bool(evaluate(node, metrics))

@@ -1,0 +1,219 @@
+"""agvviz diff / sweep / overlay on real replays of a small qr_floor recording, read back
+through Rerun's API; and run determinism under `rerun rrd compare`.
+
+One module-scoped sweep (lm with refine=ecc and refine=none, plus a setting made to fail)
+provides the runs every test here uses, so the file stays around 20 s.
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from agvviz import scenario_registry
+from agvviz.cli import app
+from agvviz.compare import CompareError, diff, load_run, parse_grid, sweep
+from agvviz.evaluation.expression import ExpressionError
+from agvviz.runner import run_recording
+from agvviz.settings import RunSettings
+from agvviz.viz import overlay, paths
+from agvviz.viz.readback import (
+    encoded_images,
+    points2d,
+    read_rrd,
+    scalar_series,
+    text_document,
+    transforms,
+)
+
+# 2 s at 10 Hz = 20 frames of the default paper 000 geometry.
+SMALL = ["duration_s=2", "rate_hz=10"]
+CAM = "front"
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("compare")
+    recording = tmp / "qr_floor.mcap"
+    scenario_registry.record("qr_floor", recording, seed=11, overrides=SMALL)
+    out_dir = tmp / "sweep"
+    out_dir.mkdir()
+    # A directory where the subpix run's .rrd must go: its final rename fails, the others not.
+    (out_dir / "qr_floor-lm-refine=subpix.rrd").mkdir()
+    outcome = sweep(recording, parse_grid(["refine=ecc,none,subpix"]), out_dir=out_dir, jobs=2)
+    return recording, outcome
+
+
+def _entry(outcome, label):
+    return next(e for e in outcome.entries if e.label == label)
+
+
+def test_sweep_ranks_reports_failure_and_writes_tables(swept):
+    _, outcome = swept
+    assert [e.label for e in outcome.entries] == ["lm", "lm-refine=none", "lm-refine=subpix"]
+    ecc, none, subpix = outcome.entries
+    assert ecc.rank == 1 and none.rank == 2 and subpix.rank is None
+    assert not subpix.ok and "IsADirectoryError" in subpix.error
+    assert ecc.ok and ecc.metrics["frames"] == 20 and ecc.metrics["solved"] >= 18
+    # ECC-refined corners (≈0.02 px) beat unrefined OpenCV corners (≈1 px, DESIGN §8) on every
+    # frame, so 18+ paired frames give a Wilcoxon p of at most 2/2^18 ≈ 8e-6.
+    assert none.p_vs_best < 0.01
+    assert ecc.metrics["position_rmse_mm"] < none.metrics["position_rmse_mm"]
+    with open(outcome.csv_path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["setting"] for r in rows] == ["lm", "lm-refine=none", "lm-refine=subpix"]
+    assert float(rows[0]["position_rmse_mm"]) == pytest.approx(ecc.metrics["position_rmse_mm"], rel=1e-3)
+    assert rows[2]["status"].startswith("failed: IsADirectoryError")
+    assert "| 1 | lm |" in outcome.markdown_path.read_text()
+
+
+def test_sweep_overlay_holds_every_successful_run(swept):
+    _, outcome = swept
+    contents = read_rrd(outcome.overlay_path)
+    ok = [e for e in outcome.entries if e.ok]
+    for rank, entry in enumerate(ok, start=1):
+        key = f"s{rank}_" + entry.label.replace("=", "_")
+        run = read_rrd(entry.out_path)
+        frames, values = scalar_series(contents, f"errors/position_mm/{key}")
+        run_frames, run_values = scalar_series(run, paths.ERROR_POSITION_M)
+        np.testing.assert_array_equal(frames, run_frames)
+        np.testing.assert_allclose(values, run_values * 1000.0, rtol=1e-12)
+        assert f"world/trajectory/{key}" in contents.entity_paths
+    assert "lm-refine=subpix" not in text_document(contents, overlay.REPORT)
+
+
+def test_diff_of_a_run_with_itself_is_zero_and_not_significant(swept):
+    _, outcome = swept
+    path = outcome.entries[0].out_path
+    result = diff(path, path)
+    for row in result.comparison.rows:
+        assert row.diff == 0, row
+        assert row.p_value in (None, 1.0)
+    assert result.comparison.largest == []
+    assert not result.failed
+
+
+def test_worse_setting_is_detected(swept):
+    _, outcome = swept
+    ecc, none = outcome.entries[0].out_path, outcome.entries[1].out_path
+    result = diff(ecc, none, fail_if="B.position_rmse_mm > 1.05*A.position_rmse_mm")
+    row = result.comparison.row("position_rmse_mm")
+    assert row.diff > 0 and row.p_value < 0.01 and row.ci_low > 0
+    assert result.failed
+    assert result.comparison.settings_changed == {"refine": ("ecc", "none")}
+    assert not diff(ecc, none, fail_if="B.position_rmse_mm < A.position_rmse_mm").failed
+    # The table's A column equals the run's own summary when both solved the same frames.
+    run = load_run(ecc)
+    if run.solved.all() and load_run(none).solved.all():
+        from agvviz.viz.readback import document_json
+
+        summary = document_json(read_rrd(ecc), paths.RUN_SUMMARY)
+        assert row.a == pytest.approx(summary["position_error_mm"]["rmse"], rel=1e-12)
+
+
+def test_unknown_metric_fails_before_reading(swept, tmp_path):
+    with pytest.raises(ExpressionError, match="unknown metric 'position_rms'.*position_rmse_mm"):
+        diff(tmp_path / "missing_a.rrd", tmp_path / "missing_b.rrd", fail_if="B.position_rms > 1")
+
+
+def test_diff_overlay_contents(swept, tmp_path):
+    _, outcome = swept
+    a_path, b_path = outcome.entries[0].out_path, outcome.entries[1].out_path
+    out = tmp_path / "overlay.rrd"
+    result = diff(a_path, b_path, overlay_path=out)
+    assert result.overlay_path == out
+    contents = read_rrd(out)
+    a, b = read_rrd(a_path), read_rrd(b_path)
+    # Both trajectories: the per-frame poses are the runs' own.
+    for key, run in (("a", a), ("b", b)):
+        frames, _, T = transforms(contents, f"world/agv/{key}")
+        run_frames, _, run_T = transforms(run, paths.AGV_CAMERA)
+        np.testing.assert_array_equal(frames, run_frames)
+        np.testing.assert_allclose(T, run_T, atol=1e-6)  # float32 storage on both sides
+        corners = points2d(contents, f"image/{CAM}/{key}")
+        run_corners = points2d(run, paths.reprojected(CAM))
+        for frame, pts in run_corners.items():
+            np.testing.assert_array_equal(corners[frame], pts)
+    # Δ position error = |error B| − |error A| on frames both solved.
+    fa, ea = scalar_series(a, paths.ERROR_POSITION_M)
+    fb, eb = scalar_series(b, paths.ERROR_POSITION_M)
+    common = sorted(set(fa) & set(fb))
+    frames, delta = scalar_series(contents, "delta/position_mm")
+    np.testing.assert_array_equal(frames, common)
+    expected = [abs(eb[list(fb).index(f)]) * 1000 - abs(ea[list(fa).index(f)]) * 1000 for f in common]
+    np.testing.assert_allclose(delta, expected, rtol=1e-9, atol=1e-12)
+    # A's images, byte for byte, on the same frames; the report is the diff table.
+    images = encoded_images(contents, f"image/{CAM}")
+    assert images == encoded_images(a, paths.image(CAM))
+    assert "position_rmse_mm" in text_document(contents, overlay.REPORT)
+    # Without images the overlay is a fraction of the size.
+    small = diff(a_path, b_path, overlay_path=tmp_path / "small.rrd", images=False).overlay_path
+    assert small.stat().st_size < out.stat().st_size / 5
+
+
+def test_cli_diff_gates_and_exports(swept, tmp_path):
+    _, outcome = swept
+    a_path, b_path = str(outcome.entries[0].out_path), str(outcome.entries[1].out_path)
+    runner = CliRunner()
+    result = runner.invoke(app, ["diff", a_path, b_path, "--fail-if", "B.position_rmse_mm > 1.05*A.position_rmse_mm"])
+    assert result.exit_code == 1, result.output
+    assert "position_rmse_mm" in result.output and "--fail-if holds" in result.output
+    result = runner.invoke(app, ["diff", a_path, a_path, "--fail-if", "B.position_rmse_mm > A.position_rmse_mm"])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(app, ["diff", a_path, b_path, "--fail-if", "B.nope > 1"])
+    assert result.exit_code == 2 and "unknown metric 'nope'" in result.output
+    result = runner.invoke(app, ["export", a_path, "--format", "tum", "--out-dir", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / f"{Path(a_path).stem}.estimate.tum").is_file()
+
+
+def test_sweep_grid_errors_are_clear(tmp_path):
+    assert parse_grid(["lm.max_iters=3,10,3", "solver=lm"]) == {"lm_max_iterations": ["3", "10"], "solver": ["lm"]}
+    with pytest.raises(CompareError, match="unknown setting 'nope'"):
+        parse_grid(["nope=1,2"])
+    with pytest.raises(CompareError, match="given twice"):
+        parse_grid(["solver=lm", "solver=p4p"])
+    recording = tmp_path / "r.mcap"
+    recording.write_bytes(b"")
+    with pytest.raises(CompareError, match="lm_max_iterations=0"):
+        sweep(recording, parse_grid(["lm_max_iterations=0,3"]), out_dir=tmp_path)
+    with pytest.raises(CompareError, match="same settings more than once"):
+        sweep(recording, parse_grid(["lm_max_iterations=3,03"]), out_dir=tmp_path)
+
+
+def _rerun_cli() -> Path:
+    cli = Path(sys.executable).parent / "rerun"
+    if not cli.is_file():
+        pytest.skip(f"rerun CLI not found next to {sys.executable}; needed for `rerun rrd compare`")
+    return cli
+
+
+def test_same_recording_and_settings_give_equal_rrd(tmp_path):
+    """Determinism: recording id, timestamps and chunking pinned, no wall-clock figures in the
+    summary, the recording named by file name (not by the path it was given): two runs of the
+    same recording — even from another folder — are equal under `rerun rrd compare`; another
+    setting is not."""
+    cli = _rerun_cli()
+    recording = tmp_path / "qr_floor.mcap"
+    scenario_registry.record("qr_floor", recording, seed=5, overrides=["duration_s=1", "rate_hz=5"])
+    elsewhere = tmp_path / "copy" / "qr_floor.mcap"
+    elsewhere.parent.mkdir()
+    shutil.copy(recording, elsewhere)
+    run_recording(recording, RunSettings(), tmp_path / "first.rrd")
+    run_recording(elsewhere, RunSettings(), tmp_path / "second.rrd")
+    run_recording(recording, RunSettings(refine="none"), tmp_path / "other.rrd")
+
+    def compare(x: str, y: str) -> subprocess.CompletedProcess:
+        return subprocess.run([cli, "rrd", "compare", "--unordered", tmp_path / x, tmp_path / y],
+                              capture_output=True, text=True, timeout=120, check=False)
+
+    same = compare("first.rrd", "second.rrd")
+    assert same.returncode == 0, same.stdout + same.stderr
+    assert compare("first.rrd", "other.rrd").returncode != 0
