@@ -1,0 +1,105 @@
+"""Several cameras at one time stamp → one camera fix (paper 003 §2.2). No I/O.
+
+Paper 003 takes "the camera that accurately recognizes the four corner points of the ArUco
+code and has the best effect". Policies (run setting ``camera_select``):
+
+``best``     the solved frame whose marker covers the most pixels (the largest code in the image
+             has the smallest relative corner error, so the best-conditioned pose);
+``combine``  starting from ``best``, one joint LM over the corners of every camera that solved
+             (:func:`agvviz.solvers.multi_camera.refine_rig_pose`); only for cameras fixed in the
+             world watching a marker on the AGV, otherwise ``best``.
+
+With ``floor=True`` (run setting ``floor_constraint``, world-fixed cameras and a marker on the
+AGV only) the pose is refined with the AGV on the floor — x, y, heading — on the chosen camera
+(``best``) or on all (``combine``): it removes the planar-ambiguity flips of a small, far,
+oblique marker.
+
+The chosen frame becomes the *primary* result of the time stamp: its pose is the camera fix.
+For ``combine`` the primary frame's pose, reprojections and errors are replaced by the joint
+solution's, and every other camera's reprojected corners are recomputed from it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agvviz.conventions import AGV_FRAME
+from agvviz.geometry import euler, se3
+from agvviz.results import FrameResult
+from agvviz.solvers.multi_camera import RigView, refine_rig_pose
+
+CAMERA_SELECT = ("best", "combine")
+
+
+@dataclass
+class CameraSelection:
+    """The outcome of one time stamp: ``primary`` (None when no camera solved), the cameras
+    that solved and those whose corners made the fix (``used``)."""
+
+    primary: FrameResult | None
+    solved: list[str] = field(default_factory=list)
+    used: list[str] = field(default_factory=list)
+    note: str = ""
+
+
+def _marker_area_px2(frame: FrameResult) -> float:
+    obs = next(o for o in frame.observations if o.marker_id == frame.used_marker_id)
+    x, y = obs.corners_px[:4, 0], obs.corners_px[:4, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def select_camera_fix(
+    frames: list[FrameResult], cameras: dict, policy: str, gimbal_threshold: float, floor: bool = False
+) -> CameraSelection:
+    """Pick or combine the frames of one time stamp (module docstring).
+
+    ``cameras`` maps camera name → the pipeline's per-camera state (``camera``, ``T_world_cam``).
+    """
+    if policy not in CAMERA_SELECT:
+        raise ValueError(f"unknown camera_select {policy!r}; valid: {', '.join(CAMERA_SELECT)}")
+    solved = [f for f in frames if f.solved]
+    selection = CameraSelection(None, [f.cam_name for f in solved])
+    if not solved:
+        return selection
+    best = max(solved, key=_marker_area_px2)
+    selection.primary, selection.used = best, [best.cam_name]
+    if (policy == "best" or len(solved) == 1) and not floor:
+        return selection
+    views = []
+    for frame in (solved if policy == "combine" else [best]):
+        cam = cameras.get(frame.cam_name)
+        obs = next(o for o in frame.observations if o.marker_id == frame.used_marker_id)
+        if cam is None or cam.T_world_cam is None or obs.points_frame != AGV_FRAME:
+            selection.note = "combine needs world-fixed cameras and a marker on the AGV: used best"
+            return selection
+        ideal = cam.camera.undistort_pixels(obs.corners_px)
+        views.append(RigView(cam.camera.K, se3.inverse(cam.T_world_cam), obs.points_world_m, ideal))
+    try:
+        T_world_agv, rms_px = refine_rig_pose(best.T_world_agv, views, planar=floor)
+    except ValueError as exc:
+        selection.note = f"joint LM failed ({exc}): used best"
+        return selection
+    best.T_world_agv = T_world_agv
+    best.reproj_rms_px = rms_px
+    best.hpr_rad = np.array(euler.hpr_from_matrix(T_world_agv[:3, :3], gimbal_threshold))
+    if best.T_world_agv_truth is not None:
+        truth = best.T_world_agv_truth
+        best.position_error_m = float(np.linalg.norm(T_world_agv[:3, 3] - truth[:3, 3]))
+        heading_err, pitch_err, roll_err = np.degrees(euler.wrap_angle_rad(best.hpr_rad - best.hpr_truth_rad))
+        best.heading_error_deg = float(heading_err)
+        best.pitch_error_deg = float(pitch_err)
+        best.roll_error_deg = float(roll_err)
+    for frame in frames:
+        cam = cameras.get(frame.cam_name)
+        if cam is None or cam.T_world_cam is None:
+            continue
+        T_cam_agv = se3.inverse(cam.T_world_cam) @ T_world_agv
+        for obs in frame.observations:
+            if obs.points_frame == AGV_FRAME:
+                points_cam = se3.transform_points(T_cam_agv, obs.points_world_m)
+                if np.all(points_cam[:, 2] > 0):
+                    obs.reprojected_px = cam.camera.project(points_cam)
+    selection.used = [f.cam_name for f in solved] if policy == "combine" else [best.cam_name]
+    return selection

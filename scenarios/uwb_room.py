@@ -1,0 +1,314 @@
+"""uwb_room — paper 003: four wall cameras watch an ArUco code on the AGV's roof; four UWB
+anchors take over when the cameras are blocked.
+
+World (§3.1): an 8 × 7 m room; on the middle of each wall a camera (``cam_south`` …, height
+``cam_height_m``, looking at the room's centre on the floor, 1280×1024 by default; Table 5's
+640×480 and 320×240 through ``width_px``/``height_px`` at the same field of view) and a UWB
+anchor (``A_south`` …, height ``anchor_height_m``). On the AGV: a 183 mm ArUco code
+(``DICT_5X5_50``: 7 × 26.14 mm cells with the border, as in §2.2.2) face up on the roof, and
+the UWB tag above the AGV's centre.
+
+Variants:
+
+* ``path`` — the AGV drives a rounded rectangle in the middle of the room at 0.2 m/s (§2.3);
+  from ``block_start_s`` to ``block_end_s`` an obstacle hides the code from every camera
+  (§3.3's blocked road).
+* ``static_grid`` — §3.2: the AGV stands at each of the 30 points of a grid every
+  ``grid_spacing_m`` (120 … 720 × 120 … 600 cm) for ``fixes_per_point`` camera frames and as
+  many UWB rounds, one point after the other (1 s gaps between points).
+
+UWB (§2.1.1): the tag ranges to the anchors in turn, ``uwb_rate_hz`` rounds per second, by
+single-sided two-way ranging on free-running device clocks (:mod:`agvviz.sim.uwb`): clock
+offsets, drifts of ``clock_drift_ppm`` (σ, per device), timestamp noise, 15.65 ps ticks, and
+on each range with probability ``nlos_probability`` an NLOS excess path uniform in
+[``nlos_excess_min_m``, ``nlos_excess_max_m``].
+
+Recorded at the first time stamp: calibrations, ``/tf_static`` (world → cam_<wall>, agv →
+marker_<id>, agv → uwb_tag), ``/markers/map`` (frame ``agv``) and ``/uwb/anchors``. Then, in
+time order: per camera frame ``/agv/ground_truth`` and the four JPEG frames; per range
+``/agv/ground_truth`` and ``/uwb/range``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
+from agvviz.geometry import se3
+from agvviz.geometry.camera import PinholeCamera
+from agvviz.markers.aruco import aruco_dictionary, aruco_modules, is_aruco_dictionary
+from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
+from agvviz.sim.room import WALLS, agv_pose, grid_points, horizontal_fov_focal_px, look_at, placed, roof_code, wall_points
+from agvviz.sim.trajectory import SIM_START_TIME_NS, RoundedRectangleTrack
+from agvviz.sim.uwb import DeviceClock, simulate_twr
+
+NAME = "uwb_room"
+DESCRIPTION = "Paper 003: four wall cameras + ArUco on the AGV, four UWB anchors, blocked stretch; static grid variant"
+
+TAG_ID = "T0"
+TAG_FRAME = "uwb_tag"
+VARIANTS = ("path", "static_grid")
+#: Time between two static-grid points, while the AGV moves (nothing is recorded).
+GRID_GAP_S = 1.0
+
+
+def _opt(default, help_text: str, choices: tuple[str, ...] | None = None):
+    meta = {"help": help_text}
+    if choices is not None:
+        meta["choices"] = choices
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class Options:
+    variant: str = _opt("path", "path (driving, blocked stretch) or static_grid (§3.2's 30 points)", VARIANTS)
+    duration_s: float = _opt(40.0, "recording length in seconds (path variant)")
+    rate_hz: float = _opt(10.0, "camera frame rate (all four cameras at once)")
+    speed_mps: float = _opt(0.2, "AGV speed along the path (paper 003: 0.2 m/s)")
+    block_start_s: float = _opt(14.0, "the obstacle hides the code from all cameras from here (path variant)")
+    block_end_s: float = _opt(24.0, "… until here (block_end_s <= block_start_s: never blocked)")
+    track_length_m: float = _opt(3.0, "path: length of the straights along x")
+    track_width_m: float = _opt(2.0, "path: length of the straights along y")
+    turn_radius_m: float = _opt(0.6, "path: radius of the quarter turns")
+    grid_spacing_m: float = _opt(1.2, "static grid: distance between test points (paper: 120 cm)")
+    fixes_per_point: int = _opt(100, "static grid: camera frames and UWB rounds at each point (paper: 100)")
+    static_point_m: str = _opt("", "static grid: one point 'x,y' (m) instead of the 30, e.g. 2.4,2.4 (Table 5)")
+    room_length_m: float = _opt(8.0, "room size along x")
+    room_width_m: float = _opt(7.0, "room size along y")
+    width_px: int = _opt(1280, "image width (paper 003 Table 5: 1280, 640, 320)")
+    height_px: int = _opt(1024, "image height (Table 5: 1024, 480, 240)")
+    hfov_deg: float = _opt(70.0, "horizontal field of view of every camera (sets the focal length)")
+    k1: float = _opt(-0.02, "radial distortion k1 (OpenCV plumb_bob)")
+    cam_height_m: float = _opt(2.8, "camera height on the walls")
+    dictionary: str = _opt("DICT_5X5_50", "OpenCV ArUco dictionary of the roof code")
+    marker_id: int = _opt(7, "id of the roof code")
+    marker_side_m: float = _opt(0.183, "roof code side incl. its black border (paper: 183 mm)")
+    roof_height_m: float = _opt(0.35, "height of the AGV roof (the code) above the floor")
+    tag_height_m: float = _opt(0.45, "height of the UWB tag above the floor")
+    anchor_height_m: float = _opt(2.2, "height of the UWB anchors")
+    uwb_rate_hz: float = _opt(10.0, "UWB rounds per second (one range per anchor each)")
+    reply_delay_us: float = _opt(150.0, "anchor reply delay of single-sided TWR (µs)")
+    timestamp_noise_ns: float = _opt(0.1, "UWB timestamp noise sigma (ns)")
+    clock_drift_ppm: float = _opt(2.0, "sigma of each UWB device's clock drift (ppm)")
+    nlos_probability: float = _opt(0.05, "probability that a range is NLOS")
+    nlos_excess_min_m: float = _opt(0.2, "NLOS excess path, lower bound (m)")
+    nlos_excess_max_m: float = _opt(0.8, "NLOS excess path, upper bound (m)")
+    blur_sigma_px: float = _opt(0.8, "Gaussian optical blur sigma in pixels")
+    noise_sigma_dn: float = _opt(2.0, "Gaussian sensor noise sigma in digital numbers")
+    jpeg_quality: int = _opt(95, "JPEG quality 1..100")
+    supersample: int = _opt(4, "s x s samples per pixel for area integration")
+
+
+_FIELD_TYPES = {"float": (float, int), "int": (int,), "bool": (bool,), "str": (str,)}
+
+
+def validate(options: Options) -> None:
+    """Raise ``ValueError`` naming the first impossible option and what to do about it."""
+    for f in fields(Options):
+        value = getattr(options, f.name)
+        expected = _FIELD_TYPES[f.type]
+        if isinstance(value, bool) != (bool in expected) or not isinstance(value, expected):
+            raise ValueError(f"{f.name} must be of type {f.type}, got {value!r}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"{f.name} must be a finite number, got {value}")
+        choices = f.metadata.get("choices")
+        if choices and value not in choices:
+            raise ValueError(f"{f.name}={value!r} is not one of: {', '.join(choices)}")
+    o = options
+    for name in (
+        "duration_s", "rate_hz", "turn_radius_m", "grid_spacing_m", "room_length_m", "room_width_m",
+        "marker_side_m", "uwb_rate_hz", "reply_delay_us", "cam_height_m", "anchor_height_m",
+    ):
+        if getattr(o, name) <= 0:
+            raise ValueError(f"{name} must be > 0, got {getattr(o, name)}")
+    for name in (
+        "speed_mps", "track_length_m", "track_width_m", "timestamp_noise_ns", "clock_drift_ppm",
+        "nlos_excess_min_m", "blur_sigma_px", "noise_sigma_dn", "roof_height_m", "tag_height_m",
+    ):
+        if getattr(o, name) < 0:
+            raise ValueError(f"{name} must be ≥ 0, got {getattr(o, name)}")
+    if o.fixes_per_point < 1:
+        raise ValueError(f"fixes_per_point must be ≥ 1, got {o.fixes_per_point}")
+    if not 0.0 <= o.nlos_probability <= 1.0:
+        raise ValueError(f"nlos_probability must lie in [0, 1], got {o.nlos_probability}")
+    if o.nlos_excess_max_m < o.nlos_excess_min_m:
+        raise ValueError("nlos_excess_max_m must be ≥ nlos_excess_min_m")
+    if o.width_px < 16 or o.height_px < 16:
+        raise ValueError(f"image must be at least 16×16 px, got {o.width_px}×{o.height_px}")
+    if not 1.0 <= o.hfov_deg <= 150.0:
+        raise ValueError(f"hfov_deg must lie in [1, 150], got {o.hfov_deg}")
+    if not 1 <= o.jpeg_quality <= 100 or not 1 <= o.supersample <= 16:
+        raise ValueError("jpeg_quality must lie in 1..100 and supersample in 1..16")
+    if not is_aruco_dictionary(o.dictionary):
+        raise ValueError(f"dictionary {o.dictionary!r} is not an OpenCV ArUco dictionary (e.g. DICT_5X5_50)")
+    count = aruco_dictionary(o.dictionary).bytesList.shape[0]
+    if not 0 <= o.marker_id < count:
+        raise ValueError(f"marker_id must lie in 0..{count - 1} for {o.dictionary}, got {o.marker_id}")
+    if o.variant == "path":
+        half_x = o.track_length_m / 2.0 + o.turn_radius_m
+        half_y = o.track_width_m / 2.0 + o.turn_radius_m
+        if 2 * half_x >= o.room_length_m or 2 * half_y >= o.room_width_m:
+            raise ValueError("the path does not fit in the room; shrink the track or enlarge the room")
+        if round(o.duration_s * o.rate_hz) < 1:
+            raise ValueError("duration_s · rate_hz < 1: no frame to record")
+    elif o.static_point_m:
+        try:
+            x, y = (float(v) for v in o.static_point_m.split(","))
+        except ValueError:
+            raise ValueError(f"static_point_m must be 'x,y' in metres, got {o.static_point_m!r}") from None
+        if not (0 < x < o.room_length_m and 0 < y < o.room_width_m):
+            raise ValueError(f"static_point_m {o.static_point_m} is outside the room")
+    elif (o.room_length_m <= 6 * o.grid_spacing_m) or (o.room_width_m <= 5 * o.grid_spacing_m):
+        raise ValueError(f"a 6 × 5 grid every {o.grid_spacing_m} m does not fit in the room")
+
+
+def make_camera(o: Options) -> PinholeCamera:
+    """Every wall camera: fx = fy from ``hfov_deg``, principal point at the image centre."""
+    f = horizontal_fov_focal_px(o.width_px, o.hfov_deg)
+    K = np.array([[f, 0.0, (o.width_px - 1) / 2.0], [0.0, f, (o.height_px - 1) / 2.0], [0.0, 0.0, 1.0]])
+    return PinholeCamera(K, np.array([o.k1, 0.0, 0.0, 0.0, 0.0]), o.width_px, o.height_px)
+
+
+def camera_poses(o: Options) -> dict[str, np.ndarray]:
+    """``T_world_cam`` of each wall camera, looking at the room's centre on the floor."""
+    centre = np.array([o.room_length_m / 2.0, o.room_width_m / 2.0, 0.0])
+    return {wall: look_at(p, centre) for wall, p in wall_points(o.room_length_m, o.room_width_m, 0.05, o.cam_height_m).items()}
+
+
+def anchor_positions(o: Options) -> dict[str, np.ndarray]:
+    """World position of each anchor ``A_<wall>``."""
+    return {f"A_{wall}": p for wall, p in wall_points(o.room_length_m, o.room_width_m, 0.02, o.anchor_height_m).items()}
+
+
+def marker_corners_agv(o: Options) -> np.ndarray:
+    """The roof code's corners TL, TR, BR, BL in the agv frame (face up, top edge forward)."""
+    h = o.marker_side_m / 2.0
+    return np.array([[-h, h, o.roof_height_m], [h, h, o.roof_height_m], [h, -h, o.roof_height_m], [-h, -h, o.roof_height_m]])
+
+
+@dataclass(frozen=True)
+class _Schedule:
+    """When things happen (s from the start) and where the AGV is then."""
+
+    frame_times_s: np.ndarray
+    range_times_s: np.ndarray
+    blocked: Callable[[float], bool]
+    pose: Callable[[float], np.ndarray]
+
+
+def _schedule(o: Options, n_anchors: int, rng: np.random.Generator) -> _Schedule:
+    slot_s = 1.0 / (o.uwb_rate_hz * n_anchors)
+    if o.variant == "path":
+        track = RoundedRectangleTrack(
+            o.track_length_m, o.track_width_m, o.turn_radius_m, (o.room_length_m / 2.0, o.room_width_m / 2.0)
+        )
+
+        def pose(t_s: float) -> np.ndarray:
+            xy, direction, _ = track.at(np.array([o.speed_mps * t_s]))
+            return agv_pose(xy[0], float(direction[0]) - np.pi / 2.0)
+
+        frames = np.arange(round(o.duration_s * o.rate_hz)) / o.rate_hz
+        ranges = np.arange(0.5 * slot_s, o.duration_s, slot_s)
+        return _Schedule(frames, ranges, lambda t: o.block_start_s <= t < o.block_end_s, pose)
+
+    points = (
+        np.array([[float(v) for v in o.static_point_m.split(",")]]) if o.static_point_m else grid_points(o.grid_spacing_m)
+    )
+    headings = rng.uniform(-np.pi, np.pi, len(points))
+    dwell_s = max(o.fixes_per_point / o.rate_hz, o.fixes_per_point / o.uwb_rate_hz)
+    period_s = dwell_s + GRID_GAP_S
+    frames = np.concatenate([p * period_s + np.arange(o.fixes_per_point) / o.rate_hz for p in range(len(points))])
+    rounds = np.concatenate([p * period_s + np.arange(o.fixes_per_point) / o.uwb_rate_hz for p in range(len(points))])
+    ranges = (rounds[:, None] + (np.arange(n_anchors) + 0.5) * slot_s).ravel()
+
+    def grid_pose(t_s: float) -> np.ndarray:
+        index = min(int(t_s // period_s), len(points) - 1)
+        return agv_pose(points[index], float(headings[index]))
+
+    return _Schedule(frames, ranges, lambda t: False, grid_pose)
+
+
+def record(writer, options: Options, seed: int, progress: Callable[[int, int], None] | None = None) -> None:
+    """Write the whole recording to ``writer`` (an open :class:`RecordingWriter`).
+
+    Random draws, all from ``np.random.default_rng(seed)`` in this order: static-grid headings,
+    device clocks, scene grey levels, then per event in time order the NLOS draw and TWR noise
+    of each range and the sensor noise of each frame.
+    """
+    validate(options)
+    o = options
+    rng = np.random.default_rng(seed)
+    camera = make_camera(o)
+    cams = camera_poses(o)
+    anchors = anchor_positions(o)
+    anchor_ids = list(anchors)
+    schedule = _schedule(o, len(anchor_ids), rng)
+    tag_clock = DeviceClock(rng.uniform(0.0, 10.0), rng.normal(0.0, o.clock_drift_ppm))
+    anchor_clocks = {a: DeviceClock(rng.uniform(0.0, 10.0), rng.normal(0.0, o.clock_drift_ppm)) for a in anchor_ids}
+    roof_dn, black_dn, white_dn = rng.uniform([80.0, 20.0, 210.0], [120.0, 30.0, 230.0])
+    code = roof_code(aruco_modules(o.dictionary, o.marker_id), str(o.marker_id), o.marker_side_m, 2)
+    T_agv_marker = se3.make(np.eye(3), [0.0, 0.0, o.roof_height_m])
+    T_agv_tag = se3.make(np.eye(3), [0.0, 0.0, o.tag_height_m])
+
+    t0_ns = SIM_START_TIME_NS
+    for wall in WALLS:
+        writer.write_calibration(wall, camera, t0_ns)
+    writer.write_tf_static(
+        [(WORLD_FRAME, camera_frame(wall), cams[wall]) for wall in WALLS]
+        + [(AGV_FRAME, f"marker_{o.marker_id}", T_agv_marker), (AGV_FRAME, TAG_FRAME, T_agv_tag)],
+        t0_ns,
+    )
+    writer.write_marker_map(
+        {
+            "dictionary": o.dictionary,
+            "markers": [
+                {"id": str(o.marker_id), "side_m": o.marker_side_m, "corners_world_m": marker_corners_agv(o), "frame": AGV_FRAME}
+            ],
+        },
+        t0_ns,
+    )
+    writer.write_json(
+        "/uwb/anchors", "agvviz.UwbAnchors", {"anchors": [{"id": a, "position_m": p} for a, p in anchors.items()]}, t0_ns
+    )
+
+    events = sorted(
+        [(float(t), 0, None) for t in schedule.frame_times_s]
+        + [(float(t), 1, anchor_ids[i % len(anchor_ids)]) for i, t in enumerate(schedule.range_times_s)]
+    )
+    total = len(schedule.frame_times_s)
+    done = 0
+    for t_s, kind, anchor in events:
+        t_ns = t0_ns + int(round(t_s * 1e9))
+        T_world_agv = schedule.pose(t_s)
+        writer.write_pose("/agv/ground_truth", T_world_agv, WORLD_FRAME, t_ns)
+        if kind == 1:
+            tag_m = se3.transform_points(T_world_agv @ T_agv_tag, np.zeros((1, 3)))[0]
+            nlos = rng.random() < o.nlos_probability
+            excess = rng.uniform(o.nlos_excess_min_m, o.nlos_excess_max_m) if nlos else 0.0
+            exchange = simulate_twr(
+                float(np.linalg.norm(tag_m - anchors[anchor])), t_s, tag_clock, anchor_clocks[anchor], rng,
+                reply_delay_s=o.reply_delay_us * 1e-6, timestamp_noise_s=o.timestamp_noise_ns * 1e-9,
+                nlos_excess_m=excess,
+            )
+            writer.write_json(
+                "/uwb/range", "agvviz.UwbRange",
+                {"tag": TAG_ID, "anchor": anchor, "t1_ns": exchange.t1_ns, "t2_ns": exchange.t2_ns,
+                 "t3_ns": exchange.t3_ns, "t4_ns": exchange.t4_ns, "range_m": exchange.range_m},
+                t_ns,
+            )
+            continue
+        codes = () if schedule.blocked(t_s) else (placed(code, T_world_agv @ T_agv_marker),)
+        scene = FloorScene(codes=codes, floor_dn=float(roof_dn), black_dn=float(black_dn), white_dn=float(white_dn))
+        for wall in WALLS:
+            image = render_frame(
+                scene, camera, cams[wall], rng, supersample=o.supersample,
+                blur_sigma_px=o.blur_sigma_px, noise_sigma_dn=o.noise_sigma_dn,
+            )
+            writer.write_image(wall, encode_jpeg(image, o.jpeg_quality), "jpeg", t_ns)
+        done += 1
+        if progress is not None:
+            progress(done, total)
