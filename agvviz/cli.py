@@ -109,7 +109,7 @@ def _run_help() -> str:
     )
 
 
-def _print_summary(summary: dict, title: str) -> None:
+def _print_summary(summary: dict, timing: dict, title: str) -> None:
     table = Table(title=title, title_justify="left")
     table.add_column("metric")
     table.add_column("value", justify="right")
@@ -124,9 +124,20 @@ def _print_summary(summary: dict, title: str) -> None:
     table.add_row("heading RMSE / median / p95 (deg)", f"{fmt(hdg['rmse'], 3)} / {fmt(hdg['median'], 3)} / {fmt(hdg['p95'], 3)}")
     table.add_row("reprojection RMS median (px)", fmt(summary["reproj_rms_px"]["median"], 3))
     table.add_row("time per frame (ms): total / detect / solve",
-                  f"{fmt(summary['time_per_frame_ms'], 1)} / {fmt(summary['detect_ms'], 1)} / {fmt(summary['solve_ms'], 2)}")
-    if "frames_per_s" in summary:
-        table.add_row("throughput (frames/s, incl. logging)", fmt(summary["frames_per_s"], 1))
+                  f"{fmt(timing['time_per_frame_ms'], 1)} / {fmt(timing['detect_ms'], 1)} / {fmt(timing['solve_ms'], 2)}")
+    if "frames_per_s" in timing:
+        table.add_row("throughput (frames/s, incl. logging)", fmt(timing["frames_per_s"], 1))
+    if "fusion" in summary:  # paper 003: 2-D errors, mean as the paper reports them
+        f = summary["fusion"]
+        for label, key in (
+            ("camera fix 2-D error mean / p95 (mm)", "camera_xy_error_mm"),
+            (f"UWB ({f['uwb']}) 2-D error mean / p95 (mm)", "uwb_xy_error_mm"),
+            (f"fused ({f['fusion']}) 2-D error mean / p95 (mm)", "fused_xy_error_mm"),
+            ("fused while cameras blocked: mean / p95 (mm)", "fused_blocked_xy_error_mm"),
+        ):
+            table.add_row(label, f"{fmt(f[key]['mean'])} / {fmt(f[key]['p95'])}")
+        table.add_row("switches / mean jump (mm)", f"{f['switches']} / {fmt(f['switch_jump_mm']['mean'])}")
+        table.add_row("UWB ranges gated (residual gate / Kalman)", f"{f['uwb_ranges_gated']} / {f['kalman_ranges_gated']}")
     console.print(table)
     for problem in summary.get("recording_damage", []):
         err_console.print(f"[yellow]recording damage:[/] {problem}")
@@ -153,7 +164,7 @@ def _run(recording: Path, solver: Optional[str], sets: list[str], out: Optional[
             outcome = run_recording(recording, settings, out, progress=on_frame)
     except (RunError, RecordingError) as exc:
         _fail(str(exc))
-    _print_summary(outcome.summary, f"run {outcome.manifest['recording_name']}")
+    _print_summary(outcome.summary, outcome.timing, f"run {outcome.manifest['recording_name']}")
     console.print(f"run written: [bold]{outcome.out_path}[/]")
     console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]")
     return outcome.out_path
@@ -221,6 +232,181 @@ def demo(
 def version() -> None:
     """Print the agvviz version."""
     console.print(__version__)
+
+
+# -- diff / sweep / export --------------------------------------------------------------------
+def _fmt_value(value, digits: int = 4) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, int):
+        return str(value)
+    return f"{value:.{digits}g}"
+
+
+def _fmt_p(p) -> str:
+    if p is None:
+        return "—"
+    text = "<1e-4" if p < 1e-4 else f"{p:.4f}"
+    return f"[bold]{text}[/]" if p < 0.01 else text
+
+
+@app.command()
+def diff(
+    a: Path = typer.Argument(..., help="run A .rrd (the reference)"),
+    b: Path = typer.Argument(..., help="run B .rrd (compared with A)"),
+    out: Optional[Path] = typer.Option(None, "--out", help="write the overlay .rrd (both runs on one clock) here"),
+    fail_if: Optional[str] = typer.Option(
+        None, "--fail-if",
+        help="exit 1 when this condition holds, e.g. \"B.position_rmse_mm > 1.05*A.position_rmse_mm\" "
+        "(metrics of A and B, numbers, + - * /, comparisons, and/or, parentheses)",
+    ),
+    align: str = typer.Option("none", "--align", help="APE alignment: none | se3 | se2 | yaw"),
+    rpe_delta: int = typer.Option(1, "--rpe-delta", help="RPE pair distance in frames"),
+    time_offset: bool = typer.Option(False, "--time-offset", help="also estimate each run's time offset to truth"),
+    images: bool = typer.Option(True, "--images/--no-images", help="copy A's camera images into the overlay"),
+    seed: int = typer.Option(0, "--seed", help="bootstrap seed"),
+) -> None:
+    """Compare run B with run A: every metric, B − A, a paired test and a confidence interval.
+
+    Frames are matched by time; error metrics are over the frames both runs solved.
+    Exit codes: 0 fine, 1 the --fail-if condition holds, 2 bad input.
+
+    Example: agvviz diff runs/lm.rrd runs/p4p.rrd --out runs/diff.rrd --fail-if "B.position_rmse_mm > 1.05*A.position_rmse_mm"
+    """
+    from agvviz.compare import CompareError, diff as diff_runs
+    from agvviz.evaluation.expression import ExpressionError
+    from agvviz.evaluation.trajectory import EvaluationError
+    from agvviz.viz.overlay import OverlayError
+    from agvviz.viz.readback import RrdReadError
+
+    try:
+        outcome = diff_runs(
+            a, b, overlay_path=out, fail_if=fail_if, align=align, rpe_delta=rpe_delta,
+            time_offset=time_offset, images=images, seed=seed,
+        )
+    except (CompareError, ExpressionError, EvaluationError, OverlayError, RrdReadError) as exc:
+        _fail(str(exc))
+    c = outcome.comparison
+    table = Table(
+        title=f"A = {c.a_name} ({a.name})   B = {c.b_name} ({b.name})\n"
+        f"{len(c.matched)} frames matched by time, errors over the {len(c.common)} both solved; "
+        f"CI {round(c.confidence * 100)} % block bootstrap of B − A; p Wilcoxon signed-rank",
+        title_justify="left",
+    )
+    for col in ("metric", "A", "B", "B − A", "CI of B − A", "p", "n"):
+        table.add_column(col, justify="left" if col == "metric" else "right", no_wrap=True)
+    for r in c.rows:
+        ci = "—" if r.ci_low is None else f"{r.ci_low:.3g} … {r.ci_high:.3g}"
+        table.add_row(r.name, _fmt_value(r.a), _fmt_value(r.b), _fmt_value(r.diff), ci, _fmt_p(r.p_value),
+                      _fmt_value(r.n))
+    # Wide enough for every metric name and interval even when stdout is not a terminal.
+    Console(width=max(console.width, 110)).print(table)
+    if c.settings_changed:
+        console.print("settings that differ: " + ", ".join(
+            f"{name} {va!r} → {vb!r}" for name, (va, vb) in c.settings_changed.items()))
+    if c.largest:
+        console.print("frames where the estimates differ most: " + "; ".join(
+            f"frame {d.frame_a}: {d.separation_mm:.2f} mm apart (error A {d.position_a_mm:.2f} mm, "
+            f"B {d.position_b_mm:.2f} mm)" for d in c.largest))
+    else:
+        console.print("the two runs' estimates are identical on every frame both solved")
+    if c.solved_only_by_a or c.solved_only_by_b:
+        console.print(f"solved only by A: {len(c.solved_only_by_a)} frames {c.solved_only_by_a[:10]}; "
+                      f"only by B: {len(c.solved_only_by_b)} frames {c.solved_only_by_b[:10]}")
+    for note in c.notes:
+        err_console.print(f"[yellow]note:[/] {note}")
+    if outcome.overlay_path is not None:
+        console.print(f"overlay written: [bold]{outcome.overlay_path}[/]  (agvviz view {outcome.overlay_path})")
+    if outcome.failed:
+        err_console.print(f"[bold red]--fail-if holds:[/] {fail_if}")
+        raise typer.Exit(code=1)
+    if fail_if is not None:
+        console.print(f"--fail-if does not hold: {fail_if}")
+
+
+@app.command()
+def sweep(
+    recording: Path = typer.Argument(..., help="recording .mcap"),
+    set_: List[str] = typer.Option(
+        [], "--set", help="setting=value1,value2,... (repeatable); the sweep runs every combination",
+    ),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="parallel processes (default: number of CPUs)"),
+    out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="default runs/sweep-<recording>"),
+    rank_by: str = typer.Option("position_rmse_mm", "--rank-by", help="metric to rank by (lower is better, "
+                                "except solved / solved_pct)"),
+    align: str = typer.Option("none", "--align", help="APE alignment: none | se3 | se2 | yaw"),
+    images: bool = typer.Option(True, "--images/--no-images", help="camera images in the overlay"),
+) -> None:
+    """Replay RECORDING under every combination of the --set values in parallel; rank the runs.
+
+    Writes one .rrd per setting, overlay.rrd, ranking.csv and ranking.md into --out-dir. A setting
+    that fails is reported and the others go on. Names are the run settings of `agvviz run --help`
+    (lm.max_iters is accepted for lm_max_iterations).
+
+    Example: agvviz sweep recordings/qr_floor.mcap --set solver=p4p,lm,ippe --set lm_max_iterations=3,10
+    """
+    from agvviz.compare import CompareError, parse_grid, ranking_rows
+    from agvviz.compare import sweep as sweep_runs
+    from agvviz.compare import grid_settings
+    from agvviz.recording.reader import RecordingError, count_messages
+
+    try:
+        grid = parse_grid(set_)
+        n_settings = len(grid_settings(grid))
+        frames = count_messages(recording, topic_prefix="/cam/", topic_suffix="/image") if recording.is_file() else 0
+        with _progress() as progress:
+            task = progress.add_task(f"sweeping {n_settings} settings", total=frames * n_settings, rate="")
+
+            def on_progress(frames_done: int, settings_done: int) -> None:
+                progress.update(task, completed=frames_done, rate=f"{settings_done}/{n_settings} settings done")
+
+            outcome = sweep_runs(
+                recording, grid, out_dir=out_dir, jobs=jobs, rank_by=rank_by, align=align,
+                images=images, progress=on_progress,
+            )
+    except (CompareError, RecordingError) as exc:
+        _fail(str(exc))
+    header, rows = ranking_rows(outcome.entries, outcome.rank_by)
+    table = Table(title=f"sweep of {recording.name}, ranked by {outcome.rank_by} "
+                  f"(every column in {outcome.markdown_path.name})", title_justify="left")
+    wanted = dict.fromkeys(["rank", "setting", outcome.rank_by, "solved", "position_p95_mm",
+                            "heading_rmse_deg", "p_vs_best", "time_per_frame_ms", "status"])
+    shown = [header.index(h) for h in wanted]
+    for i in shown:
+        table.add_column(header[i], justify="left" if header[i] in ("setting", "status") else "right",
+                         no_wrap=True, min_width=6 if header[i] == "status" else None)
+    for row in rows:
+        table.add_row(*[row[i] if not row[i].startswith("failed") else "failed" for i in shown])
+    Console(width=max(console.width, 160)).print(table)
+    for entry in outcome.entries:
+        if not entry.ok:
+            err_console.print(f"[bold red]setting {entry.label} failed:[/] {entry.error}")
+    console.print(f"runs in [bold]{outcome.csv_path.parent}[/]; table: {outcome.csv_path.name}, "
+                  f"{outcome.markdown_path.name}" + (f"; overlay: [bold]{outcome.overlay_path}[/]"
+                                                     if outcome.overlay_path else ""))
+    console.print(f"sweep took {outcome.wall_time_s:.1f} s")
+
+
+@app.command()
+def export(
+    run_file: Path = typer.Argument(..., help="run .rrd"),
+    format_: str = typer.Option("tum", "--format", help="output format: tum"),
+    out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="default: the run's folder"),
+) -> None:
+    """Write the run's estimated and true trajectories (T_world_agv) for other tools.
+
+    TUM: `<run>.estimate.tum` and `<run>.truth.tum`, lines `t tx ty tz qx qy qz qw`.
+    Example: agvviz export runs/qr_floor-lm.rrd --format tum && evo_ape tum runs/qr_floor-lm.truth.tum runs/qr_floor-lm.estimate.tum
+    """
+    from agvviz.export import ExportError, export_run
+    from agvviz.viz.readback import RrdReadError
+
+    try:
+        written = export_run(run_file, format_, out_dir)
+    except (ExportError, RrdReadError) as exc:
+        _fail(str(exc))
+    for item in written:
+        console.print(f"{item.which}: {item.poses} poses → [bold]{item.path}[/]")
 
 
 if __name__ == "__main__":

@@ -16,11 +16,12 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from agvviz.conventions import camera_frame
+from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import PinholeCamera, euler, se3
 from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners
+from agvviz.markers.aruco import ArucoError, ArucoMap, detect_aruco, parse_aruco_map
 from agvviz.markers.payload import PayloadError, parse_payload
-from agvviz.markers.qr import detect_qr_codes
+from agvviz.markers.qr import detect_qr_codes, finder_corners
 from agvviz.recording.reader import (
     CalibrationMsg,
     CompressedFrame,
@@ -39,10 +40,14 @@ from agvviz.results import (
     FrameResult,
     MarkerObservation,
 )
+from agvviz.pose_diagnostics import PoseDiagnostics
 from agvviz.settings import RunSettings
 from agvviz.solvers import SolverOptions, solve
+from agvviz.solvers.planar import PlanarPrior
 
 GROUND_TRUTH_TOPIC = "/agv/ground_truth"
+ODOMETRY_TOPIC = "/agv/odometry"
+MARKER_MAP_TOPIC = "/markers/map"
 
 
 @dataclass
@@ -51,6 +56,7 @@ class _Camera:
 
     camera: PinholeCamera | None = None
     T_agv_cam: np.ndarray | None = None
+    T_world_cam: np.ndarray | None = None  # a camera fixed in the world (paper 003's wall cameras)
     undistort_maps: tuple[np.ndarray, np.ndarray] | None = None
 
 
@@ -60,9 +66,24 @@ class ReplayContext:
 
     cameras: dict[str, _Camera] = field(default_factory=dict)
     truth: list[tuple[int, np.ndarray]] = field(default_factory=list)  # last two (t_ns, T)
+    aruco_map: ArucoMap | None = None  # from /markers/map when it names an ArUco dictionary
+    marker_map_problem: str = ""  # why /markers/map was refused, for the rejection detail
 
     def camera(self, cam_name: str) -> _Camera:
         return self.cameras.setdefault(cam_name, _Camera())
+
+
+def _module_to_marker(points_module: np.ndarray, n_modules: int, vertices_marker_m: np.ndarray) -> np.ndarray:
+    """Marker-frame points (M, 3) of QR module coordinates (M, 2) (x right, y down from the
+    symbol's TL corner), through the projective map of the module square onto the marker's
+    vertices TL, TR, BR, BL (exact for any planar quadrilateral the payload describes)."""
+    n = float(n_modules)
+    H = cv2.getPerspectiveTransform(
+        np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=np.float32),
+        vertices_marker_m[:4, :2].astype(np.float32),
+    ).astype(float)
+    xy = cv2.perspectiveTransform(points_module.reshape(1, -1, 2).astype(float), H).reshape(-1, 2)
+    return np.c_[xy, np.zeros(len(xy))]
 
 
 def _polygon_area_px2(corners_px: np.ndarray) -> float:
@@ -95,8 +116,13 @@ class Replay:
         self.settings = settings
         self.ctx = ReplayContext()
         self._frame_index = 0
+        self._last_frame_time_ns: int | None = None
         self._solver_options = SolverOptions(
             objective=settings.objective, max_iterations=settings.lm_max_iterations
+        )
+        self._diagnostics = PoseDiagnostics(
+            settings.solver, settings.objective, settings.ambiguity, settings.sigma_px_value,
+            self._solver_options,
         )
 
     # -- message handling ---------------------------------------------------------------
@@ -109,10 +135,20 @@ class Replay:
             self._set_transforms(value)
         elif isinstance(value, PoseMsg) and message.topic == GROUND_TRUTH_TOPIC:
             self.ctx.truth = (self.ctx.truth + [(message.log_time_ns, value.T)])[-2:]
+        elif isinstance(value, PoseMsg) and message.topic == ODOMETRY_TOPIC:
+            self._diagnostics.odometry = value.T  # latest T_odom_agv, for ambiguity=odometry
+        elif message.topic == MARKER_MAP_TOPIC and isinstance(value, dict):
+            try:
+                self.ctx.aruco_map = parse_aruco_map(value)
+                self.ctx.marker_map_problem = ""
+            except ArucoError as exc:
+                self.ctx.aruco_map, self.ctx.marker_map_problem = None, str(exc)
         elif isinstance(value, CompressedFrame):
-            result = self.process_frame(value, message.log_time_ns)
-            self._frame_index += 1
-            return result
+            # Frames of several cameras at one time stamp share one frame index.
+            if self._last_frame_time_ns is not None and message.log_time_ns != self._last_frame_time_ns:
+                self._frame_index += 1
+            self._last_frame_time_ns = message.log_time_ns
+            return self.process_frame(value, message.log_time_ns)
         return None
 
     def _set_calibration(self, calib: CalibrationMsg) -> None:
@@ -129,6 +165,8 @@ class Replay:
         for tf in transforms:
             if tf.parent_frame == "agv" and tf.child_frame.startswith("cam_"):
                 self.ctx.camera(tf.child_frame[len("cam_") :]).T_agv_cam = tf.T_parent_child
+            elif tf.parent_frame == "world" and tf.child_frame.startswith("cam_"):
+                self.ctx.camera(tf.child_frame[len("cam_") :]).T_world_cam = tf.T_parent_child
 
     # -- one frame ------------------------------------------------------------------------
     def process_frame(self, frame: CompressedFrame, log_time_ns: int) -> FrameResult:
@@ -159,8 +197,11 @@ class Replay:
 
     def _solve_frame(self, frame: CompressedFrame, result: FrameResult) -> FrameResult:
         cam = self.ctx.cameras.get(frame.cam_name)
-        if cam is None or cam.camera is None or cam.T_agv_cam is None:
-            missing = "calibration" if cam is None or cam.camera is None else "agv→camera extrinsic"
+        if cam is None or cam.camera is None or (cam.T_agv_cam is None and cam.T_world_cam is None):
+            missing = (
+                "calibration" if cam is None or cam.camera is None
+                else "extrinsic (agv→camera or world→camera)"
+            )
             return self._reject(
                 result, REJECT_NO_CALIBRATION,
                 f"no {missing} for camera {frame.cam_name!r} ({camera_frame(frame.cam_name)}) "
@@ -174,12 +215,50 @@ class Replay:
             return self._reject(result, REJECT_DECODE, f"{frame.image_format} frame does not decode")
         if cam.undistort_maps is not None:
             gray = cv2.remap(gray, *cam.undistort_maps, interpolation=cv2.INTER_LINEAR)
-        detections = detect_qr_codes(gray, refine=self.settings.refine)
+        if self.ctx.aruco_map is not None:
+            candidates, problems = self._aruco_candidates(gray, camera, result)
+        else:
+            candidates, problems = self._qr_candidates(gray, camera, result)
         result.detect_s = time.perf_counter() - t0
+        if not candidates:
+            reason, detail = problems[0]
+            return self._reject(result, reason, "; ".join(d for _, d in problems))
+        return self._solve_candidates(cam, candidates, result)
 
+    def _aruco_candidates(self, gray: np.ndarray, camera: PinholeCamera, result: FrameResult):
+        """ArUco markers of the map found in ``gray``: (candidates, problems) as in
+        :meth:`_qr_candidates`; a marker id the map does not list is a problem, not a pose."""
+        aruco_map = self.ctx.aruco_map
+        candidates, problems = [], []
+        for det in detect_aruco(gray, aruco_map.dictionary, refine=self.settings.refine):
+            marker = aruco_map.markers.get(det.marker_id)
+            if marker is None:
+                problems.append((REJECT_PAYLOAD, f"ArUco id {det.marker_id} is not in the marker map"))
+                continue
+            observation = MarkerObservation(
+                marker_id=str(det.marker_id),
+                payload="",
+                corners_px=_ideal_to_image_px(camera, det.corners_px),
+                points_world_m=marker.corners_m,
+                points_frame=marker.frame,
+            )
+            result.observations.append(observation)
+            candidates.append((observation, det.corners_px, marker.points_marker_m, marker.frame, marker.T_frame_marker))
+        if not candidates and not problems:
+            problems.append((REJECT_NO_MARKER, f"no {aruco_map.dictionary} marker found"))
+        return candidates, problems
+
+    def _qr_candidates(self, gray: np.ndarray, camera: PinholeCamera, result: FrameResult):
+        """Decoded, parsed QR codes in ``gray``.
+
+        Returns ``(candidates, problems)``: candidates are (observation, ideal corners px,
+        marker-frame points, frame of the marker, ``T_frame_marker``); problems are
+        (reject reason, detail) of every code that could not be used.
+        """
+        detections = detect_qr_codes(gray, refine=self.settings.refine)
         if not detections:
-            return self._reject(result, REJECT_NO_MARKER, "no QR code found")
-        candidates = []  # (observation, ideal corners px, marker-frame points, T_world_marker)
+            return [], [(REJECT_NO_MARKER, "no QR code found")]
+        candidates = []
         problems = []
         for det in detections:
             if det.text is None:
@@ -194,34 +273,54 @@ class Replay:
             except DegenerateGeometryError as exc:
                 problems.append((REJECT_GEOMETRY, f"payload geometry: {exc}"))
                 continue
-            # Only the 4 vertices are measured in the image; edge midpoints (if the payload
-            # carries them) have no independent image measurement here.
+            # The 4 vertices are measured in the image; edge midpoints (if the payload carries
+            # them) have no image measurement of their own (a point of the fitted homography
+            # adds no information). feature_points=finder adds the finder-pattern corners,
+            # each measured on its own (agvviz.markers.qr.finder_corners).
+            ideal_px, points_m = det.corners_px, points_marker_m[:4]
+            if self.settings.feature_points == "finder" and det.n_modules is not None:
+                finder_px, finder_modules = finder_corners(gray, det.corners_px, det.n_modules)
+                ideal_px = np.vstack([ideal_px, finder_px])
+                points_m = np.vstack([points_m, _module_to_marker(finder_modules, det.n_modules, points_m)])
             observation = MarkerObservation(
                 marker_id=payload.marker_id,
                 payload=det.text,
-                corners_px=_ideal_to_image_px(camera, det.corners_px),
-                points_world_m=payload.points_world_m[:4],
+                corners_px=_ideal_to_image_px(camera, ideal_px),
+                points_world_m=se3.transform_points(T_world_marker, points_m)
+                if len(points_m) > 4 else payload.points_world_m[:4],
             )
             result.observations.append(observation)
-            candidates.append((observation, det.corners_px, points_marker_m[:4], T_world_marker))
-        if not candidates:
-            reason, detail = problems[0]
-            return self._reject(result, reason, "; ".join(d for _, d in problems))
+            candidates.append((observation, ideal_px, points_m, WORLD_FRAME, T_world_marker))
+        return candidates, problems
 
+    def _solve_candidates(self, cam: _Camera, candidates: list, result: FrameResult) -> FrameResult:
+        """Pose of the largest candidate, then the AGV through whichever of the camera and the
+        marker is fixed in the world and whichever rides on the AGV (:func:`agv_pose_from_marker`)."""
+        camera = cam.camera
         t1 = time.perf_counter()
-        observation, ideal_px, points_marker_m, T_world_marker = max(
+        observation, ideal_px, points_marker_m, marker_frame, T_frame_marker = max(
             candidates, key=lambda c: _polygon_area_px2(c[1])
         )
         result.used_marker_id = observation.marker_id
+        camera_on_agv = marker_frame == WORLD_FRAME and cam.T_agv_cam is not None
+        prior = None
+        if self.settings.solver == "planar" and camera_on_agv:
+            prior = PlanarPrior(cam.T_agv_cam, T_frame_marker, sigma_px=self.settings.sigma_px_value)
         solved = solve(
-            self.settings.solver, points_marker_m, ideal_px, camera.K, self._solver_options
+            self.settings.solver, points_marker_m, ideal_px, camera.K, self._solver_options, prior
         )
-        result.lm_iterations = list(solved.iterations)
         result.solve_s = time.perf_counter() - t1
         if not solved.success:
+            result.lm_iterations = list(solved.iterations)
             return self._reject(
                 result, REJECT_SOLVER, f"{self.settings.solver} on code {observation.marker_id}: {solved.reason}"
             )
+        solved = self._diagnostics.resolve(
+            solved, points_marker_m, ideal_px, camera.K,
+            lambda T: agv_pose_from_marker(T, marker_frame, T_frame_marker, cam.T_agv_cam, cam.T_world_cam),
+            result,
+        )
+        result.lm_iterations = list(solved.iterations)
         result.reproj_rms_px = solved.reproj_rms_px
         if solved.reproj_rms_px is None or solved.reproj_rms_px > self.settings.max_reproj_px:
             # The pose is not kept: a rejected frame never shows or scores a pose.
@@ -231,25 +330,65 @@ class Replay:
                 f"RMS reprojection error {solved.reproj_rms_px:.2f} px > "
                 f"max_reproj_px {self.settings.max_reproj_px:g} px (code {observation.marker_id})",
             )
-        T_world_cam = T_world_marker @ se3.inverse(solved.T_cam_marker)
-        T_world_agv = T_world_cam @ se3.inverse(cam.T_agv_cam)
+        try:
+            T_world_cam, T_world_agv = agv_pose_from_marker(
+                solved.T_cam_marker, marker_frame, T_frame_marker, cam.T_agv_cam, cam.T_world_cam
+            )
+        except ValueError as exc:
+            return self._reject(result, REJECT_GEOMETRY, f"camera {result.cam_name}: {exc}")
         result.T_world_cam = T_world_cam
         result.T_world_agv = T_world_agv
         result.hpr_rad = np.array(
             euler.hpr_from_matrix(T_world_agv[:3, :3], self.settings.gimbal_threshold)
         )
         T_cam_world = se3.inverse(T_world_cam)
+        T_cam_frame = {WORLD_FRAME: T_cam_world, AGV_FRAME: T_cam_world @ T_world_agv}
         for obs in result.observations:
-            points_cam = se3.transform_points(T_cam_world, obs.points_world_m)
+            points_cam = se3.transform_points(T_cam_frame[obs.points_frame], obs.points_world_m)
             if np.all(points_cam[:, 2] > 0):
                 obs.reprojected_px = camera.project(points_cam)
         if result.T_world_agv_truth is not None:
             truth = result.T_world_agv_truth
             result.position_error_m = float(np.linalg.norm(T_world_agv[:3, 3] - truth[:3, 3]))
-            result.heading_error_deg = float(
-                np.degrees(euler.wrap_angle_rad(result.hpr_rad[0] - result.hpr_truth_rad[0]))
+            heading_err, pitch_err, roll_err = np.degrees(
+                euler.wrap_angle_rad(result.hpr_rad - result.hpr_truth_rad)
             )
+            result.heading_error_deg = float(heading_err)
+            result.pitch_error_deg = float(pitch_err)
+            result.roll_error_deg = float(roll_err)
+        self._diagnostics.finish(
+            result, solved.T_cam_marker, points_marker_m, ideal_px, camera.K, cam.T_agv_cam, camera_on_agv
+        )
         return result
+
+
+def agv_pose_from_marker(
+    T_cam_marker: np.ndarray,
+    marker_frame: str,
+    T_frame_marker: np.ndarray,
+    T_agv_cam: np.ndarray | None,
+    T_world_cam: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(T_world_cam, T_world_agv)`` from one marker pose seen by one camera.
+
+    One of the two must be fixed in the world and the other ride on the AGV:
+
+    * marker in the world, camera on the AGV (paper 000): ``T_world_cam = T_world_marker ·
+      T_cam_marker⁻¹``, ``T_world_agv = T_world_cam · T_agv_cam⁻¹`` (eqs 31–33);
+    * marker on the AGV, camera in the world (paper 003): ``T_world_agv = T_world_cam ·
+      T_cam_marker · T_agv_marker⁻¹``.
+
+    Raises ``ValueError`` when neither combination is available (both fixed or both moving).
+    """
+    if marker_frame == WORLD_FRAME and T_agv_cam is not None:
+        T_world_cam = T_frame_marker @ se3.inverse(T_cam_marker)
+        return T_world_cam, T_world_cam @ se3.inverse(T_agv_cam)
+    if marker_frame == AGV_FRAME and T_world_cam is not None:
+        return T_world_cam, T_world_cam @ T_cam_marker @ se3.inverse(T_frame_marker)
+    raise ValueError(
+        f"a marker in frame {marker_frame!r} seen by a camera "
+        f"{'on the AGV' if T_agv_cam is not None else 'fixed in the world'} says nothing about the AGV"
+    )
 
 
 def replay(messages: Iterable[RecordedMessage], settings: RunSettings) -> Iterator[FrameResult]:

@@ -58,6 +58,9 @@ class MarkerObservation:
     corners_px: np.ndarray  # (N, 2)
     points_world_m: np.ndarray  # (N, 3)
     reprojected_px: np.ndarray | None = None
+    #: Frame of ``points_world_m``: "world", or "agv" for a marker mounted on the vehicle
+    #: (paper 003), whose points are then in the agv frame.
+    points_frame: str = "world"
 
 
 @dataclass
@@ -82,9 +85,28 @@ class FrameResult:
     hpr_truth_rad: np.ndarray | None = None
     position_error_m: float | None = None
     heading_error_deg: float | None = None
+    pitch_error_deg: float | None = None  # wrapped estimate − truth, eq 57 angles
+    roll_error_deg: float | None = None
     detect_s: float = 0.0
     solve_s: float = 0.0
     total_s: float = 0.0
+    # -- uncertainty and ambiguity (agvviz.pose_diagnostics); solved frames only ------------
+    n_points: int = 0  # feature points the solver used
+    sigma_px: float | None = None  # pixel noise σ behind the covariance and the bound
+    #: (6, 6) covariance of T_world_agv, left perturbation in the world frame, δ = (ρ, φ).
+    cov_world_agv: np.ndarray | None = None
+    position_cov_world_m2: np.ndarray | None = None  # (3, 3) of the AGV origin in the world
+    position_sigma_m: float | None = None  # sqrt(trace(position_cov_world_m2))
+    #: sqrt(trace) of the Cramér–Rao bound on the AGV position at the true pose (m).
+    crlb_position_m: float | None = None
+    position_over_crlb: float | None = None  # position_error_m / crlb_position_m
+    nees: float | None = None  # normalised estimation error squared vs truth
+    nees_dof: int = 0  # its expected value for a consistent estimator (6; 3 for planar)
+    uncertainty_note: str = ""  # why no covariance, if none
+    ambiguity_ratio: float | None = None  # IPPE rms(other) / rms(best), ≥ 1
+    ambiguity_rule: str = ""  # which rule chose the pose (or why there was no choice)
+    flipped: bool = False  # chosen pose on the branch the previous solved frame rejected
+    T_world_agv_ghost: np.ndarray | None = None  # the rejected candidate pose
 
     @property
     def solved(self) -> bool:

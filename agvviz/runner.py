@@ -15,7 +15,9 @@ from typing import Callable
 import numpy as np
 
 from agvviz import __version__
-from agvviz.evaluation import FrameScore, summarize
+from agvviz.evaluation.summary import FrameScore, summarize, timing
+from agvviz.evaluation.fusion_summary import FusionStats
+from agvviz.fusion_replay import FrameSetResult, FusionReplay
 from agvviz.pipeline import Replay
 from agvviz.recording.reader import (
     CalibrationMsg,
@@ -25,6 +27,8 @@ from agvviz.recording.reader import (
 )
 from agvviz.settings import RunSettings, as_dict
 from agvviz.viz.run_logger import RunLogger
+from agvviz.viz.uwb_blueprint import uwb_blueprint
+from agvviz.viz.uwb_logger import FusionLogger
 
 MARKER_MAP_TOPIC = "/markers/map"
 
@@ -35,10 +39,15 @@ class RunError(ValueError):
 
 @dataclass
 class RunOutcome:
+    """What a run wrote: ``summary`` and ``manifest`` are stored in the ``.rrd``; ``timing``
+    (wall-clock figures, see :func:`agvviz.evaluation.summary.timing`) is not, so the same
+    recording and settings always give an equal ``.rrd``."""
+
     out_path: Path
     summary: dict
     manifest: dict
     read_report: ReadReport
+    timing: dict
 
 
 def file_sha256(path: Path) -> str:
@@ -56,6 +65,8 @@ def default_run_path(recording_path: Path, settings: RunSettings) -> Path:
 def _markers_from_map(marker_map: dict) -> list[tuple[str, np.ndarray]]:
     markers = []
     for m in marker_map.get("markers", []):
+        if m.get("frame", "world") != "world":
+            continue  # a marker on the AGV (paper 003) has no fixed place in the world
         corners = np.asarray(m.get("corners_world_m", []), dtype=float)
         if corners.shape == (4, 3) and np.all(np.isfinite(corners)):
             markers.append((str(m.get("id")), corners))
@@ -71,7 +82,7 @@ def run_recording(
     """Replay ``recording_path`` under ``settings`` and write the run to ``out_path``.
 
     ``progress(frames_done)`` is called after every frame. Returns the run summary and
-    manifest (both also stored in the ``.rrd``).
+    manifest (both also stored in the ``.rrd``) and the wall-clock timing (not stored).
     """
     recording_path = Path(recording_path)
     if not recording_path.is_file():
@@ -90,9 +101,11 @@ def run_recording(
     recording_id = str(
         uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz:{recording_sha256}:{sorted(as_dict(settings).items())}")
     )
+    # Only what is the same for every identical run: the file name, not the path it was
+    # given by (the sha256 identifies the content).
     manifest = {
         "agvviz_version": __version__,
-        "recording": str(recording_path),
+        "recording": recording_path.name,
         "recording_sha256": recording_sha256,
         "scenario": scenario,
         "settings": as_dict(settings),
@@ -104,7 +117,27 @@ def run_recording(
     with RunLogger(out_path, recording_name=recording_name, recording_id=recording_id) as logger:
         logger.log_manifest(manifest)
         replay = Replay(settings)
+        # Frames of one time stamp (several cameras) → one camera fix; UWB; fusion.
+        fusion = FusionReplay(settings, replay.ctx.cameras)
+        fusion_logger = FusionLogger(logger.stream)
+        fusion_stats = FusionStats()
         cameras_logged: set[str] = set()
+
+        def log_item(item) -> None:
+            if isinstance(item, FrameSetResult):
+                logger.log_frame(item.scored)
+                for other in item.frames:
+                    if other is not item.scored:
+                        logger.log_camera_view(other)
+                scores.append(FrameScore.of(item.scored))
+                if progress is not None:
+                    progress(len(scores))
+            if fusion.has_uwb:
+                if not fusion_logger.anchor_ids:
+                    fusion_logger.log_anchors(fusion.anchors_m, fusion.tag_z_m, list(replay.ctx.cameras))
+                fusion_logger.log(item)
+                fusion_stats.add(item)
+
         t_start = time.perf_counter()
         for message in iter_messages(recording_path, report=read_report):
             if message.topic == MARKER_MAP_TOPIC and isinstance(message.value, dict):
@@ -113,18 +146,31 @@ def run_recording(
             if isinstance(message.value, (CalibrationMsg, list)):
                 # Log each camera once both its calibration and its extrinsic are known.
                 for cam_name, cam in replay.ctx.cameras.items():
-                    ready = cam.camera is not None and cam.T_agv_cam is not None
-                    if ready and cam_name not in cameras_logged:
+                    if cam.camera is None or cam_name in cameras_logged:
+                        continue
+                    if cam.T_agv_cam is not None:
                         logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
-                        cameras_logged.add(cam_name)
-            if frame is None:
-                continue
-            logger.log_frame(frame)
-            scores.append(FrameScore.of(frame))
-            if progress is not None:
-                progress(len(scores))
+                    elif cam.T_world_cam is not None:
+                        logger.log_fixed_camera_static(cam_name, cam.camera, cam.T_world_cam)
+                    else:
+                        continue
+                    cameras_logged.add(cam_name)
+            for item in fusion.feed(message, frame):
+                log_item(item)
+        for item in fusion.finish():
+            log_item(item)
         wall_time_s = time.perf_counter() - t_start
-        summary = summarize(scores, wall_time_s)
+        summary = summarize(scores)
+        if fusion.has_uwb:
+            summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **fusion_stats.summary()}
+            fixed = {name for name, cam in replay.ctx.cameras.items() if cam.T_agv_cam is None}
+            logger.blueprint = uwb_blueprint(logger.cam_names, fixed, fusion_logger.anchor_ids)
         summary["recording_damage"] = list(read_report.problems)
         logger.log_summary(summary)
-    return RunOutcome(out_path=out_path, summary=summary, manifest=manifest, read_report=read_report)
+    return RunOutcome(
+        out_path=out_path,
+        summary=summary,
+        manifest=manifest,
+        read_report=read_report,
+        timing=timing(scores, wall_time_s),
+    )

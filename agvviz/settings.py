@@ -13,7 +13,11 @@ import typing
 from dataclasses import dataclass, field
 
 from agvviz.conventions import DEFAULT_GIMBAL_THRESHOLD
+from agvviz.fusion.common import FUSION_NAMES
+from agvviz.multicam import CAMERA_SELECT
+from agvviz.solvers.ambiguity import POLICIES as AMBIGUITY_POLICIES
 from agvviz.solvers.registry import SOLVER_NAMES
+from agvviz.uwb.localize import METHODS as UWB_METHODS
 
 
 class SettingsError(ValueError):
@@ -35,7 +39,10 @@ class RunSettings:
 
     solver: str = _setting("lm", "pose solver", SOLVER_NAMES)
     objective: str = _setting(
-        "depth", "LM objective: depth = paper 000 eq 23, pixel = eq 22", ("depth", "pixel")
+        "pixel",
+        "LM objective: pixel = paper 000 eq 22 (maximum likelihood for pixel noise), "
+        "depth = eq 23 (the paper's depth-weighted residual)",
+        ("pixel", "depth"),
     )
     lm_max_iterations: int = _setting(50, "maximum LM iterations per frame")
     refine: str = _setting(
@@ -52,6 +59,46 @@ class RunSettings:
     truth_max_dt_s: float = _setting(
         0.005, "largest time gap between a frame and the ground truth it is scored against (s)"
     )
+    camera_select: str = _setting(
+        "best",
+        "several cameras at one time: best (largest marker, paper 003) or combine (joint LM)",
+        CAMERA_SELECT,
+    )
+    floor_constraint: bool = _setting(
+        True,
+        "world-fixed cameras watching a marker on the AGV: refine the AGV on the floor (x, y, heading)",
+    )
+    uwb: str = _setting(
+        "least_squares", "UWB fix: centroid (paper 003 eqs 3-6) or least_squares (Gauss-Newton)", UWB_METHODS
+    )
+    uwb_gate: str = _setting(
+        "residual", "UWB NLOS/outlier gate: residual (chi-square on range residuals) or none", ("residual", "none")
+    )
+    uwb_sigma_m: float = _setting(0.05, "UWB range standard deviation for the gates and covariances (m)")
+    fusion: str = _setting(
+        "mean_compensation",
+        "camera-UWB fusion: camera_only, mean_compensation (paper 003 eqs 13-16) or kalman",
+        FUSION_NAMES,
+    )
+    kalman_gate_chi2: float = _setting(9.0, "Kalman filter gate on a range's squared Mahalanobis distance")
+    camera_sigma_m: float = _setting(0.005, "Kalman filter: camera fix standard deviation per axis (m)")
+    ambiguity: str = _setting(
+        "lowest_error",
+        "planar pose ambiguity (two IPPE branches): lowest_error (reprojection), continuity "
+        "(closest rotation to the previous frame) or odometry (previous pose moved by /agv/odometry)",
+        AMBIGUITY_POLICIES,
+    )
+    feature_points: str = _setting(
+        "vertices",
+        "points the solver uses per QR code: vertices (4) or finder (vertices + the finder "
+        "patterns' corners, each refined on its own with cornerSubPix)",
+        ("vertices", "finder"),
+    )
+    sigma_px: str = _setting(
+        "auto",
+        "pixel noise σ for covariances and the Cramér–Rao bound: auto (pooled residuals of the "
+        "frames so far) or a number in px",
+    )
 
     def __post_init__(self):
         validate(self)
@@ -61,8 +108,24 @@ class RunSettings:
             raise SettingsError(f"max_reproj_px must be a positive number, got {self.max_reproj_px}")
         if self.lm_max_iterations < 1:
             raise SettingsError(f"lm_max_iterations must be ≥ 1, got {self.lm_max_iterations}")
+        for name in ("uwb_sigma_m", "kalman_gate_chi2", "camera_sigma_m"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise SettingsError(f"{name} must be a positive number, got {value}")
         if self.truth_max_dt_s < 0:
             raise SettingsError(f"truth_max_dt_s must be ≥ 0, got {self.truth_max_dt_s}")
+        if self.sigma_px != "auto":
+            try:
+                value = float(self.sigma_px)
+            except ValueError:
+                value = float("nan")
+            if not (value > 0 and math.isfinite(value)):
+                raise SettingsError(f"sigma_px must be auto or a positive number of pixels, got {self.sigma_px!r}")
+
+    @property
+    def sigma_px_value(self) -> float | None:
+        """The fixed pixel σ, or ``None`` for ``sigma_px=auto``."""
+        return None if self.sigma_px == "auto" else float(self.sigma_px)
 
     def label(self) -> str:
         """Short label of the settings that differ from the defaults, for names and titles."""

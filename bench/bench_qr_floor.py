@@ -110,11 +110,11 @@ def main() -> None:
     print("\nthroughput (same recording, same process):")
     outcome = run_recording(recording, RunSettings(solver="lm"), workdir / "qr_floor-lm.rrd")
     frames_run = outcome.summary["frames"]
-    fps_run = outcome.summary["frames_per_s"]
+    fps_run = outcome.timing["frames_per_s"]
     frames_bare, seconds_bare = bare_opencv_loop(recording)
     fps_bare = frames_bare / seconds_bare
     print(f"agvviz run (lm, refine=ecc, logging): {frames_run} frames, {fps_run:.1f} frames/s "
-          f"(detect {outcome.summary['detect_ms']:.1f} ms, solve {outcome.summary['solve_ms']:.2f} ms per frame)")
+          f"(detect {outcome.timing['detect_ms']:.1f} ms, solve {outcome.timing['solve_ms']:.2f} ms per frame)")
     print(f"bare OpenCV loop (decode+detect+solvePnP): {frames_bare} frames, {fps_bare:.1f} frames/s")
     print(f"ratio agvviz / bare OpenCV: {fps_run / fps_bare:.2f}")
 

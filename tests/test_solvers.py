@@ -112,7 +112,7 @@ CASES = [
     for name in SOLVER_NAMES
     for scene in SCENES
     for n in (4, 8)
-    if not (name == "ippe_square" and n == 8)
+    if not (name == "ippe_square" and n == 8) and name != "planar"  # planar: test_planar.py
 ]
 
 
@@ -257,12 +257,16 @@ def test_lm_is_at_least_as_accurate_as_p4p_on_noisy_pixels(n_points):
     assert np.mean(errors["lm"]) <= np.mean(errors["p4p"])
 
 
-def test_lm_reports_did_not_converge_when_out_of_iterations():
+def test_lm_returns_its_best_pose_when_out_of_iterations():
     rng = np.random.default_rng(1)
     _, pts, px = noisy_agv_problem(rng, 8, sigma_px=1.0)
+    start = solve("p4p", pts, px, K_AGV)
     result = solve("lm", pts, px, K_AGV, SolverOptions(max_iterations=1))
-    assert not result.success and result.reason == "did not converge"
-    assert result.T_cam_marker is None and len(result.iterations) == 2
+    assert result.success and len(result.iterations) == 2
+    # One step from the P4P start: no worse than the start, not yet the optimum.
+    assert result.iterations[1].cost <= result.iterations[0].cost
+    converged = solve("lm", pts, px, K_AGV)
+    assert converged.reproj_rms_px <= result.reproj_rms_px <= start.reproj_rms_px
 
 
 # --- bad input ----------------------------------------------------------------------------

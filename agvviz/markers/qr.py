@@ -92,6 +92,8 @@ class QrDetection:
     refine_note : str
         Why a fallback happened, or that the ECC template came from the detector's module grid
         rather than the re-encoded text; empty otherwise.
+    n_modules : int or None
+        Modules per side of the symbol (21 + 4·(version − 1)) when its template is known.
     """
 
     text: str | None
@@ -100,6 +102,7 @@ class QrDetection:
     refine_method: str
     refine_ok: bool
     refine_note: str = ""
+    n_modules: int | None = None
 
 
 def detect_qr_codes(
@@ -291,6 +294,7 @@ def _refine(gray: np.ndarray, code: _RawCode, refine: str) -> QrDetection:
         refine_method=method,
         refine_ok=method == refine,
         refine_note="; ".join(notes),
+        n_modules=len(symbol) if symbol is not None else None,
     )
 
 
@@ -429,3 +433,82 @@ def _accept_shift(
     if shift_px > limit_px:
         return None, f"moved a corner {shift_px:.1f} px > {limit_px:.1f} px"
     return corners_px, ""
+
+
+def align_symbol_ecc(
+    gray: np.ndarray, dark_modules: np.ndarray, raw_corners_px: np.ndarray
+) -> tuple[np.ndarray | None, str]:
+    """Refine the outer corners (TL, TR, BR, BL) of any square module-grid symbol printed on a
+    light background — a QR symbol or an ArUco marker with its black border — by aligning a
+    template of ``dark_modules`` ((n, n) bool, row 0 the printed top) to ``gray`` with
+    ``cv2.findTransformECC`` (the ``"ecc"`` method of the module docstring).
+
+    Returns the refined corners (4, 2), or ``(None, reason)`` when ECC fails, its correlation
+    is low or a corner would move more than one module.
+    """
+    return _refine_ecc(gray, np.asarray(dark_modules, dtype=bool), np.asarray(raw_corners_px, dtype=float))
+
+
+#: Corners of one finder pattern in module units from its own top-left corner (x right, y
+#: down): the dark 7×7 square's outer corners, the inner edge of its dark ring (5×5), and the
+#: dark 3×3 core — 12 L-shaped corners, each at least one module from any other edge.
+FINDER_CORNER_MODULES = np.array(
+    [[0, 0], [7, 0], [7, 7], [0, 7], [1, 1], [6, 1], [6, 6], [1, 6], [2, 2], [5, 2], [5, 5], [2, 5]], dtype=float
+)
+#: Smallest module size (px) at which finder corners are measured: the cornerSubPix window must
+#: stay within half a module of its corner.
+FINDER_MIN_MODULE_PX = 5.0
+#: A finder corner that moves further than this (modules) from where the symbol's corners
+#: predict it is dropped.
+FINDER_MAX_SHIFT_MODULES = 0.35
+
+
+def finder_corners(
+    gray: np.ndarray, corners_px: np.ndarray, n_modules: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The corners of the three finder patterns, each measured on its own with cornerSubPix.
+
+    Every corner is predicted from the symbol's corners (``corners_px``, TL, TR, BR, BL; a
+    homography of the module grid) and refined with ``cv2.cornerSubPix`` in a window of
+    0.4 module half-width, so each uses only the pixels around itself: the measurements of
+    different corners share no pixels (independent sensor noise). The three corners that are
+    the symbol's own vertices (TL, TR, BL) are left out — they are measured already.
+
+    Parameters
+    ----------
+    gray : (H, W) uint8 undistorted frame.
+    corners_px : (4, 2) refined symbol corners.
+    n_modules : modules per side (:attr:`QrDetection.n_modules`).
+
+    Returns
+    -------
+    (points_px (M, 2), points_module (M, 2)): pixels and module coordinates (x right, y down
+    from the symbol's TL corner, the symbol spans 0..n_modules), M ≤ 33; empty (0, 2) arrays
+    when modules are smaller than :data:`FINDER_MIN_MODULE_PX`.
+    """
+    n = float(n_modules)
+    module_px = _mean_side_px(corners_px) / n
+    empty = np.zeros((0, 2))
+    if module_px < FINDER_MIN_MODULE_PX:
+        return empty, empty
+    origins = ((0.0, 0.0), (n - 7.0, 0.0), (0.0, n - 7.0))  # TL, TR, BL finder patterns
+    vertices = {(0.0, 0.0), (n, 0.0), (0.0, n)}
+    modules = np.array(
+        [c + o for o in origins for c in FINDER_CORNER_MODULES if tuple(c + o) not in vertices]
+    )
+    H_image_module = cv2.getPerspectiveTransform(
+        np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=np.float32), corners_px.astype(np.float32)
+    )
+    predicted = cv2.perspectiveTransform(modules.reshape(1, -1, 2).astype(np.float64), H_image_module).reshape(-1, 2)
+    half_window = int(np.clip(np.floor(0.4 * module_px), 2, 10))
+    try:
+        refined = cv2.cornerSubPix(
+            gray, predicted.astype(np.float32).reshape(-1, 1, 2), (half_window, half_window), (-1, -1),
+            _SUBPIX_CRITERIA,
+        ).reshape(-1, 2).astype(float)
+    except cv2.error:
+        return empty, empty
+    keep = np.all(np.isfinite(refined), axis=1) & (
+        np.linalg.norm(refined - predicted, axis=1) <= FINDER_MAX_SHIFT_MODULES * module_px
+    )
+    return refined[keep], modules[keep]

@@ -188,10 +188,11 @@ def inspect_recording(path) -> InspectReport:
                 f"camera {cam_name}: images but no valid calibration; expected "
                 f"/cam/{cam_name}/calibration (foxglove.CameraCalibration)"
             )
-        if (AGV_FRAME, camera_frame(cam_name)) not in transforms:
+        if not any((parent, camera_frame(cam_name)) in transforms for parent in (AGV_FRAME, WORLD_FRAME)):
             report.violations.append(
-                f"camera {cam_name}: no /tf_static transform {AGV_FRAME} -> {camera_frame(cam_name)}; "
-                "expected the camera's mounting pose T_agv_cam"
+                f"camera {cam_name}: no /tf_static transform {AGV_FRAME} -> {camera_frame(cam_name)} "
+                f"or {WORLD_FRAME} -> {camera_frame(cam_name)}; expected the camera's mounting pose "
+                "T_agv_cam (on the AGV) or T_world_cam (fixed in the world)"
             )
     if not scenario_seen:
         report.violations.append(

@@ -31,7 +31,10 @@ MARKER_MAP = {
     "description": (
         "Fiducial markers fixed in the world. Corners in world metres in OpenCV ArUco order "
         "TL, TR, BR, BL as printed (agvviz.conventions). dictionary is 'qr' for QR codes or an "
-        "OpenCV ArUco dictionary name such as 'DICT_6X6_250'; payload is a QR code's text."
+        "OpenCV ArUco dictionary name such as 'DICT_6X6_250'; payload is a QR code's text. "
+        "frame (optional, default 'world') names the frame the corners are given in: 'agv' for "
+        "a marker mounted on the vehicle (paper 003), whose corners_world_m are then in the "
+        "agv frame."
     ),
     "type": "object",
     "required": ["dictionary", "markers"],
@@ -52,6 +55,7 @@ MARKER_MAP = {
                         "maxItems": 4,
                     },
                     "payload": {"type": "string"},
+                    "frame": {"type": "string", "minLength": 1},
                 },
             },
         },
@@ -65,17 +69,19 @@ UWB_RANGE = {
         "One two-way ranging exchange (paper 003 eq 1). t1_ns: tag sends the poll (T_t1); "
         "t2_ns: anchor receives it (T_a1); t3_ns: anchor sends the reply (T_a2); t4_ns: tag "
         "receives the reply (T_t2). Time of flight = ((t4_ns - t1_ns) - (t3_ns - t2_ns)) / 2; "
-        "tag and anchor clocks are separate. range_m is the reported tag-anchor distance."
+        "tag and anchor clocks are separate. Timestamps are device-clock nanoseconds (each "
+        "device's own counter, not recording time), fractional allowed: UWB radios timestamp "
+        "at ~15.65 ps, and 1 ns is 0.3 m of range. range_m is the reported tag-anchor distance."
     ),
     "type": "object",
     "required": ["tag", "anchor", "t1_ns", "t2_ns", "t3_ns", "t4_ns", "range_m"],
     "properties": {
         "tag": {"type": "string", "minLength": 1},
         "anchor": {"type": "string", "minLength": 1},
-        "t1_ns": {"type": "integer"},
-        "t2_ns": {"type": "integer"},
-        "t3_ns": {"type": "integer"},
-        "t4_ns": {"type": "integer"},
+        "t1_ns": {"type": "number"},
+        "t2_ns": {"type": "number"},
+        "t3_ns": {"type": "number"},
+        "t4_ns": {"type": "number"},
         "range_m": {"type": "number"},
     },
 }
@@ -108,12 +114,19 @@ CORNER_OBSERVATIONS = {
         "Marker corners seen by camera cam_name without an image (Monte-Carlo studies). "
         "corners_px are pixels of the recorded (distorted) image, OpenCV pixel-centre "
         "convention, order TL, TR, BR, BL, optionally followed by the edge midpoints "
-        "top, right, bottom, left (4 or 8 points)."
+        "top, right, bottom, left (4 or 8 points). Optional, for simulated studies: cell (the "
+        "study cell this trial belongs to), trial (its index in the cell), noise_sigma_px (the "
+        "pixel noise sigma added), per marker points_marker_m (the marker-frame points, metres, "
+        "same order) and T_cam_marker_truth (the true marker pose in the camera frame, 4x4 "
+        "row-major)."
     ),
     "type": "object",
     "required": ["cam_name", "markers"],
     "properties": {
         "cam_name": {"type": "string", "minLength": 1},
+        "cell": {"type": "string", "minLength": 1},
+        "trial": {"type": "integer", "minimum": 0},
+        "noise_sigma_px": {"type": "number", "minimum": 0},
         "markers": {
             "type": "array",
             "items": {
@@ -131,6 +144,13 @@ CORNER_OBSERVATIONS = {
                         },
                         "minItems": 4,
                         "maxItems": 8,
+                    },
+                    "points_marker_m": {"type": "array", "items": _POINT3_M, "minItems": 4, "maxItems": 8},
+                    "T_cam_marker_truth": {
+                        "type": "array",
+                        "items": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
+                        "minItems": 4,
+                        "maxItems": 4,
                     },
                 },
             },

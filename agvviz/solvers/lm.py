@@ -22,7 +22,9 @@ multiplies it by 10 and leaves the pose unchanged.
 
 Convergence: the step norm ‖δ‖ < ``step_tol``, or the cost changes by at most
 ``cost_rel_tol``·cost (accepted or not: a rejected step that changes the cost that little
-is round-off), or the cost is exactly 0.
+is round-off), or the cost is exactly 0. Running out of ``max_iterations`` returns the best
+pose so far, like OpenCV's iteration criteria: it is still an estimate, and the caller's
+reprojection check decides whether it is usable (the iteration list shows it stopped early).
 """
 
 from __future__ import annotations
@@ -121,8 +123,8 @@ def refine_lm(
 
     Returns
     -------
-    (T_cam_marker, reason, iterations): the refined pose and "" on convergence, else ``None``
-    and "did not converge" (or why the start was unusable). ``iterations[0]`` is the start
+    (T_cam_marker, reason, iterations): the refined pose (the best so far when the iteration
+    budget runs out) and "", else ``None`` and why the start was unusable. ``iterations[0]`` is the start
     (its cost, ``step_norm`` 0, accepted); then one entry per trial step, accepted or not,
     with the cost and RMS of the pose kept after it and the λ the step was solved with.
     """
@@ -169,4 +171,4 @@ def refine_lm(
         )
         if step_norm < step_tol or small_change or cost == 0.0:
             return T, "", iterations
-    return None, "did not converge", iterations
+    return T, "", iterations

@@ -19,8 +19,9 @@ from agvviz.results import LmIteration
 from agvviz.solvers.lm import OBJECTIVES, refine_lm, reprojection_rms_px
 from agvviz.solvers.opencv_peers import solve_opencv
 from agvviz.solvers.p4p import solve_p4p
+from agvviz.solvers.planar import PlanarPrior, solve_planar
 
-SOLVER_NAMES = ("p4p", "lm", "ippe", "ippe_square", "sqpnp", "epnp", "iterative")
+SOLVER_NAMES = ("p4p", "lm", "ippe", "ippe_square", "sqpnp", "epnp", "iterative", "planar")
 
 #: Marker points with |z| above this fraction of their spread in x, y are refused.
 _PLANE_REL_TOL = 1e-9
@@ -33,7 +34,7 @@ class SolverOptions:
     """Settings of :func:`solve`; only ``lm`` reads them.
 
     objective : "depth" = paper 000 eq 23 (residual z'·(p' − p)), "pixel" = eq 22.
-    max_iterations : LM trial steps before giving up with "did not converge".
+    max_iterations : LM trial steps; when they run out the best pose so far is returned.
     initial_damping : LM λ relative to mean(diag(JᵀJ)); ÷10 on an accepted step, ×10 on a
         rejected one (see :mod:`agvviz.solvers.lm`).
     step_tol : converged when the tangent step norm ‖δ‖ falls below this.
@@ -113,6 +114,7 @@ def solve(
     pixels_px: np.ndarray,
     K: np.ndarray,
     options: SolverOptions = SolverOptions(),
+    prior: PlanarPrior | None = None,
 ) -> SolveResult:
     """Marker pose in the camera frame from N ≥ 4 coplanar points and their ideal pixels.
 
@@ -122,11 +124,14 @@ def solve(
         ``p4p`` — paper 000 eqs 7–21 on the first 4 points;
         ``lm`` — Levenberg–Marquardt on SE(3) over all points, started from ``p4p``
         (from ``ippe`` when ``p4p`` fails);
-        ``ippe``, ``ippe_square``, ``sqpnp``, ``epnp``, ``iterative`` — ``cv2.solvePnP``.
+        ``ippe``, ``ippe_square``, ``sqpnp``, ``epnp``, ``iterative`` — ``cv2.solvePnP``;
+        ``planar`` — x, y, heading of a ground vehicle under ``prior``
+        (:mod:`agvviz.solvers.planar`; needs ``prior``).
     points_marker_m : (N, 3) marker-frame points with z = 0.
     pixels_px : (N, 2) pixels of those points in an ideal (undistorted) pinhole image.
     K : (3, 3) camera matrix (upper triangular, last row 0 0 1).
-    options : LM settings (ignored by the other solvers).
+    options : LM settings (ignored by the other solvers; ``planar`` reads max_iterations).
+    prior : camera mounting and the code's floor pose, for ``planar`` only.
 
     Returns
     -------
@@ -151,7 +156,18 @@ def solve(
         return SolveResult(None, problem)
 
     iterations: list[LmIteration] = []
-    if name == "p4p":
+    if name == "planar":
+        if prior is None:
+            return SolveResult(
+                None,
+                "planar needs a PlanarPrior (camera mounting T_agv_cam and the code's "
+                "T_world_marker); agvviz run passes them from /tf_static and the payload",
+            )
+        solution, reason = solve_planar(
+            points_marker_m, pixels_px, K, prior, max_iterations=options.max_iterations
+        )
+        T = None if solution is None else solution.T_cam_marker
+    elif name == "p4p":
         T, reason = solve_p4p(points_marker_m, pixels_px, K)
     elif name == "lm":
         T_start, p4p_reason = solve_p4p(points_marker_m, pixels_px, K)

@@ -9,8 +9,8 @@
     │                              │ LM cost per iteration   │
     ├──────────────┬───────────────┼─────────────┬───────────┤
     │ position err │ heading err   │ reproj RMS  │ summary / │
-    │ (+ rejected) │ (+ rejected)  │ (+ rejected)│ manifest /│
-    │              │               │             │ rejections│
+    │ (+ rejected) │ (tabs: pitch, │ (+ rejected)│ manifest /│
+    │              │  roll)        │             │ rejections│
     └──────────────┴───────────────┴─────────────┴───────────┘
 """
 
@@ -63,6 +63,7 @@ def default_blueprint(cam_names: list[str]) -> rrb.Blueprint:
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
         rrb.TextLogView(origin=paths.EVENTS_REJECTIONS, name="rejections"),
+        rrb.TextLogView(origin=paths.EVENTS_FLIPS, name="flips"),
         active_tab=0,
     )
     top = rrb.Horizontal(
@@ -72,8 +73,19 @@ def default_blueprint(cam_names: list[str]) -> rrb.Blueprint:
     )
     bottom = rrb.Horizontal(
         _error_view(paths.ERROR_POSITION_M, "position error [m]"),
-        _error_view(paths.ERROR_HEADING_DEG, "heading error [deg]"),
-        _error_view(paths.ERROR_REPROJ_RMS_PX, "reprojection RMS [px]"),
+        rrb.Tabs(
+            _error_view(paths.ERROR_HEADING_DEG, "heading error [deg]"),
+            _error_view(paths.ERROR_PITCH_DEG, "pitch error [deg]"),
+            _error_view(paths.ERROR_ROLL_DEG, "roll error [deg]"),
+            active_tab=0,
+        ),
+        rrb.Tabs(
+            _error_view(paths.ERROR_REPROJ_RMS_PX, "reprojection RMS [px]"),
+            _error_view(paths.ERROR_POSITION_OVER_CRLB, "position error ÷ CRLB"),
+            _error_view(paths.ERROR_NEES, "NEES (6 = consistent)"),
+            _error_view(paths.SOLVER_AMBIGUITY_RATIO, "IPPE ambiguity ratio"),
+            active_tab=0,
+        ),
         documents,
         column_shares=[0.25, 0.25, 0.22, 0.28],
     )

@@ -326,7 +326,7 @@ def write_overlay(
             _send_scalars(rec, f"{DELTA_ROOT}/{key}", frames, time_ns, values)
         rr.send_blueprint(
             overlay_blueprint(runs, cam_names if source is not None else [], list(deltas), truth),
-            make_active=False,
+            make_active=True,  # the file opens in its own layout
             make_default=True,
             recording=rec,
         )

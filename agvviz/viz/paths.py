@@ -22,7 +22,7 @@ the camera is).
     world/trajectory/truth|camera           LineStrips3D, growing over time
     solver/lm/cost_per_iteration            BarChart: cost of each LM iteration of the frame
     solver/lm/cost|reproj_rms_px|damping|step_norm   Scalars on timelines lm_iter + frame + time
-    errors/position_m|heading_deg|reproj_rms_px      Scalars per frame (when known)
+    errors/position_m|heading_deg|pitch_deg|roll_deg|reproj_rms_px   Scalars per frame (when known)
     errors/rejected                         Scalars 0.0 on rejected frames (a marker in plots)
     events/rejections                       TextLog (WARN) with reason and detail
     run/manifest, run/summary               TextDocument (static, markdown + JSON block)
@@ -59,6 +59,8 @@ LM_DAMPING = "solver/lm/damping"
 LM_STEP_NORM = "solver/lm/step_norm"
 ERROR_POSITION_M = "errors/position_m"
 ERROR_HEADING_DEG = "errors/heading_deg"
+ERROR_PITCH_DEG = "errors/pitch_deg"
+ERROR_ROLL_DEG = "errors/roll_deg"
 ERROR_REPROJ_RMS_PX = "errors/reproj_rms_px"
 ERROR_REJECTED = "errors/rejected"
 EVENTS_REJECTIONS = "events/rejections"
@@ -66,21 +68,65 @@ RUN_MANIFEST = "run/manifest"
 RUN_SUMMARY = "run/summary"
 
 
-def camera(cam_name: str) -> str:
-    """Entity of camera ``cam_name`` (extrinsic + Pinhole), under the estimated AGV pose."""
-    return f"{AGV_CAMERA}/{camera_frame(cam_name)}"
+def camera(cam_name: str, fixed: bool = False) -> str:
+    """Entity of camera ``cam_name`` (extrinsic + Pinhole): under the estimated AGV pose, or
+    under ``world/cameras`` for a camera ``fixed`` in the world (paper 003's wall cameras)."""
+    return f"{FIXED_CAMERAS if fixed else AGV_CAMERA}/{camera_frame(cam_name)}"
 
 
-def image(cam_name: str) -> str:
+def image(cam_name: str, fixed: bool = False) -> str:
     """Entity of the recorded image of camera ``cam_name``."""
-    return f"{camera(cam_name)}/image"
+    return f"{camera(cam_name, fixed)}/image"
 
 
-def detected(cam_name: str) -> str:
+def detected(cam_name: str, fixed: bool = False) -> str:
     """Entity of the detected corners (Points2D, image pixels) of camera ``cam_name``."""
-    return f"{image(cam_name)}/detected"
+    return f"{image(cam_name, fixed)}/detected"
 
 
-def reprojected(cam_name: str) -> str:
+def reprojected(cam_name: str, fixed: bool = False) -> str:
     """Entity of the reprojected corners (Points2D, image pixels) of camera ``cam_name``."""
-    return f"{image(cam_name)}/reprojected"
+    return f"{image(cam_name, fixed)}/reprojected"
+
+
+# -- UWB and camera–UWB fusion (paper 003) ----------------------------------------------------
+#: World-fixed cameras: ``world/cameras/cam_<name>`` (Transform3D T_world_cam + Pinhole, static).
+FIXED_CAMERAS = "world/cameras"
+UWB_ANCHORS = "world/uwb/anchors"  # Points3D with ids (static)
+AGV_UWB = "world/agv/uwb"  # Transform3D: the latest UWB fix (position only)
+AGV_FUSED = "world/agv/fused"  # Transform3D: the latest fused position
+TRAJECTORY_UWB = "world/trajectory/uwb"
+TRAJECTORY_FUSED = "world/trajectory/fused"
+UWB_GDOP = "uwb/gdop"  # Scalars per UWB fix
+ERROR_UWB_POSITION_M = "errors/uwb_position_m"  # 2-D error of each UWB fix
+ERROR_FUSED_POSITION_M = "errors/fused_position_m"  # 2-D error of each fused output
+EVENTS_FUSION = "events/fusion"  # TextLog: every switch, with its offset and jump
+EVENTS_UWB_GATE = "events/uwb_gate"  # TextLog: every range a gate removed
+FUSION_CAMERA_USED = "fusion/camera_used"  # Scalars: index of the camera used (−1: none)
+UWB_RANGE_KINDS = ("measured", "predicted_truth", "predicted_estimate", "gated")
+
+
+def uwb_range(anchor_id: str, kind: str) -> str:
+    """``uwb/range/<anchor>/<kind>`` Scalars, kind one of :data:`UWB_RANGE_KINDS` (m); "gated"
+    repeats the measured range of every range a gate (residual or Kalman) removed."""
+    return f"uwb/range/{anchor_id}/{kind}"
+
+
+def uwb_gate(anchor_id: str) -> str:
+    """``uwb/gate/<anchor>`` Scalars per UWB fix: 1 the range was used, 0 the gate removed it."""
+    return f"uwb/gate/{anchor_id}"
+
+
+# -- pose uncertainty and planar ambiguity ----------------------------------------------------
+#: Ellipsoids3D under the estimated AGV pose (AGV frame): the 3σ position covariance
+#: magnified by ``run_logger.POSITION_COV_SCALE`` (sub-millimetre otherwise); cleared when none.
+AGV_CAMERA_POSITION_COV = "world/agv/camera/position_cov"
+#: Transform3D T_world_agv of the rejected ambiguity candidate (the ghost) + its body box.
+AGV_GHOST = "world/agv/ghost"
+AGV_GHOST_BODY = "world/agv/ghost/body"
+ERROR_NEES = "errors/nees"  # Scalars: NEES of T_world_agv vs truth (expected 6; 3 for planar)
+ERROR_POSITION_OVER_CRLB = "errors/position_over_crlb"  # Scalars: position error ÷ CRLB
+ERROR_CRLB_POSITION_M = "errors/crlb_position_m"  # Scalars: CRLB sqrt(trace) at the true pose
+ERROR_POSITION_SIGMA_M = "errors/position_sigma_m"  # Scalars: sqrt(trace) of the covariance
+SOLVER_AMBIGUITY_RATIO = "solver/ambiguity_ratio"  # Scalars: IPPE rms(other)/rms(best), capped
+EVENTS_FLIPS = "events/flips"  # TextLog (WARN): frames whose pose flipped branch

@@ -150,3 +150,52 @@ def text_logs(src: str | os.PathLike | RrdContents, entity: str) -> list[tuple[i
         (int(row[paths.TIMELINE_FRAME]), levels.get(row[_ROW_ID], ""), row["TextLog:text"][0])
         for row in _rows(contents, entity, "TextLog:text")
     ]
+
+
+def transforms(
+    src: str | os.PathLike | RrdContents, entity: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Temporal Transform3D (translation + mat3x3) of ``entity``, e.g. ``world/agv/truth``.
+
+    Rerun stores both as float32 (≈1 µm at 10 m) and the matrix column-major.
+
+    Returns
+    -------
+    frames : (N,) int64
+        Frame index of each row, in logging order.
+    time_ns : (N,) int64
+        ``time`` timeline of each row (integer nanoseconds).
+    T_parent_entity : (N, 4, 4) float64
+        The pose of ``entity`` in its parent.
+    """
+    contents = _contents(src)
+    rows = [
+        row for row in _rows(contents, entity, "Transform3D:translation")
+        if row.get(paths.TIMELINE_FRAME) is not None
+    ]
+    if not rows:
+        raise RrdReadError(f"entity {entity!r} has no Transform3D on the {paths.TIMELINE_FRAME!r} timeline")
+    matrices = {row[_ROW_ID]: row["Transform3D:mat3x3"] for row in _rows(contents, entity, "Transform3D:mat3x3")}
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    for k, row in enumerate(rows):
+        mat = matrices.get(row[_ROW_ID])
+        if mat is None or len(row["Transform3D:translation"]) != 1 or len(mat) != 1:
+            raise RrdReadError(f"entity {entity!r}: expected one translation and one mat3x3 per row")
+        T[k, :3, 3] = row["Transform3D:translation"][0]
+        T[k, :3, :3] = np.asarray(mat[0], dtype=np.float64).reshape(3, 3).T  # column-major
+    frames = np.array([row[paths.TIMELINE_FRAME] for row in rows], dtype=np.int64)
+    time_ns = np.array([row.get(paths.TIMELINE_TIME, -1) for row in rows], dtype=np.int64)
+    return frames, time_ns, T
+
+
+def frame_times(src: str | os.PathLike | RrdContents, entity: str, component: str) -> dict[int, int]:
+    """Frame index → ``time`` (ns) of every row of ``entity`` carrying ``component``.
+
+    On a run ``.rrd`` the detected corners (``Points2D:positions``) are logged on every frame,
+    so they give the clock of the whole run, rejected frames included.
+    """
+    return {
+        int(row[paths.TIMELINE_FRAME]): int(row[paths.TIMELINE_TIME])
+        for row in _rows(src, entity, component)
+        if row.get(paths.TIMELINE_FRAME) is not None and row.get(paths.TIMELINE_TIME) is not None
+    }

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
+from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.results import FrameResult, LmIteration
 from agvviz.viz import paths
@@ -39,6 +40,14 @@ COLOR_DETECTED = (0, 230, 255)
 COLOR_REPROJECTED = (255, 0, 200)
 COLOR_REJECTED = (230, 40, 40)
 COLOR_HEADING = (200, 120, 255)
+COLOR_PITCH = (90, 200, 230)
+COLOR_ROLL = (240, 220, 80)
+
+COLOR_GHOST = (150, 110, 255)
+#: The covariance ellipsoid is magnified by this factor (positions are sub-millimetre).
+POSITION_COV_SCALE = 100.0
+#: Ambiguity ratios above this are plotted at this value (exact fits give inf).
+AMBIGUITY_RATIO_CAP = 100.0
 
 #: Nominal AGV body drawn around the body frame (half sizes x, y, z in m; centre on the
 #: floor-origin's vertical). A visual marker only: the recording does not carry a body size.
@@ -98,6 +107,9 @@ class RunLogger:
         self._rec.save(self._tmp_path)
         self._rec.send_recording_name(recording_name)
         self._cam_names: list[str] = []
+        self._fixed_cams: set[str] = set()
+        #: Layout shipped at :meth:`close`; None: :func:`default_blueprint` of the cameras.
+        self.blueprint = None
         self._start_time_sent = False
         self._saved = False
         self._trajectory_truth_m: list[np.ndarray] = []
@@ -111,6 +123,8 @@ class RunLogger:
         series = (
             (paths.ERROR_POSITION_M, "position error [m]", COLOR_CAMERA),
             (paths.ERROR_HEADING_DEG, "heading error [deg]", COLOR_HEADING),
+            (paths.ERROR_PITCH_DEG, "pitch error [deg]", COLOR_PITCH),
+            (paths.ERROR_ROLL_DEG, "roll error [deg]", COLOR_ROLL),
             (paths.ERROR_REPROJ_RMS_PX, "reprojection RMS [px]", COLOR_REPROJECTED),
             (paths.LM_COST, "LM cost", COLOR_CAMERA),
             (paths.LM_REPROJ_RMS_PX, "LM reprojection RMS [px]", COLOR_REPROJECTED),
@@ -132,6 +146,7 @@ class RunLogger:
         for entity in (paths.AGV_TRUTH, paths.AGV_CAMERA):
             rec.log(entity, rr.TransformAxes3D(AGV_AXIS_LENGTH_M), static=True)
         rec.log(paths.AGV_TRUTH_BODY, self._body(COLOR_TRUTH), static=True)
+        self._log_uncertainty_styles()
 
     def log_world_static(self, markers: list[tuple[str, np.ndarray]]) -> None:
         """Log the marker map: outlines with an id label and faint faces (static).
@@ -206,7 +221,48 @@ class RunLogger:
         if cam_name not in self._cam_names:
             self._cam_names.append(cam_name)
 
+    def log_fixed_camera_static(self, cam_name: str, camera: PinholeCamera, T_world_cam: np.ndarray) -> None:
+        """Log camera ``cam_name`` fixed in the world (paper 003): ``T_world_cam`` and its
+        Pinhole under ``world/cameras`` (static); its images and corners go there too."""
+        self._check_open()
+        T_world_cam = _as_transform(T_world_cam, f"T_world_cam of camera {cam_name!r}")
+        entity = paths.camera(cam_name, fixed=True)
+        self._rec.log(entity, _transform3d(T_world_cam), static=True)
+        self._rec.log(
+            entity,
+            rr.Pinhole(
+                image_from_camera=camera.K,
+                resolution=[camera.width_px, camera.height_px],
+                camera_xyz=rr.ViewCoordinates.RDF,
+                image_plane_distance=FRUSTUM_IMAGE_PLANE_M,
+                color=COLOR_CAMERA,
+            ),
+            static=True,
+        )
+        self._fixed_cams.add(cam_name)
+        if cam_name not in self._cam_names:
+            self._cam_names.append(cam_name)
+
+    @property
+    def stream(self) -> rr.RecordingStream:
+        """The recording stream, for loggers of other modalities (UWB, fusion)."""
+        return self._rec
+
+    @property
+    def cam_names(self) -> list[str]:
+        return list(self._cam_names)
+
     # -- per frame -------------------------------------------------------------------------
+    def log_camera_view(self, frame: FrameResult) -> None:
+        """Log only the image and corners of ``frame`` — another camera's view of a time
+        stamp whose pose and errors :meth:`log_frame` logged from the chosen camera."""
+        self._check_open()
+        _check_frame(frame)
+        self._rec.set_time(paths.TIMELINE_FRAME, sequence=int(frame.index))
+        self._rec.set_time(paths.TIMELINE_TIME, timestamp=np.datetime64(int(frame.log_time_ns), "ns"))
+        self._log_image(frame)
+        self._log_corners(frame)
+
     def log_frame(self, frame: FrameResult) -> None:
         """Log everything one frame produced at ``time = log_time_ns`` and ``frame = index``.
 
@@ -227,12 +283,13 @@ class RunLogger:
         self._log_poses(frame)
         self._log_errors(frame)
         self._log_lm(frame)
+        self._log_uncertainty(frame)
 
     def _log_image(self, frame: FrameResult) -> None:
         if not frame.image_bytes:
             return  # corner-only recordings carry no image
         self._rec.log(
-            paths.image(frame.cam_name),
+            paths.image(frame.cam_name, frame.cam_name in self._fixed_cams),
             rr.EncodedImage(contents=frame.image_bytes, media_type=MEDIA_TYPES[frame.image_format]),
         )
 
@@ -247,8 +304,9 @@ class RunLogger:
                 reprojected.append(reproj)
                 reprojected_ids += [obs.marker_id] * len(reproj)
         # Empty batches on frames without corners, so the previous frame's points vanish.
+        fixed = frame.cam_name in self._fixed_cams
         self._rec.log(
-            paths.detected(frame.cam_name),
+            paths.detected(frame.cam_name, fixed),
             rr.Points2D(
                 np.concatenate(detected) if detected else np.zeros((0, 2)),
                 labels=detected_ids,
@@ -259,7 +317,7 @@ class RunLogger:
             ),
         )
         self._rec.log(
-            paths.reprojected(frame.cam_name),
+            paths.reprojected(frame.cam_name, fixed),
             rr.Points2D(
                 np.concatenate(reprojected) if reprojected else np.zeros((0, 2)),
                 labels=reprojected_ids,
@@ -295,6 +353,8 @@ class RunLogger:
         for entity, value in (
             (paths.ERROR_POSITION_M, frame.position_error_m),
             (paths.ERROR_HEADING_DEG, frame.heading_error_deg),
+            (paths.ERROR_PITCH_DEG, frame.pitch_error_deg),
+            (paths.ERROR_ROLL_DEG, frame.roll_error_deg),
             (paths.ERROR_REPROJ_RMS_PX, frame.reproj_rms_px),
         ):
             if value is not None:
@@ -309,6 +369,66 @@ class RunLogger:
                     level=rr.TextLogLevel.WARN,
                 ),
             )
+
+    def _log_uncertainty_styles(self) -> None:
+        rec = self._rec
+        for entity, name, color in (
+            (paths.ERROR_NEES, "NEES (expected: dof)", COLOR_CAMERA),
+            (paths.ERROR_POSITION_OVER_CRLB, "position error ÷ CRLB", COLOR_REPROJECTED),
+            (paths.ERROR_CRLB_POSITION_M, "CRLB position [m]", COLOR_TRUTH),
+            (paths.ERROR_POSITION_SIGMA_M, "covariance position σ [m]", COLOR_CAMERA),
+            (paths.SOLVER_AMBIGUITY_RATIO, f"IPPE ambiguity ratio (capped at {AMBIGUITY_RATIO_CAP:g})", COLOR_GHOST),
+        ):
+            rec.log(entity, rr.SeriesLines(names=name, colors=color, widths=1.5), static=True)
+        rec.log(paths.AGV_GHOST, rr.TransformAxes3D(0.5 * AGV_AXIS_LENGTH_M), static=True)
+
+    def _log_uncertainty(self, frame: FrameResult) -> None:
+        """NEES, error ÷ CRLB, ambiguity ratio, flips, the covariance ellipsoid and the ghost."""
+        rec = self._rec
+        for entity, value in (
+            (paths.ERROR_NEES, frame.nees),
+            (paths.ERROR_POSITION_OVER_CRLB, frame.position_over_crlb),
+            (paths.ERROR_CRLB_POSITION_M, frame.crlb_position_m),
+            (paths.ERROR_POSITION_SIGMA_M, frame.position_sigma_m),
+        ):
+            if value is not None and math.isfinite(value):
+                rec.log(entity, rr.Scalars(float(value)))
+        if frame.ambiguity_ratio is not None:
+            rec.log(paths.SOLVER_AMBIGUITY_RATIO, rr.Scalars(min(float(frame.ambiguity_ratio), AMBIGUITY_RATIO_CAP)))
+        if frame.flipped and frame.solved:
+            rec.log(
+                paths.EVENTS_FLIPS,
+                rr.TextLog(
+                    f"frame {frame.index}: pose flipped to the branch the previous frame rejected "
+                    f"(ambiguity ratio {frame.ambiguity_ratio:.2f}, chosen by {frame.ambiguity_rule})",
+                    level=rr.TextLogLevel.WARN,
+                ),
+            )
+        if frame.solved and frame.position_cov_world_m2 is not None:
+            R_world_agv = np.asarray(frame.T_world_agv, dtype=float)[:3, :3]
+            cov_agv = R_world_agv.T @ np.asarray(frame.position_cov_world_m2, dtype=float) @ R_world_agv
+            eigenvalues, axes = np.linalg.eigh(0.5 * (cov_agv + cov_agv.T))
+            if np.linalg.det(axes) < 0:
+                axes[:, 0] = -axes[:, 0]
+            sigma_mm = 1000.0 * math.sqrt(max(float(np.sum(eigenvalues)), 0.0))
+            rec.log(
+                paths.AGV_CAMERA_POSITION_COV,
+                rr.Ellipsoids3D(
+                    half_sizes=[3.0 * POSITION_COV_SCALE * np.sqrt(np.clip(eigenvalues, 0.0, None))],
+                    quaternions=[rr.Quaternion(xyzw=se3.to_quaternion_xyzw(axes))],
+                    colors=COLOR_CAMERA,
+                    fill_mode=rr.components.FillMode.MajorWireframe,
+                    labels=[f"3σ position ×{POSITION_COV_SCALE:g} (σ = {sigma_mm:.2f} mm)"],
+                    show_labels=False,
+                ),
+            )
+        else:
+            rec.log(paths.AGV_CAMERA_POSITION_COV, rr.Clear(recursive=False))
+        if frame.solved and frame.T_world_agv_ghost is not None:
+            rec.log(paths.AGV_GHOST, _transform3d(np.asarray(frame.T_world_agv_ghost, dtype=float)))
+            rec.log(paths.AGV_GHOST_BODY, self._body(COLOR_GHOST))
+        else:
+            rec.log(paths.AGV_GHOST_BODY, rr.Clear(recursive=False))
 
     def _log_lm(self, frame: FrameResult) -> None:
         rec = self._rec
@@ -358,8 +478,8 @@ class RunLogger:
         self._saved = True
         try:
             rr.send_blueprint(
-                default_blueprint(self._cam_names),
-                make_active=False,
+                self.blueprint if self.blueprint is not None else default_blueprint(self._cam_names),
+                make_active=True,  # the file opens in its own layout
                 make_default=True,
                 recording=self._rec,
             )
@@ -417,6 +537,10 @@ def _check_frame(frame: FrameResult) -> None:
             _as_array(obs.reprojected_px, (-1, 2), f"{where}: reprojected_px of marker {obs.marker_id!r}")
     if frame.T_world_agv_truth is not None:
         _as_transform(frame.T_world_agv_truth, f"{where}: T_world_agv_truth")
+    if frame.T_world_agv_ghost is not None:
+        _as_transform(frame.T_world_agv_ghost, f"{where}: T_world_agv_ghost")
+    if frame.position_cov_world_m2 is not None:
+        _as_array(frame.position_cov_world_m2, (3, 3), f"{where}: position_cov_world_m2")
     if frame.solved:
         if frame.T_world_agv is None:
             raise RunLogError(f"{where} is solved (rejected is None) but has no T_world_agv")
