@@ -144,7 +144,7 @@ def _print_summary(summary: dict, timing: dict, title: str) -> None:
 
 
 def _run(recording: Path, solver: Optional[str], sets: list[str], out: Optional[Path]) -> Path:
-    from agvviz.recording.reader import RecordingError, count_messages
+    from agvviz.recording.reader import RecordingError, count_image_times
     from agvviz.runner import RunError, run_recording
 
     try:
@@ -152,7 +152,7 @@ def _run(recording: Path, solver: Optional[str], sets: list[str], out: Optional[
     except SettingsError as exc:
         _fail(str(exc))
     try:
-        total = count_messages(recording, topic_prefix="/cam/", topic_suffix="/image")
+        total = count_image_times(recording)
         with _progress() as progress:
             task = progress.add_task(f"replaying ({settings.label()})", total=total, rate="")
 
@@ -348,12 +348,12 @@ def sweep(
     from agvviz.compare import CompareError, parse_grid, ranking_rows
     from agvviz.compare import sweep as sweep_runs
     from agvviz.compare import grid_settings
-    from agvviz.recording.reader import RecordingError, count_messages
+    from agvviz.recording.reader import RecordingError, count_image_times
 
     try:
         grid = parse_grid(set_)
         n_settings = len(grid_settings(grid))
-        frames = count_messages(recording, topic_prefix="/cam/", topic_suffix="/image") if recording.is_file() else 0
+        frames = count_image_times(recording) if recording.is_file() else 0
         with _progress() as progress:
             task = progress.add_task(f"sweeping {n_settings} settings", total=frames * n_settings, rate="")
 

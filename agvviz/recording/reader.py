@@ -697,13 +697,12 @@ def read_scenario_metadata(path) -> dict | None:
     return None
 
 
-def count_messages(path, topic_prefix: str = "", topic_suffix: str = "") -> int:
-    """Number of messages whose topic starts with ``topic_prefix`` and ends with
-    ``topic_suffix`` (one streaming pass without decoding; for progress bars)."""
-    return sum(
-        1
-        for item in iter_raw(path, report=ReadReport())
-        if isinstance(item, RawMessage)
-        and item.topic.startswith(topic_prefix)
-        and item.topic.endswith(topic_suffix)
-    )
+def count_image_times(path) -> int:
+    """Number of distinct time stamps among camera images (``/cam/<name>/image``): the number
+    of frames a replay will produce, whatever the number of cameras. One streaming pass
+    without decoding; for progress bars."""
+    times = set()
+    for item in iter_raw(path, report=ReadReport()):
+        if isinstance(item, RawMessage) and item.topic.startswith("/cam/") and item.topic.endswith("/image"):
+            times.add(item.log_time_ns)
+    return len(times)
