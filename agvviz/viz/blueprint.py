@@ -48,7 +48,7 @@ def default_blueprint(cam_names: list[str]) -> rrb.Blueprint:
         image_panel = rrb.Tabs(*image_views)
     world_view = rrb.Spatial3DView(
         origin=paths.WORLD,
-        name="world: truth (green) vs camera estimate (orange)",
+        name="world: truth (green), camera estimate (orange), rejected IPPE mirror pose (violet)",
         # Corner dots drawn in UI points would swamp the small frustum image: 2D view only.
         contents=["+ $origin/**"]
         + [f"- /{paths.detected(cam_name)}" for cam_name in cam_names]
