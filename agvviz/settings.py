@@ -99,6 +99,16 @@ class RunSettings:
         "pixel noise σ for covariances and the Cramér–Rao bound: auto (pooled residuals of the "
         "frames so far) or a number in px",
     )
+    correction: str = _setting(
+        "none",
+        "paper 002 navigation correction over cycles of marker sightings (/agv/odometry): none, "
+        "cnoem (point-to-ray cost, eqs 12-13) or bundle (pixel reprojection over the window)",
+        ("none", "cnoem", "bundle"),
+    )
+    cycle_distance_m: float = _setting(3.0, "correction: travel that closes a correction cycle (m)")
+    cnoem_update: str = _setting(
+        "lm", "correction=cnoem: lm (Gauss-Newton/Levenberg-Marquardt) or paper (first-order, eqs 14-20)", ("lm", "paper")
+    )
 
     def __post_init__(self):
         validate(self)
@@ -112,6 +122,8 @@ class RunSettings:
             value = getattr(self, name)
             if not (value > 0 and math.isfinite(value)):
                 raise SettingsError(f"{name} must be a positive number, got {value}")
+        if not (self.cycle_distance_m > 0 and math.isfinite(self.cycle_distance_m)):
+            raise SettingsError(f"cycle_distance_m must be a positive number, got {self.cycle_distance_m}")
         if self.truth_max_dt_s < 0:
             raise SettingsError(f"truth_max_dt_s must be ≥ 0, got {self.truth_max_dt_s}")
         if self.sigma_px != "auto":
@@ -138,7 +150,15 @@ class RunSettings:
 
 
 def validate(obj) -> None:
-    """Check ``choices`` metadata of every field of a settings dataclass."""
+    """Check every field of a settings or scenario-options dataclass: its type (an int is a
+    valid float; a bool is only a bool), finiteness of numbers, and ``choices`` metadata."""
+    for name, kind in field_types(type(obj)).items():
+        value = getattr(obj, name)
+        accepted = (float, int) if kind is float else (kind,)
+        if isinstance(value, bool) != (kind is bool) or not isinstance(value, accepted):
+            raise SettingsError(f"{name} must be of type {kind.__name__}, got {value!r}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise SettingsError(f"{name} must be a finite number, got {value}")
     for f in dataclasses.fields(obj):
         choices = f.metadata.get("choices")
         if choices is not None and getattr(obj, f.name) not in choices:

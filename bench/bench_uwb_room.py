@@ -23,7 +23,6 @@ import copy
 import tempfile
 from pathlib import Path
 
-import numpy as np
 
 from agvviz import scenario_registry
 from agvviz.evaluation.fusion_summary import FusionStats

@@ -29,12 +29,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
+from agvviz.settings import validate as check_fields
 from agvviz.geometry.euler import Rx
 from agvviz.geometry.plane import square_points_marker
 
@@ -133,11 +134,7 @@ def cells(which: str) -> list[Cell]:
 
 def validate(options: Options) -> None:
     """Raise ``ValueError`` naming the first impossible option."""
-    for f in fields(Options):
-        value = getattr(options, f.name)
-        kind = {"int": int, "str": str}[f.type]
-        if isinstance(value, bool) or not isinstance(value, kind):
-            raise ValueError(f"{f.name} must be of type {f.type}, got {value!r}")
+    check_fields(options)
     if options.trials < 1:
         raise ValueError(f"trials must be ≥ 1, got {options.trials}")
     if options.cells not in ("paper", "crlb", "all"):

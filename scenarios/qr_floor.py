@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry.camera import PinholeCamera
+from agvviz.settings import validate as check_fields
 from agvviz.sim.qr_texture import PAYLOAD_RESOLUTION_M, QUIET_ZONE_MODULES, make_floor_code
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
 from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track
@@ -71,19 +72,9 @@ class Options:
     odom_heading_noise_deg: float = _opt(0.05, "odometry heading noise per step (sigma, deg)")
 
 
-#: Accepted Python types per annotated option type (an int is a valid float; a bool is neither).
-_FIELD_TYPES = {"float": (float, int), "int": (int,), "bool": (bool,), "str": (str,)}
-
-
 def validate(options: Options) -> None:
     """Raise ``ValueError`` naming the first impossible option and what to do about it."""
-    for f in fields(Options):
-        value = getattr(options, f.name)
-        expected = _FIELD_TYPES[f.type]
-        if isinstance(value, bool) != (bool in expected) or not isinstance(value, expected):
-            raise ValueError(f"{f.name} must be of type {f.type}, got {value!r}")
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"{f.name} must be a finite number, got {value}")
+    check_fields(options)
     o = options
     positive = ("duration_s", "rate_hz", "turn_radius_m", "code_size_m", "grid_spacing_m", "focal_px")
     for name in positive:

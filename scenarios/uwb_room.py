@@ -31,15 +31,15 @@ time order: per camera frame ``/agv/ground_truth`` and the four JPEG frames; per
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
+from agvviz.settings import validate as check_fields
 from agvviz.markers.aruco import aruco_dictionary, aruco_modules, is_aruco_dictionary
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
 from agvviz.sim.room import WALLS, agv_pose, grid_points, horizontal_fov_focal_px, look_at, placed, roof_code, wall_points
@@ -103,21 +103,9 @@ class Options:
     supersample: int = _opt(4, "s x s samples per pixel for area integration")
 
 
-_FIELD_TYPES = {"float": (float, int), "int": (int,), "bool": (bool,), "str": (str,)}
-
-
 def validate(options: Options) -> None:
     """Raise ``ValueError`` naming the first impossible option and what to do about it."""
-    for f in fields(Options):
-        value = getattr(options, f.name)
-        expected = _FIELD_TYPES[f.type]
-        if isinstance(value, bool) != (bool in expected) or not isinstance(value, expected):
-            raise ValueError(f"{f.name} must be of type {f.type}, got {value!r}")
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"{f.name} must be a finite number, got {value}")
-        choices = f.metadata.get("choices")
-        if choices and value not in choices:
-            raise ValueError(f"{f.name}={value!r} is not one of: {', '.join(choices)}")
+    check_fields(options)
     o = options
     for name in (
         "duration_s", "rate_hz", "turn_radius_m", "grid_spacing_m", "room_length_m", "room_width_m",

@@ -207,17 +207,7 @@ class RunLogger:
         T_agv_cam = _as_transform(T_agv_cam, f"T_agv_cam of camera {cam_name!r}")
         entity = paths.camera(cam_name)
         self._rec.log(entity, _transform3d(T_agv_cam), static=True)
-        self._rec.log(
-            entity,
-            rr.Pinhole(
-                image_from_camera=camera.K,
-                resolution=[camera.width_px, camera.height_px],
-                camera_xyz=rr.ViewCoordinates.RDF,
-                image_plane_distance=FRUSTUM_IMAGE_PLANE_M,
-                color=COLOR_CAMERA,
-            ),
-            static=True,
-        )
+        self._rec.log(entity, _pinhole(camera), static=True)
         if cam_name not in self._cam_names:
             self._cam_names.append(cam_name)
 
@@ -228,17 +218,7 @@ class RunLogger:
         T_world_cam = _as_transform(T_world_cam, f"T_world_cam of camera {cam_name!r}")
         entity = paths.camera(cam_name, fixed=True)
         self._rec.log(entity, _transform3d(T_world_cam), static=True)
-        self._rec.log(
-            entity,
-            rr.Pinhole(
-                image_from_camera=camera.K,
-                resolution=[camera.width_px, camera.height_px],
-                camera_xyz=rr.ViewCoordinates.RDF,
-                image_plane_distance=FRUSTUM_IMAGE_PLANE_M,
-                color=COLOR_CAMERA,
-            ),
-            static=True,
-        )
+        self._rec.log(entity, _pinhole(camera), static=True)
         self._fixed_cams.add(cam_name)
         if cam_name not in self._cam_names:
             self._cam_names.append(cam_name)
@@ -522,6 +502,17 @@ class RunLogger:
             labels=[label] if label else [],  # empty clears a previous stale label
             radii=rr.Radius.ui_points(1.5),
         )
+
+
+def _pinhole(camera: PinholeCamera) -> rr.Pinhole:
+    """The frustum of ``camera`` (an ideal pinhole: Rerun does not draw lens distortion)."""
+    return rr.Pinhole(
+        image_from_camera=camera.K,
+        resolution=[camera.width_px, camera.height_px],
+        camera_xyz=rr.ViewCoordinates.RDF,
+        image_plane_distance=FRUSTUM_IMAGE_PLANE_M,
+        color=COLOR_CAMERA,
+    )
 
 
 def _check_frame(frame: FrameResult) -> None:
