@@ -29,6 +29,8 @@ from agvviz.settings import RunSettings, as_dict
 from agvviz.viz.run_logger import RunLogger
 from agvviz.viz.uwb_blueprint import uwb_blueprint
 from agvviz.viz.uwb_logger import FusionLogger
+from agvviz.correction import CorrectionReplay, CorrectionSettings, CorrectionStats
+from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint
 
 MARKER_MAP_TOPIC = "/markers/map"
 
@@ -122,6 +124,17 @@ def run_recording(
         fusion_logger = FusionLogger(logger.stream)
         fusion_stats = FusionStats()
         cameras_logged: set[str] = set()
+        correction = None
+        if settings.correction != "none":
+            correction = CorrectionReplay(
+                CorrectionSettings(
+                    solver=settings.correction, update=settings.cnoem_update,
+                    cycle_distance_m=settings.cycle_distance_m, max_reproj_px=settings.max_reproj_px,
+                ),
+                replay.ctx.cameras,
+            )
+            correction_logger = CorrectionLogger(logger.stream)
+            correction_stats = CorrectionStats()
 
         def log_item(item) -> None:
             if isinstance(item, FrameSetResult):
@@ -157,14 +170,25 @@ def run_recording(
                     cameras_logged.add(cam_name)
             for item in fusion.feed(message, frame):
                 log_item(item)
+            if correction is not None:
+                for step in correction.feed(message, frame):
+                    correction_logger.log(step)
+                    correction_stats.add(step)
         for item in fusion.finish():
             log_item(item)
+        if correction is not None:
+            for step in correction.finish():
+                correction_logger.log(step)
+                correction_stats.add(step)
         wall_time_s = time.perf_counter() - t_start
         summary = summarize(scores)
         if fusion.has_uwb:
             summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **fusion_stats.summary()}
             fixed = {name for name, cam in replay.ctx.cameras.items() if cam.T_agv_cam is None}
             logger.blueprint = uwb_blueprint(logger.cam_names, fixed, fusion_logger.anchor_ids)
+        if correction is not None:
+            summary["correction"] = {"solver": settings.correction, **correction_stats.summary()}
+            logger.blueprint = correction_blueprint(sorted(replay.ctx.cameras))
         summary["recording_damage"] = list(read_report.problems)
         logger.log_summary(summary)
     return RunOutcome(

@@ -1,0 +1,273 @@
+"""auv_under_ice — paper 002: an AUV under ice corrects its drifting INS/DVL navigation with
+ArUco markers hung along its route, seen by a left and a right camera.
+
+World: z up, the ice underside is the plane z = 0 (rendered as the grey "floor" above the
+vehicle), the vehicle cruises ``depth_m`` below it. The route is a gentle S (heading
+±``route_heading_amp_deg`` over an 80 m period) at ``speed_mps``. Every ``marker_spacing_m`` a
+marker of side 0.6 m hangs ``marker_lateral_m`` to alternating sides of the route and
+``marker_above_m`` above the vehicle's depth, facing the approaching vehicle, 2° off plumb.
+
+Cameras (agvviz.sim.auv; the paper's Table 1 is an image, so these are our choice): ``left`` and
+``right``, 1280×1024 px, f = 1100 px (≈60° horizontal), 0.3 m either side of the centre line,
+toed out 10°; extrinsics on /tf_static. Frames at ``frame_rate_hz``.
+
+Navigation (/agv/odometry, frame ``world`` — an INS is initialised in the world, paper eq 3):
+dead reckoning of the true motion with a DVL scale error ``dvl_scale_error``, a gyro heading bias
+``heading_bias_deg_s`` and heading noise ``heading_noise_deg_sqrt_s`` (random walk), so the error
+grows with distance. Truth on /agv/ground_truth; marker map on /markers/map.
+
+Replay: ``agvviz run <rec> --set correction=cnoem`` (or ``bundle``) runs paper 002's correction
+cycle; its length is the run setting ``cycle_distance_m`` (default 3 m — the paper gives none).
+
+Images (``images=true``): each frame is rendered exactly (agvviz.sim.render), then its
+brightness fluctuates in time and across the image as under ice (paper §1.2): a global gain
+1 + ``brightness_time_amp``·sin(2π·0.7 Hz·t + φ) times a moving caustic pattern
+1 + ``brightness_space_amp``·sin(k·(u, v) − ω t), then sensor noise and JPEG.
+``images=false`` writes the true corners plus N(0, ``sigma_px``²) noise on /markers/corners
+(agvviz.CornerObservations) instead — corner-only, fast.
+
+``mode=grid`` is the paper's simulation cell (§3.1, Table 3) in corner-only form: ``trials``
+cycles, each a straight approach from a random start frame F towards one marker at distance
+``grid_distance_m`` (5/10/15), lateral offset ``grid_lateral_fraction``·L (0/0.2/0.4), vertical
+``grid_vertical_fraction``·L (0/0.1/0.2), at ``speed_mps`` (0.5/1/1.5), corner noise ``sigma_px``
+(0.5/1/1.5 px), 10 Hz, over a 1.5 m cycle; the navigation starts with the paper's error
+(attitude σ 1°, position σ 10 m) and then follows the true motion. Each /markers/corners message
+carries its cell and trial. bench/bench_cnoem.py runs the full grid from the same generator.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
+from agvviz.geometry import se3
+from agvviz.geometry.euler import Rx, Ry, Rz, matrix_from_hpr
+from agvviz.markers.aruco import aruco_modules
+from agvviz.sim import auv
+from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
+from agvviz.sim.room import placed, roof_code
+
+NAME = "auv_under_ice"
+DESCRIPTION = "Paper 002: under-ice AUV, two cameras, ArUco markers along the route, drifting INS/DVL"
+
+START_TIME_NS = 1_700_000_000_000_000_000
+DICTIONARY = "DICT_4X4_50"
+ROUTE_PERIOD_M = 80.0
+
+
+def _opt(default, help_text: str):
+    return field(default=default, metadata={"help": help_text})
+
+
+@dataclass(frozen=True)
+class Options:
+    mode: str = _opt("route", "route (a drive along markers) or grid (the paper's Table 3 cell, corner-only)")
+    images: bool = _opt(False, "route mode: render camera images (true) or write noisy corners only (false)")
+    duration_s: float = _opt(60.0, "route mode: length of the drive (s)")
+    speed_mps: float = _opt(1.0, "vehicle speed (m/s); grid: 0.5, 1 or 1.5 in the paper")
+    frame_rate_hz: float = _opt(10.0, "camera frame rate (Hz)")
+    depth_m: float = _opt(10.0, "route mode: depth below the ice (m)")
+    route_heading_amp_deg: float = _opt(15.0, "route mode: amplitude of the S-shaped heading (deg)")
+    marker_spacing_m: float = _opt(12.0, "route mode: distance between markers along the route (m)")
+    marker_lateral_m: float = _opt(1.5, "route mode: markers' offset to alternating sides of the route (m)")
+    marker_above_m: float = _opt(1.0, "route mode: markers' height above the vehicle's depth (m)")
+    sigma_px: float = _opt(1.0, "corner noise σ (px) of corner-only output; grid: 0.5, 1 or 1.5 in the paper")
+    dvl_scale_error: float = _opt(0.01, "navigation: DVL speed scale error (fraction)")
+    heading_bias_deg_s: float = _opt(0.02, "navigation: gyro heading bias (deg/s)")
+    heading_noise_deg_sqrt_s: float = _opt(0.01, "navigation: heading random walk (deg/√s)")
+    brightness_time_amp: float = _opt(0.35, "images: amplitude of the global brightness fluctuation in time")
+    brightness_space_amp: float = _opt(0.3, "images: amplitude of the moving caustic pattern across the image")
+    noise_sigma_dn: float = _opt(2.0, "images: sensor noise (digital numbers)")
+    supersample: int = _opt(2, "images: area-integration samples per pixel side")
+    jpeg_quality: int = _opt(92, "images: JPEG quality")
+    grid_distance_m: float = _opt(10.0, "grid mode: marker distance L from F (m)")
+    grid_lateral_fraction: float = _opt(0.2, "grid mode: lateral offset as a fraction of L")
+    grid_vertical_fraction: float = _opt(0.1, "grid mode: vertical offset as a fraction of L")
+    trials: int = _opt(100, "grid mode: number of cycles (the paper: 1000 per cell)")
+
+
+def validate(options: Options) -> None:
+    """Raise ``ValueError`` naming the first impossible option."""
+    kinds = {"int": int, "str": str, "float": (int, float), "bool": bool}
+    for f in fields(Options):
+        value = getattr(options, f.name)
+        if (f.type != "bool" and isinstance(value, bool)) or not isinstance(value, kinds[f.type]):
+            raise ValueError(f"{f.name} must be of type {f.type}, got {value!r}")
+    o = options
+    if o.mode not in ("route", "grid"):
+        raise ValueError(f"mode must be route or grid, got {o.mode!r}")
+    for name in ("duration_s", "speed_mps", "frame_rate_hz", "depth_m", "marker_spacing_m", "grid_distance_m"):
+        if not getattr(o, name) > 0:
+            raise ValueError(f"{name} must be > 0, got {getattr(o, name)}")
+    for name in ("sigma_px", "dvl_scale_error", "heading_noise_deg_sqrt_s", "noise_sigma_dn", "grid_lateral_fraction", "grid_vertical_fraction"):
+        if getattr(o, name) < 0:
+            raise ValueError(f"{name} must be ≥ 0, got {getattr(o, name)}")
+    if not (0 <= o.brightness_time_amp < 1 and 0 <= o.brightness_space_amp < 1):
+        raise ValueError("brightness amplitudes must lie in [0, 1)")
+    if o.supersample < 1 or o.trials < 1 or not 1 <= o.jpeg_quality <= 100:
+        raise ValueError("supersample and trials must be ≥ 1 and jpeg_quality in 1..100")
+    if o.mode == "grid" and o.images:
+        raise ValueError("grid mode is corner-only; set images=false")
+
+
+# -- route ---------------------------------------------------------------------------------------
+
+
+def route_pose(o: Options, s_m: float) -> np.ndarray:
+    """``T_world_agv`` at arc length ``s_m`` (closed form of the S route; heading ψ(s))."""
+    amp = math.radians(o.route_heading_amp_deg)
+    k = 2 * math.pi / ROUTE_PERIOD_M
+    heading = amp * math.sin(k * s_m)
+    # Integrate (−sin ψ, cos ψ) ds numerically on a fine grid (heading 0 → +y).
+    n = max(2, int(s_m / 0.05) + 1)
+    s = np.linspace(0.0, s_m, n)
+    psi = amp * np.sin(k * s)
+    x = -np.trapezoid(np.sin(psi), s) if s_m > 0 else 0.0
+    y = np.trapezoid(np.cos(psi), s) if s_m > 0 else 0.0
+    pitch = math.radians(1.0) * math.sin(2 * math.pi * s_m / 23.0)
+    roll = math.radians(1.0) * math.sin(2 * math.pi * s_m / 17.0)
+    return se3.make(matrix_from_hpr(heading, pitch, roll), [x, y, -o.depth_m])
+
+
+def route_markers(o: Options) -> list[tuple[str, np.ndarray]]:
+    """(id, T_world_marker) of every marker along the route driven in ``duration_s``."""
+    length = o.speed_mps * o.duration_s
+    out = []
+    tilt = math.radians(auv.MARKER_TILT_DEG)
+    for k in range(int(length / o.marker_spacing_m) + 1):
+        s = (k + 0.8) * o.marker_spacing_m
+        T = route_pose(o, s)
+        side = 1.0 if k % 2 == 0 else -1.0
+        heading = math.radians(o.route_heading_amp_deg) * math.sin(2 * math.pi * s / ROUTE_PERIOD_M)
+        R_face = Rz(heading) @ np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]) @ Rx(tilt) @ Ry(tilt)
+        position = T[:3, 3] + Rz(heading) @ np.array([side * o.marker_lateral_m, 0.0, o.marker_above_m])
+        out.append((str(k % 50), se3.make(R_face, position)))
+    return out
+
+
+def navigation(o: Options, truth: list[np.ndarray], dt_s: float, rng: np.random.Generator) -> list[np.ndarray]:
+    """Dead reckoning of the true motion: the heading error e grows by bias·dt plus a random walk;
+    each step's true displacement is scaled by (1 + DVL scale error) and turned by Rz(e); the
+    navigation's attitude is the true one turned by Rz(e)."""
+    nav = [truth[0].copy()]
+    heading_err = 0.0
+    bias = math.radians(o.heading_bias_deg_s)
+    noise = math.radians(o.heading_noise_deg_sqrt_s) * math.sqrt(dt_s)
+    for a, b in zip(truth, truth[1:]):
+        heading_err += bias * dt_s + noise * rng.standard_normal()
+        turn = Rz(heading_err)
+        position = nav[-1][:3, 3] + turn @ (b[:3, 3] - a[:3, 3]) * (1.0 + o.dvl_scale_error)
+        nav.append(se3.make(turn @ b[:3, :3], position))
+    return nav
+
+
+def _brightness(o: Options, t_s: float, shape: tuple[int, int], phase: float) -> np.ndarray:
+    v, u = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float32)
+    g_time = 1.0 + o.brightness_time_amp * math.sin(2 * math.pi * 0.7 * t_s + phase)
+    caustic = 1.0 + o.brightness_space_amp * np.sin(0.011 * u + 0.007 * v - 2.0 * t_s + phase)
+    return np.float32(g_time) * caustic.astype(np.float32)
+
+
+def _record_route(writer, o: Options, rng: np.random.Generator, progress) -> None:
+    cam = auv.camera()
+    mounts = auv.camera_mounts()
+    t0 = START_TIME_NS
+    for name, T in mounts.items():
+        writer.write_calibration(name, cam, t0)
+    writer.write_tf_static([(AGV_FRAME, camera_frame(n), T) for n, T in mounts.items()], t0)
+    markers = route_markers(o)
+    codes = [placed(roof_code(aruco_modules(DICTIONARY, int(mid)), mid, auv.MARKER_SIDE_M, 1), T) for mid, T in markers]
+    writer.write_marker_map(
+        {
+            "dictionary": DICTIONARY,
+            "markers": [{"id": c.marker_id, "side_m": auv.MARKER_SIDE_M, "corners_world_m": c.points_world_m} for c in codes],
+        },
+        t0,
+    )
+    dt = 1.0 / o.frame_rate_hz
+    n = int(o.duration_s * o.frame_rate_hz) + 1
+    truth = [route_pose(o, o.speed_mps * k * dt) for k in range(n)]
+    nav = navigation(o, truth, dt, rng)
+    scene = FloorScene(codes=tuple(codes), floor_dn=150.0, black_dn=20.0, white_dn=215.0)
+    phase = rng.uniform(0, 2 * math.pi)
+    corners_marker = auv.marker_corners_marker()
+    for k in range(n):
+        t_ns = t0 + int(round(k * dt * 1e9))
+        writer.write_pose("/agv/ground_truth", truth[k], WORLD_FRAME, t_ns)
+        writer.write_pose("/agv/odometry", nav[k], WORLD_FRAME, t_ns)
+        for name, T_agv_cam in mounts.items():
+            T_world_cam = truth[k] @ T_agv_cam
+            if o.images:
+                image = render_frame(scene, cam, T_world_cam, rng, supersample=o.supersample, noise_sigma_dn=0.0)
+                lit = image.astype(np.float32) * _brightness(o, k * dt, image.shape, phase)
+                lit += np.float32(o.noise_sigma_dn) * rng.standard_normal(image.shape, dtype=np.float32)
+                writer.write_image(name, encode_jpeg(np.clip(np.rint(lit), 0, 255).astype(np.uint8), o.jpeg_quality), "jpeg", t_ns)
+                continue
+            seen = []
+            T_cam_world = se3.inverse(T_world_cam)
+            for c in codes:
+                px = auv.visible_pixels(cam, T_cam_world @ c.T_world_marker, corners_marker)
+                if px is not None:
+                    seen.append({"id": c.marker_id, "corners_px": px + rng.normal(0.0, o.sigma_px, px.shape)})
+            if seen:
+                writer.write_json(
+                    "/markers/corners", "agvviz.CornerObservations",
+                    {"cam_name": name, "noise_sigma_px": o.sigma_px, "markers": seen}, t_ns,
+                )
+        if progress is not None:
+            progress(k + 1, n)
+
+
+def _record_grid(writer, o: Options, rng: np.random.Generator, progress) -> None:
+    cam = auv.camera()
+    mounts = auv.camera_mounts()
+    t0 = START_TIME_NS
+    for name, T in mounts.items():
+        writer.write_calibration(name, cam, t0)
+    writer.write_tf_static([(AGV_FRAME, camera_frame(n), T) for n, T in mounts.items()], t0)
+    cell = auv.GridCell(o.grid_distance_m, o.grid_lateral_fraction, o.grid_vertical_fraction, o.speed_mps, o.sigma_px)
+    geometry = auv.cycle_geometry(cell, frame_rate_hz=o.frame_rate_hz)
+    if not geometry.clean:
+        raise ValueError(f"grid cell {cell.cell_id}: the marker is never fully in view of either camera")
+    marker_id = "7"
+    dt_ns = int(round(1e9 / o.frame_rate_hz))
+    for trial_index in range(o.trials):
+        trial = auv.draw_trial(geometry, o.sigma_px, rng, marker_id)
+        corners_world = trial.sightings[0].points_world_m
+        base = t0 + trial_index * (len(geometry.T_F_agv) + 20) * dt_ns
+        writer.write_marker_map(
+            {"dictionary": DICTIONARY, "markers": [{"id": marker_id, "side_m": auv.MARKER_SIDE_M, "corners_world_m": corners_world}]},
+            base,
+        )
+        by_frame: dict[int, list] = {}
+        for s in trial.sightings:
+            by_frame.setdefault(s.frame_index, []).append(s)
+        for k, T_F_agv in enumerate(geometry.T_F_agv):
+            t_ns = base + (k + 1) * dt_ns
+            writer.write_pose("/agv/ground_truth", trial.T_world_F_truth @ T_F_agv, WORLD_FRAME, t_ns)
+            writer.write_pose("/agv/odometry", trial.T_world_F_nav @ T_F_agv, WORLD_FRAME, t_ns)
+            for s in by_frame.get(k, []):
+                T_cam_marker = se3.inverse(trial.T_world_F_truth @ s.T_F_cam) @ (trial.T_world_F_truth @ geometry.T_F_marker)
+                writer.write_json(
+                    "/markers/corners", "agvviz.CornerObservations",
+                    {"cam_name": s.cam_name, "cell": cell.cell_id, "trial": trial_index, "noise_sigma_px": o.sigma_px,
+                     "markers": [{"id": marker_id, "corners_px": s.pixels_px, "points_marker_m": auv.marker_corners_marker(),
+                                  "T_cam_marker_truth": T_cam_marker}]},
+                    t_ns,
+                )
+        if progress is not None:
+            progress(trial_index + 1, o.trials)
+
+
+def record(writer, options: Options, seed: int, progress: Callable[[int, int], None] | None = None) -> None:
+    """Write the recording (see the module docstring). All draws from ``np.random.default_rng(seed)``."""
+    validate(options)
+    rng = np.random.default_rng(seed)
+    if options.mode == "grid":
+        _record_grid(writer, options, rng, progress)
+    else:
+        _record_route(writer, options, rng, progress)
