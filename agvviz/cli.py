@@ -138,6 +138,14 @@ def _print_summary(summary: dict, timing: dict, title: str) -> None:
             table.add_row(label, f"{fmt(f[key]['mean'])} / {fmt(f[key]['p95'])}")
         table.add_row("switches / mean jump (mm)", f"{f['switches']} / {fmt(f['switch_jump_mm']['mean'])}")
         table.add_row("UWB ranges gated (residual gate / Kalman)", f"{f['uwb_ranges_gated']} / {f['kalman_ranges_gated']}")
+    if "correction" in summary:  # paper 002: navigation corrected over cycles
+        c = summary["correction"]
+        mm = lambda v: None if v is None else 1000.0 * v  # noqa: E731
+        table.add_row("correction cycles / applied", f"{c['cycles']} / {c['corrections_applied']}")
+        table.add_row("navigation RMSE raw → corrected (mm)", f"{fmt(mm(c['nav_rmse_m']))} → {fmt(mm(c['corrected_rmse_m']))}")
+        table.add_row("final error raw → corrected (mm)",
+                      f"{fmt(mm(c['nav_final_error_m']))} → {fmt(mm(c['corrected_final_error_m']))}")
+        table.add_row("mean correction jump (mm)", fmt(mm(c["mean_jump_m"])))
     console.print(table)
     for problem in summary.get("recording_damage", []):
         err_console.print(f"[yellow]recording damage:[/] {problem}")
