@@ -13,11 +13,11 @@ slowest, σ fastest)::
 from __future__ import annotations
 
 import os
-import uuid
-from pathlib import Path
 
 import rerun as rr
 import rerun.blueprint as rrb
+
+from agvviz.viz.rrd_file import AtomicRrd
 
 from agvviz.evaluation.cnoem_study import METHODS, CellResult
 
@@ -34,14 +34,8 @@ COLORS = {
 
 def write_report_rrd(out_path: str | os.PathLike, results: list[CellResult], report_md: str) -> None:
     """Log the study into ``out_path`` (temporary file beside it, renamed when complete)."""
-    out_path = Path(out_path)
-    tmp = out_path.with_name(f".{out_path.name}.{uuid.uuid4().hex}.tmp")
-    rec = rr.RecordingStream("agvviz", recording_id="agvviz-cnoem-study", send_properties=False)
-    rec.set_log_time_enabled(False)
-    rec.set_log_tick_enabled(False)
-    rec.save(tmp)
-    try:
-        rec.send_recording_name("cnoem grid study")
+    with AtomicRrd(out_path, recording_id="agvviz-cnoem-study", recording_name="cnoem grid study") as rrd:
+        rec = rrd.rec
         rec.log("cnoem/report", rr.TextDocument(report_md, media_type=rr.MediaType.MARKDOWN), static=True)
         for m in METHODS:
             rec.log(f"cnoem/mean_error_m/{m}", rr.SeriesLines(names=m, colors=COLORS[m], widths=1.5), static=True)
@@ -57,7 +51,7 @@ def write_report_rrd(out_path: str | os.PathLike, results: list[CellResult], rep
                 rec.log(f"cnoem/rms_over_crlb/{m}", rr.Scalars(r.rms_m(m) / r.crlb_position_m))
             rec.log("cnoem/ratio_to_ippe_first", rr.Scalars(r.mean_m("cnoem") / r.mean_m("ippe_first")))
             rec.log("cnoem/crlb_m", rr.Scalars(r.crlb_position_m))
-        rec.send_blueprint(
+        rrd.commit(
             rrb.Blueprint(
                 rrb.Horizontal(
                     rrb.Vertical(
@@ -72,10 +66,3 @@ def write_report_rrd(out_path: str | os.PathLike, results: list[CellResult], rep
                 auto_views=False,
             )
         )
-        rec.flush()
-        rec.disconnect()
-        os.replace(tmp, out_path)
-    except BaseException:
-        rec.disconnect()
-        tmp.unlink(missing_ok=True)
-        raise

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 from agvviz.correction import CorrectionEvent, CorrectionStep
 from agvviz.viz import paths
@@ -154,7 +155,7 @@ class CorrectionLogger:
 
 
 
-def correction_blueprint(cam_names: list[str]) -> "rrb.Blueprint":
+def correction_blueprint(cam_names: list[str]) -> rrb.Blueprint:
     """Layout of a run with ``correction``::
 
         ┌──────────────────────────────┬──────────────────────────────────────┐
@@ -166,7 +167,6 @@ def correction_blueprint(cam_names: list[str]) -> "rrb.Blueprint":
         │ errors       │ reprojection  │ (TextLog, jumps)  │ manifest         │
         └──────────────┴───────────────┴───────────────────┴──────────────────┘
     """
-    import rerun.blueprint as rrb
 
     images = [
         rrb.Tabs(

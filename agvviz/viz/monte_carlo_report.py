@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import os
 import re
-import uuid
-from pathlib import Path
 
 import rerun as rr
 import rerun.blueprint as rrb
+
+from agvviz.viz.rrd_file import AtomicRrd
 
 from agvviz.evaluation.monte_carlo import SOLVERS, CellResult
 
@@ -42,14 +42,8 @@ FIG9_11 = "mc/paper/h0.2667_z2_n4"
 
 def write_report_rrd(out_path: str | os.PathLike, results: dict[str, CellResult], report_md: str) -> None:
     """Log the study into ``out_path`` (temporary file beside it, renamed when complete)."""
-    out_path = Path(out_path)
-    tmp = out_path.with_name(f".{out_path.name}.{uuid.uuid4().hex}.tmp")
-    rec = rr.RecordingStream("agvviz", recording_id="agvviz-p4p-monte-carlo", send_properties=False)
-    rec.set_log_time_enabled(False)
-    rec.set_log_tick_enabled(False)
-    rec.save(tmp)
-    try:
-        rec.send_recording_name("p4p_monte_carlo report")
+    with AtomicRrd(out_path, recording_id="agvviz-p4p-monte-carlo", recording_name="p4p_monte_carlo report") as rrd:
+        rec = rrd.rec
         rec.log("mc/report", rr.TextDocument(report_md, media_type=rr.MediaType.MARKDOWN), static=True)
         styled: set[str] = set()
 
@@ -98,11 +92,4 @@ def write_report_rrd(out_path: str | os.PathLike, results: dict[str, CellResult]
             rrb.TimePanel(state="collapsed"),
             auto_views=False,
         )
-        rr.send_blueprint(blueprint, make_active=True, make_default=True, recording=rec)
-        rec.flush()
-        rec.disconnect()
-        os.replace(tmp, out_path)
-    except BaseException:
-        rec.disconnect()
-        tmp.unlink(missing_ok=True)
-        raise
+        rrd.commit(blueprint)

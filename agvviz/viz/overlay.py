@@ -34,8 +34,8 @@ import rerun.blueprint as rrb
 
 from agvviz.viz import paths
 from agvviz.viz.readback import read_rrd
+from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.run_logger import (
-    BATCHER_FLUSH_TICK_S,
     COLOR_DETECTED,
     COLOR_TRUTH,
     DETECTED_RADIUS,
@@ -293,19 +293,9 @@ def write_overlay(
         raise OverlayError(f"the overlay must be a .rrd file, got {out_path}")
     if not out_path.parent.is_dir():
         raise OverlayError(f"cannot write {out_path}: folder {out_path.parent} does not exist")
-    tmp_path = out_path.with_name(f".{out_path.name}.{uuid.uuid4().hex}.tmp")
     recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-overlay:{recording_name}"))
-    rec = rr.RecordingStream(
-        "agvviz",
-        recording_id=recording_id,
-        send_properties=False,
-        batcher_config=rr.ChunkBatcherConfig(flush_tick=BATCHER_FLUSH_TICK_S),
-    )
-    rec.set_log_time_enabled(False)
-    rec.set_log_tick_enabled(False)
-    try:
-        rec.save(tmp_path)
-        rec.send_recording_name(recording_name)
+    with AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name) as rrd:
+        rec = rrd.rec
         _log_static(rec, runs, truth, report_markdown)
         if source is not None:
             _copy_from_source(rec, Path(source), cam_names)
@@ -324,19 +314,7 @@ def write_overlay(
                     )
         for key, (frames, time_ns, values) in deltas.items():
             _send_scalars(rec, f"{DELTA_ROOT}/{key}", frames, time_ns, values)
-        rr.send_blueprint(
-            overlay_blueprint(runs, cam_names if source is not None else [], list(deltas), truth),
-            make_active=True,  # the file opens in its own layout
-            make_default=True,
-            recording=rec,
-        )
-        rec.flush()
-        rec.disconnect()
-        os.replace(tmp_path, out_path)
-    except BaseException:
-        rec.disconnect()
-        tmp_path.unlink(missing_ok=True)
-        raise
+        rrd.commit(overlay_blueprint(runs, cam_names if source is not None else [], list(deltas), truth))
     return out_path
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from agvviz.geometry.camera import PinholeCamera
 from agvviz.results import FrameResult, LmIteration
 from agvviz.viz import paths
 from agvviz.viz.blueprint import default_blueprint
+from agvviz.viz.rrd_file import AtomicRrd
 
 #: Media type of each ``FrameResult.image_format``.
 MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
@@ -59,8 +59,6 @@ FRUSTUM_IMAGE_PLANE_M = 0.4
 #: Point radii in the image view (UI points, so they keep their size when zooming).
 DETECTED_RADIUS = rr.Radius.ui_points(5.0)
 REPROJECTED_RADIUS = rr.Radius.ui_points(2.5)
-#: Batcher tick (s): longer than any run, so only the byte threshold cuts chunks.
-BATCHER_FLUSH_TICK_S = 86400.0
 #: A trajectory is redrawn every frame from at most this many of its points (evenly spread,
 #: first and newest always kept), so logging cost per frame stays bounded on long runs.
 MAX_TRAJECTORY_POINTS = 400
@@ -88,24 +86,11 @@ class RunLogger:
     """
 
     def __init__(self, out_path: str | os.PathLike, *, recording_name: str, recording_id: str):
-        out_path = Path(out_path)
-        if not out_path.parent.is_dir():
-            raise RunLogError(f"cannot write run to {out_path}: folder {out_path.parent} does not exist")
-        self._out_path = out_path
-        # A fresh name (not mkstemp) so Rerun creates the file with the usual permissions.
-        self._tmp_path = out_path.with_name(f".{out_path.name}.{uuid.uuid4().hex}.tmp")
-        self._rec = rr.RecordingStream(
-            "agvviz",
-            recording_id=recording_id,
-            send_properties=False,
-            # Chunks are cut by size only, never by a wall-clock tick, so the same run gives
-            # the same chunks (`rerun rrd compare --unordered` equality).
-            batcher_config=rr.ChunkBatcherConfig(flush_tick=BATCHER_FLUSH_TICK_S),
-        )
-        self._rec.set_log_time_enabled(False)
-        self._rec.set_log_tick_enabled(False)
-        self._rec.save(self._tmp_path)
-        self._rec.send_recording_name(recording_name)
+        try:
+            self._file = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name)
+        except FileNotFoundError as exc:
+            raise RunLogError(f"cannot write run: {exc}") from None
+        self._rec = self._file.rec
         self._cam_names: list[str] = []
         self._fixed_cams: set[str] = set()
         #: Layout shipped at :meth:`close`; None: :func:`default_blueprint` of the cameras.
@@ -456,27 +441,12 @@ class RunLogger:
         """Finish the file: ship the default blueprint, write the footer, move it into place."""
         self._check_open()
         self._saved = True
-        try:
-            rr.send_blueprint(
-                self.blueprint if self.blueprint is not None else default_blueprint(self._cam_names),
-                make_active=True,  # the file opens in its own layout
-                make_default=True,
-                recording=self._rec,
-            )
-            self._rec.flush()
-            self._rec.disconnect()
-            os.replace(self._tmp_path, self._out_path)
-        except BaseException:
-            self._tmp_path.unlink(missing_ok=True)
-            raise
+        self._file.commit(self.blueprint if self.blueprint is not None else default_blueprint(self._cam_names))
 
     def discard(self) -> None:
         """Stop logging and delete the unfinished file; ``out_path`` is left untouched."""
-        if self._saved:
-            return
         self._saved = True
-        self._rec.disconnect()
-        self._tmp_path.unlink(missing_ok=True)
+        self._file.discard()
 
     def __enter__(self) -> "RunLogger":
         return self
