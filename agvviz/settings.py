@@ -24,7 +24,8 @@ class SettingsError(ValueError):
     """A ``--set key=value`` that names no setting or carries a value of the wrong kind."""
 
 
-def _setting(default, help: str, choices: tuple[str, ...] | None = None):
+def setting(default, help: str, choices: tuple[str, ...] | None = None):
+    """A settings or scenario-options field: default, one-line help, optional choices."""
     meta = {"help": help}
     if choices is not None:
         meta["choices"] = choices
@@ -37,76 +38,76 @@ def _setting(default, help: str, choices: tuple[str, ...] | None = None):
 class RunSettings:
     """Settings of one replay (``agvviz run --set key=value``)."""
 
-    solver: str = _setting("lm", "pose solver", SOLVER_NAMES)
-    objective: str = _setting(
+    solver: str = setting("lm", "pose solver", SOLVER_NAMES)
+    objective: str = setting(
         "pixel",
         "LM objective: pixel = paper 000 eq 22 (maximum likelihood for pixel noise), "
         "depth = eq 23 (the paper's depth-weighted residual)",
         ("pixel", "depth"),
     )
-    lm_max_iterations: int = _setting(50, "maximum LM iterations per frame")
-    refine: str = _setting(
+    lm_max_iterations: int = setting(50, "maximum LM iterations per frame")
+    refine: str = setting(
         "ecc",
         "corner refinement: ecc (template alignment), subpix (cornerSubPix), none",
         ("ecc", "subpix", "none"),
     )
-    max_reproj_px: float = _setting(
+    max_reproj_px: float = setting(
         2.0, "reject a frame whose RMS reprojection error exceeds this (px)"
     )
-    gimbal_threshold: float = _setting(
+    gimbal_threshold: float = setting(
         DEFAULT_GIMBAL_THRESHOLD, "paper 000 eq 57 threshold T on |r32| for pitch = ±90°"
     )
-    truth_max_dt_s: float = _setting(
+    truth_max_dt_s: float = setting(
         0.005, "largest time gap between a frame and the ground truth it is scored against (s)"
     )
-    camera_select: str = _setting(
+    camera_select: str = setting(
         "best",
         "several cameras at one time: best (largest marker, paper 003) or combine (joint LM)",
         CAMERA_SELECT,
     )
-    floor_constraint: bool = _setting(
+    floor_constraint: bool = setting(
         True,
         "world-fixed cameras watching a marker on the AGV: refine the AGV on the floor (x, y, heading)",
     )
-    uwb: str = _setting(
+    uwb: str = setting(
         "least_squares", "UWB fix: centroid (paper 003 eqs 3-6) or least_squares (Gauss-Newton)", UWB_METHODS
     )
-    uwb_gate: str = _setting(
+    uwb_gate: str = setting(
         "residual", "UWB NLOS/outlier gate: residual (chi-square on range residuals) or none", ("residual", "none")
     )
-    uwb_sigma_m: float = _setting(0.05, "UWB range standard deviation for the gates and covariances (m)")
-    fusion: str = _setting(
+    uwb_sigma_m: float = setting(0.05, "UWB range standard deviation for the gates and covariances (m)")
+    fusion: str = setting(
         "mean_compensation",
         "camera-UWB fusion: camera_only, mean_compensation (paper 003 eqs 13-16) or kalman",
         FUSION_NAMES,
     )
-    kalman_gate_chi2: float = _setting(9.0, "Kalman filter gate on a range's squared Mahalanobis distance")
-    camera_sigma_m: float = _setting(0.005, "Kalman filter: camera fix standard deviation per axis (m)")
-    ambiguity: str = _setting(
+    kalman_gate_chi2: float = setting(9.0, "Kalman filter gate on a range's squared Mahalanobis distance")
+    camera_sigma_m: float = setting(0.005, "Kalman filter: camera fix standard deviation per axis (m)")
+    ambiguity: str = setting(
         "lowest_error",
         "planar pose ambiguity (two IPPE branches): lowest_error (reprojection), continuity "
         "(closest rotation to the previous frame) or odometry (previous pose moved by /agv/odometry)",
         AMBIGUITY_POLICIES,
     )
-    feature_points: str = _setting(
+    feature_points: str = setting(
         "vertices",
         "points the solver uses per QR code: vertices (4) or finder (vertices + the finder "
         "patterns' corners, each refined on its own with cornerSubPix)",
         ("vertices", "finder"),
     )
-    sigma_px: str = _setting(
+    sigma_px: str = setting(
         "auto",
         "pixel noise σ for covariances and the Cramér–Rao bound: auto (pooled residuals of the "
         "frames so far) or a number in px",
     )
-    correction: str = _setting(
+    correction: str = setting(
         "none",
         "paper 002 navigation correction over cycles of marker sightings (/agv/odometry): none, "
         "cnoem (point-to-ray cost, eqs 12-13) or bundle (pixel reprojection over the window)",
         ("none", "cnoem", "bundle"),
     )
-    cycle_distance_m: float = _setting(3.0, "correction: travel that closes a correction cycle (m)")
-    cnoem_update: str = _setting(
+    cycle_distance_m: float = setting(3.0, "correction: travel that closes a correction cycle (m)")
+    cnoem_update: str = setting(
         "lm", "correction=cnoem: lm (Gauss-Newton/Levenberg-Marquardt) or paper (first-order, eqs 14-20)", ("lm", "paper")
     )
 

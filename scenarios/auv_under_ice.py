@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -47,6 +47,8 @@ from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.euler import Rx, Ry, Rz, matrix_from_hpr
 from agvviz.markers.aruco import aruco_modules
+from agvviz.settings import setting
+from agvviz.settings import validate as check_fields
 from agvviz.sim import auv
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
 from agvviz.sim.room import placed, roof_code
@@ -59,44 +61,37 @@ DICTIONARY = "DICT_4X4_50"
 ROUTE_PERIOD_M = 80.0
 
 
-def _opt(default, help_text: str):
-    return field(default=default, metadata={"help": help_text})
-
 
 @dataclass(frozen=True)
 class Options:
-    mode: str = _opt("route", "route (a drive along markers) or grid (the paper's Table 3 cell, corner-only)")
-    images: bool = _opt(False, "route mode: render camera images (true) or write noisy corners only (false)")
-    duration_s: float = _opt(60.0, "route mode: length of the drive (s)")
-    speed_mps: float = _opt(1.0, "vehicle speed (m/s); grid: 0.5, 1 or 1.5 in the paper")
-    frame_rate_hz: float = _opt(10.0, "camera frame rate (Hz)")
-    depth_m: float = _opt(10.0, "route mode: depth below the ice (m)")
-    route_heading_amp_deg: float = _opt(15.0, "route mode: amplitude of the S-shaped heading (deg)")
-    marker_spacing_m: float = _opt(12.0, "route mode: distance between markers along the route (m)")
-    marker_lateral_m: float = _opt(1.5, "route mode: markers' offset to alternating sides of the route (m)")
-    marker_above_m: float = _opt(1.0, "route mode: markers' height above the vehicle's depth (m)")
-    sigma_px: float = _opt(1.0, "corner noise σ (px) of corner-only output; grid: 0.5, 1 or 1.5 in the paper")
-    dvl_scale_error: float = _opt(0.01, "navigation: DVL speed scale error (fraction)")
-    heading_bias_deg_s: float = _opt(0.02, "navigation: gyro heading bias (deg/s)")
-    heading_noise_deg_sqrt_s: float = _opt(0.01, "navigation: heading random walk (deg/√s)")
-    brightness_time_amp: float = _opt(0.35, "images: amplitude of the global brightness fluctuation in time")
-    brightness_space_amp: float = _opt(0.3, "images: amplitude of the moving caustic pattern across the image")
-    noise_sigma_dn: float = _opt(2.0, "images: sensor noise (digital numbers)")
-    supersample: int = _opt(2, "images: area-integration samples per pixel side")
-    jpeg_quality: int = _opt(92, "images: JPEG quality")
-    grid_distance_m: float = _opt(10.0, "grid mode: marker distance L from F (m)")
-    grid_lateral_fraction: float = _opt(0.2, "grid mode: lateral offset as a fraction of L")
-    grid_vertical_fraction: float = _opt(0.1, "grid mode: vertical offset as a fraction of L")
-    trials: int = _opt(100, "grid mode: number of cycles (the paper: 1000 per cell)")
+    mode: str = setting("route", "route (a drive along markers) or grid (the paper's Table 3 cell, corner-only)")
+    images: bool = setting(False, "route mode: render camera images (true) or write noisy corners only (false)")
+    duration_s: float = setting(60.0, "route mode: length of the drive (s)")
+    speed_mps: float = setting(1.0, "vehicle speed (m/s); grid: 0.5, 1 or 1.5 in the paper")
+    frame_rate_hz: float = setting(10.0, "camera frame rate (Hz)")
+    depth_m: float = setting(10.0, "route mode: depth below the ice (m)")
+    route_heading_amp_deg: float = setting(15.0, "route mode: amplitude of the S-shaped heading (deg)")
+    marker_spacing_m: float = setting(12.0, "route mode: distance between markers along the route (m)")
+    marker_lateral_m: float = setting(1.5, "route mode: markers' offset to alternating sides of the route (m)")
+    marker_above_m: float = setting(1.0, "route mode: markers' height above the vehicle's depth (m)")
+    sigma_px: float = setting(1.0, "corner noise σ (px) of corner-only output; grid: 0.5, 1 or 1.5 in the paper")
+    dvl_scale_error: float = setting(0.01, "navigation: DVL speed scale error (fraction)")
+    heading_bias_deg_s: float = setting(0.02, "navigation: gyro heading bias (deg/s)")
+    heading_noise_deg_sqrt_s: float = setting(0.01, "navigation: heading random walk (deg/√s)")
+    brightness_time_amp: float = setting(0.35, "images: amplitude of the global brightness fluctuation in time")
+    brightness_space_amp: float = setting(0.3, "images: amplitude of the moving caustic pattern across the image")
+    noise_sigma_dn: float = setting(2.0, "images: sensor noise (digital numbers)")
+    supersample: int = setting(2, "images: area-integration samples per pixel side")
+    jpeg_quality: int = setting(92, "images: JPEG quality")
+    grid_distance_m: float = setting(10.0, "grid mode: marker distance L from F (m)")
+    grid_lateral_fraction: float = setting(0.2, "grid mode: lateral offset as a fraction of L")
+    grid_vertical_fraction: float = setting(0.1, "grid mode: vertical offset as a fraction of L")
+    trials: int = setting(100, "grid mode: number of cycles (the paper: 1000 per cell)")
 
 
 def validate(options: Options) -> None:
     """Raise ``ValueError`` naming the first impossible option."""
-    kinds = {"int": int, "str": str, "float": (int, float), "bool": bool}
-    for f in fields(Options):
-        value = getattr(options, f.name)
-        if (f.type != "bool" and isinstance(value, bool)) or not isinstance(value, kinds[f.type]):
-            raise ValueError(f"{f.name} must be of type {f.type}, got {value!r}")
+    check_fields(options)
     o = options
     if o.mode not in ("route", "grid"):
         raise ValueError(f"mode must be route or grid, got {o.mode!r}")

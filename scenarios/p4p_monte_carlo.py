@@ -29,12 +29,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
+from agvviz.settings import setting
 from agvviz.settings import validate as check_fields
 from agvviz.geometry.euler import Rx
 from agvviz.geometry.plane import square_points_marker
@@ -58,14 +59,11 @@ START_TIME_NS = 1_700_000_000_000_000_000
 TRIAL_PERIOD_NS = 1_000_000
 
 
-def _opt(default, help_text: str):
-    return field(default=default, metadata={"help": help_text})
-
 
 @dataclass(frozen=True)
 class Options:
-    trials: int = _opt(1000, "noisy trials per cell (paper 000 §6: 1000)")
-    cells: str = _opt("all", "which cells: paper (§6 parameters, SNR 15–24 dB), crlb (tilted views, σ in px) or all")
+    trials: int = setting(1000, "noisy trials per cell (paper 000 §6: 1000)")
+    cells: str = setting("all", "which cells: paper (§6 parameters, SNR 15–24 dB), crlb (tilted views, σ in px) or all")
 
 
 @dataclass(frozen=True)

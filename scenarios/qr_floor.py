@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry.camera import PinholeCamera
+from agvviz.settings import setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim.qr_texture import PAYLOAD_RESOLUTION_M, QUIET_ZONE_MODULES, make_floor_code
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
@@ -40,36 +41,33 @@ GRID_MARGIN_M = 3.0
 MAX_LABEL_TO_SYMBOL = (21 + 2 * QUIET_ZONE_MODULES) / 21
 
 
-def _opt(default, help_text: str):
-    return field(default=default, metadata={"help": help_text})
-
 
 @dataclass(frozen=True)
 class Options:
-    duration_s: float = _opt(20.0, "recording length in seconds")
-    rate_hz: float = _opt(10.0, "camera frame rate (also ground-truth and odometry rate)")
-    speed_mps: float = _opt(1.0, "AGV speed along the track in m/s")
-    track_length_m: float = _opt(6.0, "length of the track's straights along world x")
-    track_width_m: float = _opt(3.0, "length of the track's straights along world y")
-    turn_radius_m: float = _opt(1.0, "radius of the track's quarter turns")
-    cam_height_m: float = _opt(1.5, "camera height above the floor")
-    cam_lookahead_m: float = _opt(1.0, "horizontal distance from the camera to where its optical axis meets the floor")
-    code_size_m: float = _opt(0.5, "QR symbol side between its outer vertices (quiet zone excluded)")
-    grid_spacing_m: float = _opt(1.5, "distance between neighbouring code centres")
-    with_midpoints: bool = _opt(False, "payload carries the 4 edge midpoints too (8 points)")
-    width_px: int = _opt(1280, "image width")
-    height_px: int = _opt(1024, "image height")
-    focal_px: float = _opt(1000.0, "focal length fx = fy in pixels (principal point at the image centre)")
-    k1: float = _opt(-0.05, "radial distortion k1 (OpenCV plumb_bob)")
-    k2: float = _opt(0.01, "radial distortion k2 (OpenCV plumb_bob)")
-    blur_sigma_px: float = _opt(0.8, "Gaussian optical blur sigma in pixels")
-    noise_sigma_dn: float = _opt(2.0, "Gaussian sensor noise sigma in digital numbers")
-    jpeg_quality: int = _opt(95, "JPEG quality 1..100")
-    supersample: int = _opt(4, "s x s samples per pixel for area integration")
-    odom_scale_error: float = _opt(0.01, "odometry distance scale error (0.01 = +1 %)")
-    odom_heading_bias_deg_per_s: float = _opt(0.1, "odometry heading drift in deg/s")
-    odom_step_noise_m: float = _opt(0.002, "odometry position noise per step and axis (sigma, m)")
-    odom_heading_noise_deg: float = _opt(0.05, "odometry heading noise per step (sigma, deg)")
+    duration_s: float = setting(20.0, "recording length in seconds")
+    rate_hz: float = setting(10.0, "camera frame rate (also ground-truth and odometry rate)")
+    speed_mps: float = setting(1.0, "AGV speed along the track in m/s")
+    track_length_m: float = setting(6.0, "length of the track's straights along world x")
+    track_width_m: float = setting(3.0, "length of the track's straights along world y")
+    turn_radius_m: float = setting(1.0, "radius of the track's quarter turns")
+    cam_height_m: float = setting(1.5, "camera height above the floor")
+    cam_lookahead_m: float = setting(1.0, "horizontal distance from the camera to where its optical axis meets the floor")
+    code_size_m: float = setting(0.5, "QR symbol side between its outer vertices (quiet zone excluded)")
+    grid_spacing_m: float = setting(1.5, "distance between neighbouring code centres")
+    with_midpoints: bool = setting(False, "payload carries the 4 edge midpoints too (8 points)")
+    width_px: int = setting(1280, "image width")
+    height_px: int = setting(1024, "image height")
+    focal_px: float = setting(1000.0, "focal length fx = fy in pixels (principal point at the image centre)")
+    k1: float = setting(-0.05, "radial distortion k1 (OpenCV plumb_bob)")
+    k2: float = setting(0.01, "radial distortion k2 (OpenCV plumb_bob)")
+    blur_sigma_px: float = setting(0.8, "Gaussian optical blur sigma in pixels")
+    noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers")
+    jpeg_quality: int = setting(95, "JPEG quality 1..100")
+    supersample: int = setting(4, "s x s samples per pixel for area integration")
+    odom_scale_error: float = setting(0.01, "odometry distance scale error (0.01 = +1 %)")
+    odom_heading_bias_deg_per_s: float = setting(0.1, "odometry heading drift in deg/s")
+    odom_step_noise_m: float = setting(0.002, "odometry position noise per step and axis (sigma, m)")
+    odom_heading_noise_deg: float = setting(0.05, "odometry heading noise per step (sigma, deg)")
 
 
 def validate(options: Options) -> None:

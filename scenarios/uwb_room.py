@@ -32,13 +32,14 @@ time order: per camera frame ``/agv/ground_truth`` and the four JPEG frames; per
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
+from agvviz.settings import setting
 from agvviz.settings import validate as check_fields
 from agvviz.markers.aruco import aruco_dictionary, aruco_modules, is_aruco_dictionary
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
@@ -56,51 +57,45 @@ VARIANTS = ("path", "static_grid")
 GRID_GAP_S = 1.0
 
 
-def _opt(default, help_text: str, choices: tuple[str, ...] | None = None):
-    meta = {"help": help_text}
-    if choices is not None:
-        meta["choices"] = choices
-    return field(default=default, metadata=meta)
-
 
 @dataclass(frozen=True)
 class Options:
-    variant: str = _opt("path", "path (driving, blocked stretch) or static_grid (§3.2's 30 points)", VARIANTS)
-    duration_s: float = _opt(40.0, "recording length in seconds (path variant)")
-    rate_hz: float = _opt(10.0, "camera frame rate (all four cameras at once)")
-    speed_mps: float = _opt(0.2, "AGV speed along the path (paper 003: 0.2 m/s)")
-    block_start_s: float = _opt(14.0, "the obstacle hides the code from all cameras from here (path variant)")
-    block_end_s: float = _opt(24.0, "… until here (block_end_s <= block_start_s: never blocked)")
-    track_length_m: float = _opt(3.0, "path: length of the straights along x")
-    track_width_m: float = _opt(2.0, "path: length of the straights along y")
-    turn_radius_m: float = _opt(0.6, "path: radius of the quarter turns")
-    grid_spacing_m: float = _opt(1.2, "static grid: distance between test points (paper: 120 cm)")
-    fixes_per_point: int = _opt(100, "static grid: camera frames and UWB rounds at each point (paper: 100)")
-    static_point_m: str = _opt("", "static grid: one point 'x,y' (m) instead of the 30, e.g. 2.4,2.4 (Table 5)")
-    room_length_m: float = _opt(8.0, "room size along x")
-    room_width_m: float = _opt(7.0, "room size along y")
-    width_px: int = _opt(1280, "image width (paper 003 Table 5: 1280, 640, 320)")
-    height_px: int = _opt(1024, "image height (Table 5: 1024, 480, 240)")
-    hfov_deg: float = _opt(70.0, "horizontal field of view of every camera (sets the focal length)")
-    k1: float = _opt(-0.02, "radial distortion k1 (OpenCV plumb_bob)")
-    cam_height_m: float = _opt(2.8, "camera height on the walls")
-    dictionary: str = _opt("DICT_5X5_50", "OpenCV ArUco dictionary of the roof code")
-    marker_id: int = _opt(7, "id of the roof code")
-    marker_side_m: float = _opt(0.183, "roof code side incl. its black border (paper: 183 mm)")
-    roof_height_m: float = _opt(0.35, "height of the AGV roof (the code) above the floor")
-    tag_height_m: float = _opt(0.45, "height of the UWB tag above the floor")
-    anchor_height_m: float = _opt(2.2, "height of the UWB anchors")
-    uwb_rate_hz: float = _opt(10.0, "UWB rounds per second (one range per anchor each)")
-    reply_delay_us: float = _opt(150.0, "anchor reply delay of single-sided TWR (µs)")
-    timestamp_noise_ns: float = _opt(0.1, "UWB timestamp noise sigma (ns)")
-    clock_drift_ppm: float = _opt(2.0, "sigma of each UWB device's clock drift (ppm)")
-    nlos_probability: float = _opt(0.05, "probability that a range is NLOS")
-    nlos_excess_min_m: float = _opt(0.2, "NLOS excess path, lower bound (m)")
-    nlos_excess_max_m: float = _opt(0.8, "NLOS excess path, upper bound (m)")
-    blur_sigma_px: float = _opt(0.8, "Gaussian optical blur sigma in pixels")
-    noise_sigma_dn: float = _opt(2.0, "Gaussian sensor noise sigma in digital numbers")
-    jpeg_quality: int = _opt(95, "JPEG quality 1..100")
-    supersample: int = _opt(4, "s x s samples per pixel for area integration")
+    variant: str = setting("path", "path (driving, blocked stretch) or static_grid (§3.2's 30 points)", VARIANTS)
+    duration_s: float = setting(40.0, "recording length in seconds (path variant)")
+    rate_hz: float = setting(10.0, "camera frame rate (all four cameras at once)")
+    speed_mps: float = setting(0.2, "AGV speed along the path (paper 003: 0.2 m/s)")
+    block_start_s: float = setting(14.0, "the obstacle hides the code from all cameras from here (path variant)")
+    block_end_s: float = setting(24.0, "… until here (block_end_s <= block_start_s: never blocked)")
+    track_length_m: float = setting(3.0, "path: length of the straights along x")
+    track_width_m: float = setting(2.0, "path: length of the straights along y")
+    turn_radius_m: float = setting(0.6, "path: radius of the quarter turns")
+    grid_spacing_m: float = setting(1.2, "static grid: distance between test points (paper: 120 cm)")
+    fixes_per_point: int = setting(100, "static grid: camera frames and UWB rounds at each point (paper: 100)")
+    static_point_m: str = setting("", "static grid: one point 'x,y' (m) instead of the 30, e.g. 2.4,2.4 (Table 5)")
+    room_length_m: float = setting(8.0, "room size along x")
+    room_width_m: float = setting(7.0, "room size along y")
+    width_px: int = setting(1280, "image width (paper 003 Table 5: 1280, 640, 320)")
+    height_px: int = setting(1024, "image height (Table 5: 1024, 480, 240)")
+    hfov_deg: float = setting(70.0, "horizontal field of view of every camera (sets the focal length)")
+    k1: float = setting(-0.02, "radial distortion k1 (OpenCV plumb_bob)")
+    cam_height_m: float = setting(2.8, "camera height on the walls")
+    dictionary: str = setting("DICT_5X5_50", "OpenCV ArUco dictionary of the roof code")
+    marker_id: int = setting(7, "id of the roof code")
+    marker_side_m: float = setting(0.183, "roof code side incl. its black border (paper: 183 mm)")
+    roof_height_m: float = setting(0.35, "height of the AGV roof (the code) above the floor")
+    tag_height_m: float = setting(0.45, "height of the UWB tag above the floor")
+    anchor_height_m: float = setting(2.2, "height of the UWB anchors")
+    uwb_rate_hz: float = setting(10.0, "UWB rounds per second (one range per anchor each)")
+    reply_delay_us: float = setting(150.0, "anchor reply delay of single-sided TWR (µs)")
+    timestamp_noise_ns: float = setting(0.1, "UWB timestamp noise sigma (ns)")
+    clock_drift_ppm: float = setting(2.0, "sigma of each UWB device's clock drift (ppm)")
+    nlos_probability: float = setting(0.05, "probability that a range is NLOS")
+    nlos_excess_min_m: float = setting(0.2, "NLOS excess path, lower bound (m)")
+    nlos_excess_max_m: float = setting(0.8, "NLOS excess path, upper bound (m)")
+    blur_sigma_px: float = setting(0.8, "Gaussian optical blur sigma in pixels")
+    noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers")
+    jpeg_quality: int = setting(95, "JPEG quality 1..100")
+    supersample: int = setting(4, "s x s samples per pixel for area integration")
 
 
 def validate(options: Options) -> None:

@@ -31,6 +31,18 @@ def _error_view(entity: str, name: str) -> rrb.TimeSeriesView:
     )
 
 
+def world_3d_view(name: str, cam_names: list[str], fixed_cams: set[str] = frozenset()) -> rrb.Spatial3DView:
+    """The 3D world view. Corner dots are drawn in UI points and would swamp the small
+    frustum images, so they stay in the 2D image views only."""
+    return rrb.Spatial3DView(
+        origin=paths.WORLD,
+        name=name,
+        contents=["+ $origin/**"]
+        + [f"- /{paths.detected(c, c in fixed_cams)}" for c in cam_names]
+        + [f"- /{paths.reprojected(c, c in fixed_cams)}" for c in cam_names],
+    )
+
+
 def default_blueprint(cam_names: list[str]) -> rrb.Blueprint:
     """Build the default layout for a run with cameras ``cam_names`` (fits 1600×1000)."""
     image_views = [
@@ -46,13 +58,8 @@ def default_blueprint(cam_names: list[str]) -> rrb.Blueprint:
         image_panel = image_views[0]
     else:
         image_panel = rrb.Tabs(*image_views)
-    world_view = rrb.Spatial3DView(
-        origin=paths.WORLD,
-        name="world: truth (green), camera estimate (orange), rejected IPPE mirror pose (violet)",
-        # Corner dots drawn in UI points would swamp the small frustum image: 2D view only.
-        contents=["+ $origin/**"]
-        + [f"- /{paths.detected(cam_name)}" for cam_name in cam_names]
-        + [f"- /{paths.reprojected(cam_name)}" for cam_name in cam_names],
+    world_view = world_3d_view(
+        "world: truth (green), camera estimate (orange), rejected IPPE mirror pose (violet)", cam_names
     )
     lm_view = rrb.BarChartView(
         origin=paths.LM_COST_PER_ITERATION,

@@ -17,9 +17,8 @@ import os
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.viz.rrd_file import AtomicRrd
-
 from agvviz.evaluation.cnoem_study import METHODS, CellResult
+from agvviz.viz.rrd_file import AtomicRrd
 
 COLORS = {
     "cnoem": (230, 40, 40),

@@ -22,9 +22,8 @@ import re
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.viz.rrd_file import AtomicRrd
-
 from agvviz.evaluation.monte_carlo import SOLVERS, CellResult
+from agvviz.viz.rrd_file import AtomicRrd
 
 SOLVER_COLORS = {
     "p4p": (60, 120, 255),

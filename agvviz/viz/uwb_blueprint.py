@@ -19,6 +19,7 @@ from __future__ import annotations
 import rerun.blueprint as rrb
 
 from agvviz.viz import paths
+from agvviz.viz.blueprint import world_3d_view
 
 
 def uwb_blueprint(cam_names: list[str], fixed_cams: set[str], anchor_ids: list[str]) -> rrb.Blueprint:
@@ -29,13 +30,7 @@ def uwb_blueprint(cam_names: list[str], fixed_cams: set[str], anchor_ids: list[s
         rrb.Spatial2DView(origin=paths.image(c, c in fixed_cams), name=f"camera {c}") for c in cam_names
     ]
     image_panel = rrb.Grid(*images) if len(images) > 1 else (images[0] if images else rrb.Spacer())
-    world = rrb.Spatial3DView(
-        origin=paths.WORLD,
-        name="world: truth (green), camera (orange), UWB (blue), fused (yellow)",
-        contents=["+ $origin/**"]
-        + [f"- /{paths.detected(c, c in fixed_cams)}" for c in cam_names]
-        + [f"- /{paths.reprojected(c, c in fixed_cams)}" for c in cam_names],
-    )
+    world = world_3d_view("world: truth (green), camera (orange), UWB (blue), fused (yellow)", cam_names, fixed_cams)
     ranges = rrb.Grid(
         *[
             rrb.TimeSeriesView(
