@@ -11,6 +11,8 @@
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import csv
 import io
 import itertools
@@ -71,7 +73,7 @@ HIGHER_IS_BETTER = {"solved", "solved_pct"}
 _CAMERA_DETECTED = re.compile(r"^world/agv/camera/cam_(?P<cam>[^/]+)/image/detected$")
 
 
-class CompareError(ValueError):
+class CompareError(InputError):
     """A comparison or sweep that cannot be done as asked (bad grid, unknown metric, ...)."""
 
 

@@ -31,6 +31,8 @@ observations) and corner-only ``/markers/corners`` messages.
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,7 +53,7 @@ CORNERS_TOPIC = "/markers/corners"
 MARKER_MAP_TOPIC = "/markers/map"
 
 
-class CorrectionError(ValueError):
+class CorrectionError(InputError):
     """Bad correction settings or input (unknown solver, non-positive cycle distance)."""
 
 

@@ -11,6 +11,8 @@ only; the truth every frame that has one. Rerun stores poses as float32, so posi
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import os
 import uuid
 from dataclasses import dataclass
@@ -27,7 +29,7 @@ FORMATS = ("tum",)
 TRAJECTORIES = {"estimate": paths.AGV_CAMERA, "truth": paths.AGV_TRUTH}
 
 
-class ExportError(ValueError):
+class ExportError(InputError):
     """An export that cannot be done (unknown format, missing trajectory, bad output path)."""
 
 

@@ -15,6 +15,7 @@ from typing import Callable
 import numpy as np
 
 from agvviz import __version__
+from agvviz.errors import RunError
 from agvviz.evaluation.summary import FrameScore, summarize, timing
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.fusion_replay import FrameSetResult, FusionReplay
@@ -33,10 +34,6 @@ from agvviz.correction import CorrectionReplay, CorrectionSettings, CorrectionSt
 from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint
 
 MARKER_MAP_TOPIC = "/markers/map"
-
-
-class RunError(ValueError):
-    """A run that cannot start: bad paths, output would overwrite the input."""
 
 
 @dataclass

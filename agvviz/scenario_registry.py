@@ -7,6 +7,8 @@ with a default and ``metadata={"help": ...}``), ``validate(options)`` and
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import importlib
 import pkgutil
 from pathlib import Path
@@ -18,7 +20,7 @@ from agvviz import __version__
 from agvviz.settings import SettingsError, apply_overrides, as_dict
 
 
-class ScenarioError(ValueError):
+class ScenarioError(InputError):
     """Unknown scenario or invalid options."""
 
 

@@ -7,6 +7,8 @@ Every settings object is a frozen dataclass whose fields carry a type, a default
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import dataclasses
 import math
 import typing
@@ -20,7 +22,7 @@ from agvviz.solvers.registry import SOLVER_NAMES
 from agvviz.uwb.localize import METHODS as UWB_METHODS
 
 
-class SettingsError(ValueError):
+class SettingsError(InputError):
     """A ``--set key=value`` that names no setting or carries a value of the wrong kind."""
 
 

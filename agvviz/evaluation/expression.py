@@ -21,6 +21,8 @@ comparison (``a < b < c``; write ``a < b and b < c``) is an error too.
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import re
 from dataclasses import dataclass
 from typing import Iterable, Mapping, Union
@@ -41,7 +43,7 @@ _COMPARISONS = ("<", "<=", ">", ">=", "==", "!=")
 RUNS = ("A", "B")
 
 
-class ExpressionError(ValueError):
+class ExpressionError(InputError):
     """A ``--fail-if`` expression that does not parse or cannot be evaluated."""
 
 

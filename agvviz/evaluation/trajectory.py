@@ -23,6 +23,8 @@ mode        DoF   what it removes
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import numpy as np
 
 ALIGNMENTS = ("none", "se3", "se2", "yaw")
@@ -30,7 +32,7 @@ ALIGNMENTS = ("none", "se3", "se2", "yaw")
 MIN_POINTS = {"none": 0, "se3": 3, "se2": 2, "yaw": 1}
 
 
-class EvaluationError(ValueError):
+class EvaluationError(InputError):
     """Input the evaluation cannot score (wrong shapes, too few poses, unknown mode)."""
 
 

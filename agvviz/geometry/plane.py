@@ -6,12 +6,14 @@ work in the marker frame (z = 0 on the code). See :mod:`agvviz.conventions` for 
 
 from __future__ import annotations
 
+from agvviz.errors import RunError
+
 import numpy as np
 
 from agvviz.geometry import se3
 
 
-class DegenerateGeometryError(ValueError):
+class DegenerateGeometryError(RunError):
     """Points that do not define a marker plane (collinear, coincident, non-finite)."""
 
 

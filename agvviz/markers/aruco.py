@@ -16,6 +16,8 @@ Refinement (``refine=``, the names the QR pipeline uses):
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import functools
 from dataclasses import dataclass
 
@@ -25,7 +27,7 @@ import numpy as np
 from agvviz.markers.qr import REFINE_METHODS, align_symbol_ecc
 
 
-class ArucoError(ValueError):
+class ArucoError(InputError):
     """An unknown ArUco dictionary name or a marker id outside the dictionary."""
 
 

@@ -31,6 +31,8 @@ format's resolution.
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import re
 from dataclasses import dataclass
 
@@ -59,7 +61,7 @@ _FIELD_NAME_RE = re.compile(r"([A-Za-z0-9_]{1,16})=")
 _ALLOWED_POINT_COUNTS = (4, 8)
 
 
-class PayloadError(ValueError):
+class PayloadError(InputError):
     """A QR payload that is not a valid ``AGV1`` payload, or a value that cannot be encoded."""
 
 

@@ -16,7 +16,7 @@ from agvviz.recording.reader import (
     CalibrationMsg,
     CompressedFrame,
     FrameTransformMsg,
-    PayloadError,
+    MessageDecodeError,
     PoseMsg,
     RawMetadata,
     ReadReport,
@@ -151,7 +151,7 @@ def inspect_recording(path) -> InspectReport:
 
         try:
             value = decode(item)
-        except PayloadError as exc:
+        except MessageDecodeError as exc:
             schema = item.schema_name or item.message_encoding
             tally.add(f"{topic}: payload does not match {schema}", f"at {t_ns} ns: {exc}")
             continue

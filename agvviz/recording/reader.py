@@ -50,6 +50,7 @@ from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 
+from agvviz.errors import RecordingError
 from agvviz.geometry import PinholeCamera, se3
 from agvviz.recording.schemas import SCENARIO_METADATA, SCHEMAS, validate_payload
 
@@ -78,11 +79,7 @@ _DAMAGE_ERRORS = (
 )
 
 
-class RecordingError(Exception):
-    """The file cannot be read as a recording at all (missing, unreadable, not MCAP)."""
-
-
-class PayloadError(ValueError):
+class MessageDecodeError(RecordingError):
     """A message payload does not decode as its schema says (the message is skipped)."""
 
 
@@ -515,7 +512,7 @@ def _matrix_from_pose(position, orientation, what: str) -> np.ndarray:
     t = np.array([position.x, position.y, position.z], dtype=float)
     q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=float)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))) or np.linalg.norm(q) < 1e-9:
-        raise PayloadError(f"{what}: translation/quaternion must be finite with a non-zero quaternion")
+        raise MessageDecodeError(f"{what}: translation/quaternion must be finite with a non-zero quaternion")
     return se3.from_quaternion_xyzw(q, t)
 
 
@@ -528,15 +525,15 @@ def _decode_calibration(raw: RawMessage) -> CalibrationMsg:
     msg = CameraCalibration.FromString(raw.data)
     K = np.array(msg.K, dtype=float)
     if K.size != 9 or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0 or K[8] != 1.0:
-        raise PayloadError(f"K must be 9 finite numbers with fx, fy > 0 and K[2,2] = 1, got {list(msg.K)}")
+        raise MessageDecodeError(f"K must be 9 finite numbers with fx, fy > 0 and K[2,2] = 1, got {list(msg.K)}")
     if msg.width <= 0 or msg.height <= 0:
-        raise PayloadError(f"image size must be > 0, got {msg.width}x{msg.height}")
+        raise MessageDecodeError(f"image size must be > 0, got {msg.width}x{msg.height}")
     if len(msg.D) == 0:
         dist = np.zeros(5)
     elif msg.distortion_model == "plumb_bob" and len(msg.D) == 5:
         dist = np.array(msg.D, dtype=float)
     else:
-        raise PayloadError(
+        raise MessageDecodeError(
             f"distortion {msg.distortion_model!r} with {len(msg.D)} coefficients is not supported; "
             "expected plumb_bob with 5 coefficients (k1, k2, p1, p2, k3) or none"
         )
@@ -575,7 +572,7 @@ _PROTOBUF_DECODERS = {
 def decode(raw: RawMessage) -> object:
     """The value of a raw message (see :class:`RecordedMessage`).
 
-    Raises :class:`PayloadError` when the payload does not decode as its schema says.
+    Raises :class:`MessageDecodeError` when the payload does not decode as its schema says.
     """
     try:
         if raw.message_encoding == "protobuf" and raw.schema_name in _PROTOBUF_DECODERS:
@@ -585,13 +582,13 @@ def decode(raw: RawMessage) -> object:
             if raw.schema_name in SCHEMAS:
                 problems = validate_payload(raw.schema_name, value)
                 if problems:
-                    raise PayloadError("; ".join(problems[:3]) + ("; ..." if len(problems) > 3 else ""))
+                    raise MessageDecodeError("; ".join(problems[:3]) + ("; ..." if len(problems) > 3 else ""))
             return value
-    except PayloadError:
+    except MessageDecodeError:
         raise
     except _DAMAGE_ERRORS as exc:
         what = raw.schema_name or raw.message_encoding
-        raise PayloadError(f"payload does not decode as {what}: {exc}") from None
+        raise MessageDecodeError(f"payload does not decode as {what}: {exc}") from None
     return raw.data
 
 
@@ -642,7 +639,7 @@ def iter_messages(
                 continue
             try:
                 value = decode(item)
-            except PayloadError as exc:
+            except MessageDecodeError as exc:
                 skipped.add(item, exc)
                 continue
             report.messages += 1

@@ -24,6 +24,8 @@ undistorted normalised coordinates to code coordinates is an exact homography.
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 from dataclasses import dataclass
 
 import cv2
@@ -91,7 +93,7 @@ class FloorScene:
     white_dn: float = 220.0
 
 
-class RenderError(ValueError):
+class RenderError(InputError):
     """The camera or render settings cannot produce an image (e.g. zero image size)."""
 
 

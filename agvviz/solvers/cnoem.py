@@ -44,6 +44,8 @@ Two minima
 
 from __future__ import annotations
 
+from agvviz.errors import RunError
+
 import math
 from dataclasses import dataclass, field
 
@@ -58,7 +60,7 @@ _DAMPING_FACTOR = 10.0
 _EYE3 = np.eye(3)
 
 
-class WindowError(ValueError):
+class WindowError(RunError):
     """A correction window that cannot be solved (no sightings, bad shapes, non-finite input)."""
 
 

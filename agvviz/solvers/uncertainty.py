@@ -28,6 +28,8 @@ information ``σ²(JᵀJ)⁻¹`` with J evaluated at the true pose.
 
 from __future__ import annotations
 
+from agvviz.errors import RunError
+
 import numpy as np
 
 from agvviz.geometry import se3, so3
@@ -37,7 +39,7 @@ from agvviz.geometry.camera import PinholeCamera
 OBJECTIVES = ("depth", "pixel")
 
 
-class UncertaintyError(ValueError):
+class UncertaintyError(RunError):
     """The geometry does not determine the pose (singular information matrix) or bad input."""
 
 

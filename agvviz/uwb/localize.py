@@ -24,6 +24,8 @@ lowers the cost most is dropped and the test repeats while at least three anchor
 
 from __future__ import annotations
 
+from agvviz.errors import RunError
+
 from dataclasses import dataclass, field
 import numpy as np
 
@@ -33,7 +35,7 @@ CHI2_99 = {1: 6.635, 2: 9.210, 3: 11.345, 4: 13.277, 5: 15.086, 6: 16.812}
 METHODS = ("centroid", "least_squares")
 
 
-class UwbLocalizationError(ValueError):
+class UwbLocalizationError(RunError):
     """Ranges or anchors a fix cannot be made from (too few, non-finite, wrong shapes)."""
 
 

@@ -23,6 +23,8 @@ size-only chunking, streamed to a temporary file beside the target and renamed i
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import os
 import uuid
 from dataclasses import dataclass, field
@@ -67,7 +69,7 @@ AXIS_LENGTH_M = 0.4
 TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 
 
-class OverlayError(ValueError):
+class OverlayError(InputError):
     """Overlay input that cannot be drawn (no run, inconsistent lengths, bad key)."""
 
 

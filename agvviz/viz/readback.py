@@ -8,6 +8,8 @@ loaded only for the entity asked for.
 
 from __future__ import annotations
 
+from agvviz.errors import InputError
+
 import json
 import os
 from dataclasses import dataclass
@@ -22,7 +24,7 @@ from agvviz.viz import paths
 _ROW_ID = "rerun.controls.RowId"
 
 
-class RrdReadError(ValueError):
+class RrdReadError(InputError):
     """The ``.rrd`` is missing, unreadable, or lacks the entity/component asked for."""
 
 

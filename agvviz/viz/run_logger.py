@@ -12,6 +12,8 @@ tick), so the file depends only on the data: two identical runs compare equal wi
 
 from __future__ import annotations
 
+from agvviz.errors import RunError
+
 import json
 import math
 import os
@@ -64,7 +66,7 @@ REPROJECTED_RADIUS = rr.Radius.ui_points(2.5)
 MAX_TRAJECTORY_POINTS = 400
 
 
-class RunLogError(ValueError):
+class RunLogError(RunError):
     """Input the run logger cannot log (wrong shape, unknown image format, used after save)."""
 
 
