@@ -9,6 +9,7 @@ from agvviz.geometry import se3
 from agvviz.geometry.euler import Rx, Rz
 from agvviz.geometry.plane import square_points_marker
 from agvviz.solvers import SolverOptions, solve
+from agvviz.solvers.lm import reprojection_rms_px, residuals_and_jacobian
 from agvviz.solvers.lm_batch import p4p_batch, solve_lm_batch
 
 K = np.array([[1000.0, 0.0, 639.5], [0.0, 1000.0, 511.5], [0.0, 0.0, 1.0]])
@@ -30,18 +31,73 @@ def problems(n_frames: int, n_points: int, seed: int):
     return np.array(P), np.array(X), truth
 
 
+EPS = np.finfo(float).eps
+OPTIONS = SolverOptions()  # the defaults both solvers use: step_tol 1e-12, cost_rel_tol 1e-14
+
+
+def cost_floor(T, points, pixels, objective):
+    """(cost, JᵀJ, δc): the cost ½‖f‖², its Gauss–Newton Hessian, and the round-off δc with
+    which the cost can be evaluated at all.
+
+    Every residual is a difference of large terms (depth: k·w − z·u with |k·w| ≈ 10³·|w|;
+    pixel: π(Kw) − p with |p| ≈ 10³ px) that cancel to ≈ 1. Each f_i therefore carries an
+    absolute error ≈ ε·m_i (m_i the magnitude of its terms), and ½‖f‖² an error
+    δc ≈ Σ|f_i|·ε·m_i — for these frames 50–20 000 × cost_rel_tol·cost. Below that no
+    step, accepted or rejected, can be told apart from round-off."""
+    w = se3.transform_points(T, points)
+    f, J = residuals_and_jacobian(T, points, pixels, K, objective)
+    if objective == "depth":
+        mag = (np.abs(w) @ np.abs(K[:2]).T + np.abs(w[:, 2:3]) * np.abs(pixels)).reshape(-1)
+    else:
+        mag = (np.abs(pixels) + np.abs(f.reshape(-1, 2) + pixels)).reshape(-1)
+    return 0.5 * float(f @ f), J.T @ J, EPS * float(np.abs(f) @ mag)
+
+
 @pytest.mark.parametrize("objective, n_points", [("depth", 4), ("pixel", 4), ("depth", 8), ("pixel", 8)])
 def test_batch_lm_equals_single_frame_lm(objective, n_points):
+    """Both LMs converge to the same minimum, to the accuracy their stopping rule guarantees.
+
+    Stopping rule (lm.refine_lm, lm_batch.refine_lm_batch, identical): stop when ‖δ‖ < step_tol
+    or a trial step, accepted or not, changes the cost by ≤ τ·cost (τ = cost_rel_tol).
+    Near the minimum x* the cost is quadratic, c(x) = c* + ½ eᵀHe with e = Log(T·T*⁻¹) and
+    H = JᵀJ. A step changes the cost by at least a fixed fraction of the excess c − c* (for
+    the tiny λ reached by then, essentially all of it), so a solver stops with c − c* ≤ τ·c
+    — unless the cost itself cannot be evaluated to better than δc (see cost_floor), in which
+    case it stops anywhere with c − c* ≲ δc (that is where the rejected-step chains come
+    from). So each result satisfies ½‖e‖²_H ≤ τ·c + δc, and by the triangle inequality in the
+    H-norm the two results differ by d = Log(T_batch·T_single⁻¹) with
+
+        ½ dᵀHd ≤ (2·√(τ·c + δc))² = 4·(τ·c + δc).
+
+    Measured (300 frames per case): the left side is ≤ 0.09 × (τ·c + δc) with OpenBLAS
+    Prescott kernels, ≤ 1e-4 × with Haswell/Zen (bit-identical for the pixel objective).
+    That bound is ~1e-9 m / rad in the worst-conditioned direction — it is not vacuous:
+    asserted below to be < 1 µm.
+
+    Iteration counts are not compared: once both are at the round-off floor, whether a step
+    is rejected and how many ×10 damping increases it takes before a step changes the cost
+    by ≤ τ·c depends on the last bits of the Jacobian (measured: equal with Haswell, up to
+    16 apart with Prescott). What the method guarantees is that both stop on the criterion,
+    not on the iteration budget.
+    """
     P, X, _ = problems(60, n_points, seed=n_points)
     batch = solve_lm_batch(P, X, K, objective=objective)
+    tau = OPTIONS.cost_rel_tol
     for k in range(len(P)):
         single = solve("lm", P[k], X[k], K, SolverOptions(objective=objective))
         assert single.success and batch.ok[k]
-        # Same arithmetic per frame: equal to round-off (measured: depth bit-identical,
-        # pixel ≤ 2e-10 over 1000 frames; 1e-9 m / rad-entry leaves margin).
-        np.testing.assert_allclose(batch.T_cam_marker[k], single.T_cam_marker, atol=1e-9, rtol=0)
-        assert batch.iterations[k] == len(single.iterations) - 1
-        assert batch.reproj_rms_px[k] == pytest.approx(single.reproj_rms_px, rel=1e-9)
+        cost, H, floor = cost_floor(single.T_cam_marker, P[k], X[k], objective)
+        bound = 4.0 * (tau * cost + floor)
+        d = se3.log(batch.T_cam_marker[k] @ se3.inverse(single.T_cam_marker))
+        assert 0.5 * d @ H @ d <= bound, (k, 0.5 * d @ H @ d, bound)
+        assert np.sqrt(2.0 * bound / np.linalg.eigvalsh(H)[0]) < 1e-6  # the bound means something
+        # Both stopped on the convergence rule, not on the iteration budget.
+        assert batch.iterations[k] < OPTIONS.max_iterations
+        assert len(single.iterations) - 1 < OPTIONS.max_iterations
+        # The batch RMS is the RMS of the batch pose: the same sum in another order, whose
+        # error is a few ε relative to the cancelling terms |p| ≈ 10³ px, not to the RMS.
+        rms = reprojection_rms_px(batch.T_cam_marker[k], P[k], X[k], K)
+        assert abs(batch.reproj_rms_px[k] - rms) <= 64 * EPS * np.abs(X[k]).max()
 
 
 def test_batch_p4p_equals_single_frame_p4p_and_reports_failures():
@@ -54,7 +110,12 @@ def test_batch_p4p_equals_single_frame_p4p_and_reports_failures():
             assert not batch.ok[k] and batch.reason[k] == single.reason == "degenerate: pixels collinear"
             assert np.all(np.isnan(batch.T_cam_marker[k]))
         else:
-            np.testing.assert_allclose(batch.T_cam_marker[k], single.T_cam_marker, atol=1e-12, rtol=0)
+            # Same arithmetic, different summation order: a few hundred ulps of the entries,
+            # amplified by the conditioning of the pixel matrix P (κ ≈ 10³–10⁵ here) that
+            # P4P solves with (measured ≤ 6 ulp with any kernel).
+            p = np.column_stack([X[k, :3], np.ones(3)]).T
+            atol = 256 * EPS * np.linalg.cond(p) * np.abs(single.T_cam_marker).max()
+            np.testing.assert_allclose(batch.T_cam_marker[k], single.T_cam_marker, atol=atol, rtol=0)
 
 
 def test_batch_lm_keeps_best_pose_when_out_of_iterations():
@@ -63,4 +124,11 @@ def test_batch_lm_keeps_best_pose_when_out_of_iterations():
     assert batch.ok.all()
     for k in range(len(P)):
         single = solve("lm", P[k], X[k], K, SolverOptions(max_iterations=1))
-        np.testing.assert_allclose(batch.T_cam_marker[k], single.T_cam_marker, atol=1e-9, rtol=0)
+        # One step from the same P4P start: δ solves (JᵀJ + μI)δ = −Jᵀf, so its round-off is
+        # ≈ κ(JᵀJ + μI)·ε relative (κ ≈ 10³ here); a few hundred ulps × κ × the entries'
+        # magnitude (measured ≤ 8 ulp with any kernel).
+        start = solve("p4p", P[k], X[k], K).T_cam_marker
+        _, H, _ = cost_floor(start, P[k], X[k], "depth")
+        kappa = np.linalg.cond(H + 1e-3 * np.mean(np.diag(H)) * np.eye(6))
+        atol = 256 * EPS * kappa * np.abs(single.T_cam_marker).max()
+        np.testing.assert_allclose(batch.T_cam_marker[k], single.T_cam_marker, atol=atol, rtol=0)
