@@ -18,6 +18,16 @@ from agvviz.geometry.plane import (
     square_points_marker,
 )
 
+# Identities on entries of magnitude ≲ 1 (rotation matrices, unit quaternions, sines and
+# cosines) are compared to ULPS ulps × the magnitude: a handful of roundings per entry, in an
+# order that depends on the BLAS kernel (OPENBLAS_CORETYPE) and on numpy/scipy's own
+# summation order. The expressions are well conditioned (no cancellation beyond a few terms),
+# so "a few hundred ulps" bounds them on every machine while still catching any wrong term
+# (which is ≥ 1e-9 for the angles swept here).
+EPS = np.finfo(float).eps
+ULPS = 256
+TOL_UNIT = ULPS * EPS  # ≈ 5.7e-14
+
 ANGLES_RAD = [0.0, 1e-9, 1e-7, 0.9e-6, 1.1e-6, 1e-3, 0.5, np.pi / 2, 3.0,
               np.pi - 1e-3, np.pi - 1.1e-3, np.pi - 1e-7, np.pi]
 
@@ -47,7 +57,7 @@ def test_hat_vee():
     for _ in range(20):
         w, v = rng.normal(size=3), rng.normal(size=3)
         W = so3.hat(w)
-        np.testing.assert_allclose(W @ v, np.cross(w, v), atol=1e-15)
+        np.testing.assert_allclose(W @ v, np.cross(w, v), atol=TOL_UNIT * np.linalg.norm(w) * np.linalg.norm(v))
         np.testing.assert_array_equal(W, -W.T)
         np.testing.assert_array_equal(so3.vee(W), w)
         xi = rng.normal(size=6)
@@ -57,9 +67,10 @@ def test_hat_vee():
 def test_so3_exp_matches_scipy_and_expm():
     for phi in rot_vectors(2):
         R = so3.exp(phi)
-        # Both references are accurate to a few ulp of entries of size ≤ 1.
-        np.testing.assert_allclose(R, Rotation.from_rotvec(phi).as_matrix(), atol=1e-15 * 4)
-        np.testing.assert_allclose(R, expm(so3.hat(phi)), atol=1e-14)
+        # Both references are accurate to a few ulp of entries of size ≤ 1 (expm: Padé with
+        # scaling and squaring through BLAS, a few tens of ulps).
+        np.testing.assert_allclose(R, Rotation.from_rotvec(phi).as_matrix(), atol=TOL_UNIT)
+        np.testing.assert_allclose(R, expm(so3.hat(phi)), atol=TOL_UNIT)
 
 
 @pytest.mark.parametrize("source", ["scipy", "so3.exp"])
@@ -76,7 +87,7 @@ def test_so3_log_inverts_exp(source):
         else:
             np.testing.assert_allclose(log_R, phi, atol=1e-12)
             np.testing.assert_allclose(log_R, Rotation.from_matrix(R).as_rotvec(), atol=1e-12)
-        assert np.linalg.norm(log_R) <= np.pi + 1e-15
+        assert np.linalg.norm(log_R) <= np.pi * (1 + TOL_UNIT)
 
 
 def test_left_jacobian_against_finite_differences():
@@ -117,10 +128,11 @@ def test_se3_exp_matches_expm_and_log_inverts_it():
 def test_inverse_and_transform_points():
     rng = np.random.default_rng(6)
     for T in random_poses(6):
-        np.testing.assert_allclose(se3.inverse(T) @ T, np.eye(4), atol=1e-14)
+        scale = max(1.0, np.abs(T).max())  # translation entries are metres, not ≤ 1
+        np.testing.assert_allclose(se3.inverse(T) @ T, np.eye(4), atol=TOL_UNIT * scale)
         p = rng.normal(size=(5, 3))
         np.testing.assert_allclose(se3.transform_points(T, p), (T @ np.c_[p, np.ones(5)].T).T[:, :3],
-                                   atol=1e-14)
+                                   atol=TOL_UNIT * scale * max(1.0, np.abs(p).max()))
 
 
 def test_adjoint_identity():
@@ -165,11 +177,11 @@ def test_quaternion_round_trip_against_scipy():
         R = rot.as_matrix()
         q = se3.to_quaternion_xyzw(R)
         q_ref = rot.as_quat()  # scipy: scalar last (x, y, z, w)
-        assert q[3] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-15
-        assert min(np.linalg.norm(q - q_ref), np.linalg.norm(q + q_ref)) < 1e-14
+        assert q[3] >= 0 and abs(np.linalg.norm(q) - 1) < TOL_UNIT
+        assert min(np.linalg.norm(q - q_ref), np.linalg.norm(q + q_ref)) < TOL_UNIT
         t = rng.normal(size=3)
         T = se3.from_quaternion_xyzw(q, t)
-        np.testing.assert_allclose(T[:3, :3], R, atol=1e-14)
+        np.testing.assert_allclose(T[:3, :3], R, atol=TOL_UNIT)
         np.testing.assert_array_equal(T[:3, 3], t)
 
 
@@ -180,14 +192,14 @@ def test_matrix_from_hpr_is_intrinsic_zxy():
     rng = np.random.default_rng(10)
     for h, p, r in rng.uniform(-np.pi, np.pi, (50, 3)):
         np.testing.assert_allclose(euler.matrix_from_hpr(h, p, r),
-                                   Rotation.from_euler("ZXY", [h, p, r]).as_matrix(), atol=1e-15)
+                                   Rotation.from_euler("ZXY", [h, p, r]).as_matrix(), atol=TOL_UNIT)
     # Paper 000 eq 38, element by element.
     h, p, r = 0.3, -0.4, 1.1
     ch, sh, cp, sp, cr, sr = np.cos(h), np.sin(h), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
     eq38 = [[ch * cr - sh * sp * sr, -sh * cp, ch * sr + sh * cr * sp],
             [sh * cr + ch * sp * sr, ch * cp, sh * sr - ch * sp * cr],
             [-cp * sr, sp, cp * cr]]
-    np.testing.assert_allclose(euler.matrix_from_hpr(h, p, r), eq38, atol=1e-15)
+    np.testing.assert_allclose(euler.matrix_from_hpr(h, p, r), eq38, atol=TOL_UNIT)
 
 
 def test_hpr_round_trip_away_from_gimbal():
@@ -242,7 +254,7 @@ def test_wrap_angle():
     assert euler.wrap_angle_rad(-np.pi) == np.pi
     assert euler.wrap_angle_rad(3 * np.pi) == pytest.approx(np.pi)
     np.testing.assert_allclose(euler.wrap_angle_rad(np.array([0.0, 2 * np.pi + 0.1, -0.1])),
-                               [0.0, 0.1, -0.1], atol=1e-15)
+                               [0.0, 0.1, -0.1], atol=TOL_UNIT * 2 * np.pi)  # 2π + 0.1 − 2π: ulps of 2π
 
 
 # --- camera -------------------------------------------------------------------------------
