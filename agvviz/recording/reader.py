@@ -19,6 +19,23 @@ it is written to a :class:`ReadReport`, or logged as a warning when the caller p
 Only a missing file or a file that is not MCAP at all raises :class:`RecordingError`.
 Reading stops at the DataEnd record (the summary after it only repeats the data section).
 
+Integrity beyond chunk CRCs:
+
+* the DataEnd record's ``data_section_crc`` (CRC32 of every byte from the start of the file,
+  magic included, up to the DataEnd record; agvviz writes it, 0 means "not set") is checked;
+  a mismatch when no chunk was found damaged means a record *outside* chunks — the header, the
+  ``agvviz.scenario`` metadata, a schema or channel — is damaged, and is reported
+  (:data:`DATA_SECTION_CRC_PROBLEM`) so its metadata is not trusted silently;
+* the footer, the closing magic and the summary section (its CRC when the footer has one) are
+  checked, and damage there is reported too (the summary's schemas and channels are then not
+  used);
+* a message that repeats an earlier one exactly (same topic, log time and bytes), or a chunk
+  that repeats an earlier chunk, is dropped and reported: a part of the file written twice
+  must not be replayed twice.
+
+Camera calibrations are refused (the message is skipped and reported) when their image size
+is not 1..:data:`MAX_IMAGE_SIDE_PX` pixels per side.
+
 Decoding: Foxglove protobuf messages of the recording contract become the dataclasses below,
 JSON channels become ``dict`` (``agvviz.*`` payloads checked against their schema), anything
 else stays ``bytes``.
@@ -31,6 +48,7 @@ import logging
 import os
 import struct
 import zlib
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
@@ -63,6 +81,10 @@ _MIN_CHUNK_BODY_BYTES = 8 + 8 + 8 + 4 + 4 + 8  # times, size, crc, compression l
 _MAX_COMPRESSION_NAME = 16  # bytes; real names are "", "zstd", "lz4"
 _CHUNK_PREFIX_BYTES = _MIN_CHUNK_BODY_BYTES + _MAX_COMPRESSION_NAME
 _SCAN_BLOCK_BYTES = 1 << 20
+#: Largest image side (px) a calibration may declare and a frame may have. Real machine-vision
+#: sensors stay below 16384 px (16k line-scan cameras are the largest); beyond it an image
+#: would only allocate gigabytes (undistortion maps of a 2^32-1 px wide image: terabytes).
+MAX_IMAGE_SIDE_PX = 16384
 #: Exceptions that damaged bytes raise inside mcap, zstandard, lz4 and protobuf parsing.
 _DAMAGE_ERRORS = (
     McapError,
@@ -322,50 +344,128 @@ def _find_next_chunk(f, start: int, size: int) -> int | None:
     return None
 
 
-def _summary_definitions(f, size: int) -> tuple[dict[int, Schema], dict[int, Channel]]:
-    """Schemas and channels repeated in the summary section, when the file has an intact one.
+class _Tail:
+    """What the end of the file says: the footer's summary section, checked, or why not."""
 
-    Best effort: any damage here just means the data section's own records are used.
+    def __init__(self):
+        self.summary_start: int | None = None  # where the footer says the summary starts
+        self.footer_at: int | None = None  # where the footer record starts
+        self.problems: list[str] = []  # damage after the DataEnd record (reported at DataEnd)
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+
+
+def _crc_of_range(f, start: int, stop: int, crc: int = 0) -> int:
+    """CRC32 of bytes ``start``..``stop`` of ``f``, continuing ``crc``, in 1 MiB blocks."""
+    f.seek(start)
+    remaining = stop - start
+    while remaining > 0:
+        block = f.read(min(remaining, _SCAN_BLOCK_BYTES))
+        if not block:
+            break
+        crc = zlib.crc32(block, crc)
+        remaining -= len(block)
+    return crc
+
+
+def _read_tail(f, size: int) -> _Tail:
+    """Check the footer, the closing magic and the summary section (its CRC when the footer
+    has one), and take the schemas and channels the summary repeats — only when it checks.
+
+    Damage here never stops a read: the data section carries everything; the problems are
+    reported once the reader reaches the DataEnd record (a file cut before that is reported as
+    truncated instead).
     """
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
+    tail = _Tail()
     footer_at = size - len(MCAP_MAGIC) - _FOOTER_RECORD_BYTES
     if footer_at < len(MCAP_MAGIC):
-        return schemas, channels
+        tail.problems.append("the file is too short to hold a footer and the closing magic")
+        return tail
     try:
         f.seek(size - len(MCAP_MAGIC))
         if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-            return schemas, channels
+            tail.problems.append(
+                "the file does not end with the MCAP magic: the end of the file (footer) is damaged"
+            )
+            return tail
         f.seek(footer_at)
-        opcode, length = _RECORD_HEADER.unpack(f.read(_RECORD_HEADER.size))
+        footer_bytes = f.read(_FOOTER_RECORD_BYTES)
+        opcode, length = _RECORD_HEADER.unpack_from(footer_bytes)
         if opcode != Opcode.FOOTER or length != 20:
-            return schemas, channels
-        footer = _parse_record(opcode, f.read(length))
-        offset = footer.summary_start
-        if not len(MCAP_MAGIC) <= offset < footer_at:
-            return schemas, channels
+            tail.problems.append(
+                f"no footer record at byte {footer_at} (found {_opcode_name(opcode)} of length "
+                f"{length}): the footer is damaged"
+            )
+            return tail
+        footer = _parse_record(opcode, footer_bytes[_RECORD_HEADER.size :])
+        tail.footer_at = footer_at
+        start = footer.summary_start or footer_at
+        if not len(MCAP_MAGIC) <= start <= footer_at:
+            tail.problems.append(
+                f"the footer points the summary section at byte {footer.summary_start}, outside "
+                f"the file's {size} bytes: the footer is damaged"
+            )
+            return tail
+        tail.summary_start = start
+        if footer.summary_crc != 0:
+            # MCAP spec: CRC32 of the summary section and the footer up to its summary_crc field.
+            crc = _crc_of_range(f, start, footer_at)
+            crc = zlib.crc32(footer_bytes[: _FOOTER_RECORD_BYTES - 4], crc)
+            if crc != footer.summary_crc:
+                tail.problems.append(
+                    f"summary section CRC mismatch (bytes {start}-{size}): the summary section or "
+                    "footer after the data is damaged; its indexes were not used (the messages "
+                    "were read from the data section)"
+                )
+                return tail
+        offset = start
         while offset < footer_at:
             f.seek(offset)
             opcode, length = _RECORD_HEADER.unpack(f.read(_RECORD_HEADER.size))
-            if length > footer_at - offset:
-                break
+            if length > footer_at - offset - _RECORD_HEADER.size:
+                tail.problems.append(
+                    f"summary section record at byte {offset} runs past the footer: the summary "
+                    "section is damaged; its indexes were not used"
+                )
+                tail.schemas, tail.channels = {}, {}
+                return tail
             if opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
                 record = _parse_record(opcode, f.read(length))
-                target = schemas if opcode == Opcode.SCHEMA else channels
+                target = tail.schemas if opcode == Opcode.SCHEMA else tail.channels
                 target[record.id] = record
             offset += _RECORD_HEADER.size + length
-    except _DAMAGE_ERRORS:
-        pass
-    return schemas, channels
+    except _DAMAGE_ERRORS as exc:
+        tail.problems.append(f"the summary section is damaged ({exc}); its indexes were not used")
+        tail.schemas, tail.channels = {}, {}
+    return tail
 
 
-def _top_level_records(f, size: int, report: ReadReport, read_chunks: bool = True):
+#: Problem reported when the DataEnd record's CRC does not match the data section.
+DATA_SECTION_CRC_PROBLEM = (
+    "data section CRC mismatch: some record outside chunks is damaged (the header, the "
+    "agvviz.scenario metadata, or a schema/channel/message record written outside a chunk); "
+    "the scenario metadata (name, seed, options) of this file cannot be trusted"
+)
+
+
+def _top_level_records(
+    f, size: int, report: ReadReport, read_chunks: bool = True, tail: _Tail | None = None
+):
     """Yield the parsed top-level records of the data section in file order, salvaging.
 
     Chunks are yielded as ``Chunk`` records (or skipped unread when ``read_chunks`` is
     False). Damage is written to ``report``. Stops after DataEnd or Footer.
+
+    With ``read_chunks``, every byte of the data section is read once and its CRC32 (magic
+    included) compared with the DataEnd record's ``data_section_crc`` (0 = not set: other
+    writers may leave it out); a mismatch with no other damage found is reported as
+    :data:`DATA_SECTION_CRC_PROBLEM`. At DataEnd, ``tail`` (the checked end of the file)
+    adds its problems and must agree on where the data section ends.
     """
     offset = len(MCAP_MAGIC)
+    crc = zlib.crc32(MCAP_MAGIC)
+    crc_complete = read_chunks  # every byte up to ``offset`` went into ``crc``
+    problems_before = len(report.problems)
     while True:
         f.seek(offset)
         header = f.read(_RECORD_HEADER.size)
@@ -388,6 +488,7 @@ def _top_level_records(f, size: int, report: ReadReport, read_chunks: bool = Tru
         if why is not None:
             if opcode == Opcode.CHUNK:
                 report.chunks_lost += 1
+            crc_complete = False
             resume = _find_next_chunk(f, offset + 1, size)
             if resume is None:
                 report.problems.append(
@@ -406,10 +507,15 @@ def _top_level_records(f, size: int, report: ReadReport, read_chunks: bool = Tru
             Opcode.HEADER, Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA,
             Opcode.DATA_END, Opcode.FOOTER,
         ) or (opcode == Opcode.CHUNK and read_chunks)
+        if opcode != Opcode.DATA_END and crc_complete:
+            crc = zlib.crc32(header, crc)
         if wanted:
+            f.seek(body_at)
+            body = f.read(length)
+            if opcode != Opcode.DATA_END and crc_complete:
+                crc = zlib.crc32(body, crc)
             try:
-                f.seek(body_at)
-                record = _parse_record(opcode, f.read(length))
+                record = _parse_record(opcode, body)
             except _DAMAGE_ERRORS as exc:
                 if opcode == Opcode.CHUNK:
                     report.chunks_lost += 1
@@ -418,24 +524,100 @@ def _top_level_records(f, size: int, report: ReadReport, read_chunks: bool = Tru
                 )
                 offset = next_offset
                 continue
+            del body
+            if isinstance(record, DataEnd):
+                if (
+                    crc_complete
+                    and record.data_section_crc != 0
+                    and crc != record.data_section_crc
+                    and len(report.problems) == problems_before
+                ):
+                    report.problems.append(DATA_SECTION_CRC_PROBLEM)
+                if tail is not None:
+                    report.problems.extend(tail.problems)
+                    if not tail.problems and tail.summary_start is not None and tail.summary_start != next_offset:
+                        report.problems.append(
+                            f"the data section ends at byte {next_offset} but the footer puts the "
+                            f"summary section at byte {tail.summary_start}: the footer or the "
+                            "bytes between them are damaged"
+                        )
             yield offset, record
             if isinstance(record, (DataEnd, Footer)):
                 break
+        elif crc_complete:
+            crc = _crc_of_range(f, body_at, next_offset, crc)
         offset = next_offset
+
+
+#: Most recent message keys remembered for duplicate detection (bounded memory; a chunk
+#: written twice further apart than this is still caught by its chunk signature).
+DUPLICATE_WINDOW_MESSAGES = 65536
+
+
+class _Duplicates:
+    """Drops messages that repeat an earlier one exactly (same topic, log time, bytes — and
+    publish time and sequence number, so distinct messages that merely carry equal data at one
+    time, as in the MCAP conformance suite, are kept) and chunks that repeat an earlier chunk
+    (same time range, size and CRC): a part of the file written twice would otherwise be
+    replayed and counted twice."""
+
+    def __init__(self):
+        self._recent: OrderedDict = OrderedDict()
+        self._chunks: dict[tuple, int] = {}  # chunk signature -> byte offset of its first copy
+        self._dropped: dict[str, list] = {}  # topic -> [count, first log time]
+        self.problems: list[str] = []
+
+    def chunk_seen(self, chunk: Chunk, offset: int) -> bool:
+        if chunk.uncompressed_crc == 0:
+            return False  # without a CRC two chunks cannot be told equal cheaply
+        key = (chunk.message_start_time, chunk.message_end_time, chunk.uncompressed_size, chunk.uncompressed_crc)
+        first = self._chunks.setdefault(key, offset)
+        if first == offset:
+            return False
+        self.problems.append(
+            f"chunk at byte {offset} repeats the chunk at byte {first} (same log times "
+            f"{chunk.message_start_time}-{chunk.message_end_time} ns, size and CRC): part of the "
+            "file was written twice; the copy was dropped"
+        )
+        return True
+
+    def message_seen(self, topic: str, message: Message) -> bool:
+        data = message.data
+        key = (topic, message.log_time, message.publish_time, message.sequence, len(data), zlib.crc32(data))
+        log_time_ns = message.log_time
+        if key in self._recent:
+            entry = self._dropped.setdefault(topic, [0, log_time_ns])
+            entry[0] += 1
+            return True
+        self._recent[key] = None
+        if len(self._recent) > DUPLICATE_WINDOW_MESSAGES:
+            self._recent.popitem(last=False)
+        return False
+
+    def lines(self) -> list[str]:
+        return self.problems + [
+            f"{topic}: {count} duplicate message(s) dropped (same topic, log time, sequence number "
+            f"and bytes as an earlier message; first at log time {first_ns} ns): part of the file was written twice"
+            for topic, (count, first_ns) in self._dropped.items()
+        ]
 
 
 def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = None) -> Iterator:
     """Stream :class:`RawMessage` and :class:`RawMetadata` items in file order.
 
-    Messages on topics outside ``topics`` (when given) are not yielded. Damage is written to
-    ``report`` (``report.messages`` is left to the caller). Raises :class:`RecordingError`
-    when the file is missing or not MCAP.
+    Messages on topics outside ``topics`` (when given) are not yielded. A message that repeats
+    an earlier one exactly (same topic, log time and bytes) is dropped and reported. Damage is
+    written to ``report`` (``report.messages`` is left to the caller), including a data
+    section CRC mismatch and damage after the data section (summary, footer). Raises
+    :class:`RecordingError` when the file is missing or not MCAP.
     """
     report = report if report is not None else ReadReport()
     f, size = _open(path)
     with f:
-        schemas, channels = _summary_definitions(f, size)
+        tail = _read_tail(f, size)
+        schemas, channels = tail.schemas, tail.channels
         orphans: dict[int, int] = {}  # channel id -> messages skipped (Channel record lost)
+        duplicates = _Duplicates()
 
         def raw(message: Message):
             channel = channels.get(message.channel_id)
@@ -443,6 +625,8 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
                 orphans[message.channel_id] = orphans.get(message.channel_id, 0) + 1
                 return None
             if topics is not None and channel.topic not in topics:
+                return None
+            if duplicates.message_seen(channel.topic, message):
                 return None
             schema = schemas.get(channel.schema_id)
             return RawMessage(
@@ -462,7 +646,7 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
 
         anything_read = False
         try:
-            for offset, record in _top_level_records(f, size, report):
+            for offset, record in _top_level_records(f, size, report, tail=tail):
                 anything_read = True
                 if isinstance(record, Chunk):
                     try:
@@ -475,6 +659,8 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
                         )
                         continue
                     report.chunks_ok += 1
+                    if duplicates.chunk_seen(record, offset):
+                        continue
                     for item in inner:
                         define(item)
                         if isinstance(item, Message) and (out := raw(item)) is not None:
@@ -497,6 +683,7 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
                     f"{count} message(s) on channel id {channel_id} skipped: that channel's "
                     "definition was in a lost part of the file"
                 )
+            report.problems.extend(duplicates.lines())
 
 
 # -- decoding ---------------------------------------------------------------------------------
@@ -526,8 +713,9 @@ def _decode_calibration(raw: RawMessage) -> CalibrationMsg:
     K = np.array(msg.K, dtype=float)
     if K.size != 9 or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0 or K[8] != 1.0:
         raise MessageDecodeError(f"K must be 9 finite numbers with fx, fy > 0 and K[2,2] = 1, got {list(msg.K)}")
-    if msg.width <= 0 or msg.height <= 0:
-        raise MessageDecodeError(f"image size must be > 0, got {msg.width}x{msg.height}")
+    problem = image_size_problem(msg.width, msg.height)
+    if problem:
+        raise MessageDecodeError(f"calibration {problem}")
     if len(msg.D) == 0:
         dist = np.zeros(5)
     elif msg.distortion_model == "plumb_bob" and len(msg.D) == 5:
@@ -539,6 +727,17 @@ def _decode_calibration(raw: RawMessage) -> CalibrationMsg:
         )
     camera = PinholeCamera(K.reshape(3, 3), dist, int(msg.width), int(msg.height))
     return CalibrationMsg(_cam_name(raw.topic, msg.frame_id), msg.frame_id, camera, msg.distortion_model)
+
+
+def image_size_problem(width: int, height: int) -> str | None:
+    """Why ``width`` × ``height`` px cannot be a camera's image size, or ``None``: each side
+    must be 1..:data:`MAX_IMAGE_SIDE_PX` px."""
+    if not (0 < width <= MAX_IMAGE_SIDE_PX and 0 < height <= MAX_IMAGE_SIDE_PX):
+        return (
+            f"image size {width}x{height} px is outside 1..{MAX_IMAGE_SIDE_PX} px per side "
+            "(the recording contract's bound)"
+        )
+    return None
 
 
 def _transform(tf: FrameTransform) -> FrameTransformMsg:

@@ -118,7 +118,8 @@ class RecordingWriter:
             os.umask(umask)
             os.chmod(self._tmp_path, 0o666 & ~umask)
             self._writer = Writer(
-                self._file, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.NONE
+                self._file, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.NONE,
+                enable_data_crcs=True,  # DataEnd CRC: the reader then catches damaged metadata
             )
             self._writer.start(profile="", library=f"agvviz {agvviz.__version__}")
             self._writer.add_metadata(SCENARIO_METADATA, self._scenario)
