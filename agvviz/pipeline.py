@@ -4,7 +4,13 @@ For every camera frame: decode → undistort (when the camera has distortion) �
 decode QR codes → refine corners → parse each payload strictly → solve the pose of the
 largest decoded code → T_world_cam → T_world_agv through the extrinsics (paper 000 eqs 31–33)
 → heading/pitch/roll (eq 57) → reprojection check → score against ground truth.
-A frame that fails any step is *rejected* with one reason from :mod:`agvviz.results`.
+A frame that fails any step is *rejected* with one reason from :mod:`agvviz.results` or
+:mod:`agvviz.recording.contract` (whose checks ``inspect`` shares): an image time stamp that
+does not increase per camera (``time_not_increasing``), an empty, non-jpeg/png or oversized
+frame (``image_invalid``), an image whose size is not its calibration's
+(``calibration_size_mismatch``), a QR payload that disagrees with the recording's marker map
+(``payload_map_mismatch``). Recording-level findings (:class:`TimeChecks`) are left for the
+caller's summary (:meth:`Replay.warnings`).
 """
 
 from __future__ import annotations
@@ -22,12 +28,24 @@ from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_cor
 from agvviz.markers.aruco import ArucoError, ArucoMap, detect_aruco, parse_aruco_map
 from agvviz.markers.payload import PayloadError, parse_payload
 from agvviz.markers.qr import detect_qr_codes, finder_corners
+from agvviz.recording.contract import (
+    IMAGE_FORMATS,
+    REJECT_IMAGE,
+    REJECT_MAP_MISMATCH,
+    REJECT_TIME,
+    TimeChecks,
+    frame_problem,
+    payload_map_problem,
+    qr_map_of,
+    unmapped_tolerance_m,
+)
 from agvviz.recording.reader import (
     CalibrationMsg,
     CompressedFrame,
     FrameTransformMsg,
     PoseMsg,
     RecordedMessage,
+    image_size_problem,
 )
 from agvviz.results import (
     REJECT_DECODE,
@@ -55,6 +73,7 @@ class _Camera:
     """What the replay knows about one camera: calibration, extrinsics, undistortion maps."""
 
     camera: PinholeCamera | None = None
+    calibration_problem: str = ""  # why the last calibration of this camera was refused
     T_agv_cam: np.ndarray | None = None
     T_world_cam: np.ndarray | None = None  # a camera fixed in the world (paper 003's wall cameras)
     undistort_maps: tuple[np.ndarray, np.ndarray] | None = None
@@ -68,6 +87,8 @@ class ReplayContext:
     truth: list[tuple[int, np.ndarray]] = field(default_factory=list)  # last two (t_ns, T)
     aruco_map: ArucoMap | None = None  # from /markers/map when it names an ArUco dictionary
     marker_map_problem: str = ""  # why /markers/map was refused, for the rejection detail
+    qr_map: dict[str, np.ndarray] = field(default_factory=dict)  # QR id -> world corners (4, 3)
+    unmapped_tolerance_m: float = 0.0  # see agvviz.recording.contract.payload_map_problem
 
     def camera(self, cam_name: str) -> _Camera:
         return self.cameras.setdefault(cam_name, _Camera())
@@ -117,6 +138,10 @@ class Replay:
         self.ctx = ReplayContext()
         self._frame_index = 0
         self._last_frame_time_ns: int | None = None
+        self._cams_at_index: set[str] = set()
+        self.time_checks = TimeChecks()
+        self.truth_seen = False
+        self.frames_scored = 0  # solved frames scored against ground truth
         self._solver_options = SolverOptions(
             objective=settings.objective, max_iterations=settings.lm_max_iterations
         )
@@ -129,37 +154,78 @@ class Replay:
     def feed(self, message: RecordedMessage) -> FrameResult | None:
         """Consume one message; returns a FrameResult for camera frames, else None."""
         value = message.value
+        time_problem = self.time_checks.message(
+            message.topic, message.log_time_ns, isinstance(value, CompressedFrame)
+        )
         if isinstance(value, CalibrationMsg):
             self._set_calibration(value)
         elif isinstance(value, list) and value and isinstance(value[0], FrameTransformMsg):
             self._set_transforms(value)
         elif isinstance(value, PoseMsg) and message.topic == GROUND_TRUTH_TOPIC:
             self.ctx.truth = (self.ctx.truth + [(message.log_time_ns, value.T)])[-2:]
+            self.truth_seen = True
         elif isinstance(value, PoseMsg) and message.topic == ODOMETRY_TOPIC:
             self._diagnostics.odometry = value.T  # latest T_odom_agv, for ambiguity=odometry
         elif message.topic == MARKER_MAP_TOPIC and isinstance(value, dict):
+            self.ctx.qr_map = qr_map_of(value)
+            self.ctx.unmapped_tolerance_m = unmapped_tolerance_m(self.ctx.qr_map) if self.ctx.qr_map else 0.0
             try:
                 self.ctx.aruco_map = parse_aruco_map(value)
                 self.ctx.marker_map_problem = ""
             except ArucoError as exc:
                 self.ctx.aruco_map, self.ctx.marker_map_problem = None, str(exc)
         elif isinstance(value, CompressedFrame):
-            # Frames of several cameras at one time stamp share one frame index.
-            if self._last_frame_time_ns is not None and message.log_time_ns != self._last_frame_time_ns:
+            # Frames of several cameras at one time stamp share one frame index; a second frame
+            # of one camera (a repeated time stamp) gets its own.
+            if self._last_frame_time_ns is not None and (
+                message.log_time_ns != self._last_frame_time_ns or value.cam_name in self._cams_at_index
+            ):
                 self._frame_index += 1
+                self._cams_at_index = set()
+            self._cams_at_index.add(value.cam_name)
             self._last_frame_time_ns = message.log_time_ns
-            return self.process_frame(value, message.log_time_ns)
+            if time_problem is not None:
+                result = FrameResult(
+                    index=self._frame_index, log_time_ns=message.log_time_ns, cam_name=value.cam_name,
+                    image_format=value.image_format, image_bytes=value.data,
+                )
+                return self._reject(result, REJECT_TIME, time_problem)
+            result = self.process_frame(value, message.log_time_ns)
+            if result.rejected is None and result.position_error_m is not None:
+                self.frames_scored += 1
+            return result
         return None
+
+    def warnings(self) -> list[str]:
+        """Recording-level problems seen so far, for the run summary: time stamps (shared with
+        ``inspect``, :class:`agvviz.recording.contract.TimeChecks`) and ground truth that scored
+        no frame."""
+        max_dt_ns = int(self.settings.truth_max_dt_s * 1e9)
+        lines = self.time_checks.problems(max_dt_ns)
+        if self.truth_seen and self.frames_scored == 0 and not any("ground truth" in line for line in lines):
+            lines.append(
+                f"ground truth is recorded but no frame could be scored against it (none within "
+                f"truth_max_dt_s = {self.settings.truth_max_dt_s:g} s of a solved frame): the "
+                "error statistics are empty"
+            )
+        return lines
 
     def _set_calibration(self, calib: CalibrationMsg) -> None:
         cam = self.ctx.camera(calib.cam_name)
-        cam.camera = calib.camera
-        cam.undistort_maps = None
+        cam.camera, cam.undistort_maps, cam.calibration_problem = None, None, ""
         c = calib.camera
-        if c.has_distortion:
-            cam.undistort_maps = cv2.initUndistortRectifyMap(
-                c.K, c.dist, None, c.K, (c.width_px, c.height_px), cv2.CV_32FC2
-            )
+        problem = image_size_problem(c.width_px, c.height_px)
+        if problem is None and c.has_distortion:
+            try:
+                cam.undistort_maps = cv2.initUndistortRectifyMap(
+                    c.K, c.dist, None, c.K, (c.width_px, c.height_px), cv2.CV_32FC2
+                )
+            except (cv2.error, MemoryError) as exc:
+                problem = f"undistortion maps could not be built ({str(exc).strip().splitlines()[-1]})"
+        if problem is not None:
+            cam.calibration_problem = f"calibration refused: {problem}"
+            return
+        cam.camera = c
 
     def _set_transforms(self, transforms: list[FrameTransformMsg]) -> None:
         for tf in transforms:
@@ -202,17 +268,38 @@ class Replay:
                 "calibration" if cam is None or cam.camera is None
                 else "extrinsic (agv→camera or world→camera)"
             )
-            return self._reject(
-                result, REJECT_NO_CALIBRATION,
+            detail = (
                 f"no {missing} for camera {frame.cam_name!r} ({camera_frame(frame.cam_name)}) "
-                "before this frame",
+                "before this frame"
             )
+            if cam is not None and cam.calibration_problem:
+                detail += f" ({cam.calibration_problem})"
+            return self._reject(result, REJECT_NO_CALIBRATION, detail)
         camera = cam.camera
+        problem = frame_problem(frame.image_format, frame.data, camera)  # header only, no decode
+        if problem is not None:
+            if problem[0] == REJECT_IMAGE:
+                # Nothing a viewer should try to show (not jpeg/png, empty, or a header claiming
+                # a huge image): the bytes are dropped; the detail names the recorded format.
+                result.image_bytes = b""
+                result.image_format = frame.image_format if frame.image_format in IMAGE_FORMATS else "jpeg"
+            return self._reject(result, *problem)
         t0 = time.perf_counter()
-        gray = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        try:
+            gray = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        except cv2.error as exc:
+            gray, error = None, str(exc).strip().splitlines()[-1]
+        else:
+            error = ""
         if gray is None:
             result.detect_s = time.perf_counter() - t0
-            return self._reject(result, REJECT_DECODE, f"{frame.image_format} frame does not decode")
+            return self._reject(
+                result, REJECT_DECODE, f"{frame.image_format} frame does not decode" + (f" ({error})" if error else "")
+            )
+        problem = frame_problem(frame.image_format, frame.data, camera, size=(gray.shape[1], gray.shape[0]))
+        if problem is not None:
+            result.detect_s = time.perf_counter() - t0
+            return self._reject(result, *problem)
         if cam.undistort_maps is not None:
             gray = cv2.remap(gray, *cam.undistort_maps, interpolation=cv2.INTER_LINEAR)
         if self.ctx.aruco_map is not None:
@@ -261,17 +348,24 @@ class Replay:
         candidates = []
         problems = []
         for det in detections:
-            if det.text is None:
+            if det.text is None and det.payload_bytes is None:
                 problems.append((REJECT_DECODE, "a QR code was found but not decoded"))
                 continue
             try:
-                payload = parse_payload(det.text)
+                # Bytes that are not UTF-8 text go to the strict parser too, which refuses them.
+                payload = parse_payload(det.text if det.text is not None else det.payload_bytes)
                 T_world_marker, points_marker_m = marker_frame_from_corners(payload.points_world_m)
             except PayloadError as exc:
                 problems.append((REJECT_PAYLOAD, f"payload refused: {exc}"))
                 continue
             except DegenerateGeometryError as exc:
                 problems.append((REJECT_GEOMETRY, f"payload geometry: {exc}"))
+                continue
+            map_problem = payload_map_problem(
+                payload.marker_id, payload.points_world_m, self.ctx.qr_map, self.ctx.unmapped_tolerance_m
+            )
+            if map_problem is not None:
+                problems.append((REJECT_MAP_MISMATCH, f"payload refused: {map_problem}"))
                 continue
             # The 4 vertices are measured in the image; edge midpoints (if the payload carries
             # them) have no image measurement of their own (a point of the fitted homography

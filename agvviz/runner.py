@@ -20,7 +20,9 @@ from agvviz.evaluation.summary import FrameScore, summarize, timing
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.fusion_replay import FrameSetResult, FusionReplay
 from agvviz.pipeline import Replay
+from agvviz.recording.contract import REJECT_TIME
 from agvviz.recording.reader import (
+    DATA_SECTION_CRC_PROBLEM,
     CalibrationMsg,
     ReadReport,
     iter_messages,
@@ -70,6 +72,20 @@ def _markers_from_map(marker_map: dict) -> list[tuple[str, np.ndarray]]:
         if corners.shape == (4, 3) and np.all(np.isfinite(corners)):
             markers.append((str(m.get("id")), corners))
     return markers
+
+
+def run_warnings(replay_warnings: list[str], read_report: ReadReport) -> list[str]:
+    """The run summary's ``warnings``: what makes the run's numbers doubtful although it
+    completed — the replay's recording-level findings (time stamps, ground truth that scored
+    nothing; the checks ``inspect`` applies too) and metadata that a damaged data section
+    leaves untrustworthy. Damage itself is listed under ``recording_damage``."""
+    warnings = list(replay_warnings)
+    if DATA_SECTION_CRC_PROBLEM in read_report.problems:
+        warnings.append(
+            "the recording's data section CRC does not match: the scenario metadata (name, seed, "
+            "options) in this run's manifest may be damaged"
+        )
+    return warnings
 
 
 def run_recording(
@@ -153,6 +169,14 @@ def run_recording(
             if message.topic == MARKER_MAP_TOPIC and isinstance(message.value, dict):
                 logger.log_world_static(_markers_from_map(message.value))
             frame = replay.feed(message)
+            if frame is not None and frame.rejected == REJECT_TIME:
+                # A frame that cannot be placed in time (repeated or reversed time stamp) is
+                # logged and counted on its own, never grouped with the frames of its time stamp.
+                logger.log_frame(frame)
+                scores.append(FrameScore.of(frame))
+                if progress is not None:
+                    progress(len(scores))
+                frame = None
             if isinstance(message.value, (CalibrationMsg, list)):
                 # Log each camera once both its calibration and its extrinsic are known.
                 for cam_name, cam in replay.ctx.cameras.items():
@@ -187,6 +211,7 @@ def run_recording(
             summary["correction"] = {"solver": settings.correction, **correction_stats.summary()}
             logger.blueprint = correction_blueprint(sorted(replay.ctx.cameras))
         summary["recording_damage"] = list(read_report.problems)
+        summary["warnings"] = run_warnings(replay.warnings(), read_report)
         logger.log_summary(summary)
     return RunOutcome(
         out_path=out_path,

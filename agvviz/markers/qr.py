@@ -80,7 +80,8 @@ class QrDetection:
     Attributes
     ----------
     text : str or None
-        Decoded text, None when the code was found but not decoded.
+        Decoded text, None when the code was found but not decoded — or when its payload is
+        not UTF-8 text (then ``payload_bytes`` holds it).
     corners_px : np.ndarray, shape (4, 2)
         Refined symbol corners TL, TR, BR, BL (as printed), OpenCV pixel convention.
     raw_corners_px : np.ndarray, shape (4, 2)
@@ -94,6 +95,10 @@ class QrDetection:
         rather than the re-encoded text; empty otherwise.
     n_modules : int or None
         Modules per side of the symbol (21 + 4·(version − 1)) when its template is known.
+    payload_bytes : bytes or None
+        The decoded payload bytes when they are not UTF-8 text (``text`` is None then): a
+        code on a floor is untrusted input, and binary or Shift-JIS payloads exist in the wild
+        (OpenCV's text API raises ``UnicodeDecodeError`` on them); None otherwise.
     """
 
     text: str | None
@@ -103,6 +108,7 @@ class QrDetection:
     refine_ok: bool
     refine_note: str = ""
     n_modules: int | None = None
+    payload_bytes: bytes | None = None
 
 
 def detect_qr_codes(
@@ -124,7 +130,8 @@ def detect_qr_codes(
     Returns
     -------
     list of QrDetection
-        Empty when nothing was found. Never raises on image content.
+        Empty when nothing was found. Never raises on image content (nor on payload bytes that
+        are not UTF-8: see ``QrDetection.payload_bytes``).
 
     Raises
     ------
@@ -190,23 +197,34 @@ def _encoded_symbol(text: str, correction_level: int) -> np.ndarray:
 class _RawCode:
     """What a detector reported for one code."""
 
-    text: str | None
+    data: bytes | str | None  # the decoded payload (bytes; text is taken as is), None when not decoded
     corners_px: np.ndarray  # (4, 2) TL, TR, BR, BL
     modules_seen: np.ndarray | None  # (n, n) bool, dark modules as the detector read them
+
+    @property
+    def text(self) -> str | None:
+        """The payload as UTF-8 text; None when not decoded or not UTF-8."""
+        if self.data is None or isinstance(self.data, str):
+            return self.data
+        try:
+            return self.data.decode("utf-8")
+        except UnicodeDecodeError:
+            return None
 
 
 def _find_codes(gray: np.ndarray, fallback_detectors: bool) -> list[_RawCode]:
     """Every code in the frame, primary detector first, fallbacks merged in."""
-    found = _run_detector(cv2.QRCodeDetector().detectAndDecodeMulti, gray)
-    if not fallback_detectors or (found and all(code.text is not None for code in found)):
+    # The *Bytes* variants: the text variants raise UnicodeDecodeError on non-UTF-8 payloads.
+    found = _run_detector(cv2.QRCodeDetector().detectAndDecodeBytesMulti, gray)
+    if not fallback_detectors or (found and all(code.data is not None for code in found)):
         return found
     single = cv2.QRCodeDetector()
     for detector in (
         lambda image: _single_as_multi(single, image),
-        cv2.QRCodeDetectorAruco().detectAndDecodeMulti,
+        cv2.QRCodeDetectorAruco().detectAndDecodeBytesMulti,
     ):
         for code in _run_detector(detector, gray):
-            if code.text is None:
+            if code.data is None:
                 continue
             centre = tuple(float(c) for c in code.corners_px.mean(axis=0))
             same = [
@@ -216,14 +234,14 @@ def _find_codes(gray: np.ndarray, fallback_detectors: bool) -> list[_RawCode]:
             ]
             if not same:
                 found.append(code)
-            elif found[same[0]].text is None:
+            elif found[same[0]].data is None:
                 found[same[0]] = code
     return found
 
 
 def _single_as_multi(detector: cv2.QRCodeDetector, gray: np.ndarray):
-    """``detectAndDecode`` with ``detectAndDecodeMulti``'s return layout."""
-    text, points, straight_code = detector.detectAndDecode(gray)
+    """``detectAndDecodeBytes`` with ``detectAndDecodeBytesMulti``'s return layout."""
+    text, points, straight_code = detector.detectAndDecodeBytes(gray)
     if points is None:
         return False, (), None, None
     return True, (text,), points.reshape(1, 4, 2), (straight_code,)
@@ -232,7 +250,7 @@ def _single_as_multi(detector: cv2.QRCodeDetector, gray: np.ndarray):
 def _run_detector(detect_and_decode_multi, gray: np.ndarray) -> list[_RawCode]:
     try:
         ok, texts, points, straight_codes = detect_and_decode_multi(gray)
-    except cv2.error:
+    except (cv2.error, UnicodeDecodeError):
         return []
     if not ok or points is None:
         return []
@@ -242,7 +260,7 @@ def _run_detector(detect_and_decode_multi, gray: np.ndarray) -> list[_RawCode]:
     found = []
     for text, corners_px, straight_code in zip(texts, corners_all, straight_codes):
         if np.all(np.isfinite(corners_px)) and _is_convex(corners_px):
-            found.append(_RawCode(text or None, corners_px, _module_grid(straight_code)))
+            found.append(_RawCode(bytes(text) if text else None, corners_px, _module_grid(straight_code)))
     return found
 
 
@@ -295,6 +313,7 @@ def _refine(gray: np.ndarray, code: _RawCode, refine: str) -> QrDetection:
         refine_ok=method == refine,
         refine_note="; ".join(notes),
         n_modules=len(symbol) if symbol is not None else None,
+        payload_bytes=code.data if code.data is not None and code.text is None else None,
     )
 
 

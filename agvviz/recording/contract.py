@@ -3,16 +3,32 @@
 :func:`inspect_recording` summarises topics, cameras, static transforms and the scenario, and
 lists *violations* (the file is readable but breaks the contract) separately from *damage*
 (parts of the file could not be read). :func:`format_report` renders it for the CLI.
+
+The checks a replay must apply too live here, so ``inspect`` and ``run`` agree on what is
+wrong with a recording:
+
+* :func:`frame_problem` — an image's format, emptiness, size bound (read cheaply from the
+  JPEG/PNG header) and size against its camera's calibration;
+* :class:`TimeChecks` — image time stamps that repeat or go backwards per camera, a recording
+  whose images all share one time stamp or whose messages all sit at log time 0, and ground
+  truth that does not overlap the images in time;
+* :func:`payload_map_problem` — a QR payload's world coordinates against the recording's own
+  marker map (``/markers/map``).
 """
 
 from __future__ import annotations
 
 import re
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
+from agvviz.geometry import PinholeCamera
 from agvviz.recording.reader import (
+    MAX_IMAGE_SIDE_PX,
     CalibrationMsg,
     CompressedFrame,
     FrameTransformMsg,
@@ -21,10 +37,229 @@ from agvviz.recording.reader import (
     RawMetadata,
     ReadReport,
     decode,
+    image_size_problem,
     iter_raw,
     parse_scenario_metadata,
 )
 from agvviz.recording.schemas import SCENARIO_METADATA, SCHEMAS
+
+#: Image formats of the recording contract (``foxglove.CompressedImage.format``).
+IMAGE_FORMATS = ("jpeg", "png")
+GROUND_TRUTH_TOPIC = "/agv/ground_truth"
+
+#: Frame rejection reasons of the checks below (beside those of :mod:`agvviz.results`).
+REJECT_IMAGE = "image_invalid"  # empty, not jpeg/png, or larger than MAX_IMAGE_SIDE_PX
+REJECT_CALIBRATION_SIZE = "calibration_size_mismatch"  # image size differs from the calibration's
+REJECT_TIME = "time_not_increasing"  # log time not after the previous image of the same camera
+REJECT_MAP_MISMATCH = "payload_map_mismatch"  # QR payload disagrees with /markers/map
+
+#: A QR payload vertex may differ from the marker map's corner of the same id by this much (m).
+#: Both come from one survey: the payload rounds to 0.1 mm, so honest pairs agree to 0.05 mm;
+#: 10 mm is 200× that, yet below the ≈6–21 mm position accuracy of a single-code pose at the
+#: design geometry (DESIGN §8), so a disagreement that passes cannot move a pose by more than
+#: the pose's own uncertainty.
+PAYLOAD_MAP_TOLERANCE_M = 0.010
+#: A code whose id the map does not list is accepted only within this many times the map's
+#: largest nearest-neighbour spacing (at least 1 m) of a mapped code: on the surveyed floor or
+#: one grid step beside it (a map that misses a code), never kilometres away.
+UNMAPPED_CODE_SPACINGS = 2.0
+
+
+def image_header_size(data: bytes, image_format: str) -> tuple[int, int] | None:
+    """``(width, height)`` from a PNG IHDR or a JPEG SOF marker, without decoding; ``None``
+    when the header cannot be read (the decoder then has the last word)."""
+    try:
+        if image_format == "png":
+            if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR":
+                return struct.unpack(">II", data[16:24])
+            return None
+        if image_format == "jpeg":
+            if data[:2] != b"\xff\xd8":
+                return None
+            at = 2
+            while at + 4 <= len(data):
+                if data[at] != 0xFF:
+                    return None
+                marker = data[at + 1]
+                if marker == 0xFF:  # fill byte
+                    at += 1
+                    continue
+                if marker in (0x01, *range(0xD0, 0xD8)):  # markers without a length
+                    at += 2
+                    continue
+                (length,) = struct.unpack(">H", data[at + 2 : at + 4])
+                if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                    height, width = struct.unpack(">HH", data[at + 5 : at + 9])
+                    return width, height
+                if marker == 0xDA or length < 2:  # start of scan before any frame header
+                    return None
+                at += 2 + length
+    except struct.error:
+        return None
+    return None
+
+
+def frame_problem(
+    image_format: str, data: bytes, camera: PinholeCamera | None, size: tuple[int, int] | None = None
+) -> tuple[str, str] | None:
+    """Why a recorded camera frame cannot be used, as ``(reason, detail)``, or ``None``.
+
+    ``size`` is the frame's ``(width, height)`` when already known (a decoded image); otherwise
+    it is read from the JPEG/PNG header (no decoding). Checks, in order: empty frame, format
+    outside :data:`IMAGE_FORMATS`, a side outside 1..:data:`MAX_IMAGE_SIDE_PX` px, and a size
+    that differs from ``camera``'s calibration (when given). Shared by ``inspect`` and ``run``.
+    """
+    if len(data) == 0:
+        return REJECT_IMAGE, f"{image_format or 'image'} frame is empty (0 bytes)"
+    if image_format not in IMAGE_FORMATS:
+        return REJECT_IMAGE, (
+            f"image format {image_format!r} is not in the recording contract "
+            f"({' or '.join(IMAGE_FORMATS)})"
+        )
+    if size is None:
+        size = image_header_size(data, image_format)
+    if size is None:
+        return None
+    width, height = (int(v) for v in size)
+    problem = image_size_problem(width, height)
+    if problem:
+        return REJECT_IMAGE, f"{image_format} frame: {problem}"
+    if camera is not None and (width, height) != (camera.width_px, camera.height_px):
+        return REJECT_CALIBRATION_SIZE, (
+            f"the image is {width}x{height} px but its calibration is for "
+            f"{camera.width_px}x{camera.height_px} px; the intrinsics do not apply to it"
+        )
+    return None
+
+
+def _span(first_ns: int, last_ns: int) -> str:
+    return f"{first_ns / 1e9:.3f}..{last_ns / 1e9:.3f} s"
+
+
+class TimeChecks:
+    """Time-stamp checks shared by ``inspect`` and ``run``: feed every message with
+    :meth:`message` (images return their per-frame verdict), then read :meth:`problems`."""
+
+    def __init__(self):
+        self._last_image: dict[str, int] = {}
+        self._images: dict[str, list[int]] = {}  # topic -> [count, not increasing, first, last]
+        self._truth: list[int] | None = None  # [first, last]
+        self._messages = 0
+        self._nonzero = False
+
+    def message(self, topic: str, log_time_ns: int, is_image: bool) -> str | None:
+        """Record one message; for an image, why its time stamp cannot be used, or ``None``.
+
+        An image whose log time is not after the previous image of the same topic (repeated
+        or reversed time stamps) cannot be matched to ground truth or odometry: a replay
+        rejects it (:data:`REJECT_TIME`).
+        """
+        self._messages += 1
+        self._nonzero = self._nonzero or log_time_ns != 0
+        if topic == GROUND_TRUTH_TOPIC:
+            if self._truth is None:
+                self._truth = [log_time_ns, log_time_ns]
+            self._truth = [min(self._truth[0], log_time_ns), max(self._truth[1], log_time_ns)]
+        if not is_image:
+            return None
+        stats = self._images.setdefault(topic, [0, 0, log_time_ns, log_time_ns])
+        stats[0] += 1
+        stats[2], stats[3] = min(stats[2], log_time_ns), max(stats[3], log_time_ns)
+        last = self._last_image.get(topic)
+        if last is not None and log_time_ns <= last:
+            stats[1] += 1
+            self._last_image[topic] = max(last, log_time_ns)
+            what = "repeats" if log_time_ns == last else "goes back from"
+            return (
+                f"log time {log_time_ns} ns {what} the previous image's {last} ns on {topic}: "
+                "time stamps must increase per camera"
+            )
+        self._last_image[topic] = log_time_ns
+        return None
+
+    def problems(self, truth_max_dt_ns: int = 0) -> list[str]:
+        """Recording-level problems found so far (one line each)."""
+        lines = []
+        if self._messages > 1 and not self._nonzero:
+            lines.append(
+                f"every message ({self._messages}) has log time 0: the recording has no time "
+                "stamps, so frames cannot be told apart in time nor matched to ground truth"
+            )
+        for topic, (count, bad, first, last) in sorted(self._images.items()):
+            if count > 1 and first == last and self._nonzero:
+                lines.append(
+                    f"{topic}: all {count} images share one log time ({first} ns): "
+                    f"{count - 1} of them cannot be placed in time"
+                )
+            elif bad:
+                lines.append(
+                    f"{topic}: {bad} of {count} images have a log time not after the previous "
+                    "image's (time stamps repeated or reversed); they cannot be placed in time"
+                )
+        if self._truth is not None and self._images:
+            first = min(v[2] for v in self._images.values())
+            last = max(v[3] for v in self._images.values())
+            t0, t1 = self._truth
+            if t1 < first - truth_max_dt_ns or t0 > last + truth_max_dt_ns:
+                lines.append(
+                    f"ground truth ({GROUND_TRUTH_TOPIC}, {_span(t0, t1)}) does not overlap the "
+                    f"images ({_span(first, last)}) in time: no frame can be scored against truth"
+                )
+        return lines
+
+
+def qr_map_of(marker_map: dict) -> dict[str, np.ndarray]:
+    """World corners (4, 3) per id of a QR ``agvviz.MarkerMap`` (dictionary ``"qr"``); empty
+    for ArUco maps and for markers mounted on the vehicle."""
+    if not isinstance(marker_map, dict) or marker_map.get("dictionary") != "qr":
+        return {}
+    out = {}
+    for entry in marker_map.get("markers", []):
+        if entry.get("frame", "world") != "world":
+            continue
+        corners = np.asarray(entry.get("corners_world_m"), dtype=float)
+        if corners.shape == (4, 3) and np.all(np.isfinite(corners)):
+            out[str(entry.get("id"))] = corners
+    return out
+
+
+def unmapped_tolerance_m(qr_map: dict[str, np.ndarray]) -> float:
+    """How far from the nearest mapped code a code the map does not list may be (m)."""
+    centres = np.array([c.mean(axis=0) for c in qr_map.values()])
+    spacing = 0.0
+    if len(centres) > 1:
+        d = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+        np.fill_diagonal(d, np.inf)
+        spacing = float(d.min(axis=1).max())
+    return max(1.0, UNMAPPED_CODE_SPACINGS * spacing)
+
+
+def payload_map_problem(
+    marker_id: str, points_world_m: np.ndarray, qr_map: dict[str, np.ndarray], unmapped_tol_m: float | None = None
+) -> str | None:
+    """Why a QR payload (its id and world points; the first four are the vertices) disagrees
+    with the recording's marker map, or ``None``. No map, no check."""
+    if not qr_map:
+        return None
+    vertices = np.asarray(points_world_m, dtype=float)[:4]
+    mapped = qr_map.get(marker_id)
+    if mapped is not None:
+        error = float(np.max(np.linalg.norm(vertices - mapped, axis=1)))
+        if error > PAYLOAD_MAP_TOLERANCE_M:
+            return (
+                f"code {marker_id}: payload vertices are up to {error * 1000:.1f} mm from the marker "
+                f"map's corners of that id (tolerance {PAYLOAD_MAP_TOLERANCE_M * 1000:g} mm)"
+            )
+        return None
+    tol = unmapped_tolerance_m(qr_map) if unmapped_tol_m is None else unmapped_tol_m
+    centre = vertices.mean(axis=0)
+    nearest = min(float(np.linalg.norm(centre - c.mean(axis=0))) for c in qr_map.values())
+    if nearest > tol:
+        return (
+            f"code {marker_id} is not in the marker map and its payload puts it {nearest:.1f} m "
+            f"from the nearest mapped code (at most {tol:.1f} m accepted)"
+        )
+    return None
 
 _CAMERA_TOPIC = re.compile(r"^/cam/([^/]+)/(image|calibration)$")
 
@@ -117,6 +352,7 @@ def inspect_recording(path) -> InspectReport:
     image_cameras: set[str] = set()
     transforms: dict[tuple[str, str], FrameTransformMsg] = {}
     scenario_seen = False
+    time_checks = TimeChecks()
 
     for item in iter_raw(path, report=read):
         if isinstance(item, RawMetadata):
@@ -131,11 +367,14 @@ def inspect_recording(path) -> InspectReport:
                     )
             continue
         topic, t_ns = item.topic, item.log_time_ns
+        camera_match = _CAMERA_TOPIC.match(topic)
+        is_image = bool(camera_match) and camera_match.group(2) == "image"
+        time_checks.message(topic, t_ns, is_image)  # images: reported by time_checks.problems()
         summary = summaries.get(topic)
         if summary is None:
             summary = TopicSummary(topic, item.schema_name, item.message_encoding, 0, t_ns, t_ns)
             summaries[topic] = summary
-        elif t_ns < summary.last_ns:
+        elif t_ns < summary.last_ns and not is_image:
             tally.add(
                 f"{topic}: log time goes backwards; expected non-decreasing log times per topic",
                 f"{t_ns} ns after {summary.last_ns} ns",
@@ -162,6 +401,11 @@ def inspect_recording(path) -> InspectReport:
             if value.frame_id != camera_frame(cam_name):
                 expected = camera_frame(cam_name)
                 tally.add(f"{topic}: image frame_id is not {expected!r}", f"got {value.frame_id!r}")
+            calibration = report.cameras.get(cam_name)
+            problem = frame_problem(value.image_format, value.data, calibration.camera if calibration else None)
+            if problem is not None:
+                reason, detail = problem
+                tally.add(f"{topic}: frames a replay rejects as {reason}", f"at {t_ns} ns: {detail}")
         elif match and match.group(2) == "image" and item.schema_name == "foxglove.RawImage":
             image_cameras.add(match.group(1))
         elif isinstance(value, CalibrationMsg) and match and match.group(2) == "calibration":
@@ -175,6 +419,9 @@ def inspect_recording(path) -> InspectReport:
                 transforms[(tf.parent_frame, tf.child_frame)] = tf
         elif topic == "/agv/ground_truth" and isinstance(value, PoseMsg) and value.frame_id != WORLD_FRAME:
             tally.add(f"{topic}: frame_id is not {WORLD_FRAME!r}", f"got {value.frame_id!r}")
+        elif topic == "/markers/map" and isinstance(value, dict):
+            for problem in _marker_map_payload_problems(value):
+                tally.add(f"{topic}: a code's payload disagrees with its map entry", problem)
 
     report.topics = sorted(summaries.values(), key=lambda s: s.topic)
     if summaries:
@@ -182,6 +429,7 @@ def inspect_recording(path) -> InspectReport:
         report.end_ns = max(s.last_ns for s in summaries.values())
     report.transforms = list(transforms.values())
     report.violations += tally.lines()
+    report.violations += time_checks.problems()
     for cam_name in sorted(image_cameras):
         if cam_name not in report.cameras:
             report.violations.append(
@@ -201,6 +449,31 @@ def inspect_recording(path) -> InspectReport:
         )
     report.damage = list(read.problems)
     return report
+
+
+def _marker_map_payload_problems(marker_map: dict) -> list[str]:
+    """Map entries whose ``payload`` (the text printed on the code) disagrees with the entry's
+    own id or corners, by the replay's rule (:func:`payload_map_problem`)."""
+    from agvviz.markers.payload import PayloadError, parse_payload
+
+    qr_map = qr_map_of(marker_map)
+    problems = []
+    for entry in marker_map.get("markers", []) if qr_map else []:
+        text, marker_id = entry.get("payload"), str(entry.get("id"))
+        if not isinstance(text, str) or marker_id not in qr_map:
+            continue
+        try:
+            payload = parse_payload(text)
+        except PayloadError as exc:
+            problems.append(f"code {marker_id}: payload refused: {exc}")
+            continue
+        if payload.marker_id != marker_id:
+            problems.append(f"map entry {marker_id} carries the payload of code {payload.marker_id}")
+            continue
+        problem = payload_map_problem(marker_id, payload.points_world_m, {marker_id: qr_map[marker_id]})
+        if problem:
+            problems.append(problem)
+    return problems
 
 
 def _channel_violations(topic: str, schema_name: str, encoding: str) -> list[str]:
