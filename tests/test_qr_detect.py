@@ -139,12 +139,14 @@ def test_raw_and_subpix_corners(synthetic_runs):
         # BR has no finder pattern and is returned as detected.
         np.testing.assert_array_equal(subpix.corners_px[2], subpix.raw_corners_px[2])
     raw_errors, subpix_errors = np.array(raw_errors), np.array(subpix_errors)
-    # OpenCV's detector is off by ≈1 px (DESIGN §8: RMS 1.0, p90 2.3 px); 4 px would mean a
-    # wrong corner or order.
+    # The detector is zxing-cpp, whose corners are whole pixels (≈0.35 px off here; OpenCV's
+    # were ≈1 px, DESIGN §8: RMS 1.0, p90 2.3 px); 4 px would mean a wrong corner or order.
     assert np.max(raw_errors) < 4.0
     finders = [0, 1, 3]
-    assert np.median(subpix_errors[:, finders]) < 0.5 * np.median(raw_errors[:, finders])
-    assert np.max(subpix_errors[:, finders]) < 0.6  # DESIGN §8: median 0.20, p90 0.57 px
+    # cornerSubPix: DESIGN §8 median 0.20, p90 0.57 px (measured here: median 0.22 px against
+    # the raw corners' 0.36 px).
+    assert np.median(subpix_errors[:, finders]) < min(0.3, np.median(raw_errors[:, finders]))
+    assert np.max(subpix_errors[:, finders]) < 0.6
 
 
 def test_two_codes_in_one_frame_and_other_correction_level():
