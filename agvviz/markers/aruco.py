@@ -1,5 +1,11 @@
 """ArUco marker detection with sub-pixel corner refinement (OpenCV). No file I/O, no printing.
 
+Any OpenCV predefined dictionary works, the AprilTag families included
+(``DICT_APRILTAG_16h5``, ``DICT_APRILTAG_25h9``, ``DICT_APRILTAG_36h10``,
+``DICT_APRILTAG_36h11``: OpenCV's ArUco detector reads them, and their bit patterns with the
+one-module black border are the ECC templates); a tag's side is that of its black border, as
+for ArUco markers (AprilTag's "tag size").
+
 Input frames come from an ideal pinhole camera (the pipeline undistorts first). Corners are in
 OpenCV pixel coordinates and ArUco order TL, TR, BR, BL as printed (:mod:`agvviz.conventions`);
 they are the outer corners of the marker's black border, so a marker of side ``s`` in a map has
