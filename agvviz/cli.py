@@ -151,26 +151,75 @@ def _print_summary(summary: dict, timing: dict, title: str) -> None:
         err_console.print(f"[yellow]recording damage:[/] {problem}")
 
 
-def _run(recording: Path, solver: Optional[str], sets: list[str], out: Optional[Path]) -> Path:
-    from agvviz.recording.reader import RecordingError, count_image_times
-    from agvviz.runner import RunError, run_recording
+TOPIC_HELP = (
+    "ROLE=TOPIC (repeatable): which topic plays which role, over the inferred role map "
+    "(`agvviz inspect` prints it); e.g. --topic truth=/vicon/agv/pose --topic "
+    "front.image=/camera/image_raw/compressed. Roles: <cam>.image, <cam>.calibration, truth, "
+    "odometry, markers, tf_static, tf, uwb.range, uwb.anchors, corners"
+)
+ROLES_HELP = "a roles file (YAML role: topic, written by `agvviz inspect --write-roles FILE`); only its roles are used"
+MARKERS_HELP = "marker map side file (agvviz.MarkerMap JSON/YAML); overrides the recording's map"
+CALIBRATION_HELP = "CAM=FILE (repeatable): camera calibration side file; overrides the recording's calibration of CAM"
+EXTRINSIC_HELP = (
+    "CAM=x,y,z,qx,qy,qz,qw (repeatable): the camera's pose in the body frame (T_body_cam, metres, "
+    "quaternion x y z w; camera frame OpenCV/ROS optical); overrides the recording's transforms"
+)
+
+
+def _side_inputs(markers: Optional[Path], calibration: list[str], extrinsic: list[str], body_frame: str):
+    """Side-file values (agvviz.recording.sidefiles) for the replay; InputError on bad input."""
+    from agvviz.errors import InputError
+    from agvviz.recording import sidefiles
+    from agvviz.runner import SideInputs
+
+    side = SideInputs()
+    if markers is not None:
+        side.marker_map = sidefiles.load_marker_map(markers)
+    for pair, what in [(p, "calibration") for p in calibration] + [(p, "extrinsic") for p in extrinsic]:
+        cam, sep, value = pair.partition("=")
+        cam, value = cam.strip(), value.strip()
+        if not sep or not cam or not value:
+            example = "front=calib.yaml" if what == "calibration" else "front=0.1,0,0.3,-0.5,0.5,-0.5,0.5"
+            raise InputError(f"--{what} {pair!r}: expected CAM={'FILE' if what == 'calibration' else 'x,y,z,qx,qy,qz,qw'}, e.g. {example}")
+        if what == "calibration":
+            side.calibrations[cam] = sidefiles.load_calibration(cam, Path(value))
+        else:
+            side.extrinsics[cam] = sidefiles.parse_extrinsic(cam, value, body_frame)
+    return side
+
+
+def _run(
+    recording: Path, solver: Optional[str], sets: list[str], out: Optional[Path],
+    topics: list[str] = (), roles: Optional[Path] = None, markers: Optional[Path] = None,
+    calibration: list[str] = (), extrinsic: list[str] = (),
+) -> Path:
+    from agvviz.errors import AgvvizError
+    from agvviz.recording.roles import parse_topic_options
+    from agvviz.runner import run_recording
 
     try:
         settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
     except SettingsError as exc:
         _fail(str(exc))
     try:
-        total = count_image_times(recording)
+        topic_map = parse_topic_options(list(topics))
+        side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
         with _progress() as progress:
-            task = progress.add_task(f"replaying ({settings.label()})", total=total, rate="")
+            task = progress.add_task(f"replaying ({settings.label()})", total=None, rate="")
+
+            def on_total(total: int) -> None:
+                progress.update(task, total=total)
 
             def on_frame(done: int) -> None:
                 elapsed = progress.tasks[task].elapsed or 0.0
                 rate = f"{done / elapsed:.1f} frames/s" if elapsed > 0 else ""
                 progress.update(task, completed=done, rate=rate)
 
-            outcome = run_recording(recording, settings, out, progress=on_frame)
-    except (RunError, RecordingError) as exc:
+            outcome = run_recording(
+                recording, settings, out, progress=on_frame, topics=topic_map, roles_file=roles,
+                side=side, on_total=on_total,
+            )
+    except AgvvizError as exc:
         _fail(str(exc))
     _print_summary(outcome.summary, outcome.timing, f"run {outcome.manifest['recording_name']}")
     console.print(f"run written: [bold]{outcome.out_path}[/]")
@@ -180,31 +229,69 @@ def _run(recording: Path, solver: Optional[str], sets: list[str], out: Optional[
 
 @app.command(help=_run_help())
 def run(
-    recording: Path = typer.Argument(..., help="recording .mcap"),
+    recording: Path = typer.Argument(..., help="recording: an .mcap file or a rosbag2 directory"),
     solver: Optional[str] = typer.Option(None, "--solver", help="shortcut for --set solver=NAME"),
     set_: List[str] = typer.Option([], "--set", help=SET_HELP),
     out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-<settings>.rrd)"),
+    topic: List[str] = typer.Option([], "--topic", help=TOPIC_HELP),
+    roles: Optional[Path] = typer.Option(None, "--roles", help=ROLES_HELP),
+    markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
+    calibration: List[str] = typer.Option([], "--calibration", help=CALIBRATION_HELP),
+    extrinsic: List[str] = typer.Option([], "--extrinsic", help=EXTRINSIC_HELP),
 ) -> None:
-    _run(recording, solver, set_, out)
+    _run(recording, solver, set_, out, topic, roles, markers, calibration, extrinsic)
 
 
 # -- inspect / view / demo ---------------------------------------------------------------
 @app.command()
-def inspect(recording: Path = typer.Argument(..., help="recording .mcap")) -> None:
-    """Print topics, counts, time span, cameras and calibration; check the recording contract.
+def inspect(
+    recording: Path = typer.Argument(..., help="recording: an .mcap file or a rosbag2 directory"),
+    set_: List[str] = typer.Option([], "--set", help="run settings that change what a run can use (body_frame, time_source, ...)"),
+    topic: List[str] = typer.Option([], "--topic", help=TOPIC_HELP),
+    roles: Optional[Path] = typer.Option(None, "--roles", help=ROLES_HELP),
+    write_roles: Optional[Path] = typer.Option(None, "--write-roles", help="write the role map to this file (edit it, then run --roles FILE)"),
+    markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
+    calibration: List[str] = typer.Option([], "--calibration", help=CALIBRATION_HELP),
+    extrinsic: List[str] = typer.Option([], "--extrinsic", help=EXTRINSIC_HELP),
+) -> None:
+    """Print topics, counts, time span, cameras and calibration, the role map and whether a
+    run can use the frames; check agvviz recordings against the recording contract.
 
-    Exits with code 1 when the file violates the contract or is damaged.
-    Example: agvviz inspect recordings/qr_floor.mcap
+    Exits with code 1 when the file violates the contract, is damaged, or holds no frame a
+    run could use (the causes are listed, as `run` would give them).
+    Example: agvviz inspect rosbag2_dir --topic truth=/vicon/agv/pose --write-roles roles.yaml
     """
+    from agvviz.errors import AgvvizError
     from agvviz.recording.contract import format_report, inspect_recording
-    from agvviz.recording.reader import RecordingError
+    from agvviz.recording.roles import parse_topic_options
+    from agvviz.runner import prepare
 
     try:
-        report = inspect_recording(recording)
-    except RecordingError as exc:
+        settings = apply_overrides(RunSettings(), list(set_))
+        topic_map = parse_topic_options(list(topic))
+        side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
+        prepared = prepare(recording, settings, topic_map, roles, side)
+        report = inspect_recording(recording, roles=prepared.roles)
+    except AgvvizError as exc:
         _fail(str(exc))
-    console.print(format_report(report), highlight=False, markup=False)
-    if not report.ok:
+    console.print(format_report(report), highlight=False, markup=False, soft_wrap=True)
+    lines = ["", f"roles (body frame {prepared.body_frame}, time from {prepared.time_source}; override with --topic ROLE=TOPIC):"]
+    lines += prepared.roles.lines() or ["  none"]
+    if prepared.usable_cameras:
+        lines.append(f"replay: frames of camera(s) {', '.join(prepared.usable_cameras)} can be used")
+    for cause in prepared.causes:
+        lines.append(f"replay: {cause}")
+    if not prepared.can_run:
+        lines.append("replay: a run would fail (no frame can be used; `agvviz run` exits non-zero)")
+    console.print("\n".join(lines), highlight=False, markup=False, soft_wrap=True)
+    if write_roles is not None:
+        try:
+            write_roles.write_text(prepared.roles.to_yaml())
+        except OSError as exc:
+            _fail(f"--write-roles {write_roles}: cannot write ({exc.strerror or exc})")
+        console.print(f"roles written: {write_roles} (use it with --roles {write_roles})", highlight=False,
+                      markup=False, soft_wrap=True)
+    if not report.ok or not prepared.can_run:
         raise typer.Exit(code=1)
 
 

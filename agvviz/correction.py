@@ -47,10 +47,7 @@ from agvviz.solvers.cnoem import CornerWindow, Sighting, WindowSolution, solve_c
 from agvviz.solvers.uncertainty import UncertaintyError
 from agvviz.solvers.window_crlb import position_bound_m, window_crlb
 
-ODOMETRY_TOPIC = "/agv/odometry"
-GROUND_TRUTH_TOPIC = "/agv/ground_truth"
-CORNERS_TOPIC = "/markers/corners"
-MARKER_MAP_TOPIC = "/markers/map"
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TRUTH  # noqa: E402
 
 
 class CorrectionError(InputError):
@@ -267,19 +264,19 @@ class CorrectionReplay:
 
     def feed(self, message: RecordedMessage, frame: FrameResult | None) -> list[CorrectionStep]:
         out = []
-        if self._pending_time is not None and message.log_time_ns > self._pending_time:
+        if self._pending_time is not None and message.time_ns > self._pending_time:
             out += self._flush()
-        if message.topic == MARKER_MAP_TOPIC and isinstance(message.value, dict):
+        if message.role == ROLE_MARKER_MAP and isinstance(message.value, dict):
             for m in message.value.get("markers", []):
                 corners = np.asarray(m.get("corners_world_m", []), dtype=float)
                 if m.get("frame", "world") == "world" and corners.shape == (4, 3):
                     self.map_corners[str(m.get("id"))] = corners
-        elif message.topic == ODOMETRY_TOPIC and isinstance(message.value, PoseMsg):
+        elif message.role == ROLE_ODOMETRY and isinstance(message.value, PoseMsg):
             self._nav = message.value
-        elif message.topic == GROUND_TRUTH_TOPIC and isinstance(message.value, PoseMsg):
-            self._truth = (message.log_time_ns, message.value.T)
-        elif message.topic == CORNERS_TOPIC and isinstance(message.value, dict):
-            self._add_pending(message.log_time_ns, self._corner_sightings(message.value))
+        elif message.role == ROLE_TRUTH and isinstance(message.value, PoseMsg):
+            self._truth = (message.time_ns, message.value.T)
+        elif message.role == ROLE_CORNERS and isinstance(message.value, dict):
+            self._add_pending(message.time_ns, self._corner_sightings(message.value))
         if frame is not None:
             self._add_pending(frame.log_time_ns, self._frame_sightings(frame))
         return out

@@ -30,9 +30,7 @@ from agvviz.settings import RunSettings
 from agvviz.uwb import RangeRecord, UwbFix, UwbTracker, range_from_timestamps_m
 from agvviz.uwb.localize import predicted_ranges_m
 
-UWB_RANGE_TOPIC = "/uwb/range"
-UWB_ANCHORS_TOPIC = "/uwb/anchors"
-GROUND_TRUTH_TOPIC = "/agv/ground_truth"
+from agvviz.recording.topics import ROLE_TRUTH, ROLE_UWB_ANCHORS, ROLE_UWB_RANGE  # noqa: E402
 TAG_FRAME = "uwb_tag"
 
 
@@ -139,22 +137,22 @@ class FusionReplay:
         """Consume one message (and the pipeline's frame result for it); returns the items
         completed by it, in time order."""
         out = []
-        if self._pending and message.log_time_ns != self._pending[0].log_time_ns:
+        if self._pending and message.time_ns != self._pending[0].log_time_ns:
             out.append(self._complete_frame_set())
         value = message.value
-        if message.topic == GROUND_TRUTH_TOPIC and isinstance(value, PoseMsg):
-            self._truth.add(message.log_time_ns, value.T)
+        if message.role == ROLE_TRUTH and isinstance(value, PoseMsg):
+            self._truth.add(message.time_ns, value.T)
         elif isinstance(value, list) and value and isinstance(value[0], FrameTransformMsg):
             for tf in value:
                 if tf.parent_frame == "agv" and tf.child_frame == TAG_FRAME:
                     # The tag is taken to sit above the AGV origin; its height is what counts.
                     self.tag_z_m = float(tf.T_parent_child[2, 3])
             self._start_uwb()
-        elif message.topic == UWB_ANCHORS_TOPIC and isinstance(value, dict):
+        elif message.role == ROLE_UWB_ANCHORS and isinstance(value, dict):
             self.anchors_m = {str(a["id"]): np.asarray(a["position_m"], dtype=float) for a in value["anchors"]}
             self._start_uwb()
-        elif message.topic == UWB_RANGE_TOPIC and isinstance(value, dict) and self.tracker is not None:
-            out += self._range(message.log_time_ns, value)
+        elif message.role == ROLE_UWB_RANGE and isinstance(value, dict) and self.tracker is not None:
+            out += self._range(message.time_ns, value)
         if frame is not None:
             self._pending.append(frame)
         return out

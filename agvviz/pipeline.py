@@ -47,6 +47,7 @@ from agvviz.recording.reader import (
     RecordedMessage,
     image_size_problem,
 )
+from agvviz.recording.topics import ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TRUTH, camera_of_role
 from agvviz.results import (
     REJECT_DECODE,
     REJECT_GEOMETRY,
@@ -62,10 +63,7 @@ from agvviz.pose_diagnostics import PoseDiagnostics
 from agvviz.settings import RunSettings
 from agvviz.solvers import SolverOptions, solve
 from agvviz.solvers.planar import PlanarPrior
-
-GROUND_TRUTH_TOPIC = "/agv/ground_truth"
-ODOMETRY_TOPIC = "/agv/odometry"
-MARKER_MAP_TOPIC = "/markers/map"
+from agvviz.sync import SyncState
 
 
 @dataclass
@@ -74,9 +72,11 @@ class _Camera:
 
     camera: PinholeCamera | None = None
     calibration_problem: str = ""  # why the last calibration of this camera was refused
-    T_agv_cam: np.ndarray | None = None
+    T_agv_cam: np.ndarray | None = None  # T_body_cam (the body frame is a setting)
     T_world_cam: np.ndarray | None = None  # a camera fixed in the world (paper 003's wall cameras)
     undistort_maps: tuple[np.ndarray, np.ndarray] | None = None
+    calibration: CalibrationMsg | None = None  # the message ``camera`` came from
+    extrinsic_problem: str = ""  # why neither extrinsic is known
 
 
 @dataclass
@@ -84,7 +84,7 @@ class ReplayContext:
     """State gathered from non-image messages while streaming (static and latest values)."""
 
     cameras: dict[str, _Camera] = field(default_factory=dict)
-    truth: list[tuple[int, np.ndarray]] = field(default_factory=list)  # last two (t_ns, T)
+    marker_map: dict | None = None  # the marker map in use (side file or recording)
     aruco_map: ArucoMap | None = None  # from /markers/map when it names an ArUco dictionary
     marker_map_problem: str = ""  # why /markers/map was refused, for the rejection detail
     qr_map: dict[str, np.ndarray] = field(default_factory=dict)  # QR id -> world corners (4, 3)
@@ -120,22 +120,30 @@ def _ideal_to_image_px(camera: PinholeCamera, ideal_px: np.ndarray) -> np.ndarra
     return camera.normalized_to_pixels(camera.distort_normalized(xy))
 
 
-def _truth_at(ctx: ReplayContext, t_ns: int, max_dt_ns: int) -> np.ndarray | None:
-    """Ground truth at ``t_ns``: the nearest of the last truths within ``max_dt_ns``."""
-    best = None
-    for t_truth, T in ctx.truth:
-        dt = abs(t_truth - t_ns)
-        if dt <= max_dt_ns and (best is None or dt < best[0]):
-            best = (dt, T)
-    return None if best is None else best[1]
-
-
 class Replay:
-    """Streams :class:`FrameResult` s from recording messages under fixed settings."""
+    """Streams :class:`FrameResult` s from recording messages under fixed settings.
 
-    def __init__(self, settings: RunSettings):
+    A run first calls :meth:`prime` with every non-image message of the recording (the sync
+    stage, :class:`agvviz.sync.SyncState`: calibrations, transforms, truth, odometry, marker
+    map), then :meth:`feed` with the messages in file order; calibration and transforms then
+    apply to every frame whatever order the file holds them in, and truth is interpolated at
+    each image's stamp. Fed without :meth:`prime`, a frame knows what came before it.
+    Messages are dispatched on their role (:mod:`agvviz.recording.topics`).
+    """
+
+    def __init__(self, settings: RunSettings, body_frame: str = AGV_FRAME, world_frame: str = WORLD_FRAME):
         self.settings = settings
         self.ctx = ReplayContext()
+        self.sync = SyncState(
+            body_frame=body_frame,
+            world_frame=world_frame,
+            truth_max_dt_ns=int(settings.truth_max_dt_s * 1e9),
+            truth_max_gap_ns=int(settings.truth_max_gap_s * 1e9),
+        )
+        self.primed = False
+        #: camera name -> the frame id its images carry, when known before the first image
+        self.camera_frames: dict[str, str] = {}
+        self.frames_truth_gap = 0  # solved frames not scored: no truth within the gap limits
         self._frame_index = 0
         self._last_frame_time_ns: int | None = None
         self._cams_at_index: set[str] = set()
@@ -151,50 +159,96 @@ class Replay:
         )
 
     # -- message handling ---------------------------------------------------------------
+    def set_side_inputs(
+        self,
+        marker_map: dict | None = None,
+        calibrations: dict[str, CalibrationMsg] | None = None,
+        extrinsics: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        """Side files (``--markers``, ``--calibration``, ``--extrinsic``): they override the
+        recording's own value for their camera (or the marker map). Call before any message.
+        ``extrinsics`` are ``T_body_cam`` per camera."""
+        for cam_name, calib in (calibrations or {}).items():
+            self.sync.side_calibrations[cam_name] = calib
+        for cam_name, T in (extrinsics or {}).items():
+            self.sync.side_extrinsics[cam_name] = np.asarray(T, dtype=float)
+        if marker_map is not None:
+            self.sync.side_marker_map = marker_map
+            self._set_marker_map(marker_map)
+        self._update_all_cameras(0)
+
+    def prime(self, messages: Iterable[RecordedMessage]) -> None:
+        """First pass: every non-image message of the recording into the sync stage."""
+        for message in messages:
+            if isinstance(message.value, CompressedFrame):
+                continue
+            self._take_context(message)
+        self.primed = True
+        self._update_all_cameras(None)
+
+    def _take_context(self, message: RecordedMessage) -> None:
+        value = message.value
+        if isinstance(value, CalibrationMsg):
+            self._note_calibration_problem(message)
+        self.sync.add(message)
+        if message.role == ROLE_TRUTH and isinstance(value, PoseMsg):
+            self.truth_seen = True
+        if message.role == ROLE_MARKER_MAP and isinstance(value, dict) and self.sync.side_marker_map is None:
+            self._set_marker_map(value)
+
+    def _set_marker_map(self, value: dict) -> None:
+        self.ctx.marker_map = value
+        self.ctx.qr_map = qr_map_of(value)
+        self.ctx.unmapped_tolerance_m = unmapped_tolerance_m(self.ctx.qr_map) if self.ctx.qr_map else 0.0
+        try:
+            self.ctx.aruco_map = parse_aruco_map(value)
+            self.ctx.marker_map_problem = ""
+        except ArucoError as exc:
+            self.ctx.aruco_map, self.ctx.marker_map_problem = None, str(exc)
+
     def feed(self, message: RecordedMessage) -> FrameResult | None:
         """Consume one message; returns a FrameResult for camera frames, else None."""
         value = message.value
-        time_problem = self.time_checks.message(
-            message.topic, message.log_time_ns, isinstance(value, CompressedFrame)
-        )
-        if isinstance(value, CalibrationMsg):
-            self._set_calibration(value)
-        elif isinstance(value, list) and value and isinstance(value[0], FrameTransformMsg):
-            self._set_transforms(value)
-        elif isinstance(value, PoseMsg) and message.topic == GROUND_TRUTH_TOPIC:
-            self.ctx.truth = (self.ctx.truth + [(message.log_time_ns, value.T)])[-2:]
-            self.truth_seen = True
-        elif isinstance(value, PoseMsg) and message.topic == ODOMETRY_TOPIC:
-            self._diagnostics.odometry = value.T  # latest T_odom_agv, for ambiguity=odometry
-        elif message.topic == MARKER_MAP_TOPIC and isinstance(value, dict):
-            self.ctx.qr_map = qr_map_of(value)
-            self.ctx.unmapped_tolerance_m = unmapped_tolerance_m(self.ctx.qr_map) if self.ctx.qr_map else 0.0
-            try:
-                self.ctx.aruco_map = parse_aruco_map(value)
-                self.ctx.marker_map_problem = ""
-            except ArucoError as exc:
-                self.ctx.aruco_map, self.ctx.marker_map_problem = None, str(exc)
-        elif isinstance(value, CompressedFrame):
-            # Frames of several cameras at one time stamp share one frame index; a second frame
-            # of one camera (a repeated time stamp) gets its own.
-            if self._last_frame_time_ns is not None and (
-                message.log_time_ns != self._last_frame_time_ns or value.cam_name in self._cams_at_index
-            ):
-                self._frame_index += 1
-                self._cams_at_index = set()
-            self._cams_at_index.add(value.cam_name)
-            self._last_frame_time_ns = message.log_time_ns
-            if time_problem is not None:
-                result = FrameResult(
-                    index=self._frame_index, log_time_ns=message.log_time_ns, cam_name=value.cam_name,
-                    image_format=value.image_format, image_bytes=value.data,
-                )
-                return self._reject(result, REJECT_TIME, time_problem)
-            result = self.process_frame(value, message.log_time_ns)
-            if result.rejected is None and result.position_error_m is not None:
-                self.frames_scored += 1
-            return result
-        return None
+        is_image = isinstance(value, CompressedFrame)
+        t_ns = message.time_ns
+        time_problem = self.time_checks.message(message.topic, t_ns, is_image, is_truth=message.role == ROLE_TRUTH)
+        if not is_image:
+            if not self.primed:
+                self._take_context(message)
+                if isinstance(value, CalibrationMsg) or (
+                    isinstance(value, list) and value and isinstance(value[0], FrameTransformMsg)
+                ):
+                    self._update_all_cameras(t_ns)
+            return None
+        cam_role = camera_of_role(message.role)
+        if cam_role is not None and cam_role[0] != value.cam_name:
+            value = CompressedFrame(cam_role[0], value.frame_id, value.image_format, value.data,
+                                    value.stamp_ns, value.source_encoding)
+        # Frames of several cameras at one time stamp share one frame index; a second frame
+        # of one camera (a repeated time stamp) gets its own.
+        if self._last_frame_time_ns is not None and (
+            t_ns != self._last_frame_time_ns or value.cam_name in self._cams_at_index
+        ):
+            self._frame_index += 1
+            self._cams_at_index = set()
+        self._cams_at_index.add(value.cam_name)
+        self._last_frame_time_ns = t_ns
+        if time_problem is not None:
+            result = FrameResult(
+                index=self._frame_index, log_time_ns=t_ns, cam_name=value.cam_name,
+                image_format=value.image_format, image_bytes=value.data,
+            )
+            return self._reject(result, REJECT_TIME, time_problem)
+        self._update_camera(value.cam_name, value.frame_id, t_ns)
+        odometry = self.sync.odometry_at(t_ns)
+        if odometry is not None:
+            self._diagnostics.odometry = odometry  # T_odom_agv at this frame, for ambiguity=odometry
+        result = self.process_frame(value, t_ns)
+        if result.rejected is None and result.position_error_m is not None:
+            self.frames_scored += 1
+        elif result.rejected is None and self.truth_seen and result.T_world_agv_truth is None:
+            self.frames_truth_gap += 1
+        return result
 
     def warnings(self) -> list[str]:
         """Recording-level problems seen so far, for the run summary: time stamps (shared with
@@ -205,13 +259,56 @@ class Replay:
         if self.truth_seen and self.frames_scored == 0 and not any("ground truth" in line for line in lines):
             lines.append(
                 f"ground truth is recorded but no frame could be scored against it (none within "
-                f"truth_max_dt_s = {self.settings.truth_max_dt_s:g} s of a solved frame): the "
-                "error statistics are empty"
+                f"truth_max_dt_s = {self.settings.truth_max_dt_s:g} s of a solved frame, nor between "
+                f"two truth samples at most truth_max_gap_s = {self.settings.truth_max_gap_s:g} s "
+                "apart): the error statistics are empty"
+            )
+        elif self.frames_truth_gap and self.frames_scored:
+            lines.append(
+                f"{self.frames_truth_gap} solved frame(s) not scored: no ground truth within "
+                f"truth_max_dt_s = {self.settings.truth_max_dt_s:g} s nor between two truth samples "
+                f"at most truth_max_gap_s = {self.settings.truth_max_gap_s:g} s apart"
             )
         return lines
 
-    def _set_calibration(self, calib: CalibrationMsg) -> None:
-        cam = self.ctx.camera(calib.cam_name)
+    def _note_calibration_problem(self, message: RecordedMessage) -> None:
+        """A calibration the replay refuses (absurd size): remembered for the rejection detail."""
+        calib = message.value
+        cam_role = camera_of_role(message.role)
+        cam = self.ctx.camera(cam_role[0] if cam_role else calib.cam_name)
+        problem = image_size_problem(calib.camera.width_px, calib.camera.height_px)
+        cam.calibration_problem = f"calibration refused: {problem}" if problem else ""
+
+    def _known_cameras(self) -> set[str]:
+        names = set(self.sync.calibrations) | set(self.sync.side_calibrations) | set(self.sync.side_extrinsics)
+        names |= set(self.ctx.cameras) | set(self.camera_frames)
+        names |= {f[len("cam_"):] for f in self.sync.tf.frames() if f.startswith("cam_")}
+        return names
+
+    def _update_all_cameras(self, t_ns: int | None) -> None:
+        """Refresh every known camera from the sync stage (at ``t_ns``; ``None``: the first
+        calibration and fixed transforms), so consumers of :attr:`ctx` (fusion, correction)
+        see calibrations and extrinsics before any image of that camera."""
+        for cam_name in sorted(self._known_cameras()):
+            frame_id = self.camera_frames.get(cam_name) or camera_frame(cam_name)
+            self._update_camera(cam_name, frame_id, t_ns, keep_extrinsic=True)
+
+    def _update_camera(self, cam_name: str, frame_id: str, t_ns: int | None, keep_extrinsic: bool = False) -> None:
+        """Calibration and extrinsic of one camera at ``t_ns`` for an image in ``frame_id``."""
+        cam = self.ctx.camera(cam_name)
+        calib = self.sync.calibration_at(cam_name, t_ns if t_ns is not None else -(2**62))
+        if calib is not cam.calibration:
+            cam.calibration = calib
+            if calib is None:
+                cam.camera, cam.undistort_maps = None, None
+            else:
+                self._set_calibration(cam, calib)
+        T_body_cam, T_world_cam, why = self.sync.extrinsic(cam_name, frame_id, t_ns)
+        if T_body_cam is None and T_world_cam is None and keep_extrinsic:
+            return
+        cam.T_agv_cam, cam.T_world_cam, cam.extrinsic_problem = T_body_cam, T_world_cam, why
+
+    def _set_calibration(self, cam: _Camera, calib: CalibrationMsg) -> None:
         cam.camera, cam.undistort_maps, cam.calibration_problem = None, None, ""
         c = calib.camera
         problem = image_size_problem(c.width_px, c.height_px)
@@ -227,13 +324,6 @@ class Replay:
             return
         cam.camera = c
 
-    def _set_transforms(self, transforms: list[FrameTransformMsg]) -> None:
-        for tf in transforms:
-            if tf.parent_frame == "agv" and tf.child_frame.startswith("cam_"):
-                self.ctx.camera(tf.child_frame[len("cam_") :]).T_agv_cam = tf.T_parent_child
-            elif tf.parent_frame == "world" and tf.child_frame.startswith("cam_"):
-                self.ctx.camera(tf.child_frame[len("cam_") :]).T_world_cam = tf.T_parent_child
-
     # -- one frame ------------------------------------------------------------------------
     def process_frame(self, frame: CompressedFrame, log_time_ns: int) -> FrameResult:
         t_start = time.perf_counter()
@@ -244,7 +334,7 @@ class Replay:
             image_format=frame.image_format,
             image_bytes=frame.data,
         )
-        truth = _truth_at(self.ctx, log_time_ns, int(self.settings.truth_max_dt_s * 1e9))
+        truth = self.sync.truth_at(log_time_ns)
         if truth is not None:
             result.T_world_agv_truth = truth
             result.hpr_truth_rad = np.array(
@@ -266,14 +356,16 @@ class Replay:
         if cam is None or cam.camera is None or (cam.T_agv_cam is None and cam.T_world_cam is None):
             missing = (
                 "calibration" if cam is None or cam.camera is None
-                else "extrinsic (agv→camera or world→camera)"
+                else f"extrinsic ({self.sync.body_frame}→camera or {self.sync.world_frame}→camera)"
             )
             detail = (
-                f"no {missing} for camera {frame.cam_name!r} ({camera_frame(frame.cam_name)}) "
-                "before this frame"
+                f"no {missing} for camera {frame.cam_name!r} ({frame.frame_id or camera_frame(frame.cam_name)}) "
+                + ("before this frame" if not self.primed else "in the recording or side files")
             )
             if cam is not None and cam.calibration_problem:
                 detail += f" ({cam.calibration_problem})"
+            elif cam is not None and cam.camera is not None and cam.extrinsic_problem:
+                detail += f": {cam.extrinsic_problem}"
             return self._reject(result, REJECT_NO_CALIBRATION, detail)
         camera = cam.camera
         problem = frame_problem(frame.image_format, frame.data, camera)  # header only, no decode

@@ -8,7 +8,7 @@ from __future__ import annotations
 import hashlib
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -20,14 +20,18 @@ from agvviz.evaluation.summary import FrameScore, summarize, timing
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.fusion_replay import FrameSetResult, FusionReplay
 from agvviz.pipeline import Replay
-from agvviz.recording.contract import REJECT_TIME
+from agvviz.conventions import camera_frame
+from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
 from agvviz.recording.reader import (
     DATA_SECTION_CRC_PROBLEM,
     CalibrationMsg,
+    FrameTransformMsg,
     ReadReport,
-    iter_messages,
-    read_scenario_metadata,
 )
+from agvviz.recording.roles import IMAGE_TYPES, RoleMap
+from agvviz.recording.source import Recording, Scan, iter_role_messages, open_recording, resolve_roles, scan
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_UWB_RANGE, calibration_role, image_role
+from agvviz.results import REJECT_NO_CALIBRATION
 from agvviz.settings import RunSettings, as_dict
 from agvviz.viz.run_logger import RunLogger
 from agvviz.viz.uwb_blueprint import uwb_blueprint
@@ -35,7 +39,6 @@ from agvviz.viz.uwb_logger import FusionLogger
 from agvviz.correction import CorrectionReplay, CorrectionSettings, CorrectionStats
 from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint
 
-MARKER_MAP_TOPIC = "/markers/map"
 
 
 @dataclass
@@ -60,7 +63,9 @@ def file_sha256(path: Path) -> str:
 
 
 def default_run_path(recording_path: Path, settings: RunSettings) -> Path:
-    return Path("runs") / f"{Path(recording_path).stem}-{settings.label()}.rrd"
+    path = Path(recording_path)
+    name = path.name if path.is_dir() else path.stem
+    return Path("runs") / f"{name}-{settings.label()}.rrd"
 
 
 def _markers_from_map(marker_map: dict) -> list[tuple[str, np.ndarray]]:
@@ -88,30 +93,176 @@ def run_warnings(replay_warnings: list[str], read_report: ReadReport) -> list[st
     return warnings
 
 
+@dataclass
+class SideInputs:
+    """Values from side files, fed to the replay before the recording's messages; each
+    overrides the recording's own value (the marker map; a camera's calibration; a camera's
+    extrinsic ``T_body_cam`` — ``T_parent_child`` of the transform, whatever its parent's name)."""
+
+    marker_map: dict | None = None
+    calibrations: dict[str, CalibrationMsg] = field(default_factory=dict)
+    extrinsics: dict[str, FrameTransformMsg] = field(default_factory=dict)
+
+    def describe(self) -> dict:
+        return {
+            "markers": self.marker_map is not None,
+            "calibration": sorted(self.calibrations),
+            "extrinsic": sorted(self.extrinsics),
+        }
+
+
+#: Rejections that say a frame could not be used at all (as opposed to a frame whose markers
+#: were not found or not solved): a run whose every frame is one of these fails.
+UNUSABLE_REJECTIONS = (REJECT_NO_CALIBRATION, REJECT_IMAGE, REJECT_CALIBRATION_SIZE, REJECT_TIME)
+
+
+@dataclass
+class Prepared:
+    """A recording opened, scanned and given its role map, with the replay's sync stage
+    filled by the first pass (:func:`prepare`)."""
+
+    recording: Recording
+    scan: Scan
+    roles: RoleMap
+    body_frame: str
+    time_source: str
+    replay: Replay
+    causes: list[str]  # why a camera's frames cannot be used, one line each
+    usable_cameras: list[str]
+
+    @property
+    def can_run(self) -> bool:
+        """A camera whose frames can be used, or corner observations / UWB ranges to replay."""
+        return bool(self.usable_cameras) or ROLE_CORNERS in self.roles.roles or ROLE_UWB_RANGE in self.roles.roles
+
+
+def _camera_causes(prepared_scan: Scan, roles: RoleMap, replay: Replay) -> tuple[list[str], list[str]]:
+    """(usable cameras, one line per camera that cannot be used and why)."""
+    causes, usable = [], []
+    for cam_name in roles.cameras():
+        topic = roles.roles[image_role(cam_name)]
+        info = prepared_scan.topics[topic]
+        why = []
+        image_problem = prepared_scan.first_problem.get(topic)
+        if image_problem and not info.frame_id:
+            why.append(f"its frames do not decode ({image_problem})")
+        cam = replay.ctx.cameras.get(cam_name)
+        calib_topic = roles.roles.get(calibration_role(cam_name))
+        if replay.sync.calibration_at(cam_name, 2**62) is None:
+            if calib_topic is None:
+                why.append(
+                    f"no calibration (no CameraInfo/CameraCalibration topic paired with it; give "
+                    f"--calibration {cam_name}=FILE or --topic {cam_name}.calibration=TOPIC)"
+                )
+            else:
+                problem = prepared_scan.first_problem.get(calib_topic, "no valid message")
+                why.append(f"no usable calibration on {calib_topic} ({problem}; give --calibration {cam_name}=FILE)")
+        elif cam is not None and cam.camera is None and cam.calibration_problem:
+            why.append(cam.calibration_problem)
+        frame_id = info.frame_id
+        if cam_name not in replay.sync.side_extrinsics:
+            connected = replay.sync.tf.links(replay.sync.body_frame, frame_id or camera_frame(cam_name)) is not None
+            T_body, T_world, reason = replay.sync.extrinsic(cam_name, frame_id, None)
+            if not connected and T_body is None and T_world is None:
+                why.append(reason)
+        if why:
+            causes.append(f"camera {cam_name} ({topic}): " + "; ".join(why))
+        else:
+            usable.append(cam_name)
+    return usable, causes
+
+
+def prepare(
+    recording_path,
+    settings: RunSettings,
+    topics: dict[str, str] | None = None,
+    roles_file: Path | None = None,
+    side: SideInputs | None = None,
+) -> Prepared:
+    """Open and scan the recording, resolve its role map, build the replay and fill its sync
+    stage with every non-image message (first pass). Shared by ``run`` and ``inspect``."""
+    recording = open_recording(recording_path)
+    recording_scan = scan(recording, ReadReport())
+    roles = resolve_roles(recording_scan, topics, roles_file)
+    body_frame = settings.body_frame if settings.body_frame != "auto" else recording.default_body_frame(
+        recording_scan.tf_frames
+    )
+    time_source = recording.time_source(settings.time_source)
+    replay = Replay(settings, body_frame=body_frame)
+    replay.camera_frames = {
+        cam: recording_scan.topics[roles.roles[image_role(cam)]].frame_id for cam in roles.cameras()
+    }
+    side = side or SideInputs()
+    replay.set_side_inputs(
+        side.marker_map, side.calibrations, {cam: tf.T_parent_child for cam, tf in side.extrinsics.items()}
+    )
+    replay.prime(iter_role_messages(recording, roles, time_source, ReadReport(), images=False))
+    usable, causes = _camera_causes(recording_scan, roles, replay)
+    if not roles.cameras() and ROLE_CORNERS not in roles.roles and ROLE_UWB_RANGE not in roles.roles:
+        image_topics = [t for t, i in recording_scan.topics.items() if i.schema_name in IMAGE_TYPES]
+        if image_topics:
+            causes = [f"no camera images placed: {t}: {roles.unplaced.get(t, 'not placed')}" for t in image_topics]
+        else:
+            kinds = sorted({i.schema_name or "(no schema)" for i in recording_scan.topics.values()})
+            causes = [
+                f"no camera images: {recording.path.name} has no image topic (CompressedImage, Image, "
+                f"RawImage); its {len(recording_scan.topics)} topic(s) carry {', '.join(kinds[:8]) or 'nothing'}"
+                + (" …" if len(kinds) > 8 else "")
+            ]
+    return Prepared(recording, recording_scan, roles, body_frame, time_source, replay, causes, usable)
+
+
+def _unusable_run_error(recording: Recording, rejections: dict[str, list], causes: list[str]) -> RunError:
+    """The error of a run whose frames could none be used: one line per cause
+    (``rejections``: reason → [count, first detail])."""
+    lines = list(causes)
+    for reason, (count, detail) in rejections.items():
+        lines.append(f"{count} frame(s) rejected as {reason}" + (f" (first: {detail})" if detail else ""))
+    return RunError(
+        f"no frame of {recording.path.name} could be used; no .rrd written:\n  " + "\n  ".join(dict.fromkeys(lines))
+    )
+
+
 def run_recording(
     recording_path: Path,
     settings: RunSettings,
     out_path: Path | None = None,
     progress: Callable[[int], None] | None = None,
+    *,
+    topics: dict[str, str] | None = None,
+    roles_file: Path | None = None,
+    side: SideInputs | None = None,
+    on_total: Callable[[int], None] | None = None,
 ) -> RunOutcome:
-    """Replay ``recording_path`` under ``settings`` and write the run to ``out_path``.
+    """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
+    and write the run to ``out_path``.
 
-    ``progress(frames_done)`` is called after every frame. Returns the run summary and
-    manifest (both also stored in the ``.rrd``) and the wall-clock timing (not stored).
+    ``topics`` (role → topic, ``--topic``) and ``roles_file`` (``--roles``) override the
+    inferred role map; ``side`` holds side-file values. ``progress(frames_done)`` is called
+    after every frame, ``on_total(frames)`` once the number of frames is known. Returns the
+    run summary and manifest (both also stored in the ``.rrd``) and the wall-clock timing
+    (not stored). Raises :class:`RunError` — and writes nothing — when the recording has no
+    camera image or none of its frames can be used, one line per cause.
     """
     recording_path = Path(recording_path)
-    if not recording_path.is_file():
+    if not recording_path.exists():
         raise RunError(f"recording not found: {recording_path}")
     out_path = Path(out_path) if out_path is not None else default_run_path(recording_path, settings)
     if out_path.suffix != ".rrd":
         raise RunError(f"output must be a .rrd file, got {out_path}")
     if out_path.resolve() == recording_path.resolve():
         raise RunError("the output path is the recording itself; refusing to overwrite an input")
+    prepared = prepare(recording_path, settings, topics, roles_file, side)
+    recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
+    if not prepared.can_run:
+        raise _unusable_run_error(recording, {}, prepared.causes)
+    if on_total is not None:
+        on_total(max((prepared.scan.topics[roles.roles[image_role(c)]].count for c in roles.cameras()), default=0))
     out_path.parent.mkdir(parents=True, exist_ok=True)
 
-    recording_sha256 = file_sha256(recording_path)
-    scenario = read_scenario_metadata(recording_path)
-    scenario_name = scenario["name"] if scenario else recording_path.stem
+    recording_sha256 = recording.sha256()
+    scenario = recording.scenario
+    scenario_name = scenario["name"] if scenario else recording.name
     recording_name = f"{scenario_name}-{settings.label()}"
     recording_id = str(
         uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz:{recording_sha256}:{sorted(as_dict(settings).items())}")
@@ -125,13 +276,24 @@ def run_recording(
         "scenario": scenario,
         "settings": as_dict(settings),
         "recording_name": recording_name,
+        "roles": dict(sorted(roles.roles.items())),
+        "unplaced_topics": dict(sorted(roles.unplaced.items())),
+        "body_frame": prepared.body_frame,
+        "time_source": prepared.time_source,
+        "side_files": (side or SideInputs()).describe(),
     }
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     scores: list[FrameScore] = []
+    rejections: dict[str, list] = {}  # reason -> [count, first detail]
+
+    def note_rejection(frame) -> None:
+        if frame.rejected is not None:
+            rejections.setdefault(frame.rejected, [0, frame.reject_detail or ""])[0] += 1
     with RunLogger(out_path, recording_name=recording_name, recording_id=recording_id) as logger:
         logger.log_manifest(manifest)
-        replay = Replay(settings)
+        if replay.ctx.marker_map is not None:
+            logger.log_world_static(_markers_from_map(replay.ctx.marker_map))
         # Frames of one time stamp (several cameras) → one camera fix; UWB; fusion.
         fusion = FusionReplay(settings, replay.ctx.cameras)
         fusion_logger = FusionLogger(logger.stream)
@@ -149,6 +311,19 @@ def run_recording(
             correction_logger = CorrectionLogger(logger.stream)
             correction_stats = CorrectionStats()
 
+        def log_cameras() -> None:
+            # Log each camera once both its calibration and its extrinsic are known.
+            for cam_name, cam in replay.ctx.cameras.items():
+                if cam.camera is None or cam_name in cameras_logged:
+                    continue
+                if cam.T_agv_cam is not None:
+                    logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
+                elif cam.T_world_cam is not None:
+                    logger.log_fixed_camera_static(cam_name, cam.camera, cam.T_world_cam)
+                else:
+                    continue
+                cameras_logged.add(cam_name)
+
         def log_item(item) -> None:
             if isinstance(item, FrameSetResult):
                 logger.log_frame(item.scored)
@@ -156,6 +331,7 @@ def run_recording(
                     if other is not item.scored:
                         logger.log_camera_view(other)
                 scores.append(FrameScore.of(item.scored))
+                note_rejection(item.scored)
                 if progress is not None:
                     progress(len(scores))
             if fusion.has_uwb:
@@ -164,31 +340,21 @@ def run_recording(
                 fusion_logger.log(item)
                 fusion_stats.add(item)
 
+        log_cameras()
         t_start = time.perf_counter()
-        for message in iter_messages(recording_path, report=read_report):
-            if message.topic == MARKER_MAP_TOPIC and isinstance(message.value, dict):
-                logger.log_world_static(_markers_from_map(message.value))
+        for message in iter_role_messages(recording, roles, prepared.time_source, read_report):
             frame = replay.feed(message)
             if frame is not None and frame.rejected == REJECT_TIME:
                 # A frame that cannot be placed in time (repeated or reversed time stamp) is
                 # logged and counted on its own, never grouped with the frames of its time stamp.
                 logger.log_frame(frame)
                 scores.append(FrameScore.of(frame))
+                note_rejection(frame)
                 if progress is not None:
                     progress(len(scores))
                 frame = None
-            if isinstance(message.value, (CalibrationMsg, list)):
-                # Log each camera once both its calibration and its extrinsic are known.
-                for cam_name, cam in replay.ctx.cameras.items():
-                    if cam.camera is None or cam_name in cameras_logged:
-                        continue
-                    if cam.T_agv_cam is not None:
-                        logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
-                    elif cam.T_world_cam is not None:
-                        logger.log_fixed_camera_static(cam_name, cam.camera, cam.T_world_cam)
-                    else:
-                        continue
-                    cameras_logged.add(cam_name)
+            if frame is not None or isinstance(message.value, (CalibrationMsg, list)):
+                log_cameras()
             for item in fusion.feed(message, frame):
                 log_item(item)
             if correction is not None:
@@ -202,6 +368,14 @@ def run_recording(
                 correction_logger.log(step)
                 correction_stats.add(step)
         wall_time_s = time.perf_counter() - t_start
+        corners_only = correction is not None and not scores
+        if not scores and not corners_only and not fusion.has_uwb:
+            raise RunError(
+                f"no camera frame of {recording.path.name} could be read; no .rrd written:\n  "
+                + "\n  ".join(prepared.causes + read_report.problems[-5:] or ["the image topics hold no decodable frame"])
+            )
+        if scores and all(s.rejected in UNUSABLE_REJECTIONS for s in scores):
+            raise _unusable_run_error(recording, rejections, prepared.causes)
         summary = summarize(scores)
         if fusion.has_uwb:
             summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **fusion_stats.summary()}
@@ -211,7 +385,7 @@ def run_recording(
             summary["correction"] = {"solver": settings.correction, **correction_stats.summary()}
             logger.blueprint = correction_blueprint(sorted(replay.ctx.cameras))
         summary["recording_damage"] = list(read_report.problems)
-        summary["warnings"] = run_warnings(replay.warnings(), read_report)
+        summary["warnings"] = run_warnings(replay.warnings() + prepared.causes, read_report)
         logger.log_summary(summary)
     return RunOutcome(
         out_path=out_path,

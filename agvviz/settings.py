@@ -62,6 +62,24 @@ class RunSettings:
     truth_max_dt_s: float = setting(
         0.005, "largest time gap between a frame and the ground truth it is scored against (s)"
     )
+    truth_max_gap_s: float = setting(
+        0.05,
+        "ground truth and odometry are interpolated on SE(3) at each frame's stamp between two "
+        "samples at most this far apart (s); beyond it (and beyond truth_max_dt_s of the nearest "
+        "sample) a frame is not scored, and the run says how many",
+    )
+    body_frame: str = setting(
+        "auto",
+        "the robot's body frame: camera extrinsics are chained from it through /tf_static and /tf, "
+        "truth and estimates are its pose; auto = agv for agvviz recordings, base_link for other "
+        "files (agv when their transforms have no base_link)",
+    )
+    time_source: str = setting(
+        "auto",
+        "message time stamps: header (the message's own stamp), log (the file's log time) or auto "
+        "(log for agvviz recordings, header for other files)",
+        ("auto", "header", "log"),
+    )
     camera_select: str = setting(
         "best",
         "several cameras at one time: best (largest marker, paper 003) or combine (joint LM)",
@@ -127,6 +145,10 @@ class RunSettings:
                 raise SettingsError(f"{name} must be a positive number, got {value}")
         if not (self.cycle_distance_m > 0 and math.isfinite(self.cycle_distance_m)):
             raise SettingsError(f"cycle_distance_m must be a positive number, got {self.cycle_distance_m}")
+        if not (self.truth_max_gap_s >= 0 and math.isfinite(self.truth_max_gap_s)):
+            raise SettingsError(f"truth_max_gap_s must be ≥ 0, got {self.truth_max_gap_s}")
+        if not self.body_frame.strip():
+            raise SettingsError("body_frame must name a frame (or auto)")
         if self.truth_max_dt_s < 0:
             raise SettingsError(f"truth_max_dt_s must be ≥ 0, got {self.truth_max_dt_s}")
         if self.sigma_px != "auto":

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agvviz.recording import topics
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.euler import Rx, Ry, Rz, matrix_from_hpr
@@ -192,8 +193,8 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress) -> Non
     corners_marker = auv.marker_corners_marker()
     for k in range(n):
         t_ns = t0 + int(round(k * dt * 1e9))
-        writer.write_pose("/agv/ground_truth", truth[k], WORLD_FRAME, t_ns)
-        writer.write_pose("/agv/odometry", nav[k], WORLD_FRAME, t_ns)
+        writer.write_pose(topics.GROUND_TRUTH_TOPIC, truth[k], WORLD_FRAME, t_ns)
+        writer.write_pose(topics.ODOMETRY_TOPIC, nav[k], WORLD_FRAME, t_ns)
         for name, T_agv_cam in mounts.items():
             T_world_cam = truth[k] @ T_agv_cam
             if o.images:
@@ -210,7 +211,7 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress) -> Non
                     seen.append({"id": c.marker_id, "corners_px": px + rng.normal(0.0, o.sigma_px, px.shape)})
             if seen:
                 writer.write_json(
-                    "/markers/corners", "agvviz.CornerObservations",
+                    topics.CORNERS_TOPIC, "agvviz.CornerObservations",
                     {"cam_name": name, "noise_sigma_px": o.sigma_px, "markers": seen}, t_ns,
                 )
         if progress is not None:
@@ -243,12 +244,12 @@ def _record_grid(writer, o: Options, rng: np.random.Generator, progress) -> None
             by_frame.setdefault(s.frame_index, []).append(s)
         for k, T_F_agv in enumerate(geometry.T_F_agv):
             t_ns = base + (k + 1) * dt_ns
-            writer.write_pose("/agv/ground_truth", trial.T_world_F_truth @ T_F_agv, WORLD_FRAME, t_ns)
-            writer.write_pose("/agv/odometry", trial.T_world_F_nav @ T_F_agv, WORLD_FRAME, t_ns)
+            writer.write_pose(topics.GROUND_TRUTH_TOPIC, trial.T_world_F_truth @ T_F_agv, WORLD_FRAME, t_ns)
+            writer.write_pose(topics.ODOMETRY_TOPIC, trial.T_world_F_nav @ T_F_agv, WORLD_FRAME, t_ns)
             for s in by_frame.get(k, []):
                 T_cam_marker = se3.inverse(trial.T_world_F_truth @ s.T_F_cam) @ (trial.T_world_F_truth @ geometry.T_F_marker)
                 writer.write_json(
-                    "/markers/corners", "agvviz.CornerObservations",
+                    topics.CORNERS_TOPIC, "agvviz.CornerObservations",
                     {"cam_name": s.cam_name, "cell": cell.cell_id, "trial": trial_index, "noise_sigma_px": o.sigma_px,
                      "markers": [{"id": marker_id, "corners_px": s.pixels_px, "points_marker_m": auv.marker_corners_marker(),
                                   "T_cam_marker_truth": T_cam_marker}]},

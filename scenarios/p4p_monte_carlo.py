@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agvviz.recording import topics
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.settings import setting
@@ -172,7 +173,7 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
                     }
                 ],
             }
-            writer.write_json("/markers/corners", "agvviz.CornerObservations", message, START_TIME_NS + k * TRIAL_PERIOD_NS)
+            writer.write_json(topics.CORNERS_TOPIC, "agvviz.CornerObservations", message, START_TIME_NS + k * TRIAL_PERIOD_NS)
             k += 1
         if progress is not None:
             progress(k, total)

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agvviz.recording import topics
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.settings import setting
@@ -210,8 +211,8 @@ def record(
     for k in range(total):
         t_ns = int(trajectory.log_time_ns[k])
         T_world_agv = trajectory.T_world_agv[k]
-        writer.write_pose("/agv/ground_truth", T_world_agv, WORLD_FRAME, t_ns)
-        writer.write_pose("/agv/odometry", T_odom_agv[k], "odom", t_ns)
+        writer.write_pose(topics.GROUND_TRUTH_TOPIC, T_world_agv, WORLD_FRAME, t_ns)
+        writer.write_pose(topics.ODOMETRY_TOPIC, T_odom_agv[k], "odom", t_ns)
         image = render_frame(
             scene,
             camera,

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agvviz.recording import topics
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
@@ -255,7 +256,7 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
         t0_ns,
     )
     writer.write_json(
-        "/uwb/anchors", "agvviz.UwbAnchors", {"anchors": [{"id": a, "position_m": p} for a, p in anchors.items()]}, t0_ns
+        topics.UWB_ANCHORS_TOPIC, "agvviz.UwbAnchors", {"anchors": [{"id": a, "position_m": p} for a, p in anchors.items()]}, t0_ns
     )
 
     events = sorted(
@@ -267,7 +268,7 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
     for t_s, kind, anchor in events:
         t_ns = t0_ns + int(round(t_s * 1e9))
         T_world_agv = schedule.pose(t_s)
-        writer.write_pose("/agv/ground_truth", T_world_agv, WORLD_FRAME, t_ns)
+        writer.write_pose(topics.GROUND_TRUTH_TOPIC, T_world_agv, WORLD_FRAME, t_ns)
         if kind == 1:
             tag_m = se3.transform_points(T_world_agv @ T_agv_tag, np.zeros((1, 3)))[0]
             nlos = rng.random() < o.nlos_probability
@@ -278,7 +279,7 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
                 nlos_excess_m=excess,
             )
             writer.write_json(
-                "/uwb/range", "agvviz.UwbRange",
+                topics.UWB_RANGE_TOPIC, "agvviz.UwbRange",
                 {"tag": TAG_ID, "anchor": anchor, "t1_ns": exchange.t1_ns, "t2_ns": exchange.t2_ns,
                  "t3_ns": exchange.t3_ns, "t4_ns": exchange.t4_ns, "range_m": exchange.range_m},
                 t_ns,

@@ -17,6 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
+from agvviz.errors import RunError
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
@@ -153,9 +155,12 @@ def test_absurd_calibration_size_is_refused_not_allocated(base, tmp_path, width,
     report = inspect_recording(bad)
     assert not report.ok
     assert any(f"outside 1..{MAX_IMAGE_SIDE_PX} px per side" in v for v in report.violations), report.violations
-    summary = run(bad, tmp_path)
-    assert summary["frames"] == 3 and summary["rejected"] == {REJECT_NO_CALIBRATION: 3}
-    assert any(f"outside 1..{MAX_IMAGE_SIDE_PX}" in p for p in summary["recording_damage"])
+    # No frame can be used: the run fails loudly, one line per cause, and writes no .rrd.
+    with pytest.raises(RunError) as excinfo:
+        run(bad, tmp_path)
+    assert "camera front (/cam/front/image): no usable calibration" in str(excinfo.value)
+    assert f"outside 1..{MAX_IMAGE_SIDE_PX}" in str(excinfo.value)
+    assert not list(tmp_path.glob("*.rrd*"))
 
 
 def test_replay_refuses_absurd_calibration_from_any_source():
@@ -180,8 +185,10 @@ def test_unusable_image_is_a_rejection(base, tmp_path, name, fn, expected):
     bad = rewrite(base, tmp_path / f"{name}.mcap", _images(fn))
     report = inspect_recording(bad)
     assert any(REJECT_IMAGE in v and expected in v for v in report.violations), report.violations
-    summary = run(bad, tmp_path)
-    assert summary["rejected"] == {REJECT_IMAGE: 3}, summary
+    with pytest.raises(RunError) as excinfo:  # no frame can be used: no .rrd
+        run(bad, tmp_path)
+    assert f"3 frame(s) rejected as {REJECT_IMAGE}" in str(excinfo.value) and expected in str(excinfo.value)
+    assert not list(tmp_path.glob("*.rrd*"))
 
 
 def test_image_header_sizes():
@@ -242,7 +249,8 @@ def test_reversed_image_times(base, tmp_path):
     bad = rewrite(base, tmp_path / "reversed.mcap", _images(lambda t, m: [(t0 + t1 - t, _stamp(m, t0 + t1 - t))]))
     summary = run(bad, tmp_path)
     assert summary["frames"] == 3 and summary["rejected"].get(REJECT_TIME) == 2, summary
-    assert summary["position_error_mm"]["n"] == 0  # the one frame left has no truth at its time
+    # the one frame left is scored: truth comes from the whole recording (first pass)
+    assert summary["position_error_mm"]["n"] == 1
     _shared_line(inspect_recording(bad), summary, "not after the previous image's")
 
 
@@ -326,8 +334,10 @@ def test_calibration_smaller_than_images(base, tmp_path):
     bad = rewrite(base, tmp_path / "calib640.mcap", _calibration(640, 480))
     report = inspect_recording(bad)
     assert any(REJECT_CALIBRATION_SIZE in v and "1280x1024 px" in v and "640x480" in v for v in report.violations), report.violations
-    summary = run(bad, tmp_path)
-    assert summary["solved"] == 0 and summary["rejected"] == {REJECT_CALIBRATION_SIZE: 3}, summary
+    with pytest.raises(RunError) as excinfo:  # no frame can be used: no .rrd
+        run(bad, tmp_path)
+    assert f"3 frame(s) rejected as {REJECT_CALIBRATION_SIZE}" in str(excinfo.value)
+    assert not list(tmp_path.glob("*.rrd*"))
 
 
 def test_payloads_far_from_the_marker_map(base, tmp_path):

@@ -182,6 +182,7 @@ def trials_from_recording(messages) -> dict[str, list[auv.CycleTrial]]:
     from agvviz.conventions import AGV_FRAME
     from agvviz.geometry import se3
     from agvviz.recording.reader import CalibrationMsg, PoseMsg
+    from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TF_STATIC, ROLE_TRUTH
     from agvviz.solvers.cnoem import Sighting
 
     K: dict[str, np.ndarray] = {}
@@ -195,22 +196,22 @@ def trials_from_recording(messages) -> dict[str, list[auv.CycleTrial]]:
         v = m.value
         if isinstance(v, CalibrationMsg):
             K[v.cam_name] = v.camera.K
-        elif isinstance(v, list) and m.topic == "/tf_static":
+        elif isinstance(v, list) and m.role == ROLE_TF_STATIC:
             for tf in v:
                 if tf.parent_frame == AGV_FRAME and tf.child_frame.startswith("cam_"):
                     T_agv_cam[tf.child_frame[4:]] = tf.T_parent_child
-        elif m.topic == "/markers/map" and isinstance(v, dict):
+        elif m.role == ROLE_MARKER_MAP and isinstance(v, dict):
             corners = {str(e["id"]): np.asarray(e["corners_world_m"], dtype=float) for e in v.get("markers", [])}
             nav_F = truth_F = current = None
             frame_index = -1
-        elif m.topic == "/agv/odometry" and isinstance(v, PoseMsg):
+        elif m.role == ROLE_ODOMETRY and isinstance(v, PoseMsg):
             nav_now = v.T
             frame_index += 1
             if nav_F is None:
                 nav_F = v.T
-        elif m.topic == "/agv/ground_truth" and isinstance(v, PoseMsg) and truth_F is None:
+        elif m.role == ROLE_TRUTH and isinstance(v, PoseMsg) and truth_F is None:
             truth_F = v.T
-        elif m.topic == "/markers/corners" and isinstance(v, dict) and nav_F is not None:
+        elif m.role == ROLE_CORNERS and isinstance(v, dict) and nav_F is not None:
             if current is None:
                 current = auv.CycleTrial(truth_F, nav_F, [])
                 cells.setdefault(str(v.get("cell")), []).append(current)

@@ -33,7 +33,7 @@ SOLVERS = ("p4p", "lm", "lm_pixel", "lm_amb", "ippe", "sqpnp")
 #: valley for 50–100 Gauss–Newton steps before the default stopping rule fires; the study
 #: measures accuracy, so they get room (the run setting lm_max_iterations defaults to 50).
 MC_LM_MAX_ITERATIONS = 200
-CORNERS_TOPIC = "/markers/corners"
+from agvviz.recording.topics import CORNERS_TOPIC  # noqa: E402
 
 #: Paper 000 §6 figures with numbers: figure → (cell id, solver, mean t (m), variance of t (m²)).
 #: Figures 9–11 (the SNR sweep of t1, t2, t3) are plots without numbers in the text; their cells

@@ -1,7 +1,10 @@
-"""Pinhole camera with OpenCV (plumb_bob / rational-free) distortion. Numpy only.
+"""Pinhole camera with OpenCV distortion (plumb_bob, rational_polynomial). Numpy only.
 
 Pixel convention: OpenCV — integer coordinates at pixel centres. Distortion coefficients
-are OpenCV's (k1, k2, p1, p2, k3); fewer are padded with zeros.
+are OpenCV's: (k1, k2, p1, p2, k3) — ROS ``plumb_bob`` — padded with zeros when fewer are
+given, or (k1, k2, p1, p2, k3, k4, k5, k6) — ROS ``rational_polynomial``, radial factor
+(1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶). Eight coefficients whose last
+three are zero are stored as five.
 """
 
 from __future__ import annotations
@@ -13,7 +16,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """Intrinsics ``K`` (3×3), distortion ``dist`` (k1, k2, p1, p2, k3), image size in px."""
+    """Intrinsics ``K`` (3×3), distortion ``dist`` (k1, k2, p1, p2, k3[, k4, k5, k6]), image
+    size in px."""
 
     K: np.ndarray
     dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
@@ -22,11 +26,14 @@ class PinholeCamera:
 
     def __post_init__(self):
         K = np.asarray(self.K, dtype=float).reshape(3, 3)
-        d = np.zeros(5)
         given = np.asarray(self.dist, dtype=float).ravel()
-        if given.size > 5:
-            raise ValueError(f"only 5 plumb_bob coefficients are supported, got {given.size}")
-        d[: given.size] = given
+        if given.size > 8 or 5 < given.size < 8:
+            raise ValueError(
+                f"distortion needs at most 5 (plumb_bob) or exactly 8 (rational_polynomial) "
+                f"coefficients, got {given.size}"
+            )
+        d = np.zeros(8 if given.size == 8 and np.any(given[5:] != 0.0) else 5)
+        d[: min(given.size, d.size)] = given[: d.size]
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(d))):
             raise ValueError("camera intrinsics or distortion contain NaN/inf")
         if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
@@ -38,6 +45,23 @@ class PinholeCamera:
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0.0))
 
+    @property
+    def is_rational(self) -> bool:
+        """True for the 8-coefficient rational_polynomial model."""
+        return self.dist.size == 8
+
+    def _radial(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Radial factor and its derivative with respect to r²."""
+        k1, k2, k3 = self.dist[0], self.dist[1], self.dist[4]
+        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dnum = k1 + 2 * k2 * r2 + 3 * k3 * r2 * r2
+        if not self.is_rational:
+            return num, dnum
+        k4, k5, k6 = self.dist[5:8]
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        dden = k4 + 2 * k5 * r2 + 3 * k6 * r2 * r2
+        return num / den, (dnum * den - num * dden) / (den * den)
+
     def without_distortion(self) -> "PinholeCamera":
         """The same camera with zero distortion (the ideal pinhole of an undistorted image)."""
         return PinholeCamera(self.K, np.zeros(5), self.width_px, self.height_px)
@@ -45,10 +69,10 @@ class PinholeCamera:
     # -- projection ---------------------------------------------------------------------
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
         """Apply distortion to normalised image coordinates (N, 2)."""
-        k1, k2, p1, p2, k3 = self.dist
+        p1, p2 = self.dist[2], self.dist[3]
         x, y = xy[:, 0], xy[:, 1]
         r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        radial, _ = self._radial(r2)
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         return np.stack([xd, yd], axis=1)
@@ -76,10 +100,9 @@ class PinholeCamera:
         p = np.asarray(points_cam_m, dtype=float).reshape(-1, 3)
         X, Y, Z = p[:, 0], p[:, 1], p[:, 2]
         x, y = X / Z, Y / Z
-        k1, k2, p1, p2, k3 = self.dist
+        p1, p2 = self.dist[2], self.dist[3]
         r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dradial_dr2 = k1 + 2 * k2 * r2 + 3 * k3 * r2 * r2
+        radial, dradial_dr2 = self._radial(r2)
         # d(xd, yd) / d(x, y)
         dxd_dx = radial + 2 * x * x * dradial_dr2 + 2 * p1 * y + 6 * p2 * x
         dxd_dy = 2 * x * y * dradial_dr2 + 2 * p1 * x + 2 * p2 * y

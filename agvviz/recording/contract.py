@@ -42,10 +42,16 @@ from agvviz.recording.reader import (
     parse_scenario_metadata,
 )
 from agvviz.recording.schemas import SCENARIO_METADATA, SCHEMAS
+from agvviz.recording.topics import (
+    GROUND_TRUTH_TOPIC,
+    ROLE_MARKER_MAP,
+    ROLE_TF_STATIC,
+    ROLE_TRUTH,
+    camera_of_role,
+)
 
 #: Image formats of the recording contract (``foxglove.CompressedImage.format``).
 IMAGE_FORMATS = ("jpeg", "png")
-GROUND_TRUTH_TOPIC = "/agv/ground_truth"
 
 #: Frame rejection reasons of the checks below (beside those of :mod:`agvviz.results`).
 REJECT_IMAGE = "image_invalid"  # empty, not jpeg/png, or larger than MAX_IMAGE_SIDE_PX
@@ -147,7 +153,7 @@ class TimeChecks:
         self._messages = 0
         self._nonzero = False
 
-    def message(self, topic: str, log_time_ns: int, is_image: bool) -> str | None:
+    def message(self, topic: str, log_time_ns: int, is_image: bool, is_truth: bool | None = None) -> str | None:
         """Record one message; for an image, why its time stamp cannot be used, or ``None``.
 
         An image whose log time is not after the previous image of the same topic (repeated
@@ -156,7 +162,7 @@ class TimeChecks:
         """
         self._messages += 1
         self._nonzero = self._nonzero or log_time_ns != 0
-        if topic == GROUND_TRUTH_TOPIC:
+        if is_truth or (is_truth is None and topic == GROUND_TRUTH_TOPIC):
             if self._truth is None:
                 self._truth = [log_time_ns, log_time_ns]
             self._truth = [min(self._truth[0], log_time_ns), max(self._truth[1], log_time_ns)]
@@ -306,6 +312,12 @@ class InspectReport:
     scenario: dict | None = None
     violations: list[str] = field(default_factory=list)
     damage: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # worth knowing, not a violation
+    native: bool = True  # an agvviz recording (the contract's naming applies)
+    kind: str = "mcap"  # "mcap" | "rosbag2"
+    files: list[str] = field(default_factory=list)
+    bag_message_count: int | None = None  # rosbag2 metadata.yaml
+    bag_topic_counts: dict[str, int] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -339,12 +351,27 @@ class _Tally:
         ]
 
 
-def inspect_recording(path) -> InspectReport:
-    """Summarise ``path`` and check it against the recording contract (one streaming pass).
+def inspect_recording(path, roles=None) -> InspectReport:
+    """Summarise ``path`` (an ``.mcap`` or a rosbag2 directory) and check it (one streaming
+    pass): against the recording contract for agvviz's own recordings; for other files
+    (ROS 2 bags, Foxglove SDK files) the contract's naming does not apply — their topics are
+    read through the role map ``roles`` (:class:`agvviz.recording.roles.RoleMap`, inferred
+    when not given) and a missing ``agvviz.scenario`` record is a note.
 
-    Raises :class:`agvviz.recording.reader.RecordingError` when the file is missing or not MCAP.
+    Raises :class:`agvviz.recording.reader.RecordingError` when the path is missing or not a
+    recording.
     """
-    report = InspectReport(path=Path(path))
+    from agvviz.recording.source import open_recording, resolve_roles, scan
+
+    recording = open_recording(path)
+    if roles is None:
+        roles = resolve_roles(scan(recording, ReadReport()))
+    role_of = roles.role_of()
+    native = recording.native
+    report = InspectReport(
+        path=Path(path), native=native, kind=recording.kind, files=[f.name for f in recording.files],
+        bag_message_count=recording.bag_message_count, bag_topic_counts=dict(recording.bag_topic_counts),
+    )
     read = ReadReport()
     summaries: dict[str, TopicSummary] = {}
     channel_checked: set[tuple[str, str, str]] = set()
@@ -354,7 +381,7 @@ def inspect_recording(path) -> InspectReport:
     scenario_seen = False
     time_checks = TimeChecks()
 
-    for item in iter_raw(path, report=read):
+    for item in recording.iter_raw(read):
         if isinstance(item, RawMetadata):
             if item.name == SCENARIO_METADATA:
                 scenario_seen = True
@@ -367,9 +394,11 @@ def inspect_recording(path) -> InspectReport:
                     )
             continue
         topic, t_ns = item.topic, item.log_time_ns
-        camera_match = _CAMERA_TOPIC.match(topic)
-        is_image = bool(camera_match) and camera_match.group(2) == "image"
-        time_checks.message(topic, t_ns, is_image)  # images: reported by time_checks.problems()
+        role = role_of.get(topic, "")
+        cam_role = camera_of_role(role)
+        is_image = cam_role is not None and cam_role[1] == "image"
+        # images: reported by time_checks.problems()
+        time_checks.message(topic, t_ns, is_image, is_truth=role == ROLE_TRUTH)
         summary = summaries.get(topic)
         if summary is None:
             summary = TopicSummary(topic, item.schema_name, item.message_encoding, 0, t_ns, t_ns)
@@ -386,7 +415,10 @@ def inspect_recording(path) -> InspectReport:
         channel_key = (topic, item.schema_name, item.message_encoding)
         if channel_key not in channel_checked:
             channel_checked.add(channel_key)
-            report.violations += _channel_violations(topic, item.schema_name, item.message_encoding)
+            if native:
+                report.violations += _channel_violations(topic, item.schema_name, item.message_encoding)
+        if not role and not native:
+            continue  # a topic the replay does not use: listed, not decoded
 
         try:
             value = decode(item)
@@ -394,11 +426,10 @@ def inspect_recording(path) -> InspectReport:
             schema = item.schema_name or item.message_encoding
             tally.add(f"{topic}: payload does not match {schema}", f"at {t_ns} ns: {exc}")
             continue
-        match = _CAMERA_TOPIC.match(topic)
-        if isinstance(value, CompressedFrame) and match and match.group(2) == "image":
-            cam_name = match.group(1)
+        if isinstance(value, CompressedFrame) and is_image:
+            cam_name = cam_role[0]
             image_cameras.add(cam_name)
-            if value.frame_id != camera_frame(cam_name):
+            if native and value.frame_id != camera_frame(cam_name):
                 expected = camera_frame(cam_name)
                 tally.add(f"{topic}: image frame_id is not {expected!r}", f"got {value.frame_id!r}")
             calibration = report.cameras.get(cam_name)
@@ -406,20 +437,18 @@ def inspect_recording(path) -> InspectReport:
             if problem is not None:
                 reason, detail = problem
                 tally.add(f"{topic}: frames a replay rejects as {reason}", f"at {t_ns} ns: {detail}")
-        elif match and match.group(2) == "image" and item.schema_name == "foxglove.RawImage":
-            image_cameras.add(match.group(1))
-        elif isinstance(value, CalibrationMsg) and match and match.group(2) == "calibration":
-            cam_name = match.group(1)
-            if value.frame_id != camera_frame(cam_name):
+        elif isinstance(value, CalibrationMsg) and cam_role is not None and cam_role[1] == "calibration":
+            cam_name = cam_role[0]
+            if native and value.frame_id != camera_frame(cam_name):
                 expected = camera_frame(cam_name)
                 tally.add(f"{topic}: calibration frame_id is not {expected!r}", f"got {value.frame_id!r}")
             report.cameras[cam_name] = value
-        elif topic == "/tf_static" and isinstance(value, list):
+        elif role == ROLE_TF_STATIC and isinstance(value, list):
             for tf in value:
                 transforms[(tf.parent_frame, tf.child_frame)] = tf
-        elif topic == "/agv/ground_truth" and isinstance(value, PoseMsg) and value.frame_id != WORLD_FRAME:
+        elif role == ROLE_TRUTH and isinstance(value, PoseMsg) and value.frame_id != WORLD_FRAME and native:
             tally.add(f"{topic}: frame_id is not {WORLD_FRAME!r}", f"got {value.frame_id!r}")
-        elif topic == "/markers/map" and isinstance(value, dict):
+        elif role == ROLE_MARKER_MAP and isinstance(value, dict):
             for problem in _marker_map_payload_problems(value):
                 tally.add(f"{topic}: a code's payload disagrees with its map entry", problem)
 
@@ -430,7 +459,7 @@ def inspect_recording(path) -> InspectReport:
     report.transforms = list(transforms.values())
     report.violations += tally.lines()
     report.violations += time_checks.problems()
-    for cam_name in sorted(image_cameras):
+    for cam_name in sorted(image_cameras) if native else []:
         if cam_name not in report.cameras:
             report.violations.append(
                 f"camera {cam_name}: images but no valid calibration; expected "
@@ -442,12 +471,30 @@ def inspect_recording(path) -> InspectReport:
                 f"or {WORLD_FRAME} -> {camera_frame(cam_name)}; expected the camera's mounting pose "
                 "T_agv_cam (on the AGV) or T_world_cam (fixed in the world)"
             )
-    if not scenario_seen:
+    if not scenario_seen and native:
         report.violations.append(
             f"metadata: no {SCENARIO_METADATA!r} record; expected the scenario name, seed, "
             "options and agvviz version (written by RecordingWriter)"
         )
-    report.damage = list(read.problems)
+    elif not scenario_seen:
+        report.notes.append(
+            f"no {SCENARIO_METADATA!r} metadata: not an agvviz recording (written by "
+            f"{recording.library or 'an unnamed writer'}{', profile ' + recording.profile if recording.profile else ''}); "
+            "its topics are read through the role map below"
+        )
+    if recording.bag_message_count is not None:
+        read_total = sum(s.count for s in summaries.values())
+        mismatched = [
+            f"{t}: metadata.yaml {n}, read {summaries[t].count if t in summaries else 0}"
+            for t, n in sorted(recording.bag_topic_counts.items())
+            if (summaries[t].count if t in summaries else 0) != n
+        ]
+        if read_total != recording.bag_message_count or mismatched:
+            report.damage.append(
+                f"metadata.yaml counts {recording.bag_message_count} messages, the files hold {read_total}"
+                + (f" ({'; '.join(mismatched[:5])})" if mismatched else "")
+            )
+    report.damage += list(read.problems)
     return report
 
 
@@ -503,7 +550,11 @@ def _format_ns(t_ns: int | None) -> str:
 
 def format_report(report: InspectReport) -> str:
     """Plain multi-line text: topics, cameras, transforms, scenario, then the verdict."""
-    lines = [f"recording: {report.path}"]
+    lines = [f"recording: {report.path}" + (
+        f" (rosbag2 directory: {', '.join(report.files)})" if report.kind == "rosbag2" else ""
+    )]
+    if report.bag_message_count is not None:
+        lines.append(f"metadata.yaml: {report.bag_message_count} messages in {len(report.bag_topic_counts)} topic(s)")
     span = (
         f"{_format_ns(report.start_ns)} .. {_format_ns(report.end_ns)}"
         if report.start_ns is not None
@@ -535,7 +586,7 @@ def format_report(report: InspectReport) -> str:
             f"fx={K[0, 0]:.3f} fy={K[1, 1]:.3f} cx={K[0, 2]:.3f} cy={K[1, 2]:.3f} skew={K[0, 1]:.3g}, "
             f"D[{calib.distortion_model or 'none'}]=[{', '.join(f'{d:.6g}' for d in cam.dist)}]"
         )
-    lines.append("transforms (/tf_static):" if report.transforms else "transforms (/tf_static): none")
+    lines.append("transforms (tf_static):" if report.transforms else "transforms (tf_static): none")
     for tf in report.transforms:
         t = tf.T_parent_child[:3, 3]
         lines.append(f"  {tf.parent_frame} -> {tf.child_frame}: t = [{t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}] m")
@@ -548,11 +599,15 @@ def format_report(report: InspectReport) -> str:
             f"options={s['options']}"
         )
     lines.append("")
+    for note in report.notes:
+        lines.append(f"note: {note}")
     for problem in report.damage:
         lines.append(f"damage: {problem}")
     for violation in report.violations:
         lines.append(f"violation: {violation}")
-    if report.ok:
+    if report.ok and not report.native:
+        lines.append("contract: OK (read as a third-party file: agvviz's topic naming does not apply)")
+    elif report.ok:
         lines.append("contract: OK")
     else:
         lines.append(

@@ -62,6 +62,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf.message import DecodeError
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
@@ -70,7 +71,9 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metad
 
 from agvviz.errors import RecordingError
 from agvviz.geometry import PinholeCamera, se3
+from agvviz.recording.images import ImageEncodingError, compressed_format, raw_to_png
 from agvviz.recording.schemas import SCENARIO_METADATA, SCHEMAS, validate_payload
+from agvviz.recording.topics import CAMERA_TOPIC_RE, is_camera_image_topic, native_role
 
 _log = logging.getLogger(__name__)
 
@@ -114,16 +117,20 @@ class CompressedFrame:
     frame_id: str
     image_format: str  # "jpeg" | "png" (Foxglove CompressedImage.format, as recorded)
     data: bytes
+    stamp_ns: int = field(default=0, compare=False)  # the message's own stamp (header), 0 when none
+    source_encoding: str = ""  # for an uncompressed frame: its encoding (the PNG is lossless)
 
 
 @dataclass(frozen=True)
 class CalibrationMsg:
-    """A camera's intrinsics; ``distortion_model`` is "plumb_bob" (or "" when D is empty)."""
+    """A camera's intrinsics; ``distortion_model`` is "plumb_bob", "rational_polynomial" (or
+    "" when D is empty)."""
 
     cam_name: str
     frame_id: str
     camera: PinholeCamera
     distortion_model: str
+    stamp_ns: int = field(default=0, compare=False)  # the message's own stamp (header), 0 when none
 
 
 @dataclass(frozen=True)
@@ -133,14 +140,18 @@ class FrameTransformMsg:
     parent_frame: str
     child_frame: str
     T_parent_child: np.ndarray
+    stamp_ns: int = field(default=0, compare=False)  # the message's own stamp (header), 0 when none
 
 
 @dataclass(frozen=True)
 class PoseMsg:
-    """A pose ``T`` (4×4) in frame ``frame_id`` (for the AGV: ``T_<frame_id>_agv``)."""
+    """A pose ``T`` (4×4) in frame ``frame_id`` (for the AGV: ``T_<frame_id>_agv``);
+    ``child_frame`` is the frame posed when the message names it (``nav_msgs/Odometry``)."""
 
     frame_id: str
     T: np.ndarray
+    stamp_ns: int = field(default=0, compare=False)  # the message's own stamp (header), 0 when none
+    child_frame: str = ""
 
 
 @dataclass(frozen=True)
@@ -150,12 +161,28 @@ class RecordedMessage:
     ``value`` is a :class:`CompressedFrame`, :class:`CalibrationMsg`,
     ``list[FrameTransformMsg]``, :class:`PoseMsg`, a JSON value (``dict`` for agvviz
     messages) or ``bytes`` for schemas this reader does not decode.
+
+    ``role`` is what the message is for the replay (:mod:`agvviz.recording.topics`); when not
+    given it is the role of ``topic`` under agvviz's own naming. ``stamp_ns`` is the time the
+    replay places the message at when it is not the log time (a header stamp, see
+    :mod:`agvviz.recording.source`); :attr:`time_ns` is the one to use.
     """
 
     topic: str
     log_time_ns: int
     schema_name: str
     value: object
+    role: str = ""
+    stamp_ns: int | None = None
+
+    def __post_init__(self):
+        if not self.role:
+            object.__setattr__(self, "role", native_role(self.topic))
+
+    @property
+    def time_ns(self) -> int:
+        """The message's time on the replay's clock: ``stamp_ns`` when set, else the log time."""
+        return self.log_time_ns if self.stamp_ns is None else self.stamp_ns
 
 
 @dataclass
@@ -180,6 +207,7 @@ class RawMessage:
     schema_encoding: str
     message_encoding: str
     data: bytes
+    schema_data: bytes = b""  # the schema's text (ros2msg definitions for ROS 2 messages)
 
 
 @dataclass(frozen=True)
@@ -636,6 +664,7 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
                 schema_encoding=schema.encoding if schema else "",
                 message_encoding=channel.message_encoding,
                 data=message.data,
+                schema_data=schema.data if schema else b"",
             )
 
         def define(record) -> None:
@@ -688,11 +717,17 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
 
 # -- decoding ---------------------------------------------------------------------------------
 def _cam_name(topic: str, frame_id: str) -> str:
-    """``<name>`` of ``/cam/<name>/...``; otherwise the frame id without ``cam_``."""
-    parts = topic.split("/")
-    if len(parts) == 4 and parts[0] == "" and parts[1] == "cam":
-        return parts[2]
+    """``<name>`` of ``/cam/<name>/...``; otherwise the frame id without ``cam_`` (a role map
+    gives other files' cameras their names, :mod:`agvviz.recording.roles`)."""
+    match = CAMERA_TOPIC_RE.match(topic)
+    if match:
+        return match.group(1)
     return frame_id.removeprefix("cam_") or topic
+
+
+def _stamp_ns(timestamp) -> int:
+    """Nanoseconds of a ``google.protobuf.Timestamp`` (0 when unset)."""
+    return int(timestamp.seconds) * 1_000_000_000 + int(timestamp.nanos)
 
 
 def _matrix_from_pose(position, orientation, what: str) -> np.ndarray:
@@ -705,28 +740,79 @@ def _matrix_from_pose(position, orientation, what: str) -> np.ndarray:
 
 def _decode_compressed_image(raw: RawMessage) -> CompressedFrame:
     msg = CompressedImage.FromString(raw.data)
-    return CompressedFrame(_cam_name(raw.topic, msg.frame_id), msg.frame_id, msg.format, msg.data)
+    return CompressedFrame(
+        _cam_name(raw.topic, msg.frame_id), msg.frame_id, compressed_format(msg.format), msg.data,
+        stamp_ns=_stamp_ns(msg.timestamp),
+    )
+
+
+def raw_frame(topic: str, frame_id: str, encoding: str, width: int, height: int, step: int,
+              data: bytes, stamp_ns: int, big_endian: bool = False) -> CompressedFrame:
+    """An uncompressed frame as a lossless PNG :class:`CompressedFrame`
+    (:mod:`agvviz.recording.images`); raises :class:`MessageDecodeError`."""
+    try:
+        png = raw_to_png(encoding, int(width), int(height), int(step), bytes(data), bool(big_endian))
+    except ImageEncodingError as exc:
+        raise MessageDecodeError(str(exc)) from None
+    return CompressedFrame(_cam_name(topic, frame_id), frame_id, "png", png, stamp_ns=stamp_ns,
+                           source_encoding=encoding)
+
+
+def _decode_raw_image(raw: RawMessage) -> CompressedFrame:
+    msg = RawImage.FromString(raw.data)
+    return raw_frame(raw.topic, msg.frame_id, msg.encoding, msg.width, msg.height, msg.step, msg.data,
+                     _stamp_ns(msg.timestamp))
 
 
 def _decode_calibration(raw: RawMessage) -> CalibrationMsg:
     msg = CameraCalibration.FromString(raw.data)
-    K = np.array(msg.K, dtype=float)
+    return calibration(raw.topic, msg.frame_id, msg.K, msg.D, msg.distortion_model, msg.width, msg.height,
+                       _stamp_ns(msg.timestamp))
+
+
+#: Distortion models a calibration may name → accepted coefficient counts.
+DISTORTION_MODELS = {"plumb_bob": (4, 5), "rational_polynomial": (8,), "": (0,)}
+
+
+def calibration(topic: str, frame_id: str, K, D, distortion_model: str, width: int, height: int,
+                stamp_ns: int = 0) -> CalibrationMsg:
+    """A checked :class:`CalibrationMsg` from K (9), D and the image size (Foxglove
+    ``CameraCalibration`` and ROS ``CameraInfo`` alike); raises :class:`MessageDecodeError`.
+
+    ``equidistant`` (a fisheye lens) is refused by name: its model is OpenCV's ``fisheye``
+    module, which the replay does not implement.
+    """
+    K = np.array(list(K), dtype=float)
+    if K.size == 9 and np.all(K == 0):
+        raise MessageDecodeError("K is all zeros: the camera is not calibrated (give --calibration CAM=FILE)")
     if K.size != 9 or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0 or K[8] != 1.0:
-        raise MessageDecodeError(f"K must be 9 finite numbers with fx, fy > 0 and K[2,2] = 1, got {list(msg.K)}")
-    problem = image_size_problem(msg.width, msg.height)
+        raise MessageDecodeError(f"K must be 9 finite numbers with fx, fy > 0 and K[2,2] = 1, got {list(K)}")
+    problem = image_size_problem(width, height)
     if problem:
         raise MessageDecodeError(f"calibration {problem}")
-    if len(msg.D) == 0:
+    D = list(D)
+    model = distortion_model or ""
+    if model == "equidistant" or model == "fisheye":
+        raise MessageDecodeError(
+            f"distortion model {model!r} (fisheye) is not supported: the replay models plumb_bob "
+            "and rational_polynomial lenses; undistort the images or give a pinhole calibration"
+        )
+    if len(D) == 0:
         dist = np.zeros(5)
-    elif msg.distortion_model == "plumb_bob" and len(msg.D) == 5:
-        dist = np.array(msg.D, dtype=float)
+    elif model in DISTORTION_MODELS and len(D) in DISTORTION_MODELS[model]:
+        dist = np.array(D, dtype=float)
+    elif model == "plumb_bob" and len(D) == 8 and not any(D[5:]):
+        dist = np.array(D[:5], dtype=float)  # some drivers pad plumb_bob to 8
     else:
         raise MessageDecodeError(
-            f"distortion {msg.distortion_model!r} with {len(msg.D)} coefficients is not supported; "
-            "expected plumb_bob with 5 coefficients (k1, k2, p1, p2, k3) or none"
+            f"distortion {model!r} with {len(D)} coefficients is not supported; expected "
+            "plumb_bob with 5 coefficients (k1, k2, p1, p2, k3), rational_polynomial with 8, or none"
         )
-    camera = PinholeCamera(K.reshape(3, 3), dist, int(msg.width), int(msg.height))
-    return CalibrationMsg(_cam_name(raw.topic, msg.frame_id), msg.frame_id, camera, msg.distortion_model)
+    try:
+        camera = PinholeCamera(K.reshape(3, 3), dist, int(width), int(height))
+    except ValueError as exc:
+        raise MessageDecodeError(str(exc)) from None
+    return CalibrationMsg(_cam_name(topic, frame_id), frame_id, camera, model, stamp_ns=stamp_ns)
 
 
 def image_size_problem(width: int, height: int) -> str | None:
@@ -743,7 +829,7 @@ def image_size_problem(width: int, height: int) -> str | None:
 def _transform(tf: FrameTransform) -> FrameTransformMsg:
     what = f"transform {tf.parent_frame_id}->{tf.child_frame_id}"
     T = _matrix_from_pose(tf.translation, tf.rotation, what)
-    return FrameTransformMsg(tf.parent_frame_id, tf.child_frame_id, T)
+    return FrameTransformMsg(tf.parent_frame_id, tf.child_frame_id, T, _stamp_ns(tf.timestamp))
 
 
 def _decode_frame_transforms(raw: RawMessage) -> list[FrameTransformMsg]:
@@ -756,11 +842,13 @@ def _decode_frame_transform(raw: RawMessage) -> list[FrameTransformMsg]:
 
 def _decode_pose(raw: RawMessage) -> PoseMsg:
     msg = PoseInFrame.FromString(raw.data)
-    return PoseMsg(msg.frame_id, _matrix_from_pose(msg.pose.position, msg.pose.orientation, "pose"))
+    return PoseMsg(msg.frame_id, _matrix_from_pose(msg.pose.position, msg.pose.orientation, "pose"),
+                   stamp_ns=_stamp_ns(msg.timestamp))
 
 
 _PROTOBUF_DECODERS = {
     "foxglove.CompressedImage": _decode_compressed_image,
+    "foxglove.RawImage": _decode_raw_image,
     "foxglove.CameraCalibration": _decode_calibration,
     "foxglove.FrameTransforms": _decode_frame_transforms,
     "foxglove.FrameTransform": _decode_frame_transform,
@@ -776,6 +864,10 @@ def decode(raw: RawMessage) -> object:
     try:
         if raw.message_encoding == "protobuf" and raw.schema_name in _PROTOBUF_DECODERS:
             return _PROTOBUF_DECODERS[raw.schema_name](raw)
+        if raw.message_encoding == "cdr" and raw.schema_encoding == "ros2msg":
+            from agvviz.recording.ros2 import decode_ros2
+
+            return decode_ros2(raw)
         if raw.message_encoding == "json":
             value = json.loads(raw.data)
             if raw.schema_name in SCHEMAS:
@@ -899,6 +991,25 @@ def count_image_times(path) -> int:
     without decoding; for progress bars."""
     times = set()
     for item in iter_raw(path, report=ReadReport()):
-        if isinstance(item, RawMessage) and item.topic.startswith("/cam/") and item.topic.endswith("/image"):
+        if isinstance(item, RawMessage) and is_camera_image_topic(item.topic):
             times.add(item.log_time_ns)
     return len(times)
+
+
+def read_file_header(path) -> tuple[str, str, dict | None]:
+    """``(profile, library, scenario)`` of an MCAP file: the Header record's profile
+    (``ros2`` for rosbag2 files) and library (the writer, ``agvviz <version>`` for agvviz's
+    own recordings), and the ``agvviz.scenario`` metadata (``None`` when absent or
+    malformed). Reads only top-level record headers; never raises for damage inside."""
+    profile, library, scenario = "", "", None
+    f, size = _open(path)
+    with f:
+        for _, record in _top_level_records(f, size, ReadReport(), read_chunks=False):
+            if isinstance(record, Header):
+                profile, library = record.profile, record.library
+            elif isinstance(record, Metadata) and record.name == SCENARIO_METADATA:
+                try:
+                    scenario = parse_scenario_metadata(record.metadata)
+                except ValueError:
+                    scenario = None
+    return profile, library, scenario

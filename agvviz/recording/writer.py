@@ -27,6 +27,7 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
 import agvviz
+from agvviz.recording import topics
 from agvviz.conventions import camera_frame
 from agvviz.geometry import PinholeCamera, se3
 from agvviz.recording.schemas import SCENARIO_METADATA, SCHEMAS, validate_payload
@@ -213,7 +214,7 @@ class RecordingWriter:
             P=[float(v) for v in np.hstack([camera.K, np.zeros((3, 1))]).ravel()],
         )
         _set_time(msg.timestamp, log_time_ns)
-        self._write_protobuf(f"/cam/{cam_name}/calibration", msg, log_time_ns)
+        self._write_protobuf(topics.camera_calibration_topic(cam_name), msg, log_time_ns)
 
     def write_tf_static(self, transforms: list[tuple[str, str, np.ndarray]], log_time_ns: int) -> None:
         """``/tf_static`` (foxglove.FrameTransforms): ``(parent, child, T_parent_child 4×4)`` each."""
@@ -227,7 +228,7 @@ class RecordingWriter:
             tf.translation.x, tf.translation.y, tf.translation.z = (float(v) for v in T[:3, 3])
             q = se3.to_quaternion_xyzw(T)
             tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = (float(v) for v in q)
-        self._write_protobuf("/tf_static", msg, log_time_ns)
+        self._write_protobuf(topics.TF_STATIC_TOPIC, msg, log_time_ns)
 
     def write_image(self, cam_name: str, data: bytes, image_format: str, log_time_ns: int) -> None:
         """``/cam/<name>/image`` (foxglove.CompressedImage, frame ``cam_<name>``), bytes as given."""
@@ -236,7 +237,7 @@ class RecordingWriter:
             raise ValueError(f"image format {image_format!r} not supported; use one of {IMAGE_FORMATS}")
         msg = CompressedImage(frame_id=camera_frame(cam_name), data=bytes(data), format=image_format)
         _set_time(msg.timestamp, log_time_ns)
-        self._write_protobuf(f"/cam/{cam_name}/image", msg, log_time_ns)
+        self._write_protobuf(topics.camera_image_topic(cam_name), msg, log_time_ns)
 
     def write_pose(self, topic: str, T_frame_agv: np.ndarray, frame_id: str, log_time_ns: int) -> None:
         """A foxglove.PoseInFrame: the AGV's pose ``T_frame_agv`` (4×4) in frame ``frame_id``
@@ -275,4 +276,4 @@ class RecordingWriter:
 
     def write_marker_map(self, marker_map: dict, log_time_ns: int) -> None:
         """``/markers/map`` (agvviz.MarkerMap, see :data:`agvviz.recording.schemas.MARKER_MAP`)."""
-        self.write_json("/markers/map", "agvviz.MarkerMap", marker_map, log_time_ns)
+        self.write_json(topics.MARKER_MAP_TOPIC, "agvviz.MarkerMap", marker_map, log_time_ns)

@@ -1,0 +1,168 @@
+"""The sync stage of the replay graph (DESIGN §2): what holds at each image's stamp.
+
+:class:`SyncState` gathers the messages that are not camera frames — calibrations, static
+and time-varying transforms, ground truth, odometry, the marker map — and answers, for one
+image of one camera at time t:
+
+* its **calibration**: the latest calibration of that camera stamped at or before t, else its
+  earliest one (a calibration applies to every frame whatever order the file holds them in);
+* its **extrinsic** ``T_body_cam``: the transform buffer's chain from the body frame (a
+  setting: ``agv`` for agvviz recordings, ``base_link`` for ROS logs) to the image's frame id
+  (any chain: ``base_link → camera_link → camera_optical_frame``), at t; or, for a camera
+  fixed in the world, ``T_world_cam``;
+* **ground truth** and **odometry** at t, interpolated on SE(3) between the samples either
+  side (at most ``truth_max_gap_ns`` apart), or the nearest sample within
+  ``truth_max_dt_ns``.
+
+Side files (``--calibration``, ``--extrinsic``, ``--markers``) override the recording's value
+for their camera (or the map) whatever the recording holds.
+
+A run fills the state in a first pass over the file (:meth:`add` every non-image message)
+before it replays the images, so the result does not depend on the order of messages in
+the file. Fed message by message instead (the library's streaming use), it knows what came
+before each frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
+from agvviz.geometry.tf_buffer import PoseSeries, TransformBuffer
+from agvviz.recording.reader import CalibrationMsg, FrameTransformMsg, PoseMsg, RecordedMessage
+from agvviz.recording.topics import (
+    ROLE_MARKER_MAP,
+    ROLE_ODOMETRY,
+    ROLE_TF,
+    ROLE_TF_STATIC,
+    ROLE_TRUTH,
+    camera_of_role,
+)
+
+#: Odometry (used by ``ambiguity=odometry`` only) may be interpolated over gaps up to this.
+ODOMETRY_MAX_GAP_NS = 500_000_000
+
+
+def _same_camera(a: CalibrationMsg, b: CalibrationMsg) -> bool:
+    ca, cb = a.camera, b.camera
+    return (
+        ca.width_px == cb.width_px and ca.height_px == cb.height_px
+        and np.array_equal(ca.K, cb.K) and np.array_equal(ca.dist, cb.dist)
+    )
+
+
+class SyncState:
+    """Calibration, extrinsics, truth and odometry at any stamp (see the module docstring)."""
+
+    def __init__(
+        self,
+        body_frame: str = AGV_FRAME,
+        world_frame: str = WORLD_FRAME,
+        truth_max_dt_ns: int = 5_000_000,
+        truth_max_gap_ns: int = 50_000_000,
+    ):
+        self.body_frame = body_frame
+        self.world_frame = world_frame
+        self.truth_max_dt_ns = truth_max_dt_ns
+        self.truth_max_gap_ns = truth_max_gap_ns
+        self.calibrations: dict[str, list[tuple[int, CalibrationMsg]]] = {}
+        self.side_calibrations: dict[str, CalibrationMsg] = {}
+        self.side_extrinsics: dict[str, np.ndarray] = {}  # cam -> T_body_cam
+        self.side_marker_map: dict | None = None
+        self.tf = TransformBuffer(max_gap_ns=max(truth_max_gap_ns, 1_000_000_000))
+        self.truth = PoseSeries()
+        self.truth_frames: set[str] = set()
+        self.odometry = PoseSeries()
+        self.marker_map: dict | None = None
+
+    # -- filling ------------------------------------------------------------------------------
+    def add_calibration(self, cam_name: str, calib: CalibrationMsg, t_ns: int) -> None:
+        entries = self.calibrations.setdefault(cam_name, [])
+        if entries and _same_camera(entries[-1][1], calib) and t_ns >= entries[-1][0]:
+            return  # a repeated CameraInfo (ROS publishes one per frame)
+        entries.append((t_ns, calib))
+        entries.sort(key=lambda e: e[0])
+
+    def add_transforms(self, transforms: list[FrameTransformMsg], static: bool, message: RecordedMessage) -> None:
+        for tf in transforms:
+            if static:
+                self.tf.add_static(tf.parent_frame, tf.child_frame, tf.T_parent_child)
+            else:
+                t_ns = tf.stamp_ns if message.stamp_ns is not None and tf.stamp_ns else message.log_time_ns
+                self.tf.add(tf.parent_frame, tf.child_frame, tf.T_parent_child, t_ns)
+
+    def add(self, message: RecordedMessage) -> bool:
+        """Take a non-image message; True when it was one the sync stage keeps."""
+        value, role = message.value, message.role
+        cam = camera_of_role(role)
+        if isinstance(value, CalibrationMsg):
+            name = cam[0] if cam else value.cam_name
+            self.add_calibration(name, value, message.time_ns)
+            return True
+        if isinstance(value, list) and value and all(isinstance(v, FrameTransformMsg) for v in value):
+            # agvviz's own /tf_static carries FrameTransforms; any other topic holding
+            # transforms under the tf role is time-varying.
+            self.add_transforms(value, static=role != ROLE_TF, message=message)
+            return True
+        if isinstance(value, PoseMsg) and role == ROLE_TRUTH:
+            self.truth.add(message.time_ns, value.T)
+            self.truth_frames.add(value.frame_id)
+            return True
+        if isinstance(value, PoseMsg) and role == ROLE_ODOMETRY:
+            self.odometry.add(message.time_ns, value.T)
+            return True
+        if role == ROLE_MARKER_MAP and isinstance(value, dict):
+            self.marker_map = value
+            return True
+        return False
+
+    # -- queries ------------------------------------------------------------------------------
+    def calibration_at(self, cam_name: str, t_ns: int) -> CalibrationMsg | None:
+        side = self.side_calibrations.get(cam_name)
+        if side is not None:
+            return side
+        entries = self.calibrations.get(cam_name)
+        if not entries:
+            return None
+        best = entries[0][1]
+        for t, calib in entries:
+            if t <= t_ns:
+                best = calib
+            else:
+                break
+        return best
+
+    def extrinsic(self, cam_name: str, frame_id: str, t_ns: int) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+        """``(T_body_cam, T_world_cam, why_not)``: one of the two poses, or both ``None`` and
+        the reason."""
+        side = self.side_extrinsics.get(cam_name)
+        if side is not None:
+            return side, None, ""
+        frames = [f for f in dict.fromkeys((frame_id, camera_frame(cam_name))) if f]
+        for name in frames:
+            T = self.tf.lookup(self.body_frame, name, t_ns)
+            if T is not None:
+                return T, None, ""
+        for name in frames:
+            for world in dict.fromkeys((self.world_frame, *sorted(self.truth_frames))):
+                if world == self.body_frame:
+                    continue
+                T = self.tf.lookup(world, name, t_ns)
+                if T is not None and self.tf.lookup(self.body_frame, name, None) is None:
+                    return None, T, ""
+        known = sorted(self.tf.frames())
+        return None, None, (
+            f"no transform chain from body frame {self.body_frame!r} (or world frame "
+            f"{self.world_frame!r}) to camera frame {frames[0]!r}"
+            + (f"; frames in the transforms: {', '.join(known[:12])}{' …' if len(known) > 12 else ''}" if known else "; the recording has no transforms")
+            + f" (set --set body_frame=..., or give --extrinsic {cam_name}=x,y,z,qx,qy,qz,qw)"
+        )
+
+    def truth_at(self, t_ns: int) -> np.ndarray | None:
+        return self.truth.at(t_ns, self.truth_max_gap_ns, self.truth_max_dt_ns)
+
+    def odometry_at(self, t_ns: int) -> np.ndarray | None:
+        return self.odometry.at(t_ns, ODOMETRY_MAX_GAP_NS, ODOMETRY_MAX_GAP_NS)
+
+    def effective_marker_map(self) -> dict | None:
+        return self.side_marker_map if self.side_marker_map is not None else self.marker_map

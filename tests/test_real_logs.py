@@ -1,0 +1,446 @@
+"""A robot's own log: files written by independent writers (rosbags, the Foxglove SDK), as a
+robot would write them, replay to the same per-frame errors as agvviz's own recording.
+
+One tiny qr_floor recording (4 frames, 640×512) is the source of truth; its content is
+re-written as
+
+* a ROS 2 bag (``rosbags``, MCAP storage, split over two files) with the camera publishing
+  both ``sensor_msgs/Image`` bgr8 and ``CompressedImage``, ``CameraInfo``, a three-link camera
+  chain on ``/tf_static``, ``/tf``, ``PoseStamped`` truth and ``nav_msgs/Odometry``, all on ROS
+  topic and frame names, log times later than the header stamps;
+* a Foxglove SDK file with ``RawImage`` mono8 frames;
+* a Foxglove SDK file whose images come before their calibration and truth within each
+  stamp, and whose ``/tf_static`` is the last message.
+
+The bgr8 / mono8 frames are the native JPEG decoded to grey (a monochrome camera), so the
+pipeline sees exactly the native grey values and the errors agree to 1e-6 m.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from agvviz.cli import app
+from agvviz.errors import InputError, RecordingError, RunError
+from agvviz.geometry import se3
+from agvviz.recording.reader import (
+    CalibrationMsg,
+    CompressedFrame,
+    FrameTransformMsg,
+    PoseMsg,
+    ReadReport,
+    iter_messages,
+)
+from agvviz.recording.source import iter_role_messages, open_recording, scan
+from agvviz.recording.contract import inspect_recording
+from agvviz.runner import SideInputs, prepare, run_recording
+from agvviz.scenario_registry import record
+from agvviz.settings import RunSettings
+
+rosbags = pytest.importorskip("rosbags", reason="rosbags (test extra) not installed")
+foxglove = pytest.importorskip("foxglove", reason="foxglove-sdk (test extra) not installed")
+from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+TS = get_typestore(Stores.ROS2_HUMBLE)
+T_ = TS.types
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "rosbag2_mcap"
+LATENCY_NS = 7_000_000  # bag log time = header stamp + 7 ms (arrival at the recorder)
+#: base_link → camera_link is split at an arbitrary mount; camera_link → optical is REP 103's.
+T_LINK_OPTICAL = se3.from_quaternion_xyzw(np.array([-0.5, 0.5, -0.5, 0.5]), np.zeros(3))
+T_BASE_MOUNT = se3.make(
+    cv2.Rodrigues(np.array([0.0, 0.0, 0.3]))[0], np.array([0.1, 0.2, 0.3])
+)
+
+
+# -- the native recording and its content -----------------------------------------------------------
+@pytest.fixture(scope="module")
+def native(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("native") / "qr.mcap"
+    record(
+        "qr_floor", path, seed=1,
+        overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500"],
+    )
+    return path
+
+
+@pytest.fixture(scope="module")
+def content(native) -> dict:
+    out = {"images": [], "truth": [], "odometry": []}
+    for m in iter_messages(native):
+        v = m.value
+        if isinstance(v, CompressedFrame):
+            out["images"].append((m.log_time_ns, v.data))
+        elif isinstance(v, CalibrationMsg):
+            out["calibration"] = v.camera
+        elif isinstance(v, list) and v and isinstance(v[0], FrameTransformMsg):
+            out["T_agv_cam"] = v[0].T_parent_child
+        elif isinstance(v, PoseMsg) and m.topic == "/agv/ground_truth":
+            out["truth"].append((m.log_time_ns, v.T))
+        elif isinstance(v, PoseMsg) and m.topic == "/agv/odometry":
+            out["odometry"].append((m.log_time_ns, v.T))
+        elif isinstance(v, dict) and m.topic == "/markers/map":
+            out["marker_map"] = v
+    return out
+
+
+def frame_errors(path, settings: RunSettings | None = None, **kw) -> dict[int, tuple]:
+    """time → (rejection, position error m) of every frame, through the run's own stages."""
+    prepared = prepare(path, settings or RunSettings(), **kw)
+    out = {}
+    for m in iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, ReadReport()):
+        r = prepared.replay.feed(m)
+        if r is not None:
+            out[r.log_time_ns] = (r.rejected, r.position_error_m)
+    return out
+
+
+@pytest.fixture(scope="module")
+def native_errors(native) -> dict:
+    errors = frame_errors(native)
+    assert len(errors) == 4 and all(rej is None and e is not None for rej, e in errors.values()), errors
+    return errors
+
+
+def assert_same_errors(errors: dict, native_errors: dict) -> None:
+    assert sorted(errors) == sorted(native_errors)
+    for t, (rejected, error) in native_errors.items():
+        assert errors[t][0] == rejected, (t, errors[t])
+        assert abs(errors[t][1] - error) < 1e-6, (t, errors[t][1], error)
+
+
+def grey(jpeg: bytes) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+
+# -- a ROS 2 bag written by rosbags -----------------------------------------------------------------
+def _header(t_ns: int, frame: str):
+    return T_["std_msgs/msg/Header"](
+        stamp=T_["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id=frame
+    )
+
+
+def _pose(T: np.ndarray):
+    q = se3.to_quaternion_xyzw(T)
+    return T_["geometry_msgs/msg/Pose"](
+        position=T_["geometry_msgs/msg/Point"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+        orientation=T_["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
+
+
+def _tf(parent: str, child: str, T: np.ndarray, t_ns: int):
+    q = se3.to_quaternion_xyzw(T)
+    return T_["geometry_msgs/msg/TransformStamped"](
+        header=_header(t_ns, parent), child_frame_id=child,
+        transform=T_["geometry_msgs/msg/Transform"](
+            translation=T_["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+            rotation=T_["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        ),
+    )
+
+
+def _camera_info(camera, t_ns: int, model: str = "plumb_bob", d=None):
+    roi = T_["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    P = np.zeros(12)
+    P[[0, 1, 2, 4, 5, 6, 10]] = camera.K.ravel()[[0, 1, 2, 3, 4, 5, 8]]
+    return T_["sensor_msgs/msg/CameraInfo"](
+        header=_header(t_ns, "camera_optical_frame"), height=camera.height_px, width=camera.width_px,
+        distortion_model=model, d=np.asarray(camera.dist if d is None else d, dtype=np.float64),
+        k=camera.K.ravel().astype(np.float64), r=np.eye(3).ravel(), p=P, binning_x=0, binning_y=0, roi=roi,
+    )
+
+
+def ros_messages(content: dict, calibration: bool = True) -> list[tuple[str, str, int, object]]:
+    """(topic, type, log time, message) of the bag, in the order a robot's recorder writes them."""
+    T_link = se3.inverse(T_BASE_MOUNT) @ content["T_agv_cam"] @ se3.inverse(T_LINK_OPTICAL)
+    t0 = content["images"][0][0]
+    out = [(
+        "/tf_static", "tf2_msgs/msg/TFMessage", t0,
+        T_["tf2_msgs/msg/TFMessage"](transforms=[
+            _tf("base_link", "camera_mount", T_BASE_MOUNT, 0),
+            _tf("camera_mount", "camera_link", T_link, 0),
+            _tf("camera_link", "camera_optical_frame", T_LINK_OPTICAL, 0),
+        ]),
+    )]
+    twist = T_["geometry_msgs/msg/TwistWithCovariance"](
+        twist=T_["geometry_msgs/msg/Twist"](
+            linear=T_["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+            angular=T_["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+        ),
+        covariance=np.zeros(36),
+    )
+    for (t, jpeg), (_, T_truth), (_, T_odom) in zip(content["images"], content["truth"], content["odometry"]):
+        g = grey(jpeg)
+        bgr = np.ascontiguousarray(np.repeat(g[:, :, None], 3, axis=2))
+        out += [
+            ("/front/image_raw", "sensor_msgs/msg/Image", t + LATENCY_NS, T_["sensor_msgs/msg/Image"](
+                header=_header(t, "camera_optical_frame"), height=g.shape[0], width=g.shape[1],
+                encoding="bgr8", is_bigendian=0, step=g.shape[1] * 3, data=bgr.ravel())),
+            ("/front/image_raw/compressed", "sensor_msgs/msg/CompressedImage", t + LATENCY_NS,
+             T_["sensor_msgs/msg/CompressedImage"](
+                 header=_header(t, "camera_optical_frame"), format="bgr8; jpeg compressed bgr8",
+                 data=np.frombuffer(jpeg, np.uint8))),
+            ("/ground_truth/pose", "geometry_msgs/msg/PoseStamped", t + 2 * LATENCY_NS,
+             T_["geometry_msgs/msg/PoseStamped"](header=_header(t, "map"), pose=_pose(T_truth))),
+            ("/odom", "nav_msgs/msg/Odometry", t + LATENCY_NS, T_["nav_msgs/msg/Odometry"](
+                header=_header(t, "odom"), child_frame_id="base_link",
+                pose=T_["geometry_msgs/msg/PoseWithCovariance"](pose=_pose(T_odom), covariance=np.zeros(36)),
+                twist=twist)),
+            ("/tf", "tf2_msgs/msg/TFMessage", t + LATENCY_NS,
+             T_["tf2_msgs/msg/TFMessage"](transforms=[_tf("odom", "base_link", T_odom, t)])),
+        ]
+        if calibration:
+            out.append(("/front/camera_info", "sensor_msgs/msg/CameraInfo", t + LATENCY_NS,
+                        _camera_info(content["calibration"], t)))
+    return sorted(out, key=lambda m: m[2])
+
+
+def write_bag(directory: Path, messages: list, split: int | None = None) -> Path:
+    """A rosbag2 directory written by rosbags; with ``split`` (a message index) the second
+    part is a second file listed after the first in metadata.yaml, as rosbag2's splitting does."""
+    parts = [messages] if split is None else [messages[:split], messages[split:]]
+    metas = []
+    for k, part in enumerate(parts):
+        bag = directory.parent / f"{directory.name}_part{k}"
+        with Writer(bag, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+            connections = {}
+            for topic, msgtype, t, msg in part:
+                if topic not in connections:
+                    connections[topic] = writer.add_connection(topic, msgtype, typestore=TS)
+                writer.write(connections[topic], t, TS.serialize_cdr(msg, msgtype))
+        metas.append((bag, yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]))
+    directory.mkdir()
+    info = metas[0][1]
+    names, counts = [], {}
+    for k, (bag, meta) in enumerate(metas):
+        name = f"{directory.name}_{k}.mcap"
+        (bag / meta["relative_file_paths"][0]).rename(directory / name)
+        names.append(name)
+        for entry in meta["topics_with_message_count"]:
+            key = entry["topic_metadata"]["name"]
+            if key in counts:
+                counts[key]["message_count"] += entry["message_count"]
+            else:
+                counts[key] = entry
+    info["relative_file_paths"] = names
+    info["message_count"] = sum(m["message_count"] for _, m in metas)
+    info["topics_with_message_count"] = list(counts.values())
+    info.pop("files", None)
+    (directory / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}))
+    return directory
+
+
+@pytest.fixture(scope="module")
+def bag(content, tmp_path_factory) -> Path:
+    messages = ros_messages(content)
+    return write_bag(tmp_path_factory.mktemp("bag") / "robot_bag", messages, split=len(messages) // 2)
+
+
+def test_rosbag2_directory_split_over_two_files_replays_like_native(bag, native_errors):
+    recording = open_recording(bag)
+    assert recording.kind == "rosbag2" and [f.name for f in recording.files] == ["robot_bag_0.mcap", "robot_bag_1.mcap"]
+    prepared = prepare(bag, RunSettings())
+    roles = prepared.roles.roles
+    # the uncompressed stream is kept, the compressed twin listed with why
+    assert roles["front.image"] == "/front/image_raw"
+    assert "same camera as /front/image_raw" in prepared.roles.unplaced["/front/image_raw/compressed"]
+    assert roles["front.calibration"] == "/front/camera_info"
+    assert (roles["truth"], roles["odometry"]) == ("/ground_truth/pose", "/odom")
+    assert (roles["tf_static"], roles["tf"]) == ("/tf_static", "/tf")
+    assert (prepared.body_frame, prepared.time_source) == ("base_link", "header")
+    assert prepared.usable_cameras == ["front"] and prepared.causes == []
+    # the three-link chain gives the native extrinsic
+    np.testing.assert_allclose(
+        prepared.replay.sync.tf.lookup("base_link", "camera_optical_frame"),
+        prepared.replay.sync.tf.lookup("base_link", "camera_optical_frame", 0), atol=0,
+    )
+    assert_same_errors(frame_errors(bag), native_errors)
+    # the compressed stream, chosen by --topic, gives the same
+    assert_same_errors(frame_errors(bag, topics={"front.image": "/front/image_raw/compressed"}), native_errors)
+
+
+def test_rosbag2_run_and_inspect_on_the_command_line(bag, tmp_path):
+    out = tmp_path / "bag.rrd"
+    roles_file = tmp_path / "roles.yaml"
+    inspected = CliRunner().invoke(app, ["inspect", str(bag), "--write-roles", str(roles_file)])
+    assert inspected.exit_code == 0, inspected.stdout
+    assert "front.image            /front/image_raw" in inspected.stdout
+    assert "note: no 'agvviz.scenario' metadata" in inspected.stdout
+    assert "rosbag2 directory: robot_bag_0.mcap, robot_bag_1.mcap" in inspected.stdout
+    assert yaml.safe_load(roles_file.read_text())["roles"]["truth"] == "/ground_truth/pose"
+    ran = CliRunner().invoke(app, ["run", str(bag), "--roles", str(roles_file),
+                                   "--topic", "front.image=/front/image_raw/compressed", "--out", str(out)])
+    assert ran.exit_code == 0, ran.stdout
+    assert out.is_file()
+
+
+def test_bag_without_calibration_fails_loudly_and_writes_nothing(content, tmp_path, native):
+    bag = write_bag(tmp_path / "nocal", ros_messages(content, calibration=False))
+    out = tmp_path / "nocal.rrd"
+    with pytest.raises(RunError) as excinfo:
+        run_recording(bag, RunSettings(), out)
+    message = str(excinfo.value)
+    assert "camera front (/front/image_raw): no calibration" in message and "--calibration front=FILE" in message
+    assert not out.exists() and not list(tmp_path.glob("*.rrd*"))
+    # inspect says the same and exits 1
+    inspected = CliRunner().invoke(app, ["inspect", str(bag)])
+    assert inspected.exit_code == 1
+    assert "replay: camera front (/front/image_raw): no calibration" in inspected.stdout
+    # a calibration side file makes it run (H6's loader of a ROS camera_info YAML)
+    calib = tmp_path / "front.yaml"
+    cam = content["calibration"]
+    calib.write_text(yaml.safe_dump({
+        "image_width": cam.width_px, "image_height": cam.height_px, "camera_name": "front",
+        "camera_matrix": {"rows": 3, "cols": 3, "data": cam.K.ravel().tolist()},
+        "distortion_model": "plumb_bob",
+        "distortion_coefficients": {"rows": 1, "cols": 5, "data": cam.dist.tolist()},
+    }))
+    from agvviz.recording.sidefiles import load_calibration
+
+    errors = frame_errors(bag, side=SideInputs(calibrations={"front": load_calibration("front", calib)}))
+    assert all(rej is None for rej, _ in errors.values()), errors
+
+
+def test_side_files_override_the_recording(bag, content, native_errors, tmp_path):
+    from agvviz.recording.sidefiles import load_marker_map, parse_extrinsic
+
+    markers = tmp_path / "map.json"
+    markers.write_text(json.dumps(content["marker_map"]))
+    q = se3.to_quaternion_xyzw(content["T_agv_cam"])
+    t = content["T_agv_cam"][:3, 3]
+    text = ",".join(repr(float(v)) for v in [*t, *q])
+    side = SideInputs(
+        marker_map=load_marker_map(markers),
+        extrinsics={"front": parse_extrinsic("front", text, "base_link")},
+    )
+    prepared = prepare(bag, RunSettings(), side=side)
+    assert prepared.replay.ctx.qr_map  # the side map is in use
+    errors = frame_errors(bag, side=side)
+    for time_ns, (_, error) in native_errors.items():
+        assert abs(errors[time_ns][1] - error) < 1e-6  # quaternion text round trip: ≪ 1 µm
+
+
+# -- Foxglove SDK files -----------------------------------------------------------------------------
+def _ts(t_ns: int):
+    return foxglove.messages.Timestamp(t_ns // 10**9, t_ns % 10**9)
+
+
+def _fx_pose(T):
+    q = se3.to_quaternion_xyzw(T)
+    m = foxglove.messages
+    return m.Pose(position=m.Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                  orientation=m.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+
+
+def _fx_calibration(camera, t_ns: int):
+    return foxglove.messages.CameraCalibration(
+        timestamp=_ts(t_ns), frame_id="cam_front", width=camera.width_px, height=camera.height_px,
+        distortion_model="plumb_bob", D=camera.dist.tolist(), K=camera.K.ravel().tolist(),
+    )
+
+
+def _fx_tf_static(content, t_ns: int):
+    m = foxglove.messages
+    T = content["T_agv_cam"]
+    q = se3.to_quaternion_xyzw(T)
+    return m.FrameTransforms(transforms=[m.FrameTransform(
+        timestamp=_ts(t_ns), parent_frame_id="agv", child_frame_id="cam_front",
+        translation=m.Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]), rotation=m.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+    )])
+
+
+def test_foxglove_sdk_raw_images_replay_like_native(content, native_errors, tmp_path):
+    path = tmp_path / "fox.mcap"
+    m = foxglove.messages
+    with foxglove.open_mcap(path, allow_overwrite=True):
+        t0 = content["images"][0][0]
+        foxglove.log("/tf_static", _fx_tf_static(content, t0), log_time=t0)
+        for (t, jpeg), (_, T_truth) in zip(content["images"], content["truth"]):
+            g = grey(jpeg)
+            foxglove.log("/front/calibration", _fx_calibration(content["calibration"], t), log_time=t)
+            foxglove.log("/front/image", m.RawImage(
+                timestamp=_ts(t), frame_id="cam_front", width=g.shape[1], height=g.shape[0], encoding="mono8",
+                step=g.shape[1], data=g.tobytes()), log_time=t)
+            foxglove.log("/ground_truth", m.PoseInFrame(timestamp=_ts(t), frame_id="world", pose=_fx_pose(T_truth)),
+                         log_time=t)
+    prepared = prepare(path, RunSettings())
+    assert prepared.roles.roles["front.image"] == "/front/image"
+    assert prepared.roles.roles["truth"] == "/ground_truth"
+    assert prepared.body_frame == "agv"  # no base_link in its transforms
+    report = inspect_recording(path)
+    assert report.ok and not report.native and any("agvviz.scenario" in n for n in report.notes)
+    assert_same_errors(frame_errors(path), native_errors)
+
+
+def test_images_before_their_calibration_and_truth(content, native_errors, tmp_path):
+    """Within each stamp the image comes first; /tf_static is the file's last message."""
+    path = tmp_path / "late.mcap"
+    m = foxglove.messages
+    with foxglove.open_mcap(path, allow_overwrite=True):
+        for (t, jpeg), (_, T_truth) in zip(content["images"], content["truth"]):
+            foxglove.log("/front/compressed", m.CompressedImage(
+                timestamp=_ts(t), frame_id="cam_front", format="jpeg", data=jpeg), log_time=t)
+            foxglove.log("/front/camera_info", _fx_calibration(content["calibration"], t), log_time=t)
+            foxglove.log("/vicon/agv/pose", m.PoseInFrame(timestamp=_ts(t), frame_id="world", pose=_fx_pose(T_truth)),
+                         log_time=t)
+        t_last = content["images"][-1][0]
+        foxglove.log("/tf_static", _fx_tf_static(content, t_last), log_time=t_last)
+    assert_same_errors(frame_errors(path), native_errors)
+    # the same with log times instead of header stamps
+    assert_same_errors(frame_errors(path, RunSettings(time_source="log")), native_errors)
+
+
+# -- roles, settings, inputs -------------------------------------------------------------------------
+def test_role_overrides_are_checked(bag):
+    with pytest.raises(InputError, match="no topic '/nope'"):
+        prepare(bag, RunSettings(), topics={"truth": "/nope"})
+    with pytest.raises(InputError, match="needs"):
+        prepare(bag, RunSettings(), topics={"truth": "/front/image_raw"})
+    prepared = prepare(bag, RunSettings(), topics={"odometry": "/ground_truth/pose", "truth": "/odom"})
+    assert (prepared.roles.roles["truth"], prepared.roles.roles["odometry"]) == ("/odom", "/ground_truth/pose")
+
+
+def test_body_frame_setting(bag):
+    prepared = prepare(bag, RunSettings(body_frame="camera_mount"))
+    T = prepared.replay.ctx.cameras["front"].T_agv_cam
+    np.testing.assert_allclose(T, prepared.replay.sync.tf.lookup("camera_mount", "camera_optical_frame"), atol=1e-12)
+
+
+def test_not_a_recording(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(RecordingError, match="without metadata.yaml"):
+        open_recording(tmp_path / "empty")
+    sqlite = tmp_path / "db"
+    sqlite.mkdir()
+    (sqlite / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
+        "storage_identifier": "sqlite3", "relative_file_paths": ["db_0.db3"]}}))
+    with pytest.raises(RecordingError, match="ros2 bag convert"):
+        open_recording(sqlite)
+
+
+# -- the real bags in ../shared/data ----------------------------------------------------------------
+def _real_bags() -> list[Path]:
+    return sorted(p.parent for p in DATA.rglob("metadata.yaml")) if DATA.is_dir() else []
+
+
+@pytest.mark.skipif(not _real_bags(), reason=f"real rosbag2 bags not found at {DATA} (../shared/data absent)")
+@pytest.mark.parametrize("bag_dir", _real_bags(), ids=lambda p: p.name)
+def test_real_bags_inspect_counts_and_run_refuses(bag_dir, tmp_path):
+    info = yaml.safe_load((bag_dir / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    report = inspect_recording(bag_dir)
+    counts = {t.topic: t.count for t in report.topics}
+    assert sum(counts.values()) == info["message_count"]
+    for entry in info["topics_with_message_count"]:
+        assert counts.get(entry["topic_metadata"]["name"], 0) == entry["message_count"]
+    assert not report.damage, report.damage
+    out = tmp_path / "x.rrd"
+    with pytest.raises(RunError, match="no camera images"):
+        run_recording(bag_dir, RunSettings(), out)
+    assert not out.exists()
