@@ -380,3 +380,83 @@ def test_parse_extrinsic():
 def test_bad_extrinsics(text, match):
     message = refused(lambda: parse_extrinsic("front", text, "base_link"), match)
     assert message.startswith("--extrinsic front=")
+
+
+# -- any document: a map or one SideFileError, never another exception ---------------------------
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+_scalars = st.one_of(
+    st.none(), st.booleans(), st.integers(-(10**30), 10**30), st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=8), st.sampled_from(["DICT_4X4_50", "qr", "charuco", "world", "agv", "0", "²", "AGV1;id=A"]),
+)
+_documents = st.recursive(
+    _scalars,
+    lambda children: st.one_of(
+        st.lists(children, max_size=5),
+        st.dictionaries(
+            st.sampled_from(sorted({"dictionary", "markers", "boards", "id", "side_m", "corners_world_m", "pose",
+                                    "payload", "frame", "type", "squares_x", "squares_y", "square_length_m",
+                                    "marker_length_m", "first_id", "ids", "legacy_pattern", "camera_matrix",
+                                    "distortion_coefficients", "distortion_model", "image_width", "image_height",
+                                    "rows", "cols", "data", "k", "d", "width", "height", "x"})),
+            children, max_size=6,
+        ),
+    ),
+    max_leaves=25,
+)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(document=_documents)
+def test_any_document_gives_a_map_or_one_side_file_error(tmp_path, document):
+    path = tmp_path / "doc.json"
+    path.write_text(json.dumps(document))
+    for load in (load_marker_map, lambda p: load_calibration("front", p)):
+        try:
+            load(path)
+        except SideFileError as exc:
+            assert "\n" not in str(exc)
+
+
+def _leaf_paths(value, prefix=()):
+    yield prefix
+    if isinstance(value, dict):
+        for key, child in value.items():
+            yield from _leaf_paths(child, prefix + (key,))
+    elif isinstance(value, list):
+        for i, child in enumerate(value):
+            yield from _leaf_paths(child, prefix + (i,))
+
+
+def _replace(value, path, new):
+    if not path:
+        return new
+    copy = dict(value) if isinstance(value, dict) else list(value)
+    copy[path[0]] = _replace(value[path[0]], path[1:], new)
+    return copy
+
+
+_VALID = [
+    {"dictionary": "DICT_6X6_250", "boards": [{"type": "charuco", "squares_x": 5, "squares_y": 7, "square_length_m": 0.04,
+                                               "marker_length_m": 0.02, "first_id": 0, "pose": [0, 0, 0, 0, 0, 0, 1]}],
+     "markers": [{"id": 40, "side_m": 0.1, "pose": [1, 2, 0, 0, 0, 0, 1], "frame": "agv"},
+                 {"id": "41", "corners_world_m": square((3.0, 3.0), 0.1)}]},
+    {"dictionary": "qr", "markers": [qr_code("Q1", (1.0, 1.0)), {"payload": qr_code("Q2", (2.0, 1.0))["payload"]}]},
+    ros_camera_info(),
+]
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_mutated_valid_documents_give_a_map_or_one_side_file_error(tmp_path, data):
+    document = data.draw(st.sampled_from(_VALID))
+    path_in_doc = data.draw(st.sampled_from(list(_leaf_paths(document))))
+    mutated = _replace(document, path_in_doc, data.draw(_documents))
+    path = tmp_path / "doc.json"
+    path.write_text(json.dumps(mutated))
+    load = (lambda p: load_calibration("front", p)) if "image_width" in document else load_marker_map
+    try:
+        load(path)
+    except SideFileError as exc:
+        assert "\n" not in str(exc)

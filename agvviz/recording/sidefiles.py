@@ -293,7 +293,7 @@ def _aruco_marker(entry: object, where: str, dictionary: str, count: int) -> dic
     entry = _check_keys(entry, _MARKER_KEYS - {"payload"}, where)
     marker_id = entry.get("id")
     if isinstance(marker_id, bool) or not (
-        isinstance(marker_id, int) or (isinstance(marker_id, str) and marker_id.isdigit())
+        isinstance(marker_id, int) or (isinstance(marker_id, str) and marker_id.isascii() and marker_id.isdigit())
     ):
         raise ValueError(f"{where}: id must be a non-negative integer id of {dictionary}, got {marker_id!r}")
     marker_id = int(marker_id)
@@ -515,6 +515,9 @@ def _matrix(value, what: str, shape: tuple[int, ...] | None = None) -> np.ndarra
     if not isinstance(data, list) or not data:
         raise ValueError(f"{what} must be a list of numbers (or {{rows, cols, data}}), got {value!r}")
     flat = [_number(v, what) for v in (np.asarray(data, dtype=object).ravel().tolist())]
+    for key, count in (("rows", rows), ("cols", cols)):
+        if count is not None and (isinstance(count, bool) or not isinstance(count, int)):
+            raise ValueError(f"{what}: {key} must be an integer, got {count!r}")
     if rows is not None and cols is not None and rows * cols != len(flat):
         raise ValueError(f"{what}: rows × cols = {rows}×{cols} but data has {len(flat)} numbers")
     array = np.array(flat, dtype=float)
@@ -533,7 +536,10 @@ def _first(document: dict, keys: tuple[str, ...]):
 
 
 def _integer(value, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
+    if (
+        isinstance(value, bool) or not isinstance(value, (int, float))
+        or not math.isfinite(value) or value != int(value)
+    ):
         raise ValueError(f"{what} must be an integer number of pixels, got {value!r}")
     return int(value)
 
