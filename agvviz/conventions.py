@@ -10,6 +10,16 @@ world frame       right-handed, z up; the floor is the plane z = 0.
 AGV body frame    ``agv``: x right, y forward, z up (paper 000 §5.2). Origin on the floor
                   under the vehicle centre.
 camera frame      ``cam_<name>``: OpenCV — x right, y down, z forward (optical axis).
+                  A ROS *optical* frame (``*_optical_frame``, REP 103/105: x right, y down,
+                  z forward) is this convention already, so a camera's extrinsic is the
+                  transform chain from the body frame to the frame id its images carry
+                  (``base_link → camera_link → camera_optical_frame``), used as is; ROS
+                  ``camera_link`` (x forward, y left, z up) is not an optical frame.
+body frame        ``agv`` in agvviz recordings; in other logs a setting (``body_frame``,
+                  default ``base_link``). ROS ``base_link`` is x forward, y left, z up
+                  (REP 103), so heading/pitch/roll below, defined on the body's axes, differ
+                  from a ROS yaw by the body's axis choice; errors between truth and estimate
+                  of the same body are unaffected.
 marker frame      origin at the code centre, z out of the printed face (towards a viewer),
                   x along the top edge (top-left → top-right), y from the bottom edge to
                   the top edge — OpenCV's ArUco / IPPE_SQUARE frame. A code of side s has
@@ -29,7 +39,9 @@ tangent space     Lie algebra vectors are ordered ξ = (ρ, φ): translation par
 perturbation      left: ``T ← Exp(δ) · T``. Jacobians are named ``J_out_wrt_in``; every
                   covariance states the tangent space it lives in (left, (ρ, φ) order).
 units             SI, carried in names: ``_m``, ``_rad``, ``_deg``, ``_px``, ``_s``, ``_ns``.
-time              integer nanoseconds (``log_time_ns``) in recordings and runs.
+time              integer nanoseconds (``log_time_ns``) in recordings and runs. A message's
+                  time is its log time or its own header stamp (setting ``time_source``;
+                  header for ROS logs, log time for agvviz recordings).
 quaternions       (x, y, z, w) wherever a quaternion crosses a file boundary (Foxglove).
 ================  =======================================================================
 """

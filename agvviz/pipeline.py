@@ -190,8 +190,8 @@ class Replay:
         value = message.value
         if isinstance(value, CalibrationMsg):
             self._note_calibration_problem(message)
-        self.sync.add(message)
-        if message.role == ROLE_TRUTH and isinstance(value, PoseMsg):
+        kept = self.sync.add(message)
+        if message.role == ROLE_TRUTH and kept:
             self.truth_seen = True
         if message.role == ROLE_MARKER_MAP and isinstance(value, dict) and self.sync.side_marker_map is None:
             self._set_marker_map(value)

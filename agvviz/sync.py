@@ -99,6 +99,11 @@ class SyncState:
             name = cam[0] if cam else value.cam_name
             self.add_calibration(name, value, message.time_ns)
             return True
+        if role == ROLE_TRUTH and isinstance(value, list) and len(value) == 1 and isinstance(value[0], FrameTransformMsg):
+            # truth published as a TransformStamped (motion capture): T_world_body
+            self.truth.add(message.time_ns, value[0].T_parent_child)
+            self.truth_frames.add(value[0].parent_frame)
+            return True
         if isinstance(value, list) and value and all(isinstance(v, FrameTransformMsg) for v in value):
             # agvviz's own /tf_static carries FrameTransforms; any other topic holding
             # transforms under the tf role is time-varying.

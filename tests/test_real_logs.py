@@ -444,3 +444,110 @@ def test_real_bags_inspect_counts_and_run_refuses(bag_dir, tmp_path):
     with pytest.raises(RunError, match="no camera images"):
         run_recording(bag_dir, RunSettings(), out)
     assert not out.exists()
+
+
+# -- decoders: image encodings, distortion models, roles ------------------------------------------
+def _png_pixels(png: bytes, flags=cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(png, np.uint8), flags)
+
+
+def test_raw_image_encodings():
+    from agvviz.recording.images import ImageEncodingError, raw_to_png
+
+    rng = np.random.default_rng(0)
+    bgr = rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(_png_pixels(raw_to_png("bgr8", 8, 6, 24, bgr.tobytes())), bgr)
+    np.testing.assert_array_equal(_png_pixels(raw_to_png("rgb8", 8, 6, 24, bgr[:, :, ::-1].tobytes())), bgr)
+    bgra = np.dstack([bgr, np.full((6, 8), 7, np.uint8)])
+    np.testing.assert_array_equal(_png_pixels(raw_to_png("bgra8", 8, 6, 32, bgra.tobytes())), bgr)
+    rgba = np.dstack([bgr[:, :, ::-1], np.full((6, 8), 7, np.uint8)])
+    np.testing.assert_array_equal(_png_pixels(raw_to_png("rgba8", 8, 6, 32, rgba.tobytes())), bgr)
+    mono = bgr[:, :, 0]
+    padded = np.hstack([mono, np.zeros((6, 4), np.uint8)])  # step 12 > width 8
+    np.testing.assert_array_equal(_png_pixels(raw_to_png("mono8", 8, 6, 12, padded.tobytes())), mono)
+    # mono16 (a 12-bit sensor), both byte orders: scaled by 255 / max
+    m16 = (mono.astype(np.uint16) * 16)
+    expected = np.rint(m16 * (255.0 / m16.max())).astype(np.uint8)
+    np.testing.assert_array_equal(_png_pixels(raw_to_png("mono16", 8, 6, 16, m16.astype("<u2").tobytes())), expected)
+    np.testing.assert_array_equal(
+        _png_pixels(raw_to_png("mono16", 8, 6, 16, m16.astype(">u2").tobytes(), big_endian=True)), expected
+    )
+    # an equal-channel bgr8 image is its grey values exactly
+    grey3 = np.repeat(mono[:, :, None], 3, axis=2)
+    np.testing.assert_array_equal(_png_pixels(raw_to_png("bgr8", 8, 6, 24, grey3.tobytes()), cv2.IMREAD_GRAYSCALE), mono)
+    with pytest.raises(ImageEncodingError, match="'yuv422' is not supported"):
+        raw_to_png("yuv422", 8, 6, 16, bytes(96))
+    with pytest.raises(ImageEncodingError, match="needs"):
+        raw_to_png("bgr8", 8, 6, 24, bytes(100))
+
+
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_bayer_demosaic_follows_the_ros_pattern_name(pattern):
+    """A smooth colour image mosaicked with the ROS pattern comes back (cv_bridge's mapping)."""
+    from agvviz.recording.images import raw_to_png
+
+    y, x = np.mgrid[0:32, 0:32]
+    bgr = np.dstack([40 + 2 * x, 120 + 0 * x, 200 - 2 * y]).astype(np.uint8)  # B, G, R
+    channel = {"b": 0, "g": 1, "r": 2}
+    mosaic = np.zeros((32, 32), np.uint8)
+    for k, c in enumerate(pattern):
+        dy, dx = divmod(k, 2)
+        mosaic[dy::2, dx::2] = bgr[dy::2, dx::2, channel[c]]
+    out = _png_pixels(raw_to_png(f"bayer_{pattern}8", 32, 32, 32, mosaic.tobytes())).astype(int)
+    inner = (slice(4, -4), slice(4, -4))
+    assert np.abs(out[inner] - bgr[inner]).max() <= 3, pattern
+
+
+def test_camera_info_distortion_models():
+    from agvviz.recording.reader import MessageDecodeError, calibration
+
+    K = [500.0, 0, 320, 0, 500.0, 240, 0, 0, 1]
+    rational = calibration("/c/camera_info", "c", K, [0.1, -0.05, 0.001, 0.002, 0.01, 0.2, -0.01, 0.003],
+                           "rational_polynomial", 640, 480)
+    assert rational.camera.is_rational and rational.camera.dist.size == 8
+    # the rational model agrees with OpenCV's projectPoints
+    pts = np.array([[0.3, -0.2, 1.0], [-0.5, 0.4, 2.0]])
+    cv_px, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), rational.camera.K, rational.camera.dist)
+    np.testing.assert_allclose(rational.camera.project(pts), cv_px.reshape(-1, 2), atol=1e-9)
+    # its Jacobian agrees with finite differences
+    _, J = rational.camera.project_with_jacobian(pts)
+    h = 1e-7
+    for i in range(3):
+        step = np.zeros(3)
+        step[i] = h
+        fd = (rational.camera.project(pts + step) - rational.camera.project(pts - step)) / (2 * h)
+        np.testing.assert_allclose(J[:, :, i], fd, atol=1e-4)
+    with pytest.raises(MessageDecodeError, match="fisheye"):
+        calibration("/c/camera_info", "c", K, [0.1, 0.01, 0.0, 0.0], "equidistant", 640, 480)
+    with pytest.raises(MessageDecodeError, match="not calibrated"):
+        calibration("/c/camera_info", "c", [0.0] * 9, [], "", 640, 480)
+
+
+def test_role_inference_rules():
+    from agvviz.recording.roles import TopicInfo, infer_roles
+
+    def topics(*rows):
+        return {t: TopicInfo(t, schema, "cdr", 1, frame) for t, schema, frame in rows}
+
+    roles = infer_roles(topics(
+        ("/left/image_raw/compressed", "sensor_msgs/msg/CompressedImage", "left_optical"),
+        ("/right/image_rect", "sensor_msgs/msg/Image", "right_optical"),
+        ("/left/camera_info", "sensor_msgs/msg/CameraInfo", "left_optical"),
+        ("/calib/right", "sensor_msgs/msg/CameraInfo", "right_optical"),  # paired by frame id
+        ("/camera/depth/image_rect_raw", "sensor_msgs/msg/Image", "depth"),
+        ("/vicon/agv/agv", "geometry_msgs/msg/TransformStamped", "world"),
+        ("/odometry/filtered", "nav_msgs/msg/Odometry", "odom"),
+        ("/wheel/odom", "nav_msgs/msg/Odometry", "odom"),
+        ("/goal_pose", "geometry_msgs/msg/PoseStamped", "map"),
+        ("/rosout", "rcl_interfaces/msg/Log", ""),
+    ))
+    assert roles.roles["left.image"] == "/left/image_raw/compressed"
+    assert roles.roles["right.image"] == "/right/image_rect"
+    assert roles.roles["left.calibration"] == "/left/camera_info"
+    assert roles.roles["right.calibration"] == "/calib/right"
+    assert roles.roles["truth"] == "/vicon/agv/agv"
+    assert "depth image" in roles.unplaced["/camera/depth/image_rect_raw"]
+    assert "one of 2 candidates for odometry" in roles.unplaced["/wheel/odom"]
+    assert "--topic truth=/goal_pose" in roles.unplaced["/goal_pose"]
+    assert "not used by the replay" in roles.unplaced["/rosout"]
+    assert "odometry" not in roles.roles

@@ -43,10 +43,18 @@ from agvviz.recording.reader import (
 )
 from agvviz.recording.schemas import SCENARIO_METADATA, SCHEMAS
 from agvviz.recording.topics import (
+    CAMERA_TOPIC_RE,
+    CORNERS_TOPIC,
     GROUND_TRUTH_TOPIC,
+    MARKER_MAP_TOPIC,
+    ODOMETRY_TOPIC,
+    TF_STATIC_TOPIC,
+    UWB_ANCHORS_TOPIC,
+    UWB_RANGE_TOPIC,
     ROLE_MARKER_MAP,
     ROLE_TF_STATIC,
     ROLE_TRUTH,
+    camera_calibration_topic,
     camera_of_role,
 )
 
@@ -267,17 +275,17 @@ def payload_map_problem(
         )
     return None
 
-_CAMERA_TOPIC = re.compile(r"^/cam/([^/]+)/(image|calibration)$")
+_CAMERA_TOPIC = CAMERA_TOPIC_RE
 
 #: Fixed topics of the contract → (accepted schema names, message encoding).
 _FIXED_TOPICS = {
-    "/tf_static": (("foxglove.FrameTransforms",), "protobuf"),
-    "/agv/ground_truth": (("foxglove.PoseInFrame",), "protobuf"),
-    "/agv/odometry": (("foxglove.PoseInFrame",), "protobuf"),
-    "/uwb/range": (("agvviz.UwbRange",), "json"),
-    "/uwb/anchors": (("agvviz.UwbAnchors",), "json"),
-    "/markers/map": (("agvviz.MarkerMap",), "json"),
-    "/markers/corners": (("agvviz.CornerObservations",), "json"),
+    TF_STATIC_TOPIC: (("foxglove.FrameTransforms",), "protobuf"),
+    GROUND_TRUTH_TOPIC: (("foxglove.PoseInFrame",), "protobuf"),
+    ODOMETRY_TOPIC: (("foxglove.PoseInFrame",), "protobuf"),
+    UWB_RANGE_TOPIC: (("agvviz.UwbRange",), "json"),
+    UWB_ANCHORS_TOPIC: (("agvviz.UwbAnchors",), "json"),
+    MARKER_MAP_TOPIC: (("agvviz.MarkerMap",), "json"),
+    CORNERS_TOPIC: (("agvviz.CornerObservations",), "json"),
 }
 _CAMERA_TOPICS = {
     "image": (("foxglove.CompressedImage", "foxglove.RawImage"), "protobuf"),
@@ -463,7 +471,7 @@ def inspect_recording(path, roles=None) -> InspectReport:
         if cam_name not in report.cameras:
             report.violations.append(
                 f"camera {cam_name}: images but no valid calibration; expected "
-                f"/cam/{cam_name}/calibration (foxglove.CameraCalibration)"
+                f"{camera_calibration_topic(cam_name)} (foxglove.CameraCalibration)"
             )
         if not any((parent, camera_frame(cam_name)) in transforms for parent in (AGV_FRAME, WORLD_FRAME)):
             report.violations.append(

@@ -73,8 +73,10 @@ _JSON_ROLES = {
     "agvviz.CornerObservations": ROLE_CORNERS,
 }
 #: Schema names each role accepts.
+#: A motion-capture bridge may publish truth as a TransformStamped (vicon_bridge does).
+TRUTH_TYPES = POSE_TYPES + ("geometry_msgs/msg/TransformStamped",)
 ROLE_TYPES = {
-    ROLE_TRUTH: POSE_TYPES,
+    ROLE_TRUTH: TRUTH_TYPES,
     ROLE_ODOMETRY: POSE_TYPES,
     ROLE_TF_STATIC: TRANSFORM_TYPES,
     ROLE_TF: TRANSFORM_TYPES,
@@ -338,6 +340,8 @@ def infer_roles(
 
     # Transforms.
     for topic in [t for t in free if topics[t].schema_name in TRANSFORM_TYPES]:
+        if topics[topic].schema_name == "geometry_msgs/msg/TransformStamped" and _words(topic) & _TRUTH_WORDS:
+            continue  # a motion-capture pose: placed with the poses below
         if topic in (TF_STATIC_TOPIC, "tf_static"):
             place(ROLE_TF_STATIC, topic)
         elif topic in (TF_TOPIC, "tf"):
@@ -352,7 +356,7 @@ def infer_roles(
     free = [t for t in free if t not in taken and t not in result.unplaced]
 
     # Poses: truth and odometry.
-    poses = [t for t in free if topics[t].schema_name in POSE_TYPES]
+    poses = [t for t in free if topics[t].schema_name in TRUTH_TYPES]
     truth = [t for t in poses if _words(t) & _TRUTH_WORDS]
     odom = [
         t for t in poses if t not in truth

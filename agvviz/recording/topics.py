@@ -5,20 +5,18 @@ The replay consumes **roles**, not topics (DESIGN §4 "Roles, not topics"). A ro
 (``pipeline``, ``fusion_replay``, ``correction``, ``inspect``) dispatches on
 :attr:`agvviz.recording.reader.RecordedMessage.role`.
 
-=================  ========================  =====================================================
-role               agvviz's own topic         what
-=================  ========================  =====================================================
-``<cam>.image``    ``/cam/<cam>/image``       camera frames (one camera per image topic)
-``<cam>.calibration``  ``/cam/<cam>/calibration``  that camera's intrinsics
-``truth``          ``/agv/ground_truth``      ground-truth pose of the body frame in the world
-``odometry``       ``/agv/odometry``          drifting navigation / dead reckoning
-``markers``        ``/markers/map``           the marker map (``agvviz.MarkerMap``)
-``corners``        ``/markers/corners``       corner observations without images
-``uwb.range``      ``/uwb/range``             UWB two-way ranges
-``uwb.anchors``    ``/uwb/anchors``           UWB anchor positions
-``tf_static``      ``/tf_static``             fixed transforms (camera extrinsics, chains)
-``tf``             ``/tf``                    time-varying transforms
-=================  ========================  =====================================================
+Roles and agvviz's own topic for each:
+
+- ``<cam>.image`` — ``/cam/<cam>/image``: camera frames (one camera per image topic);
+- ``<cam>.calibration`` — ``/cam/<cam>/calibration``: that camera's intrinsics;
+- ``truth`` — ``/agv/ground_truth``: ground-truth pose of the body frame in the world;
+- ``odometry`` — ``/agv/odometry``: drifting navigation / dead reckoning;
+- ``markers`` — ``/markers/map``: the marker map (``agvviz.MarkerMap``);
+- ``corners`` — ``/markers/corners``: corner observations without images;
+- ``uwb.range`` — ``/uwb/range``: UWB two-way ranges;
+- ``uwb.anchors`` — ``/uwb/anchors``: UWB anchor positions;
+- ``tf_static`` — ``/tf_static``: fixed transforms (camera extrinsics, chains);
+- ``tf`` — ``/tf``: time-varying transforms.
 """
 
 from __future__ import annotations
