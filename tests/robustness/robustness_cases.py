@@ -805,10 +805,12 @@ def signal_driver(signum: int, settle_s: float = 0.4):
 
     def drive(proc: subprocess.Popen, case: Case) -> None:
         folder = Path(case.outputs[0]).parent
+        case.driven = False
         if _wait_for_tmp(folder, proc):
             time.sleep(settle_s)
             if proc.poll() is None:
                 os.killpg(proc.pid, signum)
+                case.driven = True
 
     return drive
 
