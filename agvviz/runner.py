@@ -105,9 +105,10 @@ def run_recording(
     out_path = Path(out_path) if out_path is not None else default_run_path(recording_path, settings)
     if out_path.suffix != ".rrd":
         raise RunError(f"output must be a .rrd file, got {out_path}")
-    if out_path.resolve() == recording_path.resolve():
-        raise RunError("the output path is the recording itself; refusing to overwrite an input")
-    out_path.parent.mkdir(parents=True, exist_ok=True)
+    # OutputError when out_path is the recording (also through a link) or cannot be written.
+    from agvviz import outputs
+
+    outputs.prepare_output(out_path, inputs=(recording_path,))
 
     recording_sha256 = file_sha256(recording_path)
     scenario = read_scenario_metadata(recording_path)
@@ -129,7 +130,9 @@ def run_recording(
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     scores: list[FrameScore] = []
-    with RunLogger(out_path, recording_name=recording_name, recording_id=recording_id) as logger:
+    with RunLogger(
+        out_path, recording_name=recording_name, recording_id=recording_id, inputs=(recording_path,)
+    ) as logger:
         logger.log_manifest(manifest)
         replay = Replay(settings)
         # Frames of one time stamp (several cameras) → one camera fix; UWB; fusion.
