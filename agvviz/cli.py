@@ -76,6 +76,8 @@ def handle_errors(command):
     def wrapper(*args, **kwargs):
         try:
             return command(*args, **kwargs)
+        except BrokenPipeError:  # stdout closed by the reader (`agvviz diff … | head`): typer's to handle
+            raise
         except (AgvvizError, OSError, MemoryError, KeyboardInterrupt) as exc:
             if isinstance(exc, KeyboardInterrupt):
                 outputs.remove_live_temps()
@@ -335,8 +337,7 @@ def diff(
     """Compare run B with run A: every metric, B − A, a paired test and a confidence interval.
 
     Frames are matched by time; error metrics are over the frames both runs solved.
-    Exit codes: 0 fine, 1 the --fail-if condition holds, 2 bad input, 3 the overlay could not be
-    written (it is never written over A or B).
+    Exit codes: 0 fine, 1 the --fail-if condition holds, 2 bad input, 3 the overlay could not be written (never over A or B).
 
     Example: agvviz diff runs/lm.rrd runs/p4p.rrd --out runs/diff.rrd --fail-if "B.position_rmse_mm > 1.05*A.position_rmse_mm"
     """

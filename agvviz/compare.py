@@ -20,6 +20,7 @@ import os
 import queue as queue_module
 import re
 import signal
+import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -407,6 +408,23 @@ def _worker_sigterm(signum, frame) -> None:
     os._exit(130)
 
 
+def _terminate_with_parent() -> None:
+    """Linux: SIGTERM this worker when the sweep process dies (even by SIGKILL), so a worker
+    never runs on alone; elsewhere a no-op."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+        parent = multiprocessing.parent_process()
+        if parent is not None and parent.pid != os.getppid():  # the parent died before the call
+            os._exit(130)
+    except (OSError, AttributeError):
+        pass
+
+
 def _init_worker(progress_queue) -> None:
     global _progress_queue
     _progress_queue = progress_queue
@@ -414,6 +432,7 @@ def _init_worker(progress_queue) -> None:
     # workers with SIGTERM, so a worker never prints a traceback of its own.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _worker_sigterm)
+    _terminate_with_parent()
     # One OpenCV thread per worker: `jobs` workers already fill the CPUs, more threads only
     # contend for them.
     import cv2
