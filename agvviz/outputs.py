@@ -217,15 +217,6 @@ def prepare_output(
     return path
 
 
-def free_bytes(folder: str | os.PathLike) -> int | None:
-    """Bytes an unprivileged writer may still use in ``folder``'s file system (None: unknown)."""
-    try:
-        st = os.statvfs(folder)
-    except (OSError, AttributeError):
-        return None
-    return st.f_bavail * st.f_frsize
-
-
 # -- small text files --------------------------------------------------------------------------
 def atomic_write_text(path: str | os.PathLike, text: str, *, inputs: Iterable[str | os.PathLike] = ()) -> Path:
     """Write ``text`` to ``path`` through a temporary file renamed into place.

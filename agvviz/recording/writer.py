@@ -111,7 +111,7 @@ class RecordingWriter:
 
         folder = self.path.parent
         if not folder.is_dir():
-            raise FileNotFoundError(f"cannot write {self.path}: folder {folder} does not exist")
+            raise outputs.OutputError(f"cannot write {self.path}: folder {folder} does not exist; create it first")
         # agvviz's temporary name (pid inside): removed when interrupted, or by the next
         # command writing here if this process is killed; created with the usual permissions.
         self._tmp_path = outputs.temp_path(self.path)
