@@ -1,10 +1,18 @@
 """agvviz command line: parse, build a frozen settings object, call one library function.
 
-Every command prints where its output went; errors are one clear line and exit code 2.
+Every command prints where its output went. Errors are handled in one place
+(:func:`handle_errors`, on every command): an :class:`~agvviz.errors.AgvvizError`, an
+``OSError`` from writing, ``MemoryError`` or an interrupt becomes one line ``error: <message>``
+on stderr and the exit code of its kind (:mod:`agvviz.errors`: 2 bad input, 3 output not
+written, 130 interrupted). The console script is :func:`agvviz.__main__.main`, which installs the
+signal handlers before this module is imported.
 """
 
 from __future__ import annotations
 
+import errno
+import functools
+import os
 import shutil
 import subprocess
 import sys
@@ -15,25 +23,73 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
+from rich.text import Text
 
-from agvviz import __version__
-from agvviz.settings import RunSettings, SettingsError, apply_overrides, describe
+from agvviz import __version__, outputs
+from agvviz.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OUTPUT, AgvvizError, InputError
+from agvviz.settings import RunSettings, apply_overrides, describe
 
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
     help="agvviz — record, replay and inspect fiducial-marker localisation in Rerun.\n\n"
-    "Quick start:  agvviz demo   (records qr_floor, runs the lm solver, writes an .rrd).",
+    "Quick start:  agvviz demo   (records qr_floor, runs the lm solver, writes an .rrd).\n\n"
+    "Exit codes: 0 ok, 1 a condition held (diff --fail-if) or a contract was violated (inspect), "
+    "2 bad input, 3 output could not be written, 130 interrupted.",
 )
 console = Console()
 err_console = Console(stderr=True, soft_wrap=True)
 
 SET_HELP = "key=value (repeatable); see `agvviz scenarios` / `agvviz run --help` for keys"
 
+#: errno values of an ``OSError`` that mean "could not write" (exit 3) rather than bad input.
+WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG}
+
+
+def error_line(message: str) -> None:
+    """Print ``error: <message>`` as one line on stderr (no markup is interpreted)."""
+    text = " ".join(str(message).split()) or "unknown error"
+    err_console.print(Text.assemble(("error:", "bold red"), " ", text), soft_wrap=True, highlight=False)
+
+
+def exit_for(exc: BaseException) -> tuple[int, str]:
+    """The exit code and the one-line message for an exception reaching the CLI."""
+    if isinstance(exc, KeyboardInterrupt):
+        return EXIT_INTERRUPTED, "interrupted; unfinished outputs were removed"
+    if isinstance(exc, AgvvizError):
+        return exc.exit_code, str(exc)
+    if isinstance(exc, MemoryError):
+        return EXIT_BAD_INPUT, "out of memory; try a shorter recording, fewer settings or --no-images"
+    if isinstance(exc, OSError):
+        target = exc.filename or "a file"
+        if exc.errno in WRITE_ERRNOS:
+            return EXIT_OUTPUT, str(outputs.output_error(exc, target))
+        return EXIT_BAD_INPUT, f"cannot use {target}: {exc.strerror or exc}"
+    raise TypeError(f"not an error the CLI reports: {type(exc).__name__}")
+
+
+def handle_errors(command):
+    """Decorator of every command: the one place that turns errors into a line and a code."""
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except BrokenPipeError:  # stdout closed by the reader (`agvviz diff … | head`): typer's to handle
+            raise
+        except (AgvvizError, OSError, MemoryError, KeyboardInterrupt) as exc:
+            if isinstance(exc, KeyboardInterrupt):
+                outputs.remove_live_temps()
+            code, message = exit_for(exc)
+            error_line(message)
+            raise typer.Exit(code=code) from None
+
+    return wrapper
+
 
 def _fail(message: str) -> None:
-    err_console.print(f"[bold red]error:[/] {message}")
-    raise typer.Exit(code=2)
+    raise InputError(message)
 
 
 def _progress() -> Progress:
@@ -50,6 +106,7 @@ def _progress() -> Progress:
 
 # -- scenarios / record -------------------------------------------------------------------
 @app.command()
+@handle_errors
 def scenarios() -> None:
     """List every scenario with its options and defaults."""
     from agvviz import scenario_registry
@@ -67,22 +124,20 @@ def scenarios() -> None:
 def _record(scenario: str, seed: int, sets: list[str], out: Path) -> Path:
     from agvviz import scenario_registry
 
-    try:
-        scenario_registry.build_options(scenario, sets)  # validate before any work
-        with _progress() as progress:
-            task = progress.add_task(f"recording {scenario}", total=None, rate="")
+    scenario_registry.build_options(scenario, sets)  # validate before any work
+    with _progress() as progress:
+        task = progress.add_task(f"recording {scenario}", total=None, rate="")
 
-            def on_frame(done: int, total: int) -> None:
-                progress.update(task, completed=done, total=total)
+        def on_frame(done: int, total: int) -> None:
+            progress.update(task, completed=done, total=total)
 
-            scenario_registry.record(scenario, out, seed=seed, overrides=sets, progress=on_frame)
-    except scenario_registry.ScenarioError as exc:
-        _fail(str(exc))
+        scenario_registry.record(scenario, out, seed=seed, overrides=sets, progress=on_frame)
     console.print(f"recording written: [bold]{out}[/]")
     return out
 
 
 @app.command()
+@handle_errors
 def record(
     scenario: str = typer.Argument("qr_floor", help="scenario name (see `agvviz scenarios`)"),
     seed: int = typer.Option(0, "--seed", help="fixes all randomness; same seed ⇒ same recording"),
@@ -193,34 +248,33 @@ def _run(
     topics: list[str] = (), roles: Optional[Path] = None, markers: Optional[Path] = None,
     calibration: list[str] = (), extrinsic: list[str] = (),
 ) -> Path:
-    from agvviz.errors import AgvvizError
     from agvviz.recording.roles import parse_topic_options
-    from agvviz.runner import run_recording
+    from agvviz.runner import NoUsableFrameError, run_recording
 
-    try:
-        settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
-    except SettingsError as exc:
-        _fail(str(exc))
-    try:
-        topic_map = parse_topic_options(list(topics))
-        side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
-        with _progress() as progress:
-            task = progress.add_task(f"replaying ({settings.label()})", total=None, rate="")
+    settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
+    topic_map = parse_topic_options(list(topics))
+    side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
+    with _progress() as progress:
+        task = progress.add_task(f"replaying ({settings.label()})", total=None, rate="")
 
-            def on_total(total: int) -> None:
-                progress.update(task, total=total)
+        def on_total(total: int) -> None:
+            progress.update(task, total=total)
 
-            def on_frame(done: int) -> None:
-                elapsed = progress.tasks[task].elapsed or 0.0
-                rate = f"{done / elapsed:.1f} frames/s" if elapsed > 0 else ""
-                progress.update(task, completed=done, rate=rate)
+        def on_frame(done: int) -> None:
+            elapsed = progress.tasks[task].elapsed or 0.0
+            rate = f"{done / elapsed:.1f} frames/s" if elapsed > 0 else ""
+            progress.update(task, completed=done, rate=rate)
 
+        try:
             outcome = run_recording(
                 recording, settings, out, progress=on_frame, topics=topic_map, roles_file=roles,
                 side=side, on_total=on_total,
             )
-    except AgvvizError as exc:
-        _fail(str(exc))
+        except NoUsableFrameError as exc:
+            progress.stop()
+            for cause in exc.causes:  # one line per cause, then the one-line error
+                err_console.print(Text.assemble(("cause:", "bold"), " ", cause), soft_wrap=True, highlight=False)
+            raise
     _print_summary(outcome.summary, outcome.timing, f"run {outcome.manifest['recording_name']}")
     console.print(f"run written: [bold]{outcome.out_path}[/]")
     console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]")
@@ -228,6 +282,7 @@ def _run(
 
 
 @app.command(help=_run_help())
+@handle_errors
 def run(
     recording: Path = typer.Argument(..., help="recording: an .mcap file or a rosbag2 directory"),
     solver: Optional[str] = typer.Option(None, "--solver", help="shortcut for --set solver=NAME"),
@@ -244,6 +299,7 @@ def run(
 
 # -- inspect / view / demo ---------------------------------------------------------------
 @app.command()
+@handle_errors
 def inspect(
     recording: Path = typer.Argument(..., help="recording: an .mcap file or a rosbag2 directory"),
     set_: List[str] = typer.Option([], "--set", help="run settings that change what a run can use (body_frame, time_source, ...)"),
@@ -261,19 +317,15 @@ def inspect(
     run could use (the causes are listed, as `run` would give them).
     Example: agvviz inspect rosbag2_dir --topic truth=/vicon/agv/pose --write-roles roles.yaml
     """
-    from agvviz.errors import AgvvizError
     from agvviz.recording.contract import format_report, inspect_recording
     from agvviz.recording.roles import parse_topic_options
     from agvviz.runner import prepare
 
-    try:
-        settings = apply_overrides(RunSettings(), list(set_))
-        topic_map = parse_topic_options(list(topic))
-        side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
-        prepared = prepare(recording, settings, topic_map, roles, side)
-        report = inspect_recording(recording, roles=prepared.roles)
-    except AgvvizError as exc:
-        _fail(str(exc))
+    settings = apply_overrides(RunSettings(), list(set_))
+    topic_map = parse_topic_options(list(topic))
+    side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
+    prepared = prepare(recording, settings, topic_map, roles, side)
+    report = inspect_recording(recording, roles=prepared.roles)
     console.print(format_report(report), highlight=False, markup=False, soft_wrap=True)
     lines = ["", f"roles (body frame {prepared.body_frame}, time from {prepared.time_source}; override with --topic ROLE=TOPIC):"]
     lines += prepared.roles.lines() or ["  none"]
@@ -285,10 +337,7 @@ def inspect(
         lines.append("replay: a run would fail (no frame can be used; `agvviz run` exits non-zero)")
     console.print("\n".join(lines), highlight=False, markup=False, soft_wrap=True)
     if write_roles is not None:
-        try:
-            write_roles.write_text(prepared.roles.to_yaml())
-        except OSError as exc:
-            _fail(f"--write-roles {write_roles}: cannot write ({exc.strerror or exc})")
+        outputs.atomic_write_text(write_roles, prepared.roles.to_yaml(), inputs=[recording])
         console.print(f"roles written: {write_roles} (use it with --roles {write_roles})", highlight=False,
                       markup=False, soft_wrap=True)
     if not report.ok or not prepared.can_run:
@@ -296,20 +345,31 @@ def inspect(
 
 
 @app.command()
+@handle_errors
 def view(run_file: Path = typer.Argument(..., help="run .rrd")) -> None:
     """Open a run in the Rerun viewer (with its default layout).
 
     Example: agvviz view runs/qr_floor-lm.rrd
     """
+    from agvviz.viz.rrd_file import looks_complete
+
     if not run_file.is_file():
         _fail(f"no such file: {run_file}")
+    if not looks_complete(run_file):
+        _fail(f"{run_file} is not a complete .rrd file (no Rerun header or footer); write it again with `agvviz run`")
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        _fail("no display to open the viewer on (DISPLAY and WAYLAND_DISPLAY are unset); copy "
+              f"{run_file} to a machine with a screen, or run `rerun --web-viewer {run_file}`")
     rerun_bin = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
     if not Path(rerun_bin).exists():
         _fail("the `rerun` viewer executable was not found next to this Python; reinstall rerun-sdk")
-    raise typer.Exit(code=subprocess.call([rerun_bin, str(run_file)]))
+    code = subprocess.call([rerun_bin, str(run_file)])
+    if code != 0:
+        _fail(f"the Rerun viewer could not open {run_file} (it exited with code {code}; see its messages above)")
 
 
 @app.command()
+@handle_errors
 def demo(
     seed: int = typer.Option(0, "--seed", help="scenario seed"),
     solver: str = typer.Option("lm", "--solver", help="pose solver"),
@@ -324,6 +384,7 @@ def demo(
 
 
 @app.command()
+@handle_errors
 def version() -> None:
     """Print the agvviz version."""
     console.print(__version__)
@@ -346,6 +407,7 @@ def _fmt_p(p) -> str:
 
 
 @app.command()
+@handle_errors
 def diff(
     a: Path = typer.Argument(..., help="run A .rrd (the reference)"),
     b: Path = typer.Argument(..., help="run B .rrd (compared with A)"),
@@ -364,23 +426,16 @@ def diff(
     """Compare run B with run A: every metric, B − A, a paired test and a confidence interval.
 
     Frames are matched by time; error metrics are over the frames both runs solved.
-    Exit codes: 0 fine, 1 the --fail-if condition holds, 2 bad input.
+    Exit codes: 0 fine, 1 the --fail-if condition holds, 2 bad input, 3 the overlay could not be written (never over A or B).
 
     Example: agvviz diff runs/lm.rrd runs/p4p.rrd --out runs/diff.rrd --fail-if "B.position_rmse_mm > 1.05*A.position_rmse_mm"
     """
-    from agvviz.compare import CompareError, diff as diff_runs
-    from agvviz.evaluation.expression import ExpressionError
-    from agvviz.evaluation.trajectory import EvaluationError
-    from agvviz.viz.overlay import OverlayError
-    from agvviz.viz.readback import RrdReadError
+    from agvviz.compare import diff as diff_runs
 
-    try:
-        outcome = diff_runs(
-            a, b, overlay_path=out, fail_if=fail_if, align=align, rpe_delta=rpe_delta,
-            time_offset=time_offset, images=images, seed=seed,
-        )
-    except (CompareError, ExpressionError, EvaluationError, OverlayError, RrdReadError) as exc:
-        _fail(str(exc))
+    outcome = diff_runs(
+        a, b, overlay_path=out, fail_if=fail_if, align=align, rpe_delta=rpe_delta,
+        time_offset=time_offset, images=images, seed=seed,
+    )
     c = outcome.comparison
     table = Table(
         title=f"A = {c.a_name} ({a.name})   B = {c.b_name} ({b.name})\n"
@@ -420,6 +475,7 @@ def diff(
 
 
 @app.command()
+@handle_errors
 def sweep(
     recording: Path = typer.Argument(..., help="recording .mcap"),
     set_: List[str] = typer.Option(
@@ -440,27 +496,25 @@ def sweep(
 
     Example: agvviz sweep recordings/qr_floor.mcap --set solver=p4p,lm,ippe --set lm_max_iterations=3,10
     """
-    from agvviz.compare import CompareError, parse_grid, ranking_rows
+    from agvviz.compare import grid_settings, parse_grid, ranking_rows
     from agvviz.compare import sweep as sweep_runs
-    from agvviz.compare import grid_settings
-    from agvviz.recording.reader import RecordingError, count_image_times
+    from agvviz.recording.reader import count_image_times
 
-    try:
-        grid = parse_grid(set_)
-        n_settings = len(grid_settings(grid))
-        frames = count_image_times(recording) if recording.is_file() else 0
-        with _progress() as progress:
-            task = progress.add_task(f"sweeping {n_settings} settings", total=frames * n_settings, rate="")
+    if jobs is not None and jobs < 1:
+        _fail(f"--jobs must be ≥ 1 (or left out for one per CPU), got {jobs}")
+    grid = parse_grid(set_)
+    n_settings = len(grid_settings(grid))
+    frames = count_image_times(recording) if recording.is_file() else 0
+    with _progress() as progress:
+        task = progress.add_task(f"sweeping {n_settings} settings", total=frames * n_settings, rate="")
 
-            def on_progress(frames_done: int, settings_done: int) -> None:
-                progress.update(task, completed=frames_done, rate=f"{settings_done}/{n_settings} settings done")
+        def on_progress(frames_done: int, settings_done: int) -> None:
+            progress.update(task, completed=frames_done, rate=f"{settings_done}/{n_settings} settings done")
 
-            outcome = sweep_runs(
-                recording, grid, out_dir=out_dir, jobs=jobs, rank_by=rank_by, align=align,
-                images=images, progress=on_progress,
-            )
-    except (CompareError, RecordingError) as exc:
-        _fail(str(exc))
+        outcome = sweep_runs(
+            recording, grid, out_dir=out_dir, jobs=jobs, rank_by=rank_by, align=align,
+            images=images, progress=on_progress,
+        )
     header, rows = ranking_rows(outcome.entries, outcome.rank_by)
     table = Table(title=f"sweep of {recording.name}, ranked by {outcome.rank_by} "
                   f"(every column in {outcome.markdown_path.name})", title_justify="left")
@@ -480,9 +534,14 @@ def sweep(
                   f"{outcome.markdown_path.name}" + (f"; overlay: [bold]{outcome.overlay_path}[/]"
                                                      if outcome.overlay_path else ""))
     console.print(f"sweep took {outcome.wall_time_s:.1f} s")
+    if not any(entry.ok for entry in outcome.entries):  # nothing to rank: say so in the exit code
+        all_output = all(entry.error.startswith("OutputError") for entry in outcome.entries)
+        error_line("every setting failed; see the messages above")
+        raise typer.Exit(code=EXIT_OUTPUT if all_output else EXIT_BAD_INPUT)
 
 
 @app.command()
+@handle_errors
 def export(
     run_file: Path = typer.Argument(..., help="run .rrd"),
     format_: str = typer.Option("tum", "--format", help="output format: tum"),
@@ -493,16 +552,14 @@ def export(
     TUM: `<run>.estimate.tum` and `<run>.truth.tum`, lines `t tx ty tz qx qy qz qw`.
     Example: agvviz export runs/qr_floor-lm.rrd --format tum && evo_ape tum runs/qr_floor-lm.truth.tum runs/qr_floor-lm.estimate.tum
     """
-    from agvviz.export import ExportError, export_run
-    from agvviz.viz.readback import RrdReadError
+    from agvviz.export import export_run
 
-    try:
-        written = export_run(run_file, format_, out_dir)
-    except (ExportError, RrdReadError) as exc:
-        _fail(str(exc))
+    written = export_run(run_file, format_, out_dir)
     for item in written:
         console.print(f"{item.which}: {item.poses} poses → [bold]{item.path}[/]")
 
 
 if __name__ == "__main__":
-    app()
+    from agvviz.__main__ import main
+
+    sys.exit(main())

@@ -11,8 +11,6 @@
 
 from __future__ import annotations
 
-from agvviz.errors import InputError
-
 import csv
 import io
 import itertools
@@ -21,8 +19,9 @@ import multiprocessing
 import os
 import queue as queue_module
 import re
+import signal
+import sys
 import time
-import uuid
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +29,8 @@ from typing import Callable
 
 import numpy as np
 
+from agvviz import outputs
+from agvviz.errors import InputError
 from agvviz.evaluation import expression, statistics
 from agvviz.evaluation.comparison import (
     DIRECT,
@@ -253,6 +254,8 @@ def diff(
     condition = expression.parse(fail_if, metric_names(time_offset)) if fail_if is not None else None
     if overlay_path is not None and Path(overlay_path).suffix != ".rrd":
         raise CompareError(f"--out must be a .rrd file, got {overlay_path}")
+    if overlay_path is not None:  # before any work: never over A or B (also through links)
+        outputs.prepare_output(overlay_path, inputs=(a_path, b_path))
     seconds = {}
     t0 = time.perf_counter()
     a, b = load_run(a_path), load_run(b_path)
@@ -305,6 +308,7 @@ def _write_diff_overlay(
         cam_names=cams,
         report_markdown=comparison_markdown(c),
         deltas=deltas,
+        inputs=(a_path, b_path),
     )
 
 
@@ -393,11 +397,42 @@ class SweepOutcome:
 
 
 _progress_queue = None  # set in each worker process by _init_worker
+_worker_busy = False  # a worker is inside _run_one
+
+
+def _worker_sigterm(signum, frame) -> None:
+    """SIGTERM in a worker: unwind a run in progress (its temporary file is removed), or
+    leave at once when idle."""
+    if _worker_busy:
+        raise KeyboardInterrupt
+    os._exit(130)
+
+
+def _terminate_with_parent() -> None:
+    """Linux: SIGTERM this worker when the sweep process dies (even by SIGKILL), so a worker
+    never runs on alone; elsewhere a no-op."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+        parent = multiprocessing.parent_process()
+        if parent is not None and parent.pid != os.getppid():  # the parent died before the call
+            os._exit(130)
+    except (OSError, AttributeError):
+        pass
 
 
 def _init_worker(progress_queue) -> None:
     global _progress_queue
     _progress_queue = progress_queue
+    # Ctrl-C reaches the whole process group: the parent alone handles it and stops the
+    # workers with SIGTERM, so a worker never prints a traceback of its own.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _worker_sigterm)
+    _terminate_with_parent()
     # One OpenCV thread per worker: `jobs` workers already fill the CPUs, more threads only
     # contend for them.
     import cv2
@@ -407,14 +442,38 @@ def _init_worker(progress_queue) -> None:
 
 def _run_one(index: int, recording: str, settings: RunSettings, out_path: str) -> tuple[int, dict]:
     """Worker: replay one setting (in its own process); returns its wall-clock timing."""
+    global _worker_busy
     from agvviz.runner import run_recording
 
     def progress(done: int) -> None:
         if _progress_queue is not None:
             _progress_queue.put((index, done))
 
-    outcome = run_recording(Path(recording), settings, Path(out_path), progress=progress)
+    _worker_busy = True
+    try:
+        outcome = run_recording(Path(recording), settings, Path(out_path), progress=progress)
+    except KeyboardInterrupt:  # stopped by the parent: remove the run's temporary file, leave
+        outputs.remove_live_temps()
+        os._exit(130)
+    finally:
+        _worker_busy = False
     return index, outcome.timing
+
+
+def stop_pool(pool: ProcessPoolExecutor, grace_s: float = 10.0) -> None:
+    """Cancel what has not started and stop every worker of ``pool``: SIGTERM (a run in
+    progress removes its temporary file and exits), then SIGKILL after ``grace_s``."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    deadline = time.monotonic() + grace_s
+    for process in processes:
+        process.join(timeout=max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.kill()
+            process.join(timeout=2.0)
 
 
 def _drain(progress_queue, frames_done: list[int]) -> None:
@@ -475,23 +534,27 @@ def sweep(
         raise CompareError(f"unknown alignment {align!r}; choose one of: {', '.join(ALIGNMENTS)}")
     if not grid:
         raise CompareError("nothing to sweep: give at least one --set key=value1,value2,...")
+    if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
+        raise CompareError(f"--jobs must be a whole number ≥ 1 (or left out for one per CPU), got {jobs}")
     settings_list = grid_settings(grid, base)
-    jobs = jobs or os.cpu_count() or 1
-    if jobs < 1:
-        raise CompareError(f"--jobs must be ≥ 1, got {jobs}")
+    jobs = jobs if jobs is not None else (os.cpu_count() or 1)
     out_dir = Path(out_dir) if out_dir is not None else Path("runs") / f"sweep-{recording.stem}"
-    out_dir.mkdir(parents=True, exist_ok=True)
     entries = [SweepEntry(s.label(), s, out_dir / f"{recording.stem}-{s.label()}.rrd") for s in settings_list]
+    for target in [e.out_path for e in entries] + [out_dir / n for n in ("overlay.rrd", "ranking.csv", "ranking.md")]:
+        outputs.check_not_input(target, (recording,), option="the sweep output")
+    outputs.prepare_dir(out_dir, option="--out-dir")
 
     t_start = time.perf_counter()
     context = multiprocessing.get_context("spawn")  # no fork of a process holding Rerun threads
     progress_queue = context.Queue()
     frames_done = [0] * len(entries)
     finished = 0
-    with ProcessPoolExecutor(
+    pool = ProcessPoolExecutor(
         max_workers=min(jobs, len(entries)), mp_context=context,
         initializer=_init_worker, initargs=(progress_queue,),
-    ) as pool:
+    )
+    completed = False
+    try:
         futures = {
             pool.submit(_run_one, i, str(recording), e.settings, str(e.out_path)): i for i, e in enumerate(entries)
         }
@@ -508,6 +571,12 @@ def sweep(
             _drain(progress_queue, frames_done)
             if progress is not None:
                 progress(sum(frames_done), finished)
+        completed = True
+    finally:
+        if completed:
+            pool.shutdown(wait=True)
+        else:  # interrupted or failed: stop the workers now, never leave them behind
+            stop_pool(pool)
     _drain(progress_queue, frames_done)  # the workers have exited: their last counts are in
     if progress is not None:
         progress(sum(frames_done), finished)
@@ -584,13 +653,7 @@ def ranking_rows(entries: list[SweepEntry], rank_by: str) -> tuple[list[str], li
 
 
 def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    outputs.atomic_write_text(path, text)
 
 
 def _write_tables(out_dir: Path, entries: list[SweepEntry], rank_by: str) -> tuple[Path, Path]:
@@ -653,4 +716,5 @@ def _write_sweep_overlay(
         source=ok[0].out_path,
         cam_names=cams,
         report_markdown=report,
+        inputs=(recording, *[e.out_path for e in ok]),
     )

@@ -11,15 +11,14 @@ only; the truth every frame that has one. Rerun stores poses as float32, so posi
 
 from __future__ import annotations
 
-from agvviz.errors import InputError
-
 import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from agvviz import outputs
+from agvviz.errors import InputError
 from agvviz.geometry import se3, so3
 from agvviz.viz import paths
 from agvviz.viz.readback import RrdReadError, document_json, read_rrd, transforms
@@ -72,9 +71,17 @@ def export_run(
     fmt : str
         One of :data:`FORMATS`.
     out_dir : path, optional
-        Default: the run's folder.
+        Default: the run's folder. Created if missing.
     which : tuple of str
         Keys of :data:`TRAJECTORIES`.
+
+    Raises
+    ------
+    ExportError, RrdReadError
+        Unknown format or trajectory, or the run cannot be read.
+    OutputError
+        An output would be the run itself (also through a link), or cannot be written; no
+        temporary file is left and existing outputs are untouched.
     """
     if fmt not in FORMATS:
         raise ExportError(f"unknown format {fmt!r}; supported: {', '.join(FORMATS)}")
@@ -82,10 +89,12 @@ def export_run(
     if unknown or not which:
         raise ExportError(f"unknown trajectory {unknown}; choose from: {', '.join(TRAJECTORIES)}")
     run_path = Path(run_path)
-    contents = read_rrd(run_path)
     out_dir = Path(out_dir) if out_dir is not None else run_path.parent
-    if not out_dir.is_dir():
-        raise ExportError(f"output folder {out_dir} does not exist")
+    targets = {key: out_dir / f"{run_path.stem}.{key}.{fmt}" for key in which}
+    for target in targets.values():  # before any work: never over the run itself
+        outputs.check_not_input(target, (run_path,), option="the export")
+    contents = read_rrd(run_path)
+    outputs.prepare_dir(out_dir, option="--out-dir")
     name = document_json(contents, paths.RUN_MANIFEST).get("recording_name", run_path.stem) \
         if paths.RUN_MANIFEST in contents.entity_paths else run_path.stem
     written = []
@@ -101,13 +110,7 @@ def export_run(
             f"# agvviz {key} trajectory of run {name} ({run_path.name}): T_world_agv",
             "# timestamp[s] tx[m] ty[m] tz[m] qx qy qz qw",
         ]
-        out_path = out_dir / f"{run_path.stem}.{key}.{fmt}"
-        tmp = out_path.with_name(f".{out_path.name}.{uuid.uuid4().hex}.tmp")
-        try:
-            tmp.write_text("\n".join(header + tum_lines(time_ns, T)) + "\n", encoding="utf-8")
-            os.replace(tmp, out_path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        out_path = targets[key]
+        outputs.atomic_write_text(out_path, "\n".join(header + tum_lines(time_ns, T)) + "\n", inputs=(run_path,))
         written.append(ExportedTrajectory(key, out_path, len(T)))
     return written

@@ -212,14 +212,24 @@ def prepare(
     return Prepared(recording, recording_scan, roles, body_frame, time_source, replay, causes, usable)
 
 
+class NoUsableFrameError(RunError):
+    """A recording with no camera image, or none of whose frames can be used; ``causes`` holds
+    one line per cause (the message joins them)."""
+
+    def __init__(self, message: str, causes: list[str]):
+        super().__init__(message)
+        self.causes = list(causes)
+
+
 def _unusable_run_error(recording: Recording, rejections: dict[str, list], causes: list[str]) -> RunError:
     """The error of a run whose frames could none be used: one line per cause
     (``rejections``: reason → [count, first detail])."""
     lines = list(causes)
     for reason, (count, detail) in rejections.items():
         lines.append(f"{count} frame(s) rejected as {reason}" + (f" (first: {detail})" if detail else ""))
-    return RunError(
-        f"no frame of {recording.path.name} could be used; no .rrd written:\n  " + "\n  ".join(dict.fromkeys(lines))
+    lines = list(dict.fromkeys(lines))
+    return NoUsableFrameError(
+        f"no frame of {recording.path.name} could be used; no .rrd written: " + "; ".join(lines), lines
     )
 
 
@@ -250,15 +260,18 @@ def run_recording(
     out_path = Path(out_path) if out_path is not None else default_run_path(recording_path, settings)
     if out_path.suffix != ".rrd":
         raise RunError(f"output must be a .rrd file, got {out_path}")
-    if out_path.resolve() == recording_path.resolve():
-        raise RunError("the output path is the recording itself; refusing to overwrite an input")
+    # OutputError when out_path is the recording (also through a link; for a bag directory,
+    # any of its files) or cannot be written.
+    from agvviz import outputs
+
+    inputs = [recording_path] + (sorted(recording_path.iterdir()) if recording_path.is_dir() else [])
+    outputs.prepare_output(out_path, inputs=inputs)
     prepared = prepare(recording_path, settings, topics, roles_file, side)
     recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
     if not prepared.can_run:
         raise _unusable_run_error(recording, {}, prepared.causes)
     if on_total is not None:
         on_total(max((prepared.scan.topics[roles.roles[image_role(c)]].count for c in roles.cameras()), default=0))
-    out_path.parent.mkdir(parents=True, exist_ok=True)
 
     recording_sha256 = recording.sha256()
     scenario = recording.scenario
@@ -290,7 +303,10 @@ def run_recording(
     def note_rejection(frame) -> None:
         if frame.rejected is not None:
             rejections.setdefault(frame.rejected, [0, frame.reject_detail or ""])[0] += 1
-    with RunLogger(out_path, recording_name=recording_name, recording_id=recording_id) as logger:
+
+    with RunLogger(
+        out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs
+    ) as logger:
         logger.log_manifest(manifest)
         if replay.ctx.marker_map is not None:
             logger.log_world_static(_markers_from_map(replay.ctx.marker_map))
@@ -370,9 +386,9 @@ def run_recording(
         wall_time_s = time.perf_counter() - t_start
         corners_only = correction is not None and not scores
         if not scores and not corners_only and not fusion.has_uwb:
-            raise RunError(
-                f"no camera frame of {recording.path.name} could be read; no .rrd written:\n  "
-                + "\n  ".join(prepared.causes + read_report.problems[-5:] or ["the image topics hold no decodable frame"])
+            lines = prepared.causes + read_report.problems[-5:] or ["the image topics hold no decodable frame"]
+            raise NoUsableFrameError(
+                f"no camera frame of {recording.path.name} could be read; no .rrd written: " + "; ".join(lines), lines
             )
         if scores and all(s.rejected in UNUSABLE_REJECTIONS for s in scores):
             raise _unusable_run_error(recording, rejections, prepared.causes)

@@ -66,8 +66,14 @@ def record(
     module = get(name)
     options = build_options(name, list(overrides))
     scenario = {"name": name, "seed": int(seed), "options": as_dict(options)}
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    with RecordingWriter(out_path, scenario=scenario) as writer:
-        module.record(writer, options, int(seed), progress)
+    from agvviz import outputs
+
+    out_path = outputs.prepare_output(Path(out_path))  # OutputError: folder cannot be made/written
+    try:
+        with RecordingWriter(out_path, scenario=scenario) as writer:
+            module.record(writer, options, int(seed), progress)
+    except outputs.OutputError:
+        raise
+    except OSError as exc:  # a write failed (disk full, …); the temporary file is already gone
+        raise outputs.output_error(exc, out_path) from exc
     return {**scenario, "agvviz_version": __version__}

@@ -1,8 +1,12 @@
 """Run settings and ``--set key=value`` parsing, shared by scenarios and runs.
 
 Every settings object is a frozen dataclass whose fields carry a type, a default and a
-``metadata={"help": ...}`` line (and optionally ``"choices"``). :func:`apply_overrides` turns
-``["key=value", ...]`` into a new instance with clear errors for unknown keys and bad values.
+``metadata={"help": ...}`` line (and optionally ``"choices"``, and for numbers the inclusive
+bounds ``"min"`` / ``"max"``). :func:`apply_overrides` turns ``["key=value", ...]`` into a new
+instance with clear errors for unknown keys and bad values; :func:`validate` checks types,
+finiteness, choices and bounds before any work is done (an absurd ``duration_s=1e9`` must
+fail at once, not after allocating), and :func:`check_total` caps the work an option
+combination asks for (frames = duration × rate, pixels per frame, …).
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from agvviz.errors import InputError
 
 import dataclasses
 import math
+import re
 import typing
 from dataclasses import dataclass, field
 
@@ -26,12 +31,69 @@ class SettingsError(InputError):
     """A ``--set key=value`` that names no setting or carries a value of the wrong kind."""
 
 
-def setting(default, help: str, choices: tuple[str, ...] | None = None):
-    """A settings or scenario-options field: default, one-line help, optional choices."""
+#: Caps on the total work of one recording (checked by the scenarios with :func:`check_total`
+#: once every option lies within its own bounds): frames per camera (an hour at 10 Hz), area
+#: samples of one rendered image (width × height × supersample², float32: 256 MB per array),
+#: and UWB ranging rounds.
+MAX_FRAMES = 36_000
+MAX_IMAGE_SAMPLES = 2**26
+MAX_UWB_ROUNDS = 1_000_000
+
+#: Bounds of a numeric ``sigma_px`` (the field is a string because it may be ``auto``).
+SIGMA_PX_MIN = 1e-4
+SIGMA_PX_MAX = 100.0
+
+
+def setting(
+    default,
+    help: str,
+    choices: tuple[str, ...] | None = None,
+    *,
+    min: float | None = None,  # noqa: A002 - the metadata keys are "min" and "max"
+    max: float | None = None,  # noqa: A002
+):
+    """A settings or scenario-options field: default, one-line help, optional choices, and for
+    numbers optional inclusive bounds ``min ≤ value ≤ max`` (checked by :func:`validate`,
+    shown by :func:`describe`)."""
     meta = {"help": help}
     if choices is not None:
         meta["choices"] = choices
+    if min is not None:
+        meta["min"] = min
+    if max is not None:
+        meta["max"] = max
+    if min is not None and max is not None and not min <= max:
+        raise ValueError(f"setting bounds {min}..{max} are empty")
     return field(default=default, metadata=meta)
+
+
+def _fmt(value) -> str:
+    """A number as short as it reads back exactly: 3600, 0.1, 1e+09, 0.30000000000000004."""
+    if isinstance(value, float):
+        short = f"{value:g}"
+        return short if float(short) == value else repr(value)
+    return str(value)
+
+
+def bounds_text(f: dataclasses.Field) -> str:
+    """``"0.1..3600"``, ``"≥ 0"``, ``"≤ 5"`` or ``""`` for a field's bounds metadata."""
+    lo, hi = f.metadata.get("min"), f.metadata.get("max")
+    if lo is not None and hi is not None:
+        return f"{_fmt(lo)}..{_fmt(hi)}"
+    if lo is not None:
+        return f"≥ {_fmt(lo)}"
+    if hi is not None:
+        return f"≤ {_fmt(hi)}"
+    return ""
+
+
+def check_total(what: str, value: float, limit: float, hint: str) -> None:
+    """Refuse an option combination whose total work ``value`` (e.g. frames = duration_s ×
+    rate_hz) exceeds ``limit``: ``SettingsError("frames = duration_s × rate_hz = 1e+10
+    exceeds the limit 20000; …")``. Call it from a scenario's ``validate`` after
+    :func:`validate` has bounded every factor."""
+    if not value <= limit:  # also refuses NaN
+        raise SettingsError(f"{what} = {_fmt(value)} exceeds the limit {_fmt(limit)}; {hint}")
 
 
 
@@ -47,26 +109,30 @@ class RunSettings:
         "depth = eq 23 (the paper's depth-weighted residual)",
         ("pixel", "depth"),
     )
-    lm_max_iterations: int = setting(50, "maximum LM iterations per frame")
+    lm_max_iterations: int = setting(50, "maximum LM iterations per frame", min=1, max=1000)
     refine: str = setting(
         "ecc",
         "corner refinement: ecc (template alignment), subpix (cornerSubPix), none",
         ("ecc", "subpix", "none"),
     )
     max_reproj_px: float = setting(
-        2.0, "reject a frame whose RMS reprojection error exceeds this (px)"
+        2.0, "reject a frame whose RMS reprojection error exceeds this (px)", min=1e-3, max=1e4
     )
     gimbal_threshold: float = setting(
-        DEFAULT_GIMBAL_THRESHOLD, "paper 000 eq 57 threshold T on |r32| for pitch = ±90°"
+        DEFAULT_GIMBAL_THRESHOLD,
+        "paper 000 eq 57 threshold T on |r32| for pitch = ±90°",
+        min=0.5,
+        max=1.0 - 1e-12,
     )
     truth_max_dt_s: float = setting(
-        0.005, "largest time gap between a frame and the ground truth it is scored against (s)"
+        0.005, "largest time gap between a frame and the ground truth it is scored against (s)", min=0.0, max=10.0
     )
     truth_max_gap_s: float = setting(
         0.05,
         "ground truth and odometry are interpolated on SE(3) at each frame's stamp between two "
         "samples at most this far apart (s); beyond it (and beyond truth_max_dt_s of the nearest "
         "sample) a frame is not scored, and the run says how many",
+        min=0.0, max=10.0,
     )
     body_frame: str = setting(
         "auto",
@@ -95,14 +161,20 @@ class RunSettings:
     uwb_gate: str = setting(
         "residual", "UWB NLOS/outlier gate: residual (chi-square on range residuals) or none", ("residual", "none")
     )
-    uwb_sigma_m: float = setting(0.05, "UWB range standard deviation for the gates and covariances (m)")
+    uwb_sigma_m: float = setting(
+        0.05, "UWB range standard deviation for the gates and covariances (m)", min=1e-4, max=10.0
+    )
     fusion: str = setting(
         "mean_compensation",
         "camera-UWB fusion: camera_only, mean_compensation (paper 003 eqs 13-16) or kalman",
         FUSION_NAMES,
     )
-    kalman_gate_chi2: float = setting(9.0, "Kalman filter gate on a range's squared Mahalanobis distance")
-    camera_sigma_m: float = setting(0.005, "Kalman filter: camera fix standard deviation per axis (m)")
+    kalman_gate_chi2: float = setting(
+        9.0, "Kalman filter gate on a range's squared Mahalanobis distance", min=0.01, max=1e6
+    )
+    camera_sigma_m: float = setting(
+        0.005, "Kalman filter: camera fix standard deviation per axis (m)", min=1e-6, max=10.0
+    )
     ambiguity: str = setting(
         "lowest_error",
         "planar pose ambiguity (two IPPE branches): lowest_error (reprojection), continuity "
@@ -126,7 +198,9 @@ class RunSettings:
         "cnoem (point-to-ray cost, eqs 12-13) or bundle (pixel reprojection over the window)",
         ("none", "cnoem", "bundle"),
     )
-    cycle_distance_m: float = setting(3.0, "correction: travel that closes a correction cycle (m)")
+    cycle_distance_m: float = setting(
+        3.0, "correction: travel that closes a correction cycle (m)", min=0.01, max=10000.0
+    )
     cnoem_update: str = setting(
         "lm", "correction=cnoem: lm (Gauss-Newton/Levenberg-Marquardt) or paper (first-order, eqs 14-20)", ("lm", "paper")
     )
@@ -147,17 +221,23 @@ class RunSettings:
             raise SettingsError(f"cycle_distance_m must be a positive number, got {self.cycle_distance_m}")
         if not (self.truth_max_gap_s >= 0 and math.isfinite(self.truth_max_gap_s)):
             raise SettingsError(f"truth_max_gap_s must be ≥ 0, got {self.truth_max_gap_s}")
-        if not self.body_frame.strip():
-            raise SettingsError("body_frame must name a frame (or auto)")
+        if not re.fullmatch(r"[A-Za-z0-9_./-]{1,256}", self.body_frame):
+            raise SettingsError(
+                f"body_frame must be auto or a frame name (letters, digits, _ . / -), got {self.body_frame!r}"
+            )
         if self.truth_max_dt_s < 0:
             raise SettingsError(f"truth_max_dt_s must be ≥ 0, got {self.truth_max_dt_s}")
         if self.sigma_px != "auto":
             try:
-                value = float(self.sigma_px)
-            except ValueError:
+                value = parse_number("sigma_px", self.sigma_px)
+            except SettingsError:
                 value = float("nan")
             if not (value > 0 and math.isfinite(value)):
                 raise SettingsError(f"sigma_px must be auto or a positive number of pixels, got {self.sigma_px!r}")
+            if not SIGMA_PX_MIN <= value <= SIGMA_PX_MAX:
+                raise SettingsError(
+                    f"sigma_px must be auto or lie in {_fmt(SIGMA_PX_MIN)}..{_fmt(SIGMA_PX_MAX)} px, got {self.sigma_px!r}"
+                )
 
     @property
     def sigma_px_value(self) -> float | None:
@@ -176,7 +256,9 @@ class RunSettings:
 
 def validate(obj) -> None:
     """Check every field of a settings or scenario-options dataclass: its type (an int is a
-    valid float; a bool is only a bool), finiteness of numbers, and ``choices`` metadata."""
+    valid float; a bool is only a bool), finiteness of numbers, ``choices`` metadata and the
+    inclusive ``min`` / ``max`` bounds ("duration_s (recording length in seconds) must lie in
+    0.01..3600, got 1e+09")."""
     for name, kind in field_types(type(obj)).items():
         value = getattr(obj, name)
         accepted = (float, int) if kind is float else (kind,)
@@ -185,11 +267,39 @@ def validate(obj) -> None:
         if isinstance(value, float) and not math.isfinite(value):
             raise SettingsError(f"{name} must be a finite number, got {value}")
     for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        lo, hi = f.metadata.get("min"), f.metadata.get("max")
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            what = f"{f.name} ({f.metadata['help']})" if f.metadata.get("help") else f.name
+            if lo is not None and hi is not None:
+                allowed = f"lie in {bounds_text(f)}"
+            else:
+                allowed = f"be {bounds_text(f)}"
+            raise SettingsError(f"{what} must {allowed}, got {_fmt(value)}")
+    for f in dataclasses.fields(obj):
         choices = f.metadata.get("choices")
         if choices is not None and getattr(obj, f.name) not in choices:
             raise SettingsError(
                 f"{f.name}={getattr(obj, f.name)!r} is not one of: {', '.join(choices)}"
             )
+
+
+_INT_RE = re.compile(r"[+-]?[0-9]+")
+_FLOAT_RE = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_NON_FINITE = ("nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity", "-infinity")
+
+
+def parse_number(name: str, text: str) -> float:
+    """A finite float from ASCII decimal text (``1``, ``-0.5``, ``2e-3``); SettingsError for
+    anything else, naming NaN and infinities as not finite."""
+    if text.strip().lower() in _NON_FINITE:
+        raise SettingsError(f"{name}={text!r}: expected a finite number")
+    if not _FLOAT_RE.fullmatch(text) or len(text) > 100:
+        raise SettingsError(f"{name}={text!r}: expected a number")
+    value = float(text)
+    if not math.isfinite(value):
+        raise SettingsError(f"{name}={text!r}: expected a finite number")
+    return value
 
 
 def _coerce(name: str, kind, text: str):
@@ -201,18 +311,12 @@ def _coerce(name: str, kind, text: str):
             return False
         raise SettingsError(f"{name}={text!r}: expected true or false")
     if kind is int:
-        try:
-            return int(text, 10)
-        except ValueError:
-            raise SettingsError(f"{name}={text!r}: expected an integer") from None
+        # ASCII digits only: Python's int() also reads "１" (full-width), "٣" and "1_000".
+        if not _INT_RE.fullmatch(text) or len(text) > 100:
+            raise SettingsError(f"{name}={text!r}: expected an integer")
+        return int(text, 10)
     if kind is float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise SettingsError(f"{name}={text!r}: expected a number") from None
-        if not math.isfinite(value):
-            raise SettingsError(f"{name}={text!r}: expected a finite number")
-        return value
+        return parse_number(name, text)
     if kind is str:
         return text
     raise SettingsError(f"{name}: settings of type {kind} cannot be set from the command line")
@@ -254,6 +358,8 @@ def describe(cls) -> list[tuple[str, str, str, str]]:
         help_text = f.metadata.get("help", "")
         if "choices" in f.metadata:
             help_text += f" ({'|'.join(f.metadata['choices'])})"
+        if bounds_text(f):
+            help_text += f" [{bounds_text(f)}]"
         rows.append((f.name, types[f.name].__name__, repr(f.default), help_text))
     return rows
 

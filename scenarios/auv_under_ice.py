@@ -48,7 +48,7 @@ from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.euler import Rx, Ry, Rz, matrix_from_hpr
 from agvviz.markers.aruco import aruco_modules
-from agvviz.settings import setting
+from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim import auv
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
@@ -67,27 +67,27 @@ ROUTE_PERIOD_M = 80.0
 class Options:
     mode: str = setting("route", "route (a drive along markers) or grid (the paper's Table 3 cell, corner-only)")
     images: bool = setting(False, "route mode: render camera images (true) or write noisy corners only (false)")
-    duration_s: float = setting(60.0, "route mode: length of the drive (s)")
-    speed_mps: float = setting(1.0, "vehicle speed (m/s); grid: 0.5, 1 or 1.5 in the paper")
-    frame_rate_hz: float = setting(10.0, "camera frame rate (Hz)")
-    depth_m: float = setting(10.0, "route mode: depth below the ice (m)")
-    route_heading_amp_deg: float = setting(15.0, "route mode: amplitude of the S-shaped heading (deg)")
-    marker_spacing_m: float = setting(12.0, "route mode: distance between markers along the route (m)")
-    marker_lateral_m: float = setting(1.5, "route mode: markers' offset to alternating sides of the route (m)")
-    marker_above_m: float = setting(1.0, "route mode: markers' height above the vehicle's depth (m)")
-    sigma_px: float = setting(1.0, "corner noise σ (px) of corner-only output; grid: 0.5, 1 or 1.5 in the paper")
-    dvl_scale_error: float = setting(0.01, "navigation: DVL speed scale error (fraction)")
-    heading_bias_deg_s: float = setting(0.02, "navigation: gyro heading bias (deg/s)")
-    heading_noise_deg_sqrt_s: float = setting(0.01, "navigation: heading random walk (deg/√s)")
-    brightness_time_amp: float = setting(0.35, "images: amplitude of the global brightness fluctuation in time")
-    brightness_space_amp: float = setting(0.3, "images: amplitude of the moving caustic pattern across the image")
-    noise_sigma_dn: float = setting(2.0, "images: sensor noise (digital numbers)")
-    supersample: int = setting(2, "images: area-integration samples per pixel side")
-    jpeg_quality: int = setting(92, "images: JPEG quality")
-    grid_distance_m: float = setting(10.0, "grid mode: marker distance L from F (m)")
-    grid_lateral_fraction: float = setting(0.2, "grid mode: lateral offset as a fraction of L")
-    grid_vertical_fraction: float = setting(0.1, "grid mode: vertical offset as a fraction of L")
-    trials: int = setting(100, "grid mode: number of cycles (the paper: 1000 per cell)")
+    duration_s: float = setting(60.0, "route mode: length of the drive (s)", min=0.01, max=3600.0)
+    speed_mps: float = setting(1.0, "vehicle speed (m/s); grid: 0.5, 1 or 1.5 in the paper", min=0.01, max=10.0)
+    frame_rate_hz: float = setting(10.0, "camera frame rate (Hz)", min=0.1, max=200.0)
+    depth_m: float = setting(10.0, "route mode: depth below the ice (m)", min=0.1, max=1000.0)
+    route_heading_amp_deg: float = setting(15.0, "route mode: amplitude of the S-shaped heading (deg)", min=0.0, max=90.0)
+    marker_spacing_m: float = setting(12.0, "route mode: distance between markers along the route (m)", min=0.1, max=1000.0)
+    marker_lateral_m: float = setting(1.5, "route mode: markers' offset to alternating sides of the route (m)", min=-100.0, max=100.0)
+    marker_above_m: float = setting(1.0, "route mode: markers' height above the vehicle's depth (m)", min=-100.0, max=100.0)
+    sigma_px: float = setting(1.0, "corner noise σ (px) of corner-only output; grid: 0.5, 1 or 1.5 in the paper", min=0.0, max=100.0)
+    dvl_scale_error: float = setting(0.01, "navigation: DVL speed scale error (fraction)", min=0.0, max=0.5)
+    heading_bias_deg_s: float = setting(0.02, "navigation: gyro heading bias (deg/s)", min=-10.0, max=10.0)
+    heading_noise_deg_sqrt_s: float = setting(0.01, "navigation: heading random walk (deg/√s)", min=0.0, max=10.0)
+    brightness_time_amp: float = setting(0.35, "images: amplitude of the global brightness fluctuation in time", min=0.0, max=0.99)
+    brightness_space_amp: float = setting(0.3, "images: amplitude of the moving caustic pattern across the image", min=0.0, max=0.99)
+    noise_sigma_dn: float = setting(2.0, "images: sensor noise (digital numbers)", min=0.0, max=100.0)
+    supersample: int = setting(2, "images: area-integration samples per pixel side", min=1, max=16)
+    jpeg_quality: int = setting(92, "images: JPEG quality", min=1, max=100)
+    grid_distance_m: float = setting(10.0, "grid mode: marker distance L from F (m)", min=0.1, max=1000.0)
+    grid_lateral_fraction: float = setting(0.2, "grid mode: lateral offset as a fraction of L", min=0.0, max=10.0)
+    grid_vertical_fraction: float = setting(0.1, "grid mode: vertical offset as a fraction of L", min=0.0, max=10.0)
+    trials: int = setting(100, "grid mode: number of cycles (the paper: 1000 per cell)", min=1, max=100000)
 
 
 def validate(options: Options) -> None:
@@ -108,6 +108,13 @@ def validate(options: Options) -> None:
         raise ValueError("supersample and trials must be ≥ 1 and jpeg_quality in 1..100")
     if o.mode == "grid" and o.images:
         raise ValueError("grid mode is corner-only; set images=false")
+    if o.mode == "route":
+        check_total("frames = duration_s × frame_rate_hz", round(o.duration_s * o.frame_rate_hz), MAX_FRAMES,
+                    "shorten duration_s or lower frame_rate_hz")
+        if o.images:
+            check_total("samples per image = width × height × supersample²",
+                        auv.WIDTH_PX * auv.HEIGHT_PX * o.supersample**2, MAX_IMAGE_SAMPLES,
+                        "lower supersample")
 
 
 # -- route ---------------------------------------------------------------------------------------

@@ -63,7 +63,7 @@ TRIAL_PERIOD_NS = 1_000_000
 
 @dataclass(frozen=True)
 class Options:
-    trials: int = setting(1000, "noisy trials per cell (paper 000 §6: 1000)")
+    trials: int = setting(1000, "noisy trials per cell (paper 000 §6: 1000)", min=1, max=100000)
     cells: str = setting("all", "which cells: paper (§6 parameters, SNR 15–24 dB), crlb (tilted views, σ in px) or all")
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from agvviz.recording import topics
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry.camera import PinholeCamera
-from agvviz.settings import setting
+from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim.qr_texture import PAYLOAD_RESOLUTION_M, QUIET_ZONE_MODULES, make_floor_code
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
@@ -40,35 +40,37 @@ GRID_MARGIN_M = 3.0
 #: Smallest QR symbol (version 1) is 21 modules: the label (symbol + quiet zone) is at most
 #: this many times the symbol side.
 MAX_LABEL_TO_SYMBOL = (21 + 2 * QUIET_ZONE_MODULES) / 21
+#: At most this many codes on the floor (each is a QR symbol drawn into the scene).
+MAX_CODES = 20_000
 
 
 
 @dataclass(frozen=True)
 class Options:
-    duration_s: float = setting(20.0, "recording length in seconds")
-    rate_hz: float = setting(10.0, "camera frame rate (also ground-truth and odometry rate)")
-    speed_mps: float = setting(1.0, "AGV speed along the track in m/s")
-    track_length_m: float = setting(6.0, "length of the track's straights along world x")
-    track_width_m: float = setting(3.0, "length of the track's straights along world y")
-    turn_radius_m: float = setting(1.0, "radius of the track's quarter turns")
-    cam_height_m: float = setting(1.5, "camera height above the floor")
-    cam_lookahead_m: float = setting(1.0, "horizontal distance from the camera to where its optical axis meets the floor")
-    code_size_m: float = setting(0.5, "QR symbol side between its outer vertices (quiet zone excluded)")
-    grid_spacing_m: float = setting(1.5, "distance between neighbouring code centres")
+    duration_s: float = setting(20.0, "recording length in seconds", min=0.01, max=3600.0)
+    rate_hz: float = setting(10.0, "camera frame rate (also ground-truth and odometry rate)", min=0.1, max=200.0)
+    speed_mps: float = setting(1.0, "AGV speed along the track in m/s", min=0.0, max=10.0)
+    track_length_m: float = setting(6.0, "length of the track's straights along world x", min=0.0, max=100.0)
+    track_width_m: float = setting(3.0, "length of the track's straights along world y", min=0.0, max=100.0)
+    turn_radius_m: float = setting(1.0, "radius of the track's quarter turns", min=0.01, max=50.0)
+    cam_height_m: float = setting(1.5, "camera height above the floor", min=0.05, max=20.0)
+    cam_lookahead_m: float = setting(1.0, "horizontal distance from the camera to where its optical axis meets the floor", min=0.0, max=50.0)
+    code_size_m: float = setting(0.5, "QR symbol side between its outer vertices (quiet zone excluded)", min=0.01, max=5.0)
+    grid_spacing_m: float = setting(1.5, "distance between neighbouring code centres", min=0.01, max=20.0)
     with_midpoints: bool = setting(False, "payload carries the 4 edge midpoints too (8 points)")
-    width_px: int = setting(1280, "image width")
-    height_px: int = setting(1024, "image height")
-    focal_px: float = setting(1000.0, "focal length fx = fy in pixels (principal point at the image centre)")
-    k1: float = setting(-0.05, "radial distortion k1 (OpenCV plumb_bob)")
-    k2: float = setting(0.01, "radial distortion k2 (OpenCV plumb_bob)")
-    blur_sigma_px: float = setting(0.8, "Gaussian optical blur sigma in pixels")
-    noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers")
-    jpeg_quality: int = setting(95, "JPEG quality 1..100")
-    supersample: int = setting(4, "s x s samples per pixel for area integration")
-    odom_scale_error: float = setting(0.01, "odometry distance scale error (0.01 = +1 %)")
-    odom_heading_bias_deg_per_s: float = setting(0.1, "odometry heading drift in deg/s")
-    odom_step_noise_m: float = setting(0.002, "odometry position noise per step and axis (sigma, m)")
-    odom_heading_noise_deg: float = setting(0.05, "odometry heading noise per step (sigma, deg)")
+    width_px: int = setting(1280, "image width", min=16, max=8192)
+    height_px: int = setting(1024, "image height", min=16, max=8192)
+    focal_px: float = setting(1000.0, "focal length fx = fy in pixels (principal point at the image centre)", min=1.0, max=100000.0)
+    k1: float = setting(-0.05, "radial distortion k1 (OpenCV plumb_bob)", min=-1.0, max=1.0)
+    k2: float = setting(0.01, "radial distortion k2 (OpenCV plumb_bob)", min=-1.0, max=1.0)
+    blur_sigma_px: float = setting(0.8, "Gaussian optical blur sigma in pixels", min=0.0, max=20.0)
+    noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers", min=0.0, max=100.0)
+    jpeg_quality: int = setting(95, "JPEG quality 1..100", min=1, max=100)
+    supersample: int = setting(4, "s x s samples per pixel for area integration", min=1, max=16)
+    odom_scale_error: float = setting(0.01, "odometry distance scale error (0.01 = +1 %)", min=-0.5, max=0.5)
+    odom_heading_bias_deg_per_s: float = setting(0.1, "odometry heading drift in deg/s", min=-10.0, max=10.0)
+    odom_step_noise_m: float = setting(0.002, "odometry position noise per step and axis (sigma, m)", min=0.0, max=1.0)
+    odom_heading_noise_deg: float = setting(0.05, "odometry heading noise per step (sigma, deg)", min=0.0, max=10.0)
 
 
 def validate(options: Options) -> None:
@@ -88,6 +90,16 @@ def validate(options: Options) -> None:
             raise ValueError(f"{name} must be ≥ 0, got {getattr(o, name)}")
     if round(o.duration_s * o.rate_hz) < 1:
         raise ValueError(f"duration_s · rate_hz = {o.duration_s * o.rate_hz:g} < 1: no frame to record")
+    check_total("frames = duration_s × rate_hz", round(o.duration_s * o.rate_hz), MAX_FRAMES,
+                "shorten duration_s or lower rate_hz")
+    check_total("samples per image = width_px × height_px × supersample²",
+                o.width_px * o.height_px * o.supersample**2, MAX_IMAGE_SAMPLES,
+                "use a smaller image or a lower supersample")
+    half_x = o.track_length_m / 2.0 + o.turn_radius_m + GRID_MARGIN_M
+    half_y = o.track_width_m / 2.0 + o.turn_radius_m + GRID_MARGIN_M
+    check_total("floor codes ≈ (track extent / grid_spacing_m)²",
+                int(2 * (half_x // o.grid_spacing_m) + 1) * int(2 * (half_y // o.grid_spacing_m) + 1), MAX_CODES,
+                "increase grid_spacing_m or shrink the track")
     if o.cam_height_m <= 0:
         raise ValueError(f"cam_height_m must be > 0 (camera above the floor), got {o.cam_height_m}")
     if o.width_px < 16 or o.height_px < 16:

@@ -40,7 +40,7 @@ from agvviz.recording import topics
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
-from agvviz.settings import setting
+from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, MAX_UWB_ROUNDS, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.markers.aruco import aruco_dictionary, aruco_modules, is_aruco_dictionary
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
@@ -62,41 +62,41 @@ GRID_GAP_S = 1.0
 @dataclass(frozen=True)
 class Options:
     variant: str = setting("path", "path (driving, blocked stretch) or static_grid (§3.2's 30 points)", VARIANTS)
-    duration_s: float = setting(40.0, "recording length in seconds (path variant)")
-    rate_hz: float = setting(10.0, "camera frame rate (all four cameras at once)")
-    speed_mps: float = setting(0.2, "AGV speed along the path (paper 003: 0.2 m/s)")
-    block_start_s: float = setting(14.0, "the obstacle hides the code from all cameras from here (path variant)")
-    block_end_s: float = setting(24.0, "… until here (block_end_s <= block_start_s: never blocked)")
-    track_length_m: float = setting(3.0, "path: length of the straights along x")
-    track_width_m: float = setting(2.0, "path: length of the straights along y")
-    turn_radius_m: float = setting(0.6, "path: radius of the quarter turns")
-    grid_spacing_m: float = setting(1.2, "static grid: distance between test points (paper: 120 cm)")
-    fixes_per_point: int = setting(100, "static grid: camera frames and UWB rounds at each point (paper: 100)")
+    duration_s: float = setting(40.0, "recording length in seconds (path variant)", min=0.01, max=3600.0)
+    rate_hz: float = setting(10.0, "camera frame rate (all four cameras at once)", min=0.1, max=200.0)
+    speed_mps: float = setting(0.2, "AGV speed along the path (paper 003: 0.2 m/s)", min=0.0, max=10.0)
+    block_start_s: float = setting(14.0, "the obstacle hides the code from all cameras from here (path variant)", min=0.0, max=3600.0)
+    block_end_s: float = setting(24.0, "… until here (block_end_s <= block_start_s: never blocked)", min=0.0, max=3600.0)
+    track_length_m: float = setting(3.0, "path: length of the straights along x", min=0.0, max=100.0)
+    track_width_m: float = setting(2.0, "path: length of the straights along y", min=0.0, max=100.0)
+    turn_radius_m: float = setting(0.6, "path: radius of the quarter turns", min=0.01, max=50.0)
+    grid_spacing_m: float = setting(1.2, "static grid: distance between test points (paper: 120 cm)", min=0.01, max=100.0)
+    fixes_per_point: int = setting(100, "static grid: camera frames and UWB rounds at each point (paper: 100)", min=1, max=10000)
     static_point_m: str = setting("", "static grid: one point 'x,y' (m) instead of the 30, e.g. 2.4,2.4 (Table 5)")
-    room_length_m: float = setting(8.0, "room size along x")
-    room_width_m: float = setting(7.0, "room size along y")
-    width_px: int = setting(1280, "image width (paper 003 Table 5: 1280, 640, 320)")
-    height_px: int = setting(1024, "image height (Table 5: 1024, 480, 240)")
-    hfov_deg: float = setting(70.0, "horizontal field of view of every camera (sets the focal length)")
-    k1: float = setting(-0.02, "radial distortion k1 (OpenCV plumb_bob)")
-    cam_height_m: float = setting(2.8, "camera height on the walls")
+    room_length_m: float = setting(8.0, "room size along x", min=0.5, max=1000.0)
+    room_width_m: float = setting(7.0, "room size along y", min=0.5, max=1000.0)
+    width_px: int = setting(1280, "image width (paper 003 Table 5: 1280, 640, 320)", min=16, max=8192)
+    height_px: int = setting(1024, "image height (Table 5: 1024, 480, 240)", min=16, max=8192)
+    hfov_deg: float = setting(70.0, "horizontal field of view of every camera (sets the focal length)", min=1.0, max=150.0)
+    k1: float = setting(-0.02, "radial distortion k1 (OpenCV plumb_bob)", min=-1.0, max=1.0)
+    cam_height_m: float = setting(2.8, "camera height on the walls", min=0.1, max=100.0)
     dictionary: str = setting("DICT_5X5_50", "OpenCV ArUco dictionary of the roof code")
-    marker_id: int = setting(7, "id of the roof code")
-    marker_side_m: float = setting(0.183, "roof code side incl. its black border (paper: 183 mm)")
-    roof_height_m: float = setting(0.35, "height of the AGV roof (the code) above the floor")
-    tag_height_m: float = setting(0.45, "height of the UWB tag above the floor")
-    anchor_height_m: float = setting(2.2, "height of the UWB anchors")
-    uwb_rate_hz: float = setting(10.0, "UWB rounds per second (one range per anchor each)")
-    reply_delay_us: float = setting(150.0, "anchor reply delay of single-sided TWR (µs)")
-    timestamp_noise_ns: float = setting(0.1, "UWB timestamp noise sigma (ns)")
-    clock_drift_ppm: float = setting(2.0, "sigma of each UWB device's clock drift (ppm)")
-    nlos_probability: float = setting(0.05, "probability that a range is NLOS")
-    nlos_excess_min_m: float = setting(0.2, "NLOS excess path, lower bound (m)")
-    nlos_excess_max_m: float = setting(0.8, "NLOS excess path, upper bound (m)")
-    blur_sigma_px: float = setting(0.8, "Gaussian optical blur sigma in pixels")
-    noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers")
-    jpeg_quality: int = setting(95, "JPEG quality 1..100")
-    supersample: int = setting(4, "s x s samples per pixel for area integration")
+    marker_id: int = setting(7, "id of the roof code", min=0, max=999)
+    marker_side_m: float = setting(0.183, "roof code side incl. its black border (paper: 183 mm)", min=0.001, max=10.0)
+    roof_height_m: float = setting(0.35, "height of the AGV roof (the code) above the floor", min=0.0, max=10.0)
+    tag_height_m: float = setting(0.45, "height of the UWB tag above the floor", min=0.0, max=10.0)
+    anchor_height_m: float = setting(2.2, "height of the UWB anchors", min=0.01, max=100.0)
+    uwb_rate_hz: float = setting(10.0, "UWB rounds per second (one range per anchor each)", min=0.1, max=1000.0)
+    reply_delay_us: float = setting(150.0, "anchor reply delay of single-sided TWR (µs)", min=1.0, max=100000.0)
+    timestamp_noise_ns: float = setting(0.1, "UWB timestamp noise sigma (ns)", min=0.0, max=1000.0)
+    clock_drift_ppm: float = setting(2.0, "sigma of each UWB device's clock drift (ppm)", min=0.0, max=1000.0)
+    nlos_probability: float = setting(0.05, "probability that a range is NLOS", min=0.0, max=1.0)
+    nlos_excess_min_m: float = setting(0.2, "NLOS excess path, lower bound (m)", min=0.0, max=100.0)
+    nlos_excess_max_m: float = setting(0.8, "NLOS excess path, upper bound (m)", min=0.0, max=100.0)
+    blur_sigma_px: float = setting(0.8, "Gaussian optical blur sigma in pixels", min=0.0, max=20.0)
+    noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers", min=0.0, max=100.0)
+    jpeg_quality: int = setting(95, "JPEG quality 1..100", min=1, max=100)
+    supersample: int = setting(4, "s x s samples per pixel for area integration", min=1, max=16)
 
 
 def validate(options: Options) -> None:
@@ -127,6 +127,16 @@ def validate(options: Options) -> None:
         raise ValueError(f"hfov_deg must lie in [1, 150], got {o.hfov_deg}")
     if not 1 <= o.jpeg_quality <= 100 or not 1 <= o.supersample <= 16:
         raise ValueError("jpeg_quality must lie in 1..100 and supersample in 1..16")
+    check_total("samples per image = width_px × height_px × supersample²",
+                o.width_px * o.height_px * o.supersample**2, MAX_IMAGE_SAMPLES,
+                "use a smaller image or a lower supersample")
+    if o.variant == "path":
+        frames, rounds, how = round(o.duration_s * o.rate_hz), o.duration_s * o.uwb_rate_hz, "shorten duration_s"
+    else:
+        points = 1 if o.static_point_m else 30
+        frames, rounds, how = points * o.fixes_per_point, points * o.fixes_per_point, "lower fixes_per_point"
+    check_total("frames per camera", frames, MAX_FRAMES, f"{how} or lower rate_hz")
+    check_total("UWB rounds", rounds, MAX_UWB_ROUNDS, f"{how} or lower uwb_rate_hz")
     if not is_aruco_dictionary(o.dictionary):
         raise ValueError(f"dictionary {o.dictionary!r} is not an OpenCV ArUco dictionary (e.g. DICT_5X5_50)")
     count = aruco_dictionary(o.dictionary).bytesList.shape[0]

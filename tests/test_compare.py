@@ -45,7 +45,7 @@ def swept(tmp_path_factory):
     scenario_registry.record("qr_floor", recording, seed=11, overrides=SMALL)
     out_dir = tmp / "sweep"
     out_dir.mkdir()
-    # A directory where the subpix run's .rrd must go: its final rename fails, the others not.
+    # A directory where the subpix run's .rrd must go: that run is refused (OutputError), the others not.
     (out_dir / "qr_floor-lm-refine=subpix.rrd").mkdir()
     outcome = sweep(recording, parse_grid(["refine=ecc,none,subpix"]), out_dir=out_dir, jobs=2)
     return recording, outcome
@@ -60,7 +60,7 @@ def test_sweep_ranks_reports_failure_and_writes_tables(swept):
     assert [e.label for e in outcome.entries] == ["lm", "lm-refine=none", "lm-refine=subpix"]
     ecc, none, subpix = outcome.entries
     assert ecc.rank == 1 and none.rank == 2 and subpix.rank is None
-    assert not subpix.ok and "IsADirectoryError" in subpix.error
+    assert not subpix.ok and "OutputError" in subpix.error and "existing folder" in subpix.error
     assert ecc.ok and ecc.metrics["frames"] == 20 and ecc.metrics["solved"] >= 18
     # ECC-refined corners (≈0.02 px) beat unrefined OpenCV corners (≈1 px, DESIGN §8) on every
     # frame, so 18+ paired frames give a Wilcoxon p of at most 2/2^18 ≈ 8e-6.
@@ -70,7 +70,7 @@ def test_sweep_ranks_reports_failure_and_writes_tables(swept):
         rows = list(csv.DictReader(f))
     assert [r["setting"] for r in rows] == ["lm", "lm-refine=none", "lm-refine=subpix"]
     assert float(rows[0]["position_rmse_mm"]) == pytest.approx(ecc.metrics["position_rmse_mm"], rel=1e-3)
-    assert rows[2]["status"].startswith("failed: IsADirectoryError")
+    assert rows[2]["status"].startswith("failed: OutputError")
     assert "| 1 | lm |" in outcome.markdown_path.read_text()
 
 

@@ -84,7 +84,8 @@ def test_export_refuses_bad_requests(run, tmp_path):
     path, _, _ = run
     with pytest.raises(ExportError, match="unknown format 'kitti'"):
         export_run(path, "kitti", tmp_path)
-    with pytest.raises(ExportError, match="does not exist"):
-        export_run(path, "tum", tmp_path / "missing")
+    # A missing output folder is created (issue 10), not an error.
+    written = export_run(path, "tum", tmp_path / "missing")
+    assert [w.path.parent for w in written] == [tmp_path / "missing"] * 2
     with pytest.raises(ExportError, match="unknown trajectory"):
         export_run(path, "tum", tmp_path, which=("odometry",))

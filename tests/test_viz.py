@@ -255,8 +255,12 @@ def test_failed_run_leaves_target_untouched(tmp_path):
 
 
 def test_bad_input_is_refused(tmp_path):
-    with pytest.raises(RunLogError, match="does not exist"):
-        RunLogger(tmp_path / "missing" / "run.rrd", recording_name="bad", recording_id="bad")
+    from agvviz.errors import OutputError
+
+    # A missing folder is created (issue 10); a folder that cannot be one is an OutputError.
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputError, match="not a folder"):
+        RunLogger(tmp_path / "file" / "run.rrd", recording_name="bad", recording_id="bad")
     logger = RunLogger(tmp_path / "ok.rrd", recording_name="bad", recording_id="bad")
     frame = _frames(np.random.default_rng(2))[0]
     frame.image_format = "bmp"

@@ -11,7 +11,11 @@
     unary      := "-" unary | atom
     atom       := NUMBER | METRIC | "(" sum ")"
     METRIC     := ("A" | "B") "." name          e.g. B.position_rmse_mm
-    NUMBER     := decimal, optional exponent    e.g. 1.05, 2e-3
+    NUMBER     := decimal, optional exponent    e.g. 1.05, 2e-3 (ASCII digits only)
+
+Only ASCII is accepted: a full-width digit ``１``, a non-breaking space or any other
+non-ASCII character is an error naming its column (Python's ``float`` and a regex digit
+class would otherwise read ``１`` as 1).
 
 The whole expression must be a condition (true/false); arithmetic works on numbers,
 ``and``/``or`` on conditions. A metric name that is not known is an error listing the known
@@ -32,13 +36,15 @@ MAX_LENGTH = 1000
 MAX_DEPTH = 32
 
 _TOKEN = re.compile(
-    r"\s*(?:"
-    r"(?P<number>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)"
+    r"[ \t\r\n\f\v]*(?:"
+    r"(?P<number>(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?)"
     r"|(?P<metric>[A-Za-z_][A-Za-z0-9_]*\.[A-Za-z_][A-Za-z0-9_]*)"
     r"|(?P<word>[A-Za-z_][A-Za-z0-9_]*)"
     r"|(?P<op><=|>=|==|!=|<|>|\+|-|\*|/|\(|\))"
-    r")"
+    r")",
+    re.ASCII,
 )
+_BLANK = " \t\r\n\f\v"
 _COMPARISONS = ("<", "<=", ">", ">=", "==", "!=")
 RUNS = ("A", "B")
 
@@ -95,13 +101,19 @@ Node = Union[Number, Metric, Negate, Arithmetic, Comparison, Logical]
 
 
 def _tokenize(text: str) -> list[_Token]:
+    for index, char in enumerate(text):
+        if not char.isascii():
+            raise ExpressionError(
+                f"non-ASCII character {char!r} (U+{ord(char):04X}) at column {index + 1}; "
+                "write numbers, metrics and operators in ASCII"
+            )
     tokens, pos = [], 0
     while pos < len(text):
-        if text[pos:].strip() == "":
+        if text[pos:].strip(_BLANK) == "":
             break
         match = _TOKEN.match(text, pos)
         if match is None or match.end() == pos:
-            column = len(text) - len(text[pos:].lstrip()) + 1
+            column = len(text) - len(text[pos:].lstrip(_BLANK)) + 1
             raise ExpressionError(f"unexpected character {text[column - 1]!r} at column {column}")
         kind = match.lastgroup
         tokens.append(_Token(kind, match.group(kind), match.start(kind) + 1))
@@ -253,7 +265,7 @@ def parse(text: str, known_metrics: Iterable[str]) -> Node:
     ExpressionError
         With the column of the problem, or the list of known metrics for an unknown one.
     """
-    if not isinstance(text, str) or not text.strip():
+    if not isinstance(text, str) or not text.strip(_BLANK):
         raise ExpressionError("empty expression; e.g. 'B.position_rmse_mm > 1.05 * A.position_rmse_mm'")
     if len(text) > MAX_LENGTH:
         raise ExpressionError(f"expression longer than {MAX_LENGTH} characters")

@@ -134,28 +134,81 @@ def parse_aruco_map(marker_map: dict) -> ArucoMap | None:
     """The :class:`ArucoMap` of an ``agvviz.MarkerMap`` message, or None when the map is of
     QR codes (``dictionary`` "qr", whose codes carry their own coordinates).
 
-    Raises :class:`ArucoError` for an unknown dictionary, a non-integer or out-of-range id, an
-    unknown frame or corners that do not form a square's plane.
+    Raises :class:`ArucoError` — and nothing else, whatever the (untrusted, JSON-decoded)
+    input — for a map that is not an object, an unknown dictionary, markers that are not a
+    list of objects, a non-integer, out-of-range or repeated id, an unknown frame, or corners
+    that are not 4 finite points x, y, z within :data:`MAX_ABS_CORNER_M` or do not form a
+    square's plane.
     """
     from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners
 
+    if not isinstance(marker_map, dict):
+        raise ArucoError(f"marker map must be a JSON object, got {type(marker_map).__name__}")
     dictionary = marker_map.get("dictionary")
-    if dictionary == "qr":
+    if isinstance(dictionary, str) and dictionary == "qr":
         return None
+    if not isinstance(dictionary, str):
+        raise ArucoError(f"marker map: dictionary must be a string ('qr' or e.g. DICT_5X5_50), got {type(dictionary).__name__}")
     aruco_dictionary(dictionary)  # raises for an unknown name
     count = aruco_dictionary(dictionary).bytesList.shape[0]
+    entries = marker_map.get("markers", [])
+    if not isinstance(entries, list):
+        raise ArucoError(f"marker map: markers must be a list, got {type(entries).__name__}")
     markers: dict[int, MapMarker] = {}
-    for entry in marker_map.get("markers", []):
-        text = str(entry.get("id"))
-        if not text.isdigit() or not 0 <= int(text) < count:
-            raise ArucoError(f"marker map: id {text!r} is not an id of {dictionary} (0..{count - 1})")
+    for position, entry in enumerate(entries):
+        if not isinstance(entry, dict):
+            raise ArucoError(f"marker map: marker {position} must be an object, got {type(entry).__name__}")
+        raw_id = entry.get("id")
+        # ASCII digits only: str.isdigit() is also true for "²" (int() refuses it) and "٣".
+        if isinstance(raw_id, int) and not isinstance(raw_id, bool):
+            marker_id = raw_id
+        elif isinstance(raw_id, str) and raw_id.isascii() and raw_id.isdigit() and len(raw_id) <= 9:
+            marker_id = int(raw_id)
+        else:
+            marker_id = None
+        if marker_id is None or not 0 <= marker_id < count:
+            shown = _shown(raw_id)
+            raise ArucoError(f"marker map: id {shown} is not an id of {dictionary} (0..{count - 1})")
+        if marker_id in markers:
+            raise ArucoError(f"marker map: id {marker_id} appears more than once")
         frame = entry.get("frame", "world")
-        if frame not in ("world", "agv"):
-            raise ArucoError(f"marker map: marker {text} has frame {frame!r}; expected 'world' or 'agv'")
-        corners = np.asarray(entry.get("corners_world_m"), dtype=float)
+        if not (isinstance(frame, str) and frame in ("world", "agv")):
+            raise ArucoError(f"marker map: marker {marker_id} has frame {_shown(frame)}; expected 'world' or 'agv'")
+        corners = _corners(entry.get("corners_world_m"), marker_id)
         try:
             T_frame_marker, points_marker_m = marker_frame_from_corners(corners)
         except DegenerateGeometryError as exc:
-            raise ArucoError(f"marker map: marker {text}: {exc}") from None
-        markers[int(text)] = MapMarker(frame, corners[:4], T_frame_marker, points_marker_m[:4])
+            raise ArucoError(f"marker map: marker {marker_id}: {exc}") from None
+        markers[marker_id] = MapMarker(frame, corners, T_frame_marker, points_marker_m[:4])
     return ArucoMap(dictionary, markers)
+
+
+def _shown(value: object) -> str:
+    """A short, never-failing description of an untrusted value for an error message."""
+    if isinstance(value, str) and len(value) <= 40:
+        return repr(value)
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() <= 64:
+        return str(value)
+    return f"of type {type(value).__name__}"
+
+
+#: Largest accepted |corner coordinate| of a marker map (metres): far beyond any site, small
+#: enough that the frame construction cannot overflow (1000 km; float spacing there 1e-10 m).
+MAX_ABS_CORNER_M = 1e6
+
+
+def _corners(value: object, marker_id: int) -> np.ndarray:
+    """(4, 3) finite real corners within ±MAX_ABS_CORNER_M, else ArucoError."""
+    expected = f"marker map: marker {marker_id}: corners_world_m must be 4 points [x, y, z] in metres"
+    if isinstance(value, (str, bytes, dict)) or value is None:
+        raise ArucoError(expected)
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError, OverflowError):  # ragged, or not array-like
+        raise ArucoError(expected) from None
+    if raw.shape != (4, 3) or raw.dtype.kind not in "iuf":  # no bools, strings, objects
+        raise ArucoError(expected)
+    corners = raw.astype(float)
+    if not np.all(np.isfinite(corners)) or np.max(np.abs(corners)) > MAX_ABS_CORNER_M:
+        raise ArucoError(f"{expected}, finite and within ±{MAX_ABS_CORNER_M:g} m")
+    return corners

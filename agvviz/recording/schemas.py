@@ -12,6 +12,7 @@ Units follow :mod:`agvviz.conventions`: metres (``_m``), pixels (``_px``), nanos
 from __future__ import annotations
 
 import math
+import sys
 
 #: Name of the MCAP metadata record describing the scenario that produced a recording.
 SCENARIO_METADATA = "agvviz.scenario"
@@ -179,12 +180,31 @@ def _type_ok(expected: str, value: object) -> bool:
     if expected == "integer":
         return isinstance(value, int) and not isinstance(value, bool)
     if expected == "number":
-        return (
-            isinstance(value, (int, float))
-            and not isinstance(value, bool)
-            and math.isfinite(value)
-        )
+        # An int beyond the float range (JSON allows 1e400 written as digits) is not a usable
+        # number: math.isfinite() would raise OverflowError on it.
+        if isinstance(value, bool):
+            return False
+        if isinstance(value, int):
+            return -_FLOAT_MAX_INT <= value <= _FLOAT_MAX_INT
+        return isinstance(value, float) and math.isfinite(value)
     raise ValueError(f"schema uses unsupported type {expected!r}")
+
+
+_FLOAT_MAX_INT = int(sys.float_info.max)
+
+
+def _shown(value: object) -> str:
+    """repr(value) cut to 40 characters; never raises (an int of more than 4300 digits has no
+    repr, and a huge container is not worth printing in full)."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 128:
+        return f"<integer of {value.bit_length()} bits>"
+    if isinstance(value, (list, dict, str)) and len(value) > 1000:
+        return f"<{type(value).__name__} of length {len(value)}>"
+    try:
+        text = repr(value)
+    except (ValueError, RecursionError):
+        return f"<{type(value).__name__}>"
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def validate(schema: dict, value: object, where: str = "$") -> list[str]:
@@ -195,7 +215,7 @@ def validate(schema: dict, value: object, where: str = "$") -> list[str]:
     """
     expected = schema.get("type")
     if expected is not None and not _type_ok(expected, value):
-        shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
+        shown = _shown(value)
         article = "an" if expected[0] in "aeiou" else "a"
         extra = " (finite)" if expected == "number" else ""
         return [f"{where}: expected {article} {expected}{extra}, got {shown}"]
@@ -219,9 +239,9 @@ def validate(schema: dict, value: object, where: str = "$") -> list[str]:
         problems.append(f"{where}: expected a string of at least {schema['minLength']} characters")
     if _type_ok("number", value):
         if "minimum" in schema and value < schema["minimum"]:
-            problems.append(f"{where}: expected >= {schema['minimum']}, got {value}")
+            problems.append(f"{where}: expected >= {schema['minimum']}, got {_shown(value)}")
         if "exclusiveMinimum" in schema and value <= schema["exclusiveMinimum"]:
-            problems.append(f"{where}: expected > {schema['exclusiveMinimum']}, got {value}")
+            problems.append(f"{where}: expected > {schema['exclusiveMinimum']}, got {_shown(value)}")
     return problems
 
 

@@ -108,16 +108,23 @@ class RecordingWriter:
 
     # -- context manager ------------------------------------------------------------------
     def __enter__(self) -> "RecordingWriter":
+        from agvviz import outputs  # temporary names, their clean-up, OutputError
+
         folder = self.path.parent
         if not folder.is_dir():
-            raise FileNotFoundError(f"cannot write {self.path}: folder {folder} does not exist")
-        handle, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=folder)
-        self._tmp_path = Path(tmp)
+            raise outputs.OutputError(f"cannot write {self.path}: folder {folder} does not exist; create it first")
+        # agvviz's temporary name (pid inside): removed when interrupted, or by the next
+        # command writing here if this process is killed; created with the usual permissions.
+        self._tmp_path = outputs.temp_path(self.path)
+        outputs.register_temp(self._tmp_path)
+        try:
+            handle = os.open(self._tmp_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except OSError as exc:
+            outputs.release_temp(self._tmp_path)
+            self._tmp_path = None
+            raise outputs.output_error(exc, self.path) from exc
         self._file = os.fdopen(handle, "wb")
         try:
-            umask = os.umask(0)  # mkstemp makes the file private; give it the usual permissions
-            os.umask(umask)
-            os.chmod(self._tmp_path, 0o666 & ~umask)
             self._writer = Writer(
                 self._file, chunk_size=CHUNK_SIZE_BYTES, compression=CompressionType.NONE,
                 enable_data_crcs=True,  # DataEnd CRC: the reader then catches damaged metadata
@@ -133,19 +140,33 @@ class RecordingWriter:
         if exc_type is not None:
             self._discard()
             return
+        from agvviz import outputs
+
         try:
             self._writer.finish()
+            self._file.flush()
+            os.fsync(self._file.fileno())  # a full disk shows here at the latest, not after the rename
             self._file.close()
             os.replace(self._tmp_path, self.path)
+            outputs.release_temp(self._tmp_path)
+        except OSError as exc:
+            self._discard()
+            raise outputs.output_error(exc, self.path) from exc
         except BaseException:
             self._discard()
             raise
 
     def _discard(self) -> None:
+        from agvviz import outputs
+
         if self._file is not None and not self._file.closed:
-            self._file.close()
+            try:
+                self._file.close()
+            except OSError:  # e.g. the disk is full: the buffered rest cannot be written
+                pass
         if self._tmp_path is not None:
             self._tmp_path.unlink(missing_ok=True)
+            outputs.release_temp(self._tmp_path)
 
     # -- channels -------------------------------------------------------------------------
     def _schema_id(self, name: str, register) -> int:

@@ -265,13 +265,15 @@ def write_overlay(
     cam_names: list[str],
     report_markdown: str,
     deltas: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+    inputs: tuple[str | os.PathLike, ...] = (),
 ) -> Path:
     """Write the overlay ``.rrd`` atomically and return its path.
 
     Parameters
     ----------
     out_path : path
-        Target ``.rrd``; its folder must exist.
+        Target ``.rrd``; its folder is created if needed. It must not be ``source`` or one
+        of ``inputs`` (:class:`~agvviz.errors.OutputError`, also through links).
     recording_name : str
         Shown in the viewer, e.g. ``diff qr_floor-lm vs qr_floor-p4p``.
     runs : list of OverlayRun
@@ -287,20 +289,22 @@ def write_overlay(
         The comparison table, shown next to the plots.
     deltas : dict, optional
         Key of :data:`ERROR_LABELS` → (frames, time_ns, values): per-frame B − A series.
+    inputs : paths
+        Other files the overlay is made from (the runs compared).
     """
     _check(runs)
     deltas = deltas or {}
     out_path = Path(out_path)
     if out_path.suffix != ".rrd":
         raise OverlayError(f"the overlay must be a .rrd file, got {out_path}")
-    if not out_path.parent.is_dir():
-        raise OverlayError(f"cannot write {out_path}: folder {out_path.parent} does not exist")
     recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-overlay:{recording_name}"))
-    with AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name) as rrd:
+    sources = tuple(inputs) + ((source,) if source is not None else ())
+    with AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=sources) as rrd:
         rec = rrd.rec
         _log_static(rec, runs, truth, report_markdown)
         if source is not None:
             _copy_from_source(rec, Path(source), cam_names)
+            rrd.check()
         if truth is not None:
             _send_transforms(rec, TRUTH_POSE, truth.frames, truth.time_ns, truth.T_world_agv)
         for index, run in enumerate(runs):

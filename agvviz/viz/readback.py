@@ -41,13 +41,43 @@ def read_rrd(path: str | os.PathLike) -> RrdContents:
     """Open the recording in ``path`` (chunk data stays on disk until queried)."""
     path = Path(path)
     if not path.is_file():
-        raise RrdReadError(f"no .rrd file at {path}")
+        raise RrdReadError(f"no .rrd file at {path}" + (" (that is a folder)" if path.is_dir() else ""))
+    _check_magic(path)
     try:
         store = RrdReader(path).store()
-    except (ValueError, OSError) as exc:
-        raise RrdReadError(f"cannot read {path} as a Rerun recording with a footer: {exc}") from exc
-    entity_paths = {p.lstrip("/") for p in store.schema().entity_paths()}
+        entity_paths = {p.lstrip("/") for p in store.schema().entity_paths()}
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001 — Rerun raises RuntimeError, or panics, on damage
+        raise RrdReadError(f"cannot read {path}: {_one_line(exc)}; {_REWRITE}") from exc
     return RrdContents(path=path, store=store, entity_paths=entity_paths)
+
+
+_REWRITE = "write it again with `agvviz run` (or `agvviz diff --out`)"
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def _check_magic(path: Path) -> None:
+    """Refuse at once what is not a complete ``.rrd`` (empty, another format, cut short)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+            size = f.seek(0, os.SEEK_END)
+            f.seek(max(0, size - 32))
+            tail = f.read()
+    except OSError as exc:
+        raise RrdReadError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    if size == 0:
+        raise RrdReadError(f"{path} is empty, not a run .rrd; {_REWRITE}")
+    if head != b"RRF2":
+        raise RrdReadError(f"{path} is not a Rerun .rrd file (it does not start with 'RRF2'); "
+                           "give a run written by `agvviz run`")
+    if b"RRF2FOOT" not in tail:
+        raise RrdReadError(f"{path} is incomplete (cut short: it has no .rrd footer); {_REWRITE}")
 
 
 def _contents(src: str | os.PathLike | RrdContents) -> RrdContents:
@@ -71,9 +101,14 @@ def _rows(src: str | os.PathLike | RrdContents, entity: str, component: str) -> 
     if entity not in contents.entity_paths:
         raise RrdReadError(f"{contents.path} has no entity {entity!r}")
     rows = []
-    for chunk in contents.store.stream().filter(content=f"/{entity}", components=component):
-        if chunk.entity_path.lstrip("/") == entity:
-            rows += _int_times(chunk.to_record_batch()).to_pylist()
+    try:
+        for chunk in contents.store.stream().filter(content=f"/{entity}", components=component):
+            if chunk.entity_path.lstrip("/") == entity:
+                rows += _int_times(chunk.to_record_batch()).to_pylist()
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001 — damaged chunk data
+        raise RrdReadError(f"cannot read {entity!r} from {contents.path}: {_one_line(exc)}; {_REWRITE}") from exc
     rows = [row for row in rows if row.get(component) is not None]
     if not rows:
         raise RrdReadError(f"{contents.path}: entity {entity!r} has no {component!r} data")
@@ -141,7 +176,10 @@ def document_json(src: str | os.PathLike | RrdContents, entity: str) -> dict:
     end = text.find("\n```", start + 1)
     if start < 0 or end < 0:
         raise RrdReadError(f"entity {entity!r} holds no ```json block")
-    return json.loads(text[start + len("```json\n") : end])
+    try:
+        return json.loads(text[start + len("```json\n") : end])
+    except ValueError as exc:
+        raise RrdReadError(f"entity {entity!r} holds a damaged JSON block: {exc}") from exc
 
 
 def text_logs(src: str | os.PathLike | RrdContents, entity: str) -> list[tuple[int, str, str]]:

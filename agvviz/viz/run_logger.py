@@ -80,18 +80,25 @@ class RunLogger:
     Parameters
     ----------
     out_path : path
-        The ``.rrd`` to write; its folder must exist. Replaced only by a complete file.
+        The ``.rrd`` to write; its folder is created if needed. Replaced only by a complete
+        file; a write failure (disk full, read-only) raises ``OutputError`` and leaves no
+        temporary file.
     recording_name : str
         Shown in the viewer (scenario + setting).
     recording_id : str
         Rerun recording id; pin it so repeated runs produce comparable files.
     """
 
-    def __init__(self, out_path: str | os.PathLike, *, recording_name: str, recording_id: str):
-        try:
-            self._file = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name)
-        except FileNotFoundError as exc:
-            raise RunLogError(f"cannot write run: {exc}") from None
+    def __init__(
+        self,
+        out_path: str | os.PathLike,
+        *,
+        recording_name: str,
+        recording_id: str,
+        inputs: tuple[str | os.PathLike, ...] = (),
+    ):
+        # OutputError (from agvviz.errors) when out_path is an input or cannot be written.
+        self._file = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=inputs)
         self._rec = self._file.rec
         self._cam_names: list[str] = []
         self._fixed_cams: set[str] = set()
@@ -101,7 +108,11 @@ class RunLogger:
         self._saved = False
         self._trajectory_truth_m: list[np.ndarray] = []
         self._trajectory_camera_m: list[np.ndarray] = []
-        self._log_static_styles()
+        try:
+            self._log_static_styles()
+        except BaseException:  # no `with` block owns the file yet: discard it here
+            self._file.discard()
+            raise
 
     # -- static content --------------------------------------------------------------------
     def _log_static_styles(self) -> None:
@@ -238,6 +249,7 @@ class RunLogger:
         checked completely before anything is logged, so a bad frame logs nothing.
         """
         self._check_open()
+        self._file.check()  # stop at once when the disk is full, not after the whole run
         _check_frame(frame)
         rec = self._rec
         if not self._start_time_sent:

@@ -1,0 +1,69 @@
+"""Issue 10 robustness suite: agvviz tried as a hostile user would (see robustness_cases).
+
+Default run (``pytest -q``): a handful of cases per category, run two at a time in one
+session fixture, one test each. ``pytest -q -m campaign``: the whole seeded campaign, which
+writes its table to stdout and to ``$AGVVIZ_ROBUSTNESS_REPORT`` (default
+``runs/robustness.md``) and asserts zero crash / hang / input modified / silent wrong.
+The same campaign as a script: ``python bench/robustness_campaign.py``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from robustness_cases import FAST_IDS, Workspace, fast_cases, run_campaign
+from robustness_harness import FORBIDDEN, REPO, run_cases, table
+
+#: Fast cases that fail on today's tree because their fix is not in yet (strict=False: they
+#: turn green silently when it lands).
+KNOWN_FAILING = {
+    "cli misuse/diff --out onto input A": "diff --out onto its own input replaces the input (exit 0)",
+    "cli misuse/diff --out hard link to input A": "diff --out onto a hard link of an input replaces it (exit 0)",
+    "cli misuse/export truncated .rrd": "rerun's RuntimeError on a truncated .rrd escapes as a traceback (exit 1)",
+    "cli misuse/run --out under a regular file": "FileExistsError traceback from mkdir (exit 1, not 3)",
+    "cli misuse/sweep --jobs 0": "--jobs 0 is accepted and the sweep runs (exit 0)",
+    "cli misuse/record --set width_px=100000": "MemoryError traceback instead of a bound check (exit 1)",
+    "cli misuse/diff --fail-if 'B.position_rmse_mm > \uff11'": "the full-width digit is accepted (exit 0)",
+    "faults/run --out into a read-only folder": "rerun's RuntimeError escapes as a traceback (exit 1, not 3)",
+    "faults/run --out onto a full disk (1 MiB tmpfs)": "rerun's RuntimeError escapes as a traceback (exit 1, not 3)",
+    "faults/SIGKILL mid-run, then run again": "the killed run's .tmp is never cleaned up",
+}
+
+
+@pytest.fixture(scope="session")
+def fast_results(tmp_path_factory):
+    ws = Workspace(tmp_path_factory.mktemp("robustness")).build()
+    results = run_cases(fast_cases(ws), jobs=int(os.environ.get("AGVVIZ_ROBUSTNESS_JOBS", "2")))
+    return {r.case.id: r for r in results}
+
+
+def _param(case_id: str):
+    marks = []
+    if case_id in KNOWN_FAILING:
+        marks.append(pytest.mark.xfail(strict=False, reason=f"issue 10: {KNOWN_FAILING[case_id]}"))
+    return pytest.param(case_id, id=case_id, marks=marks)
+
+
+@pytest.mark.parametrize("case_id", [_param(i) for i in FAST_IDS])
+def test_fast_case(fast_results, case_id):
+    result = fast_results[case_id]
+    if result.klass == "skipped":
+        pytest.skip(result.case.skip_reason)
+    assert result.klass in ("clean error", "ok"), result.describe()
+
+
+@pytest.mark.campaign
+def test_campaign(tmp_path_factory, capsys):
+    report_path = Path(os.environ.get("AGVVIZ_ROBUSTNESS_REPORT", REPO / "runs" / "robustness.md"))
+    jobs = int(os.environ.get("AGVVIZ_ROBUSTNESS_JOBS", "2"))
+    n_random = int(os.environ.get("AGVVIZ_ROBUSTNESS_RANDOM", "10"))
+    with capsys.disabled():
+        results, text = run_campaign(tmp_path_factory.mktemp("campaign"), jobs=jobs, n_random=n_random,
+                                     report_path=report_path)
+        print("\n" + table(results) + f"\n(report: {report_path})")
+    bad = [r for r in results if r.klass in FORBIDDEN]
+    counts = {k: sum(r.klass == k for r in results) for k in FORBIDDEN}
+    assert not bad, f"{counts}; see {report_path}\n\n" + "\n\n".join(r.describe() for r in bad[:30])
