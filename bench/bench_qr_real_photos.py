@@ -7,8 +7,9 @@ CRLF). Prints one line per photo (decoded or not, the corner refinement applied)
 
     python bench/bench_qr_real_photos.py [--data DIR] [--refine ecc|subpix|none]
 
-The photos are zxing's black-box set ``qrcode-1`` (20 phone photos, 640×480, upright);
-README "QR decoding" quotes the count.
+The photos are zxing's black-box set ``qrcode-1`` (20 phone photos, 640×480, upright).
+Measured (2026-11): 12 of 20 when agvviz decoded through OpenCV's detectors (commit 7663202),
+20 of 20 through zxing-cpp with OpenCV as the fallback, all 20 ECC-refined.
 """
 
 from __future__ import annotations

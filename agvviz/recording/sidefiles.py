@@ -196,9 +196,9 @@ def marker_map_from_document(document: object) -> dict:
     for i, board in enumerate(boards_in):
         markers.extend(_charuco_markers(board, f"boards[{i}]", dictionary))
 
-    seen: dict[tuple[str, str], int] = {}
+    seen: dict[str, int] = {}  # the replay looks markers up by id alone, whatever their frame
     for i, marker in enumerate(markers):
-        key = (marker.get("frame", WORLD_FRAME), marker["id"])
+        key = marker["id"]
         if key in seen:
             raise ValueError(f"marker id {marker['id']!r} appears twice (entries {seen[key]} and {i} after expanding boards)")
         seen[key] = i
