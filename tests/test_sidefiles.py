@@ -289,8 +289,9 @@ def test_camera_info_message_dump(tmp_path):
     check_calibration(load_calibration("front", write(tmp_path, "info.yaml", dump)))
 
 
-def test_opencv_filestorage_yaml(tmp_path):
-    path = tmp_path / "cv.yml"
+@pytest.mark.parametrize("name", ["cv.yml", "cv.xml"])
+def test_opencv_filestorage(tmp_path, name):
+    path = tmp_path / name
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     storage.write("image_width", 640)
     storage.write("image_height", 480)

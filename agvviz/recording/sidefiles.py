@@ -474,7 +474,8 @@ def load_calibration(cam_name: str, path) -> CalibrationMsg:
     ``image_width``, ``image_height``, ``camera_matrix: {rows, cols, data}``,
     ``distortion_model``, ``distortion_coefficients``), a ``sensor_msgs/CameraInfo`` message
     dumped as YAML (``width``, ``height``, ``k``, ``d``, ``distortion_model``), or an OpenCV
-    FileStorage YAML (``%YAML:1.0``; read with ``cv2.FileStorage``: ``camera_matrix`` or
+    FileStorage YAML or XML (``%YAML:1.0``, ``!!opencv-matrix`` or ``<?xml``; read with
+    ``cv2.FileStorage``: ``camera_matrix`` or
     ``cameraMatrix``, ``distortion_coefficients`` or ``distCoeffs``, ``image_width``,
     ``image_height``). Distortion: plumb_bob (up to 5 coefficients k1, k2, p1, p2, k3) or
     rational_polynomial (8); OpenCV's longer models only when their extra coefficients are 0.
@@ -489,7 +490,10 @@ def load_calibration(cam_name: str, path) -> CalibrationMsg:
     except OSError as exc:
         raise SideFileError(f"calibration {path}: cannot be read ({exc.strerror or exc})") from None
     try:
-        if head.lstrip().startswith(b"%YAML:") or b"!!opencv-matrix" in path.read_bytes()[:65536]:
+        if (
+            head.lstrip().startswith((b"%YAML:", b"<?xml"))
+            or b"!!opencv-matrix" in path.read_bytes()[:65536]
+        ):
             K, D, width, height, model = _opencv_filestorage(path)
         else:
             K, D, width, height, model = _ros_camera_info(_read_structured(path))
@@ -572,12 +576,12 @@ def _opencv_filestorage(path: Path):
     import cv2
 
     try:
-        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_FORMAT_YAML)
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except cv2.error as exc:
-        raise ValueError(f"not a readable OpenCV FileStorage YAML ({str(exc).strip().splitlines()[-1][:120]})") from None
+        raise ValueError(f"not a readable OpenCV FileStorage file ({str(exc).strip().splitlines()[-1][:120]})") from None
     try:
         if not storage.isOpened():
-            raise ValueError("not a readable OpenCV FileStorage YAML")
+            raise ValueError("not a readable OpenCV FileStorage file")
 
         def node(keys):
             for key in keys:
