@@ -43,11 +43,10 @@ from agvviz.recording.reader import (
     CalibrationMsg,
     CompressedFrame,
     FrameTransformMsg,
-    PoseMsg,
     RecordedMessage,
     image_size_problem,
 )
-from agvviz.recording.topics import ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TRUTH, camera_of_role
+from agvviz.recording.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
 from agvviz.results import (
     REJECT_DECODE,
     REJECT_GEOMETRY,
@@ -188,8 +187,6 @@ class Replay:
 
     def _take_context(self, message: RecordedMessage) -> None:
         value = message.value
-        if isinstance(value, CalibrationMsg):
-            self._note_calibration_problem(message)
         kept = self.sync.add(message)
         if message.role == ROLE_TRUTH and kept:
             self.truth_seen = True
@@ -270,14 +267,6 @@ class Replay:
                 f"at most truth_max_gap_s = {self.settings.truth_max_gap_s:g} s apart"
             )
         return lines
-
-    def _note_calibration_problem(self, message: RecordedMessage) -> None:
-        """A calibration the replay refuses (absurd size): remembered for the rejection detail."""
-        calib = message.value
-        cam_role = camera_of_role(message.role)
-        cam = self.ctx.camera(cam_role[0] if cam_role else calib.cam_name)
-        problem = image_size_problem(calib.camera.width_px, calib.camera.height_px)
-        cam.calibration_problem = f"calibration refused: {problem}" if problem else ""
 
     def _known_cameras(self) -> set[str]:
         names = set(self.sync.calibrations) | set(self.sync.side_calibrations) | set(self.sync.side_extrinsics)

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from agvviz import __version__
-from agvviz.errors import RunError
+from agvviz.errors import InputError, RecordingError, RunError
 from agvviz.evaluation.summary import FrameScore, summarize, timing
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.fusion_replay import FrameSetResult, FusionReplay
@@ -188,11 +188,18 @@ def prepare(
         recording_scan.tf_frames
     )
     time_source = recording.time_source(settings.time_source)
+    side = side or SideInputs()
+    for option, names in (("--calibration", side.calibrations), ("--extrinsic", side.extrinsics)):
+        unknown = sorted(set(names) - set(roles.cameras()))
+        if unknown and roles.cameras():
+            raise InputError(
+                f"{option} {unknown[0]}=...: the recording has no camera {unknown[0]!r}; its cameras: "
+                f"{', '.join(roles.cameras())} (`agvviz inspect` shows the role map)"
+            )
     replay = Replay(settings, body_frame=body_frame)
     replay.camera_frames = {
         cam: recording_scan.topics[roles.roles[image_role(cam)]].frame_id for cam in roles.cameras()
     }
-    side = side or SideInputs()
     replay.set_side_inputs(
         side.marker_map, side.calibrations, {cam: tf.T_parent_child for cam, tf in side.extrinsics.items()}
     )
@@ -256,7 +263,9 @@ def run_recording(
     """
     recording_path = Path(recording_path)
     if not recording_path.exists():
-        raise RunError(f"recording not found: {recording_path}")
+        raise RecordingError(
+            f"{recording_path}: no such file or directory; give an .mcap recording or a rosbag2 directory"
+        )
     out_path = Path(out_path) if out_path is not None else default_run_path(recording_path, settings)
     if out_path.suffix != ".rrd":
         raise RunError(f"output must be a .rrd file, got {out_path}")

@@ -25,6 +25,8 @@ before each frame.
 
 from __future__ import annotations
 
+import bisect
+
 import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
@@ -34,7 +36,6 @@ from agvviz.recording.topics import (
     ROLE_MARKER_MAP,
     ROLE_ODOMETRY,
     ROLE_TF,
-    ROLE_TF_STATIC,
     ROLE_TRUTH,
     camera_of_role,
 )
@@ -80,8 +81,10 @@ class SyncState:
         entries = self.calibrations.setdefault(cam_name, [])
         if entries and _same_camera(entries[-1][1], calib) and t_ns >= entries[-1][0]:
             return  # a repeated CameraInfo (ROS publishes one per frame)
-        entries.append((t_ns, calib))
-        entries.sort(key=lambda e: e[0])
+        if entries and t_ns < entries[-1][0]:
+            bisect.insort_right(entries, (t_ns, calib), key=lambda e: e[0])
+        else:
+            entries.append((t_ns, calib))
 
     def add_transforms(self, transforms: list[FrameTransformMsg], static: bool, message: RecordedMessage) -> None:
         for tf in transforms:
@@ -129,13 +132,8 @@ class SyncState:
         entries = self.calibrations.get(cam_name)
         if not entries:
             return None
-        best = entries[0][1]
-        for t, calib in entries:
-            if t <= t_ns:
-                best = calib
-            else:
-                break
-        return best
+        i = bisect.bisect_right(entries, t_ns, key=lambda e: e[0])
+        return entries[max(i - 1, 0)][1]
 
     def extrinsic(self, cam_name: str, frame_id: str, t_ns: int) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """``(T_body_cam, T_world_cam, why_not)``: one of the two poses, or both ``None`` and

@@ -551,3 +551,9 @@ def test_role_inference_rules():
     assert "--topic truth=/goal_pose" in roles.unplaced["/goal_pose"]
     assert "not used by the replay" in roles.unplaced["/rosout"]
     assert "odometry" not in roles.roles
+
+
+def test_side_file_for_an_unknown_camera_is_an_error(bag):
+    side = SideInputs(extrinsics={"rear": FrameTransformMsg("base_link", "rear", np.eye(4))})
+    with pytest.raises(InputError, match="no camera 'rear'; its cameras: front"):
+        prepare(bag, RunSettings(), side=side)

@@ -268,7 +268,8 @@ def infer_roles(
             continue
         for role, native in NATIVE_TOPICS.items():
             if native == topic and info.schema_name in ROLE_TYPES.get(role, ()):
-                place(role, topic, "agvviz naming")
+                # /tf and /tf_static are ROS's names as much as agvviz's
+                place(role, topic, "inferred" if role in (ROLE_TF, ROLE_TF_STATIC) else "agvviz naming")
     free = [t for t in free if t not in taken]
 
     # Cameras: one per image topic.
