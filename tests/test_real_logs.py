@@ -557,3 +557,22 @@ def test_side_file_for_an_unknown_camera_is_an_error(bag):
     side = SideInputs(extrinsics={"rear": FrameTransformMsg("base_link", "rear", np.eye(4))})
     with pytest.raises(InputError, match="no camera 'rear'; its cameras: front"):
         prepare(bag, RunSettings(), side=side)
+
+
+def test_unknown_encoding_and_unplaced_images_fail_loudly(content, tmp_path):
+    messages = [m for m in ros_messages(content) if m[0] != "/front/image_raw/compressed"]
+    for _, msgtype, _, msg in messages:
+        if msgtype == "sensor_msgs/msg/Image":
+            msg.encoding = "yuv422"
+    bag = write_bag(tmp_path / "yuv", messages)
+    with pytest.raises(RunError, match=r"camera front \(/front/image_raw\): its frames do not decode \(image encoding 'yuv422' is not supported"):
+        run_recording(bag, RunSettings(), tmp_path / "yuv.rrd")
+    # images on a depth topic only: no camera role
+    depth = [("/camera/depth/image_raw" if m[0] == "/front/image_raw" else m[0], *m[1:]) for m in messages]
+    for _, msgtype, _, msg in depth:
+        if msgtype == "sensor_msgs/msg/Image":
+            msg.encoding = "mono8"
+    bag = write_bag(tmp_path / "depth", depth)
+    with pytest.raises(RunError, match="no camera images placed: /camera/depth/image_raw: a depth image"):
+        run_recording(bag, RunSettings(), tmp_path / "depth.rrd")
+    assert not list(tmp_path.glob("*.rrd*"))
