@@ -576,3 +576,29 @@ def test_unknown_encoding_and_unplaced_images_fail_loudly(content, tmp_path):
     with pytest.raises(RunError, match="no camera images placed: /camera/depth/image_raw: a depth image"):
         run_recording(bag, RunSettings(), tmp_path / "depth.rrd")
     assert not list(tmp_path.glob("*.rrd*"))
+
+
+def test_truth_interpolated_between_samples_within_the_gap(content, native_errors, tmp_path):
+    """Truth at every other frame (5 Hz): with the default gap (0.05 s) the frames between
+    samples are solved but not scored, and the run says how many; with truth_max_gap_s=0.25
+    they are scored against truth interpolated on SE(3) (the track's straight: exact)."""
+    path = tmp_path / "sparse_truth.mcap"
+    m = foxglove.messages
+    with foxglove.open_mcap(path, allow_overwrite=True):
+        t0 = content["images"][0][0]
+        foxglove.log("/tf_static", _fx_tf_static(content, t0), log_time=t0)
+        foxglove.log("/front/calibration", _fx_calibration(content["calibration"], t0), log_time=t0)
+        for k, ((t, jpeg), (_, T_truth)) in enumerate(zip(content["images"], content["truth"])):
+            foxglove.log("/front/image", m.CompressedImage(timestamp=_ts(t), frame_id="cam_front", format="jpeg",
+                                                           data=jpeg), log_time=t)
+            if k % 2 == 0 or k == len(content["images"]) - 1:
+                foxglove.log("/mocap/pose", m.PoseInFrame(timestamp=_ts(t), frame_id="world", pose=_fx_pose(T_truth)),
+                             log_time=t)
+    times = sorted(native_errors)
+    outcome = run_recording(path, RunSettings(), tmp_path / "sparse.rrd")
+    assert outcome.summary["solved"] == 4 and outcome.summary["position_error_mm"]["n"] == 3
+    assert any("1 solved frame(s) not scored" in w for w in outcome.summary["warnings"]), outcome.summary["warnings"]
+    errors = frame_errors(path, RunSettings(truth_max_gap_s=0.25))
+    for t in times:
+        tolerance = 1e-6 if t != times[1] else 1e-4
+        assert abs(errors[t][1] - native_errors[t][1]) < tolerance, (t, errors[t][1], native_errors[t][1])
