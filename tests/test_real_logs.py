@@ -602,3 +602,38 @@ def test_truth_interpolated_between_samples_within_the_gap(content, native_error
     for t in times:
         tolerance = 1e-6 if t != times[1] else 1e-4
         assert abs(errors[t][1] - native_errors[t][1]) < tolerance, (t, errors[t][1], native_errors[t][1])
+
+
+def test_every_ros2_type_decodes(tmp_path):
+    """Each ROS 2 type the reader decodes, written by rosbags, read back through mcap-ros2-support."""
+    from agvviz.recording.reader import calibration as make_calibration
+
+    T = se3.make(cv2.Rodrigues(np.array([0.1, -0.2, 0.3]))[0], np.array([1.0, 2.0, 3.0]))
+    rgb = np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3)
+    camera = make_calibration("/c", "c", [400.0, 0, 3, 0, 400.0, 2, 0, 0, 1], [], "", 6, 4).camera
+    messages = [
+        ("/amcl_pose", "geometry_msgs/msg/PoseWithCovarianceStamped", 5,
+         T_["geometry_msgs/msg/PoseWithCovarianceStamped"](
+             header=_header(5, "map"),
+             pose=T_["geometry_msgs/msg/PoseWithCovariance"](pose=_pose(T), covariance=np.zeros(36)))),
+        ("/vicon/agv/agv", "geometry_msgs/msg/TransformStamped", 6, _tf("/world", "agv", T, 6)),
+        ("/cam/image_raw", "sensor_msgs/msg/Image", 7, T_["sensor_msgs/msg/Image"](
+            header=_header(7, "cam"), height=4, width=6, encoding="rgb8", is_bigendian=0, step=18, data=rgb.ravel())),
+        ("/cam/camera_info", "sensor_msgs/msg/CameraInfo", 8,
+         _camera_info(camera, 8, "rational_polynomial", [0.1, 0.01, 0.0, 0.0, 0.001, 0.05, 0.0, 0.0])),
+    ]
+    bag = write_bag(tmp_path / "types", messages)
+    values = {m.topic: m.value for m in iter_messages(bag / "types_0.mcap")}
+    amcl = values["/amcl_pose"]
+    assert isinstance(amcl, PoseMsg) and amcl.frame_id == "map" and amcl.stamp_ns == 5
+    np.testing.assert_allclose(amcl.T, T, atol=1e-12)
+    (vicon,) = values["/vicon/agv/agv"]
+    assert (vicon.parent_frame, vicon.child_frame, vicon.stamp_ns) == ("world", "agv", 6)  # ROS 1 "/" dropped
+    np.testing.assert_allclose(vicon.T_parent_child, T, atol=1e-12)
+    image = values["/cam/image_raw"]
+    assert (image.image_format, image.source_encoding, image.frame_id) == ("png", "rgb8", "cam")
+    np.testing.assert_array_equal(_png_pixels(image.data), rgb[:, :, ::-1])
+    info = values["/cam/camera_info"]
+    assert info.distortion_model == "rational_polynomial" and info.camera.is_rational
+    prepared_roles = prepare(bag, RunSettings()).roles.roles
+    assert prepared_roles["truth"] == "/vicon/agv/agv" and prepared_roles["cam.calibration"] == "/cam/camera_info"
