@@ -310,11 +310,10 @@ def inspect(
     calibration: List[str] = typer.Option([], "--calibration", help=CALIBRATION_HELP),
     extrinsic: List[str] = typer.Option([], "--extrinsic", help=EXTRINSIC_HELP),
 ) -> None:
-    """Print topics, counts, time span, cameras and calibration, the role map and whether a
-    run can use the frames; check agvviz recordings against the recording contract.
+    """Print topics, counts, time span, cameras, calibration, the role map and whether a run can use the frames; check agvviz recordings against the recording contract.
 
-    Exits with code 1 when the file violates the contract, is damaged, or holds no frame a
-    run could use (the causes are listed, as `run` would give them).
+    Exits with code 1 when the file violates the contract, is damaged, or holds no frame a run could use (the causes are listed, as `run` would give them).
+
     Example: agvviz inspect rosbag2_dir --topic truth=/vicon/agv/pose --write-roles roles.yaml
     """
     from agvviz.recording.contract import format_report, inspect_recording
