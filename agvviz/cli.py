@@ -158,8 +158,12 @@ def record(
 def _run_help() -> str:
     rows = "\n".join(f"  {n} ({t}, default {d}): {h}" for n, t, d, h in describe(RunSettings))
     return (
-        "Replay the localisation pipeline over RECORDING and write a run .rrd.\n\n"
+        "Replay the localisation pipeline over RECORDING (an agvviz .mcap, a ROS 2 bag directory "
+        "or .mcap, a Foxglove MCAP) and write a run .rrd. Exits 2, writing nothing, when no frame "
+        "can be used (one line per cause).\n\n"
         "Example: agvviz run recordings/qr_floor.mcap --solver lm --set objective=pixel\n\n"
+        "Example: agvviz run robot_bag/ --topic truth=/vicon/agv/pose --markers map.yaml "
+        "--set body_frame=base_link\n\n"
         "Settings (--set key=value):\n\n" + rows.replace("\n", "\n\n")
     )
 
