@@ -526,7 +526,7 @@ def sweep(
     A setting that fails is reported in its entry (``error``) and ranked last; the others go on.
     """
     recording = Path(recording)
-    if not recording.is_file():
+    if not recording.exists():  # an .mcap file or a rosbag2 directory
         raise CompareError(f"recording not found: {recording}")
     if rank_by not in metric_names():
         raise CompareError(f"unknown metric {rank_by!r} to rank by; known: {', '.join(metric_names())}")
