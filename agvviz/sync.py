@@ -147,13 +147,20 @@ class SyncState:
             if T is not None:
                 return T, None, ""
         for name in frames:
+            if self.tf.links(self.body_frame, name) is not None:
+                continue  # rides on the body (a time-varying link without a pose at t_ns)
             for world in dict.fromkeys((self.world_frame, *sorted(self.truth_frames))):
                 if world == self.body_frame:
                     continue
                 T = self.tf.lookup(world, name, t_ns)
-                if T is not None and self.tf.lookup(self.body_frame, name, None) is None:
-                    return None, T, ""
+                if T is not None:
+                    return None, T, ""  # a camera fixed in the world
         known = sorted(self.tf.frames())
+        if any(self.tf.links(self.body_frame, name) is not None for name in frames):
+            return None, None, (
+                f"the transform chain from body frame {self.body_frame!r} to camera frame {frames[0]!r} "
+                f"has a time-varying link (/tf) with no pose within {self.tf.max_gap_ns / 1e9:g} s of this frame"
+            )
         return None, None, (
             f"no transform chain from body frame {self.body_frame!r} (or world frame "
             f"{self.world_frame!r}) to camera frame {frames[0]!r}"

@@ -589,8 +589,9 @@ def test_truth_interpolated_between_samples_within_the_gap(content, native_error
         foxglove.log("/tf_static", _fx_tf_static(content, t0), log_time=t0)
         foxglove.log("/front/calibration", _fx_calibration(content["calibration"], t0), log_time=t0)
         for k, ((t, jpeg), (_, T_truth)) in enumerate(zip(content["images"], content["truth"])):
-            foxglove.log("/front/image", m.CompressedImage(timestamp=_ts(t), frame_id="cam_front", format="jpeg",
-                                                           data=jpeg), log_time=t)
+            # (the SDK keeps one channel type per topic per process: a topic of its own)
+            foxglove.log("/front/jpeg", m.CompressedImage(timestamp=_ts(t), frame_id="cam_front", format="jpeg",
+                                                          data=jpeg), log_time=t)
             if k % 2 == 0 or k == len(content["images"]) - 1:
                 foxglove.log("/mocap/pose", m.PoseInFrame(timestamp=_ts(t), frame_id="world", pose=_fx_pose(T_truth)),
                              log_time=t)
