@@ -638,3 +638,21 @@ def test_every_ros2_type_decodes(tmp_path):
     assert info.distortion_model == "rational_polynomial" and info.camera.is_rational
     prepared_roles = prepare(bag, RunSettings()).roles.roles
     assert prepared_roles["truth"] == "/vicon/agv/agv" and prepared_roles["cam.calibration"] == "/cam/camera_info"
+
+
+def test_extrinsic_through_a_time_varying_link():
+    """A camera on a pan unit: base_link → pan (/tf) → camera_optical_frame (/tf_static)."""
+    from agvviz.recording.reader import RecordedMessage
+    from agvviz.sync import SyncState
+
+    sync = SyncState(body_frame="base_link")
+    pan = lambda a: se3.make(cv2.Rodrigues(np.array([0.0, 0.0, a]))[0], np.array([0.0, 0.0, 1.0]))  # noqa: E731
+    T_pan_cam = se3.make(np.eye(3), np.array([0.1, 0.0, 0.0]))
+    sync.add(RecordedMessage("/tf_static", 0, "", [FrameTransformMsg("pan", "cam", T_pan_cam)], role="tf_static"))
+    for t, a in ((0, 0.0), (100, 0.2)):
+        sync.add(RecordedMessage("/tf", t, "", [FrameTransformMsg("base_link", "pan", pan(a), t)], role="tf", stamp_ns=t))
+    T_body, T_world, why = sync.extrinsic("front", "cam", 50)
+    np.testing.assert_allclose(T_body, pan(0.1) @ T_pan_cam, atol=1e-12)
+    sync.truth_frames.add("map")
+    T_body, T_world, why = sync.extrinsic("front", "cam", 5_000_000_000)  # 5 s after the last /tf
+    assert T_body is None and T_world is None and "time-varying link" in why

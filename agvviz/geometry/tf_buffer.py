@@ -85,7 +85,8 @@ class TransformBuffer:
     ancestor. A frame with both a fixed and a time-varying parent uses the fixed one.
     """
 
-    max_gap_ns: int = 1_000_000_000
+    max_gap_ns: int = 1_000_000_000  # interpolate a time-varying link over gaps up to this
+    max_dt_ns: int = 100_000_000  # before its first / after its last sample: the nearest within this
     static: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)  # child -> (parent, T)
     dynamic: dict[str, tuple[str, PoseSeries]] = field(default_factory=dict)
 
@@ -112,7 +113,7 @@ class TransformBuffer:
             parent, series = self.dynamic[child]
             if t_ns is None:
                 return parent, None
-            return parent, series.at(t_ns, self.max_gap_ns, 0)
+            return parent, series.at(t_ns, self.max_gap_ns, self.max_dt_ns)
         return None
 
     def _chain(self, frame: str, t_ns: int | None) -> list[tuple[str, np.ndarray | None]]:
