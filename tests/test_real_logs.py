@@ -656,3 +656,21 @@ def test_extrinsic_through_a_time_varying_link():
     sync.truth_frames.add("map")
     T_body, T_world, why = sync.extrinsic("front", "cam", 5_000_000_000)  # 5 s after the last /tf
     assert T_body is None and T_world is None and "time-varying link" in why
+
+
+def test_topic_names_live_in_one_module():
+    """Every agvviz topic name is written once, in agvviz/recording/topics.py."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    literal = re.compile(r"""["'](/agv/ground_truth|/agv/odometry|/markers/map|/markers/corners|/uwb/range|/uwb/anchors|/tf_static|/tf|/cam/)["'/{]""")
+    offenders = []
+    for path in list((root / "agvviz").rglob("*.py")) + list((root / "scenarios").rglob("*.py")):
+        if path.name == "topics.py":
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if literal.search(line) and not line.lstrip().startswith("#"):
+                offenders.append(f"{path.relative_to(root)}:{number}: {line.strip()}")
+    # uwb_blueprint's "/uwb/range/<anchor>/**" is an .rrd entity path, not a topic
+    offenders = [o for o in offenders if "uwb_blueprint" not in o]
+    assert not offenders, "\n".join(offenders)
