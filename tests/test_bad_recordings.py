@@ -307,6 +307,11 @@ def test_ground_truth_shifted_by_an_hour(base, tmp_path):
     assert summary["solved"] == 3 and summary["position_error_mm"]["n"] == 0
     line = _shared_line(inspect_recording(bad), summary, "does not overlap the images")
     assert "no frame can be scored against truth" in line
+    # the warning travels in the run file too
+    from agvviz.viz import paths
+    from agvviz.viz.readback import document_json
+
+    assert document_json(tmp_path / f"{bad.stem}.rrd", paths.RUN_SUMMARY)["warnings"] == summary["warnings"]
 
 
 def test_truth_that_scores_nothing_is_a_warning(base, tmp_path):
