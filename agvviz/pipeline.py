@@ -148,6 +148,7 @@ class Replay:
         self._cams_at_index: set[str] = set()
         self.time_checks = TimeChecks()
         self.truth_seen = False
+        self.frames_solved = 0
         self.frames_scored = 0  # solved frames scored against ground truth
         self._solver_options = SolverOptions(
             objective=settings.objective, max_iterations=settings.lm_max_iterations
@@ -241,10 +242,11 @@ class Replay:
         if odometry is not None:
             self._diagnostics.odometry = odometry  # T_odom_agv at this frame, for ambiguity=odometry
         result = self.process_frame(value, t_ns)
-        if result.rejected is None and result.position_error_m is not None:
-            self.frames_scored += 1
-        elif result.rejected is None and self.truth_seen and result.T_world_agv_truth is None:
-            self.frames_truth_gap += 1
+        if result.rejected is None:
+            self.frames_solved += 1
+            self.frames_scored += result.position_error_m is not None
+            if self.truth_seen and result.T_world_agv_truth is None:
+                self.frames_truth_gap += 1
         return result
 
     def warnings(self) -> list[str]:
@@ -253,7 +255,8 @@ class Replay:
         no frame."""
         max_dt_ns = int(self.settings.truth_max_dt_s * 1e9)
         lines = self.time_checks.problems(max_dt_ns)
-        if self.truth_seen and self.frames_scored == 0 and not any("ground truth" in line for line in lines):
+        no_score = self.truth_seen and self.frames_solved > 0 and self.frames_scored == 0
+        if no_score and not any("ground truth" in line for line in lines):
             lines.append(
                 f"ground truth is recorded but no frame could be scored against it (none within "
                 f"truth_max_dt_s = {self.settings.truth_max_dt_s:g} s of a solved frame, nor between "

@@ -4,7 +4,7 @@ silent wrong) and write a markdown report with every failing case's command and 
 
     python bench/robustness_campaign.py                    # the whole campaign, 2 jobs
     python bench/robustness_campaign.py --fast             # the default-test subset
-    python bench/robustness_campaign.py --out runs/robustness.md --jobs 2 --seed 10 --random 10
+    python bench/robustness_campaign.py --out runs/robustness.md --jobs 2 --seed 10 --seeds 4
 
 Exit status 1 when any case is a crash, hang, input modified or silent wrong. Deterministic:
 every random draw comes from the seed. Same harness as tests/robustness (pytest -m campaign).
@@ -28,8 +28,8 @@ from robustness_harness import FORBIDDEN, table  # noqa: E402
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--jobs", type=int, default=2, help="cases at a time (default 2)")
-    parser.add_argument("--seed", type=int, default=CAMPAIGN_SEED, help="corruption seed")
-    parser.add_argument("--random", type=int, default=10, help="random offsets per corruption kind")
+    parser.add_argument("--seed", type=int, default=CAMPAIGN_SEED, help="first corruption seed")
+    parser.add_argument("--seeds", type=int, default=4, help="number of corruption seeds (random damage per seed)")
     parser.add_argument("--fast", action="store_true", help="only the default-test subset")
     parser.add_argument("--out", type=Path, default=REPO / "runs" / "robustness.md", help="markdown report")
     parser.add_argument("--workdir", type=Path, default=None, help="keep the case files here")
@@ -38,7 +38,7 @@ def main(argv=None) -> int:
         parser.error("--jobs must be >= 1")
     root = args.workdir or Path(tempfile.mkdtemp(prefix="agvviz-robustness-"))
     try:
-        results, text = run_campaign(root, jobs=args.jobs, seed=args.seed, n_random=args.random,
+        results, text = run_campaign(root, jobs=args.jobs, seed=args.seed, n_seeds=args.seeds,
                                      report_path=args.out, fast=args.fast)
     finally:
         if args.workdir is None:

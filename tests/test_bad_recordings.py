@@ -234,6 +234,39 @@ def test_non_utf8_payload_bytes_are_refused_by_the_pipeline(monkeypatch):
     assert frame.rejected == REJECT_PAYLOAD and "payload refused" in frame.reject_detail
 
 
+def test_chunk_copy_before_its_channel_does_not_hide_the_original(tmp_path):
+    """A copy of chunk 1 placed before chunk 0 (which defines the channel) cannot be read; the
+    original must still be replayed, not dropped as a duplicate of the unreadable copy."""
+    path, chunks = _chunked(tmp_path)
+    data = path.read_bytes()
+    first, second = chunks[0], chunks[1]
+    copy = data[second.chunk_start_offset : second.chunk_start_offset + second.chunk_length]
+    at = first.chunk_start_offset
+    moved = tmp_path / "copy_first.mcap"
+    moved.write_bytes(data[:at] + copy + data[at:])
+    report = ReadReport()
+    assert [m.log_time_ns for m in iter_messages(moved, report=report)] == list(range(8))
+    assert report.problems  # the unreadable copy is reported
+
+
+def test_damaged_message_index_length_does_not_skip_an_intact_chunk(tmp_path):
+    """A MessageIndex record (not CRC-checked) whose length jumps 1 MiB forward, into the middle
+    of the next chunk: the resync scan starts after the last chunk read, so that next chunk
+    (intact) is still found."""
+    path, chunks = _chunked(tmp_path)
+    data = bytearray(path.read_bytes())
+    index_at = chunks[0].chunk_start_offset + chunks[0].chunk_length  # the MessageIndex after chunk 0
+    assert data[index_at] == 0x07
+    (length,) = struct.unpack_from("<Q", data, index_at + 1)
+    struct.pack_into("<Q", data, index_at + 1, length + 2**19)  # lands inside chunk 1
+    assert index_at + 9 + length + 2**19 < chunks[1].chunk_start_offset + chunks[1].chunk_length
+    damaged = tmp_path / "index_len.mcap"
+    damaged.write_bytes(bytes(data))
+    report = ReadReport()
+    assert [m.log_time_ns for m in iter_messages(damaged, report=report)] == list(range(8))
+    assert report.chunks_lost == 0 and report.problems
+
+
 # -- C: wrong numbers with exit 0 -----------------------------------------------------------------
 def _shared_line(report, summary, needle: str) -> str:
     """The one line both inspect (violation) and run (warning) give, containing ``needle``."""
@@ -282,6 +315,11 @@ def test_ground_truth_shifted_by_an_hour(base, tmp_path):
     assert summary["solved"] == 3 and summary["position_error_mm"]["n"] == 0
     line = _shared_line(inspect_recording(bad), summary, "does not overlap the images")
     assert "no frame can be scored against truth" in line
+    # the warning travels in the run file too
+    from agvviz.viz import paths
+    from agvviz.viz.readback import document_json
+
+    assert document_json(tmp_path / f"{bad.stem}.rrd", paths.RUN_SUMMARY)["warnings"] == summary["warnings"]
 
 
 def test_truth_that_scores_nothing_is_a_warning(base, tmp_path):
@@ -309,8 +347,8 @@ def test_duplicated_messages_are_dropped(base, base_run, tmp_path):
     assert any("duplicate" in v for v in inspect_recording(bad).damage)
 
 
-def test_duplicated_chunk_is_dropped(tmp_path):
-    """A chunk record written twice (bytes copied): its copy is dropped and reported."""
+def _chunked(tmp_path):
+    """8 images of 400 kB at log times 0..7 ns in several 1 MiB chunks; (path, chunk indexes)."""
     from agvviz.recording import RecordingWriter
 
     rng = np.random.default_rng(3)
@@ -318,9 +356,17 @@ def test_duplicated_chunk_is_dropped(tmp_path):
     with RecordingWriter(path, scenario={"name": "t", "seed": 0, "options": {}}) as w:
         for i in range(8):
             w.write_image("front", rng.integers(0, 256, 400_000, dtype=np.uint8).tobytes(), "jpeg", i)
-    data = path.read_bytes()
     with open(path, "rb") as f:
-        chunk = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)[1]
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 3
+    return path, chunks
+
+
+def test_duplicated_chunk_is_dropped(tmp_path):
+    """A chunk record written twice (bytes copied): its copy is dropped and reported."""
+    path, chunks = _chunked(tmp_path)
+    data = path.read_bytes()
+    chunk = chunks[1]
     start, end = chunk.chunk_start_offset, chunk.chunk_start_offset + chunk.chunk_length
     doubled = tmp_path / "doubled.mcap"
     doubled.write_bytes(data[:end] + data[start:end] + data[end:])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -175,7 +176,7 @@ NUMBER_TEXT = st.from_regex(r"(?:[0-9]{1,4}\.?[0-9]{0,3}|\.[0-9]{1,3})(?:[eE][+-
 
 
 def _leaf():
-    number = NUMBER_TEXT.map(lambda t: (t, f"float({t!r})"))
+    number = NUMBER_TEXT.map(lambda t: (t, f"F({t!r})"))
     metric = st.tuples(st.sampled_from(expression.RUNS), st.sampled_from(KNOWN)).map(
         lambda rn: (f"{rn[0]}.{rn[1]}", f"M[{rn[0]!r}][{rn[1]!r}]")
     )
@@ -210,14 +211,54 @@ CONDITIONS = st.recursive(
 )
 
 
+class F(float):
+    """A float whose arithmetic refuses to overflow, as the grammar does: a finite result of
+    finite operands or OverflowError (division by zero stays ZeroDivisionError)."""
+
+    def __new__(cls, value):
+        return super().__new__(cls, _finite(float(value), value))
+
+    def __add__(self, other):
+        return F(_finite(float(self) + float(other), self, other))
+
+    def __sub__(self, other):
+        return F(_finite(float(self) - float(other), self, other))
+
+    def __mul__(self, other):
+        return F(_finite(float(self) * float(other), self, other))
+
+    def __truediv__(self, other):
+        return F(_finite(float(self) / float(other), self, other))
+
+    def __neg__(self):
+        return F(-float(self))
+
+
+def _finite(result, *_operands):
+    """F values are always finite, so a non-finite result of them is an overflow."""
+    if not math.isfinite(result):
+        raise OverflowError(result)
+    return result
+
+
+REFERENCE_METRICS = {run: {k: F(v) for k, v in values.items()} for run, values in METRICS.items()}
+
+
 def _reference(python_text: str):
     """Python's own evaluation of the same expression: same precedence (unary minus over
-    * / over + - over comparisons over and over or), same IEEE arithmetic, same short-circuit.
-    The text is built by the strategies above from numbers, M[...] and operators only."""
+    * / over + - over comparisons over and over or), same IEEE arithmetic with overflow refused
+    (class F), same left-to-right order and short-circuit. The text is built by the strategies
+    above from F('number'), M[...] and operators only. A literal that is not a finite double
+    (1e999) is refused by the grammar when parsing, wherever it stands."""
+    if any(not math.isfinite(float(t)) for t in re.findall(r"F\('([^']*)'\)", python_text)):
+        return SyntaxError
     try:
-        return eval(python_text, {"__builtins__": {}, "float": float}, {"M": METRICS})  # noqa: S307
-    except ZeroDivisionError:
-        return ZeroDivisionError
+        return eval(python_text, {"__builtins__": {}, "F": F}, {"M": REFERENCE_METRICS})  # noqa: S307
+    except (ZeroDivisionError, OverflowError) as exc:
+        return type(exc)
+
+
+_EXPECTED_MESSAGE = {SyntaxError: "out of range", ZeroDivisionError: "division by zero", OverflowError: "overflow"}
 
 
 @budget(200)
@@ -234,10 +275,10 @@ def test_grammar_expressions_evaluate_like_python(pair):
     except ExpressionError as exc:
         if "nested deeper" in str(exc):
             return  # the generator may nest more than MAX_DEPTH; refusing it is documented
-        assert expected is ZeroDivisionError, (text, exc)
-        assert "division by zero" in str(exc)
+        assert expected in _EXPECTED_MESSAGE, (text, exc)
+        assert _EXPECTED_MESSAGE[expected] in str(exc), (text, exc, expected)
         return
-    assert expected is not ZeroDivisionError, text
+    assert expected not in _EXPECTED_MESSAGE, (text, expected)
     assert isinstance(value, bool) and value == bool(expected), (text, value, expected)
 
 
@@ -250,10 +291,12 @@ def test_arithmetic_matches_python_exactly(pair):
         node = expression.parse(f"{text} == 0", KNOWN)
         value = expression.evaluate(node.left, METRICS)
     except ExpressionError as exc:
-        assert expected is ZeroDivisionError or "nested deeper" in str(exc), (text, exc)
+        if "nested deeper" in str(exc):
+            return
+        assert expected in _EXPECTED_MESSAGE and _EXPECTED_MESSAGE[expected] in str(exc), (text, exc, expected)
         return
-    assert expected is not ZeroDivisionError, text
-    assert value == expected or (math.isnan(value) and math.isnan(expected)), (text, value, expected)
+    assert expected not in _EXPECTED_MESSAGE, (text, expected)
+    assert math.isfinite(value) and value == expected, (text, value, expected)
 
 
 EXPRESSION_ALPHABET = "AB.position_rmse_mm solved 0123456789eE+-*/()<>=!andor \t\u00a0\uff11\u0661"
@@ -298,6 +341,22 @@ def test_any_non_ascii_character_is_an_error(pair, position, char, data):
         changed = text[:i] + char + text[i:]
     with pytest.raises(ExpressionError):
         expression.parse(changed, KNOWN)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("B.position_rmse_mm > 1e999", "number out of range"),
+        ("B.position_rmse_mm > -1e999", "number out of range"),
+        ("1e308 * 10 > B.solved", "overflow"),
+        ("A.position_rmse_mm * 1e308 * 1e308 > 0", "overflow"),
+    ],
+)
+def test_numbers_and_arithmetic_beyond_the_double_range_are_errors(text, message):
+    """1e999 used to become inf, so 'B.x > 1e999' could never hold and diff exited 0."""
+    with pytest.raises(ExpressionError, match=message):
+        expression.check(text, METRICS)
+    assert expression.check("B.position_rmse_mm < 1e308 and 1e-999 == 0", METRICS)
 
 
 @pytest.mark.parametrize("digit", ["\uff11", "\u0661", "\u0967", "\U0001d7cf"])  # １ ١ १ 𝟏

@@ -17,6 +17,10 @@ Only ASCII is accepted: a full-width digit ``１``, a non-breaking space or any 
 non-ASCII character is an error naming its column (Python's ``float`` and a regex digit
 class would otherwise read ``１`` as 1).
 
+A number must be a finite double: ``1e999`` is an error, not infinity (a condition against
+infinity could never hold or always would); so is arithmetic on finite values whose result
+overflows (``1e308 * 10``).
+
 The whole expression must be a condition (true/false); arithmetic works on numbers,
 ``and``/``or`` on conditions. A metric name that is not known is an error listing the known
 ones; a metric without a value (e.g. no common frames), a division by zero, or a chained
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 from agvviz.errors import InputError
 
+import math
 import re
 from dataclasses import dataclass
 from typing import Iterable, Mapping, Union
@@ -231,7 +236,10 @@ class _Parser:
         token = self.peek()
         if token.kind == "number":
             self.take()
-            return Number(float(token.text))
+            value = float(token.text)
+            if not math.isfinite(value):
+                raise self.fail("number out of range (largest is 1.8e308)", token)
+            return Number(value)
         if token.kind == "metric":
             self.take()
             run, _, name = token.text.partition(".")
@@ -290,14 +298,18 @@ def evaluate(node: Node, metrics: Mapping[str, Mapping[str, float | None]]) -> b
     if isinstance(node, Arithmetic):
         left, right = evaluate(node.left, metrics), evaluate(node.right, metrics)
         if node.op == "+":
-            return left + right
-        if node.op == "-":
-            return left - right
-        if node.op == "*":
-            return left * right
-        if right == 0.0:
+            result = left + right
+        elif node.op == "-":
+            result = left - right
+        elif node.op == "*":
+            result = left * right
+        elif right == 0.0:
             raise ExpressionError("division by zero")
-        return left / right
+        else:
+            result = left / right
+        if not math.isfinite(result) and math.isfinite(left) and math.isfinite(right):
+            raise ExpressionError(f"overflow: {left!r} {node.op} {right!r} is beyond ±1.8e308")
+        return result
     if isinstance(node, Comparison):
         left, right = evaluate(node.left, metrics), evaluate(node.right, metrics)
         return {

@@ -471,8 +471,9 @@ def _read_tail(f, size: int) -> _Tail:
 #: Problem reported when the DataEnd record's CRC does not match the data section.
 DATA_SECTION_CRC_PROBLEM = (
     "data section CRC mismatch: some record outside chunks is damaged (the header, the "
-    "agvviz.scenario metadata, or a schema/channel/message record written outside a chunk); "
-    "the scenario metadata (name, seed, options) of this file cannot be trusted"
+    "agvviz.scenario metadata, or a schema/channel/message record written outside a chunk; "
+    "or chunks were added or removed); the scenario metadata (name, seed, options) of this "
+    "file cannot be trusted"
 )
 
 
@@ -491,6 +492,9 @@ def _top_level_records(
     adds its problems and must agree on where the data section ends.
     """
     offset = len(MCAP_MAGIC)
+    # Where a resync scan starts: the end of the last chunk read. The records after it are not
+    # CRC-checked, so a damaged length among them may have jumped over an intact chunk.
+    resync_from = offset
     crc = zlib.crc32(MCAP_MAGIC)
     crc_complete = read_chunks  # every byte up to ``offset`` went into ``crc``
     problems_before = len(report.problems)
@@ -517,17 +521,24 @@ def _top_level_records(
             if opcode == Opcode.CHUNK:
                 report.chunks_lost += 1
             crc_complete = False
-            resume = _find_next_chunk(f, offset + 1, size)
+            resume = _find_next_chunk(f, min(offset + 1, resync_from), size)
             if resume is None:
                 report.problems.append(
                     f"{_opcode_name(opcode)} record at byte {offset} {why}: bytes {offset}-{size} "
                     "are lost (file truncated or damaged there)"
                 )
                 break
-            report.problems.append(
-                f"{_opcode_name(opcode)} record at byte {offset} {why}: bytes {offset}-{resume} "
-                f"are lost (damaged); reading resumed at the next intact chunk at byte {resume}"
-            )
+            if resume > offset:
+                report.problems.append(
+                    f"{_opcode_name(opcode)} record at byte {offset} {why}: bytes {offset}-{resume} "
+                    f"are lost (damaged); reading resumed at the next intact chunk at byte {resume}"
+                )
+            else:
+                report.problems.append(
+                    f"{_opcode_name(opcode)} record at byte {offset} {why}: a damaged record "
+                    f"length before it skipped part of the file; reading resumed at the intact "
+                    f"chunk at byte {resume}"
+                )
             offset = resume
             continue
         next_offset = body_at + length
@@ -553,6 +564,8 @@ def _top_level_records(
                 offset = next_offset
                 continue
             del body
+            if opcode == Opcode.CHUNK:
+                resync_from = next_offset
             if isinstance(record, DataEnd):
                 if (
                     crc_complete
@@ -595,12 +608,20 @@ class _Duplicates:
         self._dropped: dict[str, list] = {}  # topic -> [count, first log time]
         self.problems: list[str] = []
 
+    @staticmethod
+    def _chunk_key(chunk: Chunk) -> tuple:
+        return (chunk.message_start_time, chunk.message_end_time, chunk.uncompressed_size, chunk.uncompressed_crc)
+
+    def remember_chunk(self, chunk: Chunk, offset: int) -> None:
+        """Note a chunk whose messages were all read (without a CRC, chunks cannot be told
+        equal cheaply: the message check still applies to them)."""
+        if chunk.uncompressed_crc != 0:
+            self._chunks.setdefault(self._chunk_key(chunk), offset)
+
     def chunk_seen(self, chunk: Chunk, offset: int) -> bool:
-        if chunk.uncompressed_crc == 0:
-            return False  # without a CRC two chunks cannot be told equal cheaply
-        key = (chunk.message_start_time, chunk.message_end_time, chunk.uncompressed_size, chunk.uncompressed_crc)
-        first = self._chunks.setdefault(key, offset)
-        if first == offset:
+        """True (and a problem noted) when ``chunk`` repeats a chunk read before."""
+        first = self._chunks.get(self._chunk_key(chunk)) if chunk.uncompressed_crc != 0 else None
+        if first is None or first == offset:
             return False
         self.problems.append(
             f"chunk at byte {offset} repeats the chunk at byte {first} (same log times "
@@ -690,10 +711,14 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
                     report.chunks_ok += 1
                     if duplicates.chunk_seen(record, offset):
                         continue
+                    orphans_before = sum(orphans.values())
                     for item in inner:
                         define(item)
                         if isinstance(item, Message) and (out := raw(item)) is not None:
                             yield out
+                    if sum(orphans.values()) == orphans_before:
+                        # Only a chunk whose every message could be read stands for its copies.
+                        duplicates.remember_chunk(record, offset)
                 elif isinstance(record, Message):
                     if (out := raw(record)) is not None:
                         yield out

@@ -20,6 +20,12 @@ from robustness_harness import FORBIDDEN, REPO, run_cases, table
 #: Fast cases that fail on today's tree because their fix is not in yet (strict=False: they
 #: turn green silently when it lands).
 KNOWN_FAILING = {
+    "damaged files/run flip-message-index-length+2^20": "a flipped length of a record between chunks makes the "
+    "reader jump over the next intact chunk (8 of 12 frames replayed)",
+    "damaged files/run dup-chunk2-before-chunk0": "a copy of the last chunk placed first is read before the "
+    "channels are defined (orphaned), then the real chunk is dropped as its repeat (8 of 12 frames)",
+    "cli misuse/diff --fail-if 'B.position_rmse_mm > 1e999'": "1e999 overflows to inf and is accepted: the "
+    "condition can never hold (exit 0)",
     "cli misuse/diff --out onto input A": "diff --out onto its own input replaces the input (exit 0)",
     "cli misuse/diff --out hard link to input A": "diff --out onto a hard link of an input replaces it (exit 0)",
     "cli misuse/export truncated .rrd": "rerun's RuntimeError on a truncated .rrd escapes as a traceback (exit 1)",
@@ -59,9 +65,9 @@ def test_fast_case(fast_results, case_id):
 def test_campaign(tmp_path_factory, capsys):
     report_path = Path(os.environ.get("AGVVIZ_ROBUSTNESS_REPORT", REPO / "runs" / "robustness.md"))
     jobs = int(os.environ.get("AGVVIZ_ROBUSTNESS_JOBS", "2"))
-    n_random = int(os.environ.get("AGVVIZ_ROBUSTNESS_RANDOM", "10"))
+    n_seeds = int(os.environ.get("AGVVIZ_ROBUSTNESS_SEEDS", "4"))
     with capsys.disabled():
-        results, text = run_campaign(tmp_path_factory.mktemp("campaign"), jobs=jobs, n_random=n_random,
+        results, text = run_campaign(tmp_path_factory.mktemp("campaign"), jobs=jobs, n_seeds=n_seeds,
                                      report_path=report_path)
         print("\n" + table(results) + f"\n(report: {report_path})")
     bad = [r for r in results if r.klass in FORBIDDEN]
