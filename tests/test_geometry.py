@@ -314,8 +314,11 @@ def test_camera_refuses_bad_intrinsics():
         PinholeCamera(np.full((3, 3), np.nan))
     with pytest.raises(ValueError, match="invalid camera matrix"):
         PinholeCamera(np.diag([1000.0, -1000.0, 1.0]))
-    with pytest.raises(ValueError, match="5 plumb_bob"):
-        PinholeCamera(K_CAM, np.zeros(8))
+    with pytest.raises(ValueError, match=r"at most 5 \(plumb_bob\) or exactly 8 \(rational_polynomial\)"):
+        PinholeCamera(K_CAM, np.zeros(6))
+    # 8 coefficients are the rational model; with k4..k6 = 0 it is stored as plumb_bob
+    assert PinholeCamera(K_CAM, np.zeros(8)).dist.size == 5
+    assert PinholeCamera(K_CAM, [0, 0, 0, 0, 0, 0.1, 0, 0]).is_rational
 
 
 # --- marker plane -------------------------------------------------------------------------
