@@ -328,7 +328,7 @@ def inspect(
     topic_map = parse_topic_options(list(topic))
     side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
     prepared = prepare(recording, settings, topic_map, roles, side)
-    report = inspect_recording(recording, roles=prepared.roles)
+    report = inspect_recording(recording, roles=prepared.roles, time_source=settings.time_source)
     console.print(format_report(report), highlight=False, markup=False, soft_wrap=True)
     lines = ["", f"roles (body frame {prepared.body_frame}, time from {prepared.time_source}; override with --topic ROLE=TOPIC):"]
     lines += prepared.roles.lines() or ["  none"]

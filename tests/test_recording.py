@@ -360,3 +360,21 @@ def test_inspect_reports_damage(chunked_recording, tmp_path):
     damaged.write_bytes(path.read_bytes()[: chunks[-1].chunk_start_offset + 100])
     report = inspect_recording(damaged)
     assert not report.ok and report.damage and any("truncated" in d for d in report.damage)
+
+
+def test_header_reader_ends_on_a_truncated_file(chunked_recording, tmp_path):
+    """read_file_header skips chunks unread: a truncated last chunk must not send its resync
+    scan back to an earlier chunk for ever (it looped before). Checked in a subprocess with a
+    timeout so a regression fails instead of hanging the suite."""
+    import subprocess
+    import sys
+
+    path, chunks, _ = chunked_recording
+    damaged = tmp_path / "cut.mcap"
+    damaged.write_bytes(path.read_bytes()[: chunks[-1].chunk_start_offset + 100])
+    code = (
+        "from agvviz.recording.reader import read_file_header; import sys; "
+        f"print(read_file_header(sys.argv[1])[1])"
+    )
+    done = subprocess.run([sys.executable, "-c", code, str(damaged)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.startswith("agvviz"), done.stderr

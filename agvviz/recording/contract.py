@@ -359,12 +359,13 @@ class _Tally:
         ]
 
 
-def inspect_recording(path, roles=None) -> InspectReport:
+def inspect_recording(path, roles=None, time_source: str = "auto") -> InspectReport:
     """Summarise ``path`` (an ``.mcap`` or a rosbag2 directory) and check it (one streaming
     pass): against the recording contract for agvviz's own recordings; for other files
     (ROS 2 bags, Foxglove SDK files) the contract's naming does not apply — their topics are
     read through the role map ``roles`` (:class:`agvviz.recording.roles.RoleMap`, inferred
-    when not given) and a missing ``agvviz.scenario`` record is a note.
+    when not given) and a missing ``agvviz.scenario`` record is a note. Image time checks use
+    the time a run uses (``time_source``: ``header`` stamps or ``log`` times; ``auto`` as a run).
 
     Raises :class:`agvviz.recording.reader.RecordingError` when the path is missing or not a
     recording.
@@ -376,6 +377,7 @@ def inspect_recording(path, roles=None) -> InspectReport:
         roles = resolve_roles(scan(recording, ReadReport()))
     role_of = roles.role_of()
     native = recording.native
+    header_time = recording.time_source(time_source) == "header"
     report = InspectReport(
         path=Path(path), native=native, kind=recording.kind, files=[f.name for f in recording.files],
         bag_message_count=recording.bag_message_count, bag_topic_counts=dict(recording.bag_topic_counts),
@@ -405,8 +407,11 @@ def inspect_recording(path, roles=None) -> InspectReport:
         role = role_of.get(topic, "")
         cam_role = camera_of_role(role)
         is_image = cam_role is not None and cam_role[1] == "image"
-        # images: reported by time_checks.problems()
-        time_checks.message(topic, t_ns, is_image, is_truth=role == ROLE_TRUTH)
+        # images: reported by time_checks.problems(); with header time, checked once decoded
+        checked_time = False
+        if not (header_time and role):
+            time_checks.message(topic, t_ns, is_image, is_truth=role == ROLE_TRUTH)
+            checked_time = True
         summary = summaries.get(topic)
         if summary is None:
             summary = TopicSummary(topic, item.schema_name, item.message_encoding, 0, t_ns, t_ns)
@@ -433,7 +438,14 @@ def inspect_recording(path, roles=None) -> InspectReport:
         except MessageDecodeError as exc:
             schema = item.schema_name or item.message_encoding
             tally.add(f"{topic}: payload does not match {schema}", f"at {t_ns} ns: {exc}")
+            if not checked_time:
+                time_checks.message(topic, t_ns, is_image, is_truth=role == ROLE_TRUTH)
             continue
+        if not checked_time:
+            stamp = getattr(value, "stamp_ns", 0) or (
+                value[0].stamp_ns if isinstance(value, list) and value and isinstance(value[0], FrameTransformMsg) else 0
+            )
+            time_checks.message(topic, stamp or t_ns, is_image, is_truth=role == ROLE_TRUTH)
         if isinstance(value, CompressedFrame) and is_image:
             cam_name = cam_role[0]
             image_cameras.add(cam_name)

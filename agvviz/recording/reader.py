@@ -585,8 +585,14 @@ def _top_level_records(
             yield offset, record
             if isinstance(record, (DataEnd, Footer)):
                 break
-        elif crc_complete:
-            crc = _crc_of_range(f, body_at, next_offset, crc)
+        else:
+            if crc_complete:
+                crc = _crc_of_range(f, body_at, next_offset, crc)
+            if opcode == Opcode.CHUNK:
+                # A chunk skipped unread (read_chunks=False) is passed for good: a resync scan
+                # must not start before it, or a damaged record after it sends the scan back
+                # to an earlier chunk again and again (an endless loop on a truncated file).
+                resync_from = next_offset
         offset = next_offset
 
 
