@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -103,6 +104,8 @@ def snapshot(path: Path) -> FileState:
     if path.is_dir():
         names = sorted(os.listdir(path))
         return FileState(True, "dir:" + ",".join(names), st.st_ino, 0, st.st_mtime_ns, link)
+    if not stat.S_ISREG(st.st_mode):  # a FIFO or a device: never read it (a FIFO would block)
+        return FileState(True, f"mode:{stat.S_IFMT(st.st_mode):o}", st.st_ino, 0, st.st_mtime_ns, link)
     return FileState(True, _sha256(path), st.st_ino, st.st_size, st.st_mtime_ns, link)
 
 
@@ -187,6 +190,8 @@ class Result:
         if self.run is not None:
             lines.append(f"  command: (cd {self.run.cwd} && {' '.join(_quote(a) for a in self.run.argv)})")
             lines.append(f"  exit: {self.run.returncode}  ({self.run.seconds:.1f} s)")
+        if self.case.note:
+            lines.append(f"  note: {self.case.note}")
         for klass, text in self.problems:
             lines.append(f"  {klass}: {text}")
         if self.run is not None and self.run.stderr.strip():
