@@ -1060,6 +1060,7 @@ def run_campaign(root: Path, *, jobs: int = 2, seed: int = CAMPAIGN_SEED, n_seed
 
     results = run_cases(cases, jobs=jobs, progress=progress)
     command = "python bench/robustness_campaign.py" + (" --fast" if fast else f" --seed {seed} --seeds {n_seeds}")
+    command += f" --jobs {jobs}" + (f" --only {only!r}" if only else "")
     text = report(results, title="agvviz robustness campaign (issue 10)", command=command)
     text += f"\nWall time: {time.monotonic() - t0:.0f} s; {jobs} jobs.\n"
     if report_path is not None:

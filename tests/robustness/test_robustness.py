@@ -4,6 +4,8 @@ Default run (``pytest -q``): a handful of cases per category, run two at a time 
 session fixture, one test each. ``pytest -q -m campaign``: the whole seeded campaign, which
 writes its table to stdout and to ``$AGVVIZ_ROBUSTNESS_REPORT`` (default
 ``runs/robustness.md``) and asserts zero crash / hang / input modified / silent wrong.
+Environment: ``AGVVIZ_ROBUSTNESS_JOBS`` (cases at a time, 2), ``AGVVIZ_ROBUSTNESS_SEEDS``
+(corruption seeds, 4), ``AGVVIZ_ROBUSTNESS_ONLY`` (only case ids containing this text).
 The same campaign as a script: ``python bench/robustness_campaign.py``.
 """
 
@@ -68,7 +70,7 @@ def test_campaign(tmp_path_factory, capsys):
     n_seeds = int(os.environ.get("AGVVIZ_ROBUSTNESS_SEEDS", "4"))
     with capsys.disabled():
         results, text = run_campaign(tmp_path_factory.mktemp("campaign"), jobs=jobs, n_seeds=n_seeds,
-                                     report_path=report_path)
+                                     report_path=report_path, only=os.environ.get("AGVVIZ_ROBUSTNESS_ONLY"))
         print("\n" + table(results) + f"\n(report: {report_path})")
     bad = [r for r in results if r.klass in FORBIDDEN]
     counts = {k: sum(r.klass == k for r in results) for k in FORBIDDEN}
