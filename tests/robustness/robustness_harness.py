@@ -403,6 +403,12 @@ def run_case(case: Case) -> Result:
         folders = sorted({Path(p).parent for p in case.outputs} | ({Path(case.cwd)} if case.cwd else set()))
         tmp_before = tmp_files(folders)
         run = run_process(case)
+        if case.cwd is not None:  # keep what it said beside the case's files
+            for name, text in (("_stdout.txt", run.stdout), ("_stderr.txt", run.stderr)):
+                try:
+                    (Path(case.cwd) / name).write_text(text)
+                except OSError:
+                    pass
         if case.driven is False:
             case.skip_reason = case.skip_reason or "the fault could not be injected in time (the command ended first)"
             return Result(case, "skipped", [], run)
