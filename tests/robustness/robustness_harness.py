@@ -440,14 +440,15 @@ def run_cases(cases: Sequence[Case], jobs: int = 1, progress: Optional[Callable[
 
 
 # -- report ---------------------------------------------------------------------------------
-def table(results: Sequence[Result]) -> str:
-    """Markdown table: category × tried / each class (skipped cases counted apart)."""
-    categories = list(dict.fromkeys(r.case.category for r in results))
-    header = ["category", "tried", *CLASSES, "skipped"]
+def table(results: Sequence[Result], group: Callable[[Result], str] = lambda r: r.case.category,
+          label: str = "category") -> str:
+    """Markdown table: category (or ``group``) × tried / each class (skipped counted apart)."""
+    categories = list(dict.fromkeys(group(r) for r in results))
+    header = [label, "tried", *CLASSES, "skipped"]
     rows = []
     totals = [0] * (len(header) - 1)
     for cat in categories:
-        rs = [r for r in results if r.case.category == cat]
+        rs = [r for r in results if group(r) == cat]
         tried = [r for r in rs if r.klass != "skipped"]
         counts = [len(tried)] + [sum(r.klass == k for r in tried) for k in CLASSES] + [len(rs) - len(tried)]
         totals = [a + b for a, b in zip(totals, counts)]
@@ -465,15 +466,20 @@ def report(results: Sequence[Result], title: str = "agvviz robustness campaign",
     if command:
         parts += [f"Command: `{command}`", ""]
     parts += [table(results), ""]
+    damaged = [r for r in results if r.case.category == "damaged files"]
+    if damaged:
+        parts += ["Damaged files by kind of damage and command:", "",
+                  table(damaged, lambda r: (r.case.note.split(" (")[0] or "not MCAP at all") + " / " + r.case.args[0],
+                        "damage / command"), ""]
     if failing:
         parts += [f"## Failing cases ({len(failing)})", "", "```"]
         parts += [r.describe() + "\n" for r in failing]
         parts += ["```", ""]
     if skipped:
         parts += ["## Skipped", ""] + [f"- {r.case.id}: {r.case.skip_reason}" for r in skipped] + [""]
-    parts += ["## Every case", "", "| case | class | exit | s |", "|---|---|---|---|"]
+    parts += ["## Every case", "", "| case | class | exit | s | note |", "|---|---|---|---|---|"]
     for r in results:
         exit_code = "" if r.run is None else str(r.run.returncode)
         secs = "" if r.run is None else f"{r.run.seconds:.1f}"
-        parts.append(f"| {r.case.id} | {r.klass} | {exit_code} | {secs} |")
+        parts.append(f"| {r.case.id} | {r.klass} | {exit_code} | {secs} | {r.case.note} |")
     return "\n".join(parts) + "\n"
