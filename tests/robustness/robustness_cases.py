@@ -872,13 +872,20 @@ def _wait_for_tmp(folder: Path, proc: subprocess.Popen, timeout_s: float = 60.0)
     return False
 
 
-def signal_driver(signum: int, settle_s: float = 0.4):
-    """Send ``signum`` to the process group once its temporary output exists (mid-run)."""
+def signal_driver(signum: int, settle_s: float = 0.4, folder: Optional[Path] = None, at_start_s: Optional[float] = None):
+    """Send ``signum`` to the process group once its temporary output exists (mid-run), or
+    ``at_start_s`` seconds after it started (during start-up)."""
 
     def drive(proc: subprocess.Popen, case: Case) -> None:
-        folder = Path(case.outputs[0]).parent
+        if at_start_s is not None:
+            time.sleep(at_start_s)
+            case.driven = proc.poll() is None
+            if case.driven:
+                os.killpg(proc.pid, signum)
+            return
+        watched = folder or Path(case.outputs[0]).parent
         case.driven = False
-        if _wait_for_tmp(folder, proc):
+        if _wait_for_tmp(watched, proc):
             time.sleep(settle_s)
             if proc.poll() is None:
                 os.killpg(proc.pid, signum)
@@ -953,6 +960,25 @@ def fault_cases(ws: Workspace, fast: bool = False) -> list[Case]:
             args = ["run", rec, "--out", out] if command == "run" else BASE_RECORD_ARGS + ["--out", out]
             cases.append(Case("faults", f"{label} mid-{command}", args, codes=(130,), inputs=[rec], outputs=[out],
                               cwd=d, drive=signal_driver(signum), error_line=False))
+
+    if not fast:
+        # a signal during start-up (imports), and mid-sweep (worker processes must end too)
+        for label, signum in sigs:
+            d = ws.case_dir("faults", f"run-{label}-at-start-up")
+            rec = _copy(ws.base_mcap, d / "rec.mcap")
+            out = d / "out" / "x.rrd"
+            cases.append(Case("faults", f"{label} 0.3 s after start (start-up)", ["run", rec, "--out", out],
+                              codes=(130,), inputs=[rec], outputs=[out], cwd=d, error_line=False,
+                              drive=signal_driver(signum, at_start_s=0.3)))
+            d = ws.case_dir("faults", f"sweep-{label}")
+            rec = _copy(ws.base_mcap, d / "rec.mcap")
+            sweep_dir = d / "sweep"
+            sweep_dir.mkdir()
+            cases.append(Case("faults", f"{label} mid-sweep (2 workers)",
+                              ["sweep", rec, "--set", "solver=p4p,lm,ippe", "--jobs", "2", "--out-dir", sweep_dir],
+                              codes=(130,), inputs=[rec], cwd=d, error_line=False,
+                              drive=signal_driver(signum, folder=sweep_dir, settle_s=1.0), check=no_tmp_check(sweep_dir),
+                              check_errors=True))
 
     # SIGKILL mid-run, then a second run into the same folder: it succeeds and the stale
     # temporary file of the killed run is cleaned up

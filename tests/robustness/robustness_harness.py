@@ -129,6 +129,7 @@ class Run:
     seconds: float
     timed_out: bool
     cwd: Path
+    orphans: bool = False  # processes of its group still running 3 s after it exited
 
 
 @dataclass
@@ -259,7 +260,22 @@ def run_process(case: Case) -> Run:
         if proc.poll() is None:
             _kill_group(proc)
             proc.communicate()
-    return Run(argv, proc.returncode, stdout or "", stderr or "", time.monotonic() - t0, timed_out, cwd)
+    # anything it started must end with it (sweep workers, viewers)
+    orphans = False
+    deadline = time.monotonic() + 3.0
+    while True:
+        try:
+            os.killpg(proc.pid, 0)
+        except (ProcessLookupError, PermissionError):
+            break
+        if time.monotonic() > deadline:
+            orphans = True
+            _kill_group(proc)
+            break
+        time.sleep(0.05)
+    run = Run(argv, proc.returncode, stdout or "", stderr or "", time.monotonic() - t0, timed_out, cwd)
+    run.orphans = orphans
+    return run
 
 
 def error_lines(text: str) -> list[str]:
@@ -334,6 +350,9 @@ def classify(case: Case, run: Run, before: dict, tmp_before: set[Path]) -> tuple
             problems.append(("crash", f"killed by signal {-code} ({signal.Signals(-code).name})"))
         elif code is not None and code not in KNOWN_CODES and code != case.expected_signal_exit:
             problems.append(("crash", f"exit code {code} is not one agvviz documents (0, 1, 2, 3, 130)"))
+
+    if run.orphans and not run.timed_out:
+        problems.append(("crash", "processes it started were still running 3 s after it exited (killed)"))
 
     success = code == 0 and not run.timed_out
     refused = code not in (0, None) and code != case.expected_signal_exit and not run.timed_out
