@@ -21,6 +21,7 @@ from typing import List, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 from rich.text import Text
@@ -207,7 +208,9 @@ def _print_summary(summary: dict, timing: dict, title: str) -> None:
         table.add_row("mean correction jump (mm)", fmt(mm(c["mean_jump_m"])))
     console.print(table)
     for problem in summary.get("recording_damage", []):
-        err_console.print(f"[yellow]recording damage:[/] {problem}")
+        err_console.print(f"[yellow]recording damage:[/] {escape(problem)}")
+    for warning in summary.get("warnings", []):
+        err_console.print(f"[yellow]warning:[/] {escape(warning)}")
 
 
 TOPIC_HELP = (

@@ -64,6 +64,11 @@ from agvviz.solvers import SolverOptions, solve
 from agvviz.solvers.planar import PlanarPrior
 from agvviz.sync import SyncState
 
+#: When no code of a frame is usable, the frame's reason is the first of these its codes had.
+_REASON_RANK = {
+    r: i for i, r in enumerate((REJECT_MAP_MISMATCH, REJECT_PAYLOAD, REJECT_GEOMETRY, REJECT_DECODE, REJECT_NO_MARKER))
+}
+
 
 @dataclass
 class _Camera:
@@ -392,7 +397,8 @@ class Replay:
             candidates, problems = self._qr_candidates(gray, camera, result)
         result.detect_s = time.perf_counter() - t0
         if not candidates:
-            reason, detail = problems[0]
+            # The reason of a code that was read and refused outranks one that was not read.
+            reason = min((r for r, _ in problems), key=lambda r: _REASON_RANK.get(r, len(_REASON_RANK)))
             return self._reject(result, reason, "; ".join(d for _, d in problems))
         return self._solve_candidates(cam, candidates, result)
 

@@ -19,6 +19,10 @@ REJECT_GEOMETRY = "degenerate_geometry"  # payload points do not define a marker
 REJECT_SOLVER = "solver_failed"  # the solver returned no pose
 REJECT_REPROJECTION = "reprojection"  # reprojection error above the threshold
 REJECT_NO_CALIBRATION = "no_calibration"  # image before any calibration/extrinsics
+REJECT_IMAGE = "image_invalid"  # empty, not jpeg/png, or larger than MAX_IMAGE_SIDE_PX
+REJECT_CALIBRATION_SIZE = "calibration_size_mismatch"  # image size differs from the calibration's
+REJECT_TIME = "time_not_increasing"  # log time not after the previous image of the same camera
+REJECT_MAP_MISMATCH = "payload_map_mismatch"  # QR payload disagrees with /markers/map
 
 REJECT_REASONS = (
     REJECT_NO_MARKER,
@@ -28,6 +32,10 @@ REJECT_REASONS = (
     REJECT_SOLVER,
     REJECT_REPROJECTION,
     REJECT_NO_CALIBRATION,
+    REJECT_IMAGE,
+    REJECT_CALIBRATION_SIZE,
+    REJECT_TIME,
+    REJECT_MAP_MISMATCH,
 )
 
 

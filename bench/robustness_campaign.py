@@ -4,6 +4,7 @@ silent wrong) and write a markdown report with every failing case's command and 
 
     python bench/robustness_campaign.py                    # the whole campaign, 2 jobs
     python bench/robustness_campaign.py --fast             # the default-test subset
+    python bench/robustness_campaign.py --only "run dup-"  --workdir /tmp/rb   # some cases, keep files
     python bench/robustness_campaign.py --out runs/robustness.md --jobs 2 --seed 10 --seeds 4
 
 Exit status 1 when any case is a crash, hang, input modified or silent wrong. Deterministic:
@@ -32,6 +33,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=4, help="number of corruption seeds (random damage per seed)")
     parser.add_argument("--fast", action="store_true", help="only the default-test subset")
     parser.add_argument("--out", type=Path, default=REPO / "runs" / "robustness.md", help="markdown report")
+    parser.add_argument("--only", default=None, help="only the cases whose id contains this text")
     parser.add_argument("--workdir", type=Path, default=None, help="keep the case files here")
     args = parser.parse_args(argv)
     if args.jobs < 1:
@@ -39,7 +41,7 @@ def main(argv=None) -> int:
     root = args.workdir or Path(tempfile.mkdtemp(prefix="agvviz-robustness-"))
     try:
         results, text = run_campaign(root, jobs=args.jobs, seed=args.seed, n_seeds=args.seeds,
-                                     report_path=args.out, fast=args.fast)
+                                     report_path=args.out, fast=args.fast, only=args.only)
     finally:
         if args.workdir is None:
             shutil.rmtree(root, ignore_errors=True)

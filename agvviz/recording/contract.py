@@ -57,15 +57,15 @@ from agvviz.recording.topics import (
     camera_calibration_topic,
     camera_of_role,
 )
+from agvviz.results import (  # the frame rejection reasons of the checks below
+    REJECT_CALIBRATION_SIZE,
+    REJECT_IMAGE,
+    REJECT_MAP_MISMATCH,
+    REJECT_TIME,
+)
 
 #: Image formats of the recording contract (``foxglove.CompressedImage.format``).
 IMAGE_FORMATS = ("jpeg", "png")
-
-#: Frame rejection reasons of the checks below (beside those of :mod:`agvviz.results`).
-REJECT_IMAGE = "image_invalid"  # empty, not jpeg/png, or larger than MAX_IMAGE_SIDE_PX
-REJECT_CALIBRATION_SIZE = "calibration_size_mismatch"  # image size differs from the calibration's
-REJECT_TIME = "time_not_increasing"  # log time not after the previous image of the same camera
-REJECT_MAP_MISMATCH = "payload_map_mismatch"  # QR payload disagrees with /markers/map
 
 #: A QR payload vertex may differ from the marker map's corner of the same id by this much (m).
 #: Both come from one survey: the payload rounds to 0.1 mm, so honest pairs agree to 0.05 mm;

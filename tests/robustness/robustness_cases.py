@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from robustness_harness import (
+    DEFAULT_TIMEOUT_S,
     Case,
     Run,
     agvviz_command,
@@ -508,6 +509,9 @@ def non_mcap_cases(ws: Workspace, commands=("inspect", "run"), which=None) -> li
         "text-file": lambda p: p.write_text("topic,time\n/cam/front/image,0\n" * 100),
         "magic-only": lambda p: p.write_bytes(MAGIC),
         "directory": lambda p: p.mkdir(),
+        "fifo": lambda p: os.mkfifo(p),  # open() would block for ever waiting for a writer
+        "symlink-to-dev-zero": lambda p: p.symlink_to("/dev/zero"),
+        "dangling-symlink": lambda p: p.symlink_to(p.parent / "nowhere.mcap"),
     }
     cases = []
     for kind, make in makers.items():
@@ -521,6 +525,7 @@ def non_mcap_cases(ws: Workspace, commands=("inspect", "run"), which=None) -> li
             cases.append(Case(
                 "damaged files", f"{command} {kind}", args, expect="error", codes=(2,), inputs=[target],
                 outputs=[cdir / "out.rrd"] if command == "run" else [], cwd=cdir,
+                timeout_s=30 if kind == "fifo" else DEFAULT_TIMEOUT_S,
             ))
     return cases
 
@@ -620,6 +625,24 @@ def semantic_mutations(ws: Workspace) -> dict[str, Callable]:
             return [(t, msg.SerializeToString())]
         return mutate
 
+    def drop(which):
+        def mutate(topic, schema, t, data):
+            return [] if topic == which else [(t, data)]
+        return mutate
+
+    def gt_nan(topic, schema, t, data):
+        if topic != "/agv/ground_truth":
+            return [(t, data)]
+        msg = PoseInFrame.FromString(data)
+        msg.pose.position.x = float("nan")
+        return [(t, msg.SerializeToString())]
+
+    garbage_rng = random.Random(CAMPAIGN_SEED + 3)
+
+    def garbage(t, msg):
+        msg.data = bytes(garbage_rng.randrange(256) for _ in range(len(msg.data) // 64))
+        return [(t, msg.SerializeToString())]
+
     def map_far(topic, schema, t, data):
         if topic != "/markers/map":
             return [(t, data)]
@@ -638,6 +661,10 @@ def semantic_mutations(ws: Workspace) -> dict[str, Callable]:
         "zero-byte-image": image(zero_bytes),
         "image-format-bmp": image(bmp),
         "map-10km-from-payloads": map_far,
+        "no-calibration": drop("/cam/front/calibration"),
+        "no-tf-static": drop("/tf_static"),
+        "ground-truth-nan": gt_nan,
+        "image-random-bytes": image(garbage),
     }
 
 
@@ -754,6 +781,33 @@ def cli_cases(ws: Workspace, fast: bool = False) -> list[Case]:
         cases.append(Case("cli misuse", "export --out-dir is a regular file",
                           ["export", r, "--out-dir", d / "plain.txt"], codes=(3,), inputs=[r, d / "plain.txt"], cwd=d))
 
+    if not fast:
+        d = ws.case_dir("cli misuse", "run-out-is-directory")
+        rec = _copy(ws.base_mcap, d / "rec.mcap")
+        (d / "x.rrd").mkdir()
+        cases.append(Case("cli misuse", "run --out an existing directory named x.rrd",
+                          ["run", rec, "--out", d / "x.rrd"], codes=(2, 3), inputs=[rec, d / "x.rrd"], cwd=d))
+        d = ws.case_dir("cli misuse", "run-out-name-too-long")
+        rec = _copy(ws.base_mcap, d / "rec.mcap")
+        cases.append(Case("cli misuse", "run --out a 300-character file name",
+                          ["run", rec, "--out", d / ("n" * 300 + ".rrd")], codes=(2, 3), inputs=[rec], cwd=d))
+        d = ws.case_dir("cli misuse", "record-out-wrong-suffix")
+        cases.append(Case("cli misuse", "record --out x.txt", BASE_RECORD_ARGS + ["--out", d / "x.txt"], codes=(2,),
+                          outputs=[d / "x.txt"], cwd=d))
+        d = ws.case_dir("cli misuse", "export-format-csv")
+        r = _copy(ws.base_rrd, d / "r.rrd")
+        cases.append(Case("cli misuse", "export --format csv", ["export", r, "--format", "csv"], codes=(2,),
+                          inputs=[r], outputs=[d / "r.estimate.csv", d / "r.estimate.tum"], cwd=d))
+        for opts in (["--rpe-delta", "0"], ["--rpe-delta", "-5"], ["--align", "bogus"]):
+            d, a, b = diff_dir("diff" + "".join(opts).replace("-", "_"))
+            cases.append(Case("cli misuse", f"diff {' '.join(opts)}", ["diff", a, b, *opts, "--no-images"], codes=(2,),
+                              inputs=[a, b], cwd=d))
+        d = ws.case_dir("cli misuse", "sweep-unknown-setting")
+        rec = _copy(ws.base_mcap, d / "rec.mcap")
+        cases.append(Case("cli misuse", "sweep --set nosuch=1,2",
+                          ["sweep", rec, "--set", "nosuch=1,2", "--out-dir", d / "sweep"], codes=(2,), inputs=[rec],
+                          outputs=[d / "sweep"], cwd=d))
+
     # sweep --jobs 0 (and negative)
     for jobs in (["0"] if fast else ["0", "-1"]):
         d = ws.case_dir("cli misuse", f"sweep-jobs-{jobs}")
@@ -818,13 +872,20 @@ def _wait_for_tmp(folder: Path, proc: subprocess.Popen, timeout_s: float = 60.0)
     return False
 
 
-def signal_driver(signum: int, settle_s: float = 0.4):
-    """Send ``signum`` to the process group once its temporary output exists (mid-run)."""
+def signal_driver(signum: int, settle_s: float = 0.4, folder: Optional[Path] = None, at_start_s: Optional[float] = None):
+    """Send ``signum`` to the process group once its temporary output exists (mid-run), or
+    ``at_start_s`` seconds after it started (during start-up)."""
 
     def drive(proc: subprocess.Popen, case: Case) -> None:
-        folder = Path(case.outputs[0]).parent
+        if at_start_s is not None:
+            time.sleep(at_start_s)
+            case.driven = proc.poll() is None
+            if case.driven:
+                os.killpg(proc.pid, signum)
+            return
+        watched = folder or Path(case.outputs[0]).parent
         case.driven = False
-        if _wait_for_tmp(folder, proc):
+        if _wait_for_tmp(watched, proc):
             time.sleep(settle_s)
             if proc.poll() is None:
                 os.killpg(proc.pid, signum)
@@ -899,6 +960,25 @@ def fault_cases(ws: Workspace, fast: bool = False) -> list[Case]:
             args = ["run", rec, "--out", out] if command == "run" else BASE_RECORD_ARGS + ["--out", out]
             cases.append(Case("faults", f"{label} mid-{command}", args, codes=(130,), inputs=[rec], outputs=[out],
                               cwd=d, drive=signal_driver(signum), error_line=False))
+
+    if not fast:
+        # a signal during start-up (imports), and mid-sweep (worker processes must end too)
+        for label, signum in sigs:
+            d = ws.case_dir("faults", f"run-{label}-at-start-up")
+            rec = _copy(ws.base_mcap, d / "rec.mcap")
+            out = d / "out" / "x.rrd"
+            cases.append(Case("faults", f"{label} 0.3 s after start (start-up)", ["run", rec, "--out", out],
+                              codes=(130,), inputs=[rec], outputs=[out], cwd=d, error_line=False,
+                              drive=signal_driver(signum, at_start_s=0.3)))
+            d = ws.case_dir("faults", f"sweep-{label}")
+            rec = _copy(ws.base_mcap, d / "rec.mcap")
+            sweep_dir = d / "sweep"
+            sweep_dir.mkdir()
+            cases.append(Case("faults", f"{label} mid-sweep (2 workers)",
+                              ["sweep", rec, "--set", "solver=p4p,lm,ippe", "--jobs", "2", "--out-dir", sweep_dir],
+                              codes=(130,), inputs=[rec], cwd=d, error_line=False,
+                              drive=signal_driver(signum, folder=sweep_dir, settle_s=1.0), check=no_tmp_check(sweep_dir),
+                              check_errors=True))
 
     # SIGKILL mid-run, then a second run into the same folder: it succeeds and the stale
     # temporary file of the killed run is cleaned up
@@ -981,7 +1061,8 @@ def fast_cases(ws: Workspace) -> list[Case]:
 
 
 def run_campaign(root: Path, *, jobs: int = 2, seed: int = CAMPAIGN_SEED, n_seeds: int = 4,
-                 report_path: Optional[Path] = None, fast: bool = False, echo: Callable[[str], None] = print):
+                 report_path: Optional[Path] = None, fast: bool = False, echo: Callable[[str], None] = print,
+                 only: Optional[str] = None):
     """Build the workspace under ``root``, run every case, write the markdown report.
 
     Returns (results, report text)."""
@@ -990,6 +1071,8 @@ def run_campaign(root: Path, *, jobs: int = 2, seed: int = CAMPAIGN_SEED, n_seed
     t0 = time.monotonic()
     ws = Workspace(root).build()
     cases = fast_cases(ws) if fast else campaign_cases(ws, seed=seed, n_seeds=n_seeds)
+    if only:
+        cases = [c for c in cases if only in c.id]
     echo(f"robustness campaign: {len(cases)} cases, {jobs} at a time, corruption seeds {seed}.."
          f"{seed + n_seeds - 1}, workspace {root}")
     done = {"n": 0}
@@ -1003,6 +1086,7 @@ def run_campaign(root: Path, *, jobs: int = 2, seed: int = CAMPAIGN_SEED, n_seed
 
     results = run_cases(cases, jobs=jobs, progress=progress)
     command = "python bench/robustness_campaign.py" + (" --fast" if fast else f" --seed {seed} --seeds {n_seeds}")
+    command += f" --jobs {jobs}" + (f" --only {only!r}" if only else "")
     text = report(results, title="agvviz robustness campaign (issue 10)", command=command)
     text += f"\nWall time: {time.monotonic() - t0:.0f} s; {jobs} jobs.\n"
     if report_path is not None:

@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -103,6 +104,8 @@ def snapshot(path: Path) -> FileState:
     if path.is_dir():
         names = sorted(os.listdir(path))
         return FileState(True, "dir:" + ",".join(names), st.st_ino, 0, st.st_mtime_ns, link)
+    if not stat.S_ISREG(st.st_mode):  # a FIFO or a device: never read it (a FIFO would block)
+        return FileState(True, f"mode:{stat.S_IFMT(st.st_mode):o}", st.st_ino, 0, st.st_mtime_ns, link)
     return FileState(True, _sha256(path), st.st_ino, st.st_size, st.st_mtime_ns, link)
 
 
@@ -126,6 +129,7 @@ class Run:
     seconds: float
     timed_out: bool
     cwd: Path
+    orphans: bool = False  # processes of its group still running 3 s after it exited
 
 
 @dataclass
@@ -162,13 +166,14 @@ class Case:
     teardown: Optional[Callable[["Case"], None]] = None
     note: str = ""
     driven: Optional[bool] = None  # set by ``drive``: False when it could not do its part
+    program: Optional[list[str]] = None  # instead of agvviz (the harness's own tests)
 
     @property
     def id(self) -> str:
         return f"{self.category}/{self.name}"
 
     def command(self) -> list[str]:
-        return agvviz_command() + [str(a) for a in self.args]
+        return (self.program or agvviz_command()) + [str(a) for a in self.args]
 
 
 @dataclass
@@ -187,6 +192,8 @@ class Result:
         if self.run is not None:
             lines.append(f"  command: (cd {self.run.cwd} && {' '.join(_quote(a) for a in self.run.argv)})")
             lines.append(f"  exit: {self.run.returncode}  ({self.run.seconds:.1f} s)")
+        if self.case.note:
+            lines.append(f"  note: {self.case.note}")
         for klass, text in self.problems:
             lines.append(f"  {klass}: {text}")
         if self.run is not None and self.run.stderr.strip():
@@ -253,7 +260,22 @@ def run_process(case: Case) -> Run:
         if proc.poll() is None:
             _kill_group(proc)
             proc.communicate()
-    return Run(argv, proc.returncode, stdout or "", stderr or "", time.monotonic() - t0, timed_out, cwd)
+    # anything it started must end with it (sweep workers, viewers)
+    orphans = False
+    deadline = time.monotonic() + 3.0
+    while True:
+        try:
+            os.killpg(proc.pid, 0)
+        except (ProcessLookupError, PermissionError):
+            break
+        if time.monotonic() > deadline:
+            orphans = True
+            _kill_group(proc)
+            break
+        time.sleep(0.05)
+    run = Run(argv, proc.returncode, stdout or "", stderr or "", time.monotonic() - t0, timed_out, cwd)
+    run.orphans = orphans
+    return run
 
 
 def error_lines(text: str) -> list[str]:
@@ -329,6 +351,9 @@ def classify(case: Case, run: Run, before: dict, tmp_before: set[Path]) -> tuple
         elif code is not None and code not in KNOWN_CODES and code != case.expected_signal_exit:
             problems.append(("crash", f"exit code {code} is not one agvviz documents (0, 1, 2, 3, 130)"))
 
+    if run.orphans and not run.timed_out:
+        problems.append(("crash", "processes it started were still running 3 s after it exited (killed)"))
+
     success = code == 0 and not run.timed_out
     refused = code not in (0, None) and code != case.expected_signal_exit and not run.timed_out
 
@@ -398,6 +423,12 @@ def run_case(case: Case) -> Result:
         folders = sorted({Path(p).parent for p in case.outputs} | ({Path(case.cwd)} if case.cwd else set()))
         tmp_before = tmp_files(folders)
         run = run_process(case)
+        if case.cwd is not None:  # keep what it said beside the case's files
+            for name, text in (("_stdout.txt", run.stdout), ("_stderr.txt", run.stderr)):
+                try:
+                    (Path(case.cwd) / name).write_text(text)
+                except OSError:
+                    pass
         if case.driven is False:
             case.skip_reason = case.skip_reason or "the fault could not be injected in time (the command ended first)"
             return Result(case, "skipped", [], run)
@@ -428,14 +459,15 @@ def run_cases(cases: Sequence[Case], jobs: int = 1, progress: Optional[Callable[
 
 
 # -- report ---------------------------------------------------------------------------------
-def table(results: Sequence[Result]) -> str:
-    """Markdown table: category × tried / each class (skipped cases counted apart)."""
-    categories = list(dict.fromkeys(r.case.category for r in results))
-    header = ["category", "tried", *CLASSES, "skipped"]
+def table(results: Sequence[Result], group: Callable[[Result], str] = lambda r: r.case.category,
+          label: str = "category") -> str:
+    """Markdown table: category (or ``group``) × tried / each class (skipped counted apart)."""
+    categories = list(dict.fromkeys(group(r) for r in results))
+    header = [label, "tried", *CLASSES, "skipped"]
     rows = []
     totals = [0] * (len(header) - 1)
     for cat in categories:
-        rs = [r for r in results if r.case.category == cat]
+        rs = [r for r in results if group(r) == cat]
         tried = [r for r in rs if r.klass != "skipped"]
         counts = [len(tried)] + [sum(r.klass == k for r in tried) for k in CLASSES] + [len(rs) - len(tried)]
         totals = [a + b for a, b in zip(totals, counts)]
@@ -453,15 +485,20 @@ def report(results: Sequence[Result], title: str = "agvviz robustness campaign",
     if command:
         parts += [f"Command: `{command}`", ""]
     parts += [table(results), ""]
+    damaged = [r for r in results if r.case.category == "damaged files"]
+    if damaged:
+        parts += ["Damaged files by kind of damage and command:", "",
+                  table(damaged, lambda r: (r.case.note.split(" (")[0] or "not MCAP at all") + " / " + r.case.args[0],
+                        "damage / command"), ""]
     if failing:
         parts += [f"## Failing cases ({len(failing)})", "", "```"]
         parts += [r.describe() + "\n" for r in failing]
         parts += ["```", ""]
     if skipped:
         parts += ["## Skipped", ""] + [f"- {r.case.id}: {r.case.skip_reason}" for r in skipped] + [""]
-    parts += ["## Every case", "", "| case | class | exit | s |", "|---|---|---|---|"]
+    parts += ["## Every case", "", "| case | class | exit | s | note |", "|---|---|---|---|---|"]
     for r in results:
         exit_code = "" if r.run is None else str(r.run.returncode)
         secs = "" if r.run is None else f"{r.run.seconds:.1f}"
-        parts.append(f"| {r.case.id} | {r.klass} | {exit_code} | {secs} |")
+        parts.append(f"| {r.case.id} | {r.klass} | {exit_code} | {secs} | {r.case.note} |")
     return "\n".join(parts) + "\n"
