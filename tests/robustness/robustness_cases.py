@@ -501,6 +501,56 @@ def damaged_cases(ws: Workspace, damages: list[Damage], commands=("inspect", "ru
     return cases
 
 
+def zstd_bomb_chunk(uncompressed_bytes: int = 1 << 30) -> bytes:
+    """A chunk record (opcode, length, body) whose zstd data inflates to ``uncompressed_bytes``
+    zero bytes, with the right size and CRC: a few KiB on disk, 1 GiB in memory, and (zeros
+    being records of opcode 0 and length 0) ~10^8 empty records inside."""
+    import zlib
+
+    import zstandard
+
+    block = bytes(1 << 24)
+    comp = zstandard.ZstdCompressor(level=1).compressobj()
+    parts, crc = [], 0
+    for _ in range(uncompressed_bytes // len(block)):
+        parts.append(comp.compress(block))
+        crc = zlib.crc32(block, crc)
+    parts.append(comp.flush())
+    data = b"".join(parts)
+    body = struct.pack("<QQQI", 0, 0, uncompressed_bytes, crc) + struct.pack("<I", 4) + b"zstd"
+    body += struct.pack("<Q", len(data)) + data
+    return struct.pack("<BQ", OP_CHUNK, len(body)) + body
+
+
+def bomb_cases(ws: Workspace) -> list[Case]:
+    """A decompression bomb chunk appended to the data section, under the memory cap."""
+    cases = []
+    for command in ("inspect", "run"):
+        cdir = ws.case_dir("damaged files", f"{command}-zstd-bomb")
+        rec = cdir / "bomb.mcap"
+        out = cdir / "out.rrd"
+
+        def setup(case, rec=rec):
+            if not rec.exists():
+                data = ws.base_mcap.read_bytes()
+                at = ws.layout.data_end[0]
+                rec.write_bytes(data[:at] + zstd_bomb_chunk() + data[at:])
+
+        expect = {"lo": ws.base_frames, "hi": ws.base_frames, "all": ws.base_frames, "data_damaged": True,
+                  "head_damaged": False}
+        note = ("decompression bomb (a zstd chunk of 1 GiB of zeros with a valid CRC, before DataEnd); "
+                "a 4 MB file must be done within 60 s")
+        if command == "inspect":
+            cases.append(Case("damaged files", "inspect zstd-bomb", ["inspect", rec], codes=(1, 2), inputs=[rec],
+                              cwd=cdir, setup=setup, memory_cap=True, check=inspect_damage_check, check_errors=True,
+                              note=note, timeout_s=60))
+        else:
+            cases.append(Case("damaged files", "run zstd-bomb", ["run", rec, "--out", out], expect="error_or_ok",
+                              codes=(2,), inputs=[rec], outputs=[out], cwd=cdir, setup=setup, memory_cap=True,
+                              check=run_damage_check(expect, out), check_errors=True, note=note, timeout_s=60))
+    return cases
+
+
 def non_mcap_cases(ws: Workspace, commands=("inspect", "run"), which=None) -> list[Case]:
     rng = random.Random(CAMPAIGN_SEED + 1)
     makers = {
@@ -1015,6 +1065,7 @@ def campaign_cases(ws: Workspace, seed: int = CAMPAIGN_SEED, n_seeds: int = 4) -
     return (
         damaged_cases(ws, damages)
         + non_mcap_cases(ws)
+        + bomb_cases(ws)
         + semantic_cases(ws, commands=("run", "inspect"))
         + cli_cases(ws)
         + fault_cases(ws)
