@@ -203,7 +203,8 @@ def prepare(
     replay.set_side_inputs(
         side.marker_map, side.calibrations, {cam: tf.T_parent_child for cam, tf in side.extrinsics.items()}
     )
-    replay.prime(iter_role_messages(recording, roles, time_source, ReadReport(), images=False))
+    replay.prime(iter_role_messages(recording, roles, time_source, ReadReport(), images=False,
+                                    raw=recording_scan.context))
     usable, causes = _camera_causes(recording_scan, roles, replay)
     if not roles.cameras() and ROLE_CORNERS not in roles.roles and ROLE_UWB_RANGE not in roles.roles:
         image_topics = [t for t, i in recording_scan.topics.items() if i.schema_name in IMAGE_TYPES]

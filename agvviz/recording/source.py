@@ -178,9 +178,14 @@ class Scan:
     first_problem: dict[str, str] = field(default_factory=dict)  # topic -> why its first message failed
     tf_frames: set[str] = field(default_factory=set)
     metadata: list[RawMetadata] = field(default_factory=list)
+    #: Every message the sync stage may need (calibrations, poses, transforms, marker maps),
+    #: kept undecoded so the first pass of a run needs no second read of the file.
+    context: list[RawMessage] = field(default_factory=list)
 
 
 _PROBED = IMAGE_TYPES + CALIBRATION_TYPES + POSE_TYPES + TRANSFORM_TYPES
+#: Schemas whose messages feed the sync stage (:class:`agvviz.sync.SyncState`).
+CONTEXT_TYPES = CALIBRATION_TYPES + POSE_TYPES + TRANSFORM_TYPES + ("agvviz.MarkerMap",)
 
 
 def scan(recording: Recording, report: ReadReport | None = None) -> Scan:
@@ -198,6 +203,8 @@ def scan(recording: Recording, report: ReadReport | None = None) -> Scan:
             out.first_ns[item.topic] = item.log_time_ns
             out.last_ns[item.topic] = item.log_time_ns
         info.count += 1
+        if item.schema_name in CONTEXT_TYPES:
+            out.context.append(item)
         out.first_ns[item.topic] = min(out.first_ns[item.topic], item.log_time_ns)
         out.last_ns[item.topic] = max(out.last_ns[item.topic], item.log_time_ns)
         probe_tf = item.schema_name in TRANSFORM_TYPES
@@ -259,11 +266,13 @@ def iter_role_messages(
     report: ReadReport,
     images: bool = True,
     skipped: _Skipped | None = None,
+    raw: list | None = None,
 ) -> Iterator[RecordedMessage]:
     """Decoded messages that play a role, in file order, with ``role`` set and (``header``
     time) ``stamp_ns`` set from the message's own stamp. ``images=False`` leaves camera
-    frames out (the first pass). Undecodable messages are skipped and, unless ``skipped``
-    collects them, reported in ``report.problems`` when the pass ends."""
+    frames out (the first pass). ``raw`` (e.g. :attr:`Scan.context`) is read instead of the
+    file. Undecodable messages are skipped and, unless ``skipped`` collects them, reported in
+    ``report.problems`` when the pass ends."""
     role_of = roles.role_of()
     wanted = set(role_of)
     if not images:
@@ -271,8 +280,9 @@ def iter_role_messages(
     own = skipped is None
     skipped = skipped if skipped is not None else _Skipped()
     try:
-        for item in recording.iter_raw(report, wanted):
-            if isinstance(item, RawMetadata):
+        source = recording.iter_raw(report, wanted) if raw is None else raw
+        for item in source:
+            if isinstance(item, RawMetadata) or item.topic not in wanted:
                 continue
             try:
                 value = decode(item)
