@@ -42,6 +42,7 @@ from agvviz.recording.contract import (
     payload_map_problem,
 )
 from agvviz.recording.reader import (
+    RecordingError,
     DATA_SECTION_CRC_PROBLEM,
     MAX_IMAGE_SIDE_PX,
     CalibrationMsg,
@@ -179,6 +180,9 @@ def test_replay_refuses_absurd_calibration_from_any_source():
     [
         ("empty", lambda t, m: (setattr(m, "data", b""), [(t, m)])[1], "is empty (0 bytes)"),
         ("bmp", lambda t, m: (setattr(m, "format", "bmp"), [(t, m)])[1], "image format 'bmp' is not in the recording contract"),
+        # inspect said "contract: OK" for frames of random bytes that run rejected.
+        ("random", lambda t, m: (setattr(m, "data", np.random.default_rng(t).integers(0, 256, 4000, dtype=np.uint8)
+                                         .tobytes()), [(t, m)])[1], "no readable JPEG header"),
     ],
 )
 def test_unusable_image_is_a_rejection(base, tmp_path, name, fn, expected):
@@ -449,3 +453,44 @@ def test_damage_after_data_end_is_reported(base, tmp_path, from_end):
     assert len(list(iter_messages(bad, report=report))) == len(list(iter_messages(base)))
     assert report.problems and not any(DATA_SECTION_CRC_PROBLEM == p for p in report.problems)
     assert not inspect_recording(bad).ok
+
+
+# -- inputs that would hang a reader ------------------------------------------------------------
+def test_a_fifo_is_refused_without_waiting_for_a_writer(tmp_path):
+    import os
+
+    fifo = tmp_path / "pipe.mcap"
+    os.mkfifo(fifo)
+    with pytest.raises(RecordingError, match="not a regular file"):
+        list(iter_messages(fifo))  # opening it would block for ever
+
+
+def _zero_chunk(uncompressed_bytes: int, claimed_bytes: int | None = None) -> bytes:
+    """A zstd chunk record inflating to zero bytes, with its CRC right (a decompression bomb)."""
+    import zlib
+
+    import zstandard
+
+    zeros = bytes(uncompressed_bytes)
+    data = zstandard.ZstdCompressor(level=1).compress(zeros)
+    body = struct.pack("<QQQI", 0, 0, claimed_bytes or uncompressed_bytes, zlib.crc32(zeros))
+    body += struct.pack("<I", 4) + b"zstd" + struct.pack("<Q", len(data)) + data
+    return struct.pack("<BQ", 0x06, len(body)) + body
+
+
+@pytest.mark.parametrize("claimed", [None, 1 << 40])
+def test_a_decompression_bomb_chunk_is_lost_not_walked(tmp_path, claimed):
+    """Zero bytes parse as reserved-opcode records of length 0: 32 MiB of them were walked one
+    by one (1 GiB took two minutes); now the first one condemns the chunk. A chunk claiming more
+    than MAX_CHUNK_BYTES is refused before decompression."""
+    path, chunks = _chunked(tmp_path)
+    data = path.read_bytes()
+    at = chunks[1].chunk_start_offset
+    bomb = tmp_path / "bomb.mcap"
+    bomb.write_bytes(data[:at] + _zero_chunk(32 << 20, claimed) + data[at:])
+    report = ReadReport()
+    times = [m.log_time_ns for m in iter_messages(bomb, report=report)]
+    assert times == list(range(8))  # every intact chunk still read
+    assert report.chunks_lost == 1
+    expected = "reserved" if claimed is None else "decompression bomb"
+    assert any(expected in p for p in report.problems), report.problems

@@ -18,7 +18,7 @@ from agvviz.recording.reader import (
     RecordedMessage,
 )
 from agvviz.results import (
-    REJECT_DECODE,
+    REJECT_IMAGE,
     REJECT_NO_CALIBRATION,
     REJECT_NO_MARKER,
     REJECT_PAYLOAD,
@@ -93,7 +93,9 @@ def test_frame_before_calibration_is_rejected():
 def test_blank_and_corrupt_frames_are_rejected():
     blank = encode_jpeg(np.full((1024, 1280), 128, np.uint8))
     results = list(replay(_static_messages() + _frame(1, blank) + _frame(2, b"\xff\xd8garbage"), RunSettings()))
-    assert [r.rejected for r in results] == [REJECT_NO_MARKER, REJECT_DECODE]
+    # A frame whose JPEG header cannot be read is no image: rejected before decoding, as
+    # inspect reports it (contract.frame_problem).
+    assert [r.rejected for r in results] == [REJECT_NO_MARKER, REJECT_IMAGE]
     assert all(r.T_world_agv is None and r.position_error_m is None for r in results)
 
 

@@ -307,6 +307,15 @@ def test_not_an_mcap_file(tmp_path):
 
 
 # -- contract inspector -----------------------------------------------------------------------
+def _camera_jpeg() -> bytes:
+    """A real JPEG of the calibration's size (inspect reads the size from the header)."""
+    import cv2
+
+    ok, data = cv2.imencode(".jpg", np.zeros((CAMERA.height_px, CAMERA.width_px), np.uint8))
+    assert ok
+    return data.tobytes()
+
+
 def write_camera_recording(path, *, calibration=True, tf=True, image_frame="cam_front", truth_frame="world"):
     with RecordingWriter(path, scenario=SCENARIO) as w:
         if calibration:
@@ -314,7 +323,7 @@ def write_camera_recording(path, *, calibration=True, tf=True, image_frame="cam_
         if tf:
             w.write_tf_static([("agv", "cam_front", np.eye(4))], 0)
         for i in range(3):
-            msg = CompressedImage(frame_id=image_frame, data=b"img", format="jpeg")
+            msg = CompressedImage(frame_id=image_frame, data=_camera_jpeg(), format="jpeg")
             w._write_protobuf("/cam/front/image", msg, 10 + i)  # lets the test break the frame id
             w.write_pose("/agv/ground_truth", np.eye(4), truth_frame, 10 + i)
 

@@ -81,7 +81,7 @@ UNMAPPED_CODE_SPACINGS = 2.0
 
 def image_header_size(data: bytes, image_format: str) -> tuple[int, int] | None:
     """``(width, height)`` from a PNG IHDR or a JPEG SOF marker, without decoding; ``None``
-    when the header cannot be read (the decoder then has the last word)."""
+    when the header cannot be read (then the data is no image: :func:`frame_problem` rejects it)."""
     try:
         if image_format == "png":
             if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR":
@@ -133,7 +133,10 @@ def frame_problem(
     if size is None:
         size = image_header_size(data, image_format)
     if size is None:
-        return None
+        return REJECT_IMAGE, (
+            f"{image_format} frame has no readable {image_format.upper()} header "
+            f"({len(data)} bytes starting {data[:4].hex()}): not an image, or damaged"
+        )
     width, height = (int(v) for v in size)
     problem = image_size_problem(width, height)
     if problem:

@@ -46,6 +46,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import stat
 import struct
 import zlib
 from collections import OrderedDict
@@ -84,6 +85,9 @@ _MIN_CHUNK_BODY_BYTES = 8 + 8 + 8 + 4 + 4 + 8  # times, size, crc, compression l
 _MAX_COMPRESSION_NAME = 16  # bytes; real names are "", "zstd", "lz4"
 _CHUNK_PREFIX_BYTES = _MIN_CHUNK_BODY_BYTES + _MAX_COMPRESSION_NAME
 _SCAN_BLOCK_BYTES = 1 << 20
+#: Largest uncompressed chunk read (bytes). Writers cut chunks at ~1 MiB (agvviz, Foxglove SDK,
+#: rosbag2); 256 MiB leaves room for chunks of raw 4K frames and keeps a bomb from exhausting memory.
+MAX_CHUNK_BYTES = 256 << 20
 #: Largest image side (px) a calibration may declare and a frame may have. Real machine-vision
 #: sensors stay below 16384 px (16k line-scan cameras are the largest); beyond it an image
 #: would only allocate gigabytes (undistortion maps of a 2^32-1 px wide image: terabytes).
@@ -262,6 +266,11 @@ def _chunk_records(chunk: Chunk) -> list:
     Raises one of ``_DAMAGE_ERRORS`` when any of it is damaged (the whole chunk is then lost:
     without a matching CRC nothing in it can be trusted).
     """
+    if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+        raise ValueError(
+            f"chunk claims {chunk.uncompressed_size} bytes uncompressed, more than the "
+            f"{MAX_CHUNK_BYTES >> 20} MiB this reader accepts (a damaged size or a decompression bomb)"
+        )
     if chunk.compression == "":
         data = chunk.data
     elif chunk.compression == "zstd":
@@ -287,6 +296,10 @@ def _chunk_records(chunk: Chunk) -> list:
             raise ValueError(f"{_opcode_name(opcode)} record inside the chunk runs past its end")
         if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
             records.append(_parse_record(opcode, data[start : start + length]))
+        elif opcode == 0 or 0x10 <= opcode < 0x80:
+            # A chunk holds schemas, channels and messages; a reserved opcode means damage (and a
+            # run of zero bytes would otherwise be walked as 10⁸ empty records).
+            raise ValueError(f"{_opcode_name(opcode)} (reserved) inside the chunk at offset {offset}")
         offset = start + length
     return records
 
@@ -295,6 +308,12 @@ def _open(path) -> tuple:
     """Open ``path`` and check the MCAP magic. Returns (file, size in bytes)."""
     path = Path(path)
     try:
+        # Only a regular file: opening a FIFO would wait for a writer for ever, and a device
+        # (/dev/zero) has no end.
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise RecordingError(
+                f"{path}: not a regular file (a pipe, device or socket); give the path of an .mcap recording"
+            )
         f = open(path, "rb")
     except FileNotFoundError:
         raise RecordingError(f"{path}: no such file; give the path of an .mcap recording") from None
