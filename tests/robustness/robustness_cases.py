@@ -132,6 +132,7 @@ class ChunkInfo:
     records: tuple[int, int]  # the bytes the chunk CRC covers
     channels: dict[int, str]  # channels defined inside
     images: list[tuple[int, int]]  # (channel id, log time) of every message
+    setup: set = field(default_factory=set)  # "calibration" / "tf_static": what a replay needs held here
 
 
 @dataclass
@@ -207,6 +208,9 @@ def parse_layout(data: bytes) -> Layout:
     for c in chunks:
         topics.update(c.channels)
     for c in chunks:
+        c.setup = {("calibration" if topics.get(cid, "").endswith("/calibration") else "tf_static")
+                   for cid, _ in c.images
+                   if topics.get(cid, "").endswith("/calibration") or topics.get(cid, "") == "/tf_static"}
         c.images = [(cid, t) for cid, t in c.images if topics.get(cid, "").startswith("/cam/")
                     and topics.get(cid, "").endswith("/image")]
     return Layout(len(data), records, chunks, data_end, summary_channels)
@@ -272,7 +276,11 @@ class Damage:
             # with an intact summary or not, the upper bound may use any surviving definition
             hi = max(layout.frames(content, summary_ok), layout.frames(content, True) if summary_ok else 0)
         first_chunk = layout.chunks[0].offset
+        # Without the calibration or the camera's transform no frame can be used, and a run
+        # must refuse loudly (issue 11) rather than replay frames it can only reject.
+        kept = set().union(*(c.setup for c, ok in zip(layout.chunks, strict) if ok))
         return {
+            "setup_lost": not {"calibration", "tf_static"} <= kept,
             "lo": lo,
             "hi": hi,
             "all": layout.frames(),
@@ -439,6 +447,8 @@ def run_damage_check(expect: dict, out: Path) -> Callable[[Run, Case], list]:
             if expect["data_damaged"] and not summary.get("recording_damage"):
                 problems.append(("silent wrong", "exit 0 on a damaged recording with no damage reported in the summary"))
             return problems
+        if run.returncode == 2 and expect.get("setup_lost") and "could be used" in run.stderr:
+            return []  # calibration or transforms lost: "no frame could be used" is the right answer
         if run.returncode == 2 and expect["hi"] > 0 and not expect["head_damaged"]:
             return [("crash", f"refused the recording although its intact chunks hold {expect['lo']}..{expect['hi']} frames")]
         return []
