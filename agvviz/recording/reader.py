@@ -933,7 +933,7 @@ def decode(raw: RawMessage) -> object:
     return raw.data
 
 
-class _SkipCounter:
+class SkipCounter:
     """Aggregates skipped messages per (topic, schema): one report line each, not one per message."""
 
     def __init__(self):
@@ -973,7 +973,7 @@ def iter_messages(
     """
     own_report = report is None
     report = ReadReport() if own_report else report
-    skipped = _SkipCounter()
+    skipped = SkipCounter()
     try:
         for item in iter_raw(path, topics, report):
             if isinstance(item, RawMetadata):

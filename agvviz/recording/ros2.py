@@ -44,6 +44,7 @@ from agvviz.recording.reader import (
     PoseMsg,
     RawMessage,
     _cam_name,
+    _matrix_from_pose,
     calibration,
     raw_frame,
 )
@@ -90,22 +91,14 @@ def _stamp(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
-def _matrix(translation, rotation, what: str) -> np.ndarray:
-    t = np.array([translation.x, translation.y, translation.z], dtype=float)
-    q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=float)
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))) or np.linalg.norm(q) < 1e-9:
-        raise MessageDecodeError(f"{what}: translation/quaternion must be finite with a non-zero quaternion")
-    return se3.from_quaternion_xyzw(q, t)
-
-
 def _transform(tf) -> FrameTransformMsg:
     parent, child = frame_id(tf.header.frame_id), frame_id(tf.child_frame_id)
-    T = _matrix(tf.transform.translation, tf.transform.rotation, f"transform {parent}->{child}")
+    T = _matrix_from_pose(tf.transform.translation, tf.transform.rotation, f"transform {parent}->{child}")
     return FrameTransformMsg(parent, child, T, _stamp(tf.header))
 
 
 def _pose(header, pose, child: str = "") -> PoseMsg:
-    return PoseMsg(frame_id(header.frame_id), _matrix(pose.position, pose.orientation, "pose"),
+    return PoseMsg(frame_id(header.frame_id), _matrix_from_pose(pose.position, pose.orientation, "pose"),
                    _stamp(header), frame_id(child))
 
 

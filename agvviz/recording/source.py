@@ -36,6 +36,7 @@ from agvviz.recording.reader import (
     RawMetadata,
     ReadReport,
     RecordedMessage,
+    SkipCounter,
     decode,
 )
 from agvviz.recording.roles import (
@@ -241,31 +242,13 @@ def resolve_roles(
     return infer_roles(topics, topic_options or {}, fixed_origin="--topic")
 
 
-class _Skipped:
-    """Messages that did not decode, one line per (topic, problem kind)."""
-
-    def __init__(self):
-        self.entries: dict[str, list] = {}
-
-    def add(self, raw: RawMessage, error: Exception) -> None:
-        entry = self.entries.setdefault(raw.topic, [0, raw.log_time_ns, str(error), raw.schema_name])
-        entry[0] += 1
-
-    def lines(self) -> list[str]:
-        return [
-            f"{topic}: {count} message(s) skipped, payload invalid for {schema or 'its encoding'} "
-            f"(first at log time {first} ns: {error})"
-            for topic, (count, first, error, schema) in self.entries.items()
-        ]
-
-
 def iter_role_messages(
     recording: Recording,
     roles: RoleMap,
     time_source: str,
     report: ReadReport,
     images: bool = True,
-    skipped: _Skipped | None = None,
+    skipped: SkipCounter | None = None,
     raw: list | None = None,
 ) -> Iterator[RecordedMessage]:
     """Decoded messages that play a role, in file order, with ``role`` set and (``header``
@@ -278,7 +261,7 @@ def iter_role_messages(
     if not images:
         wanted -= roles.image_topics()
     own = skipped is None
-    skipped = skipped if skipped is not None else _Skipped()
+    skipped = skipped if skipped is not None else SkipCounter()
     try:
         source = recording.iter_raw(report, wanted) if raw is None else raw
         for item in source:
