@@ -30,11 +30,9 @@ from __future__ import annotations
 
 import hashlib
 
-import numpy as np
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
-from agvviz.geometry import se3
 from agvviz.recording.images import compressed_format
 from agvviz.recording.reader import (
     CalibrationMsg,
