@@ -420,3 +420,20 @@ def run_recording(
         read_report=read_report,
         timing=timing(scores, wall_time_s),
     )
+
+
+def detect_recording(
+    recording_path: Path,
+    settings: RunSettings,
+    *,
+    topics: dict[str, str] | None = None,
+    roles_file: Path | None = None,
+    side: SideInputs | None = None,
+    jobs: int | None = None,
+    cache_dir: Path | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> None:
+    """Run the detect stage over ``recording_path`` and store its output in the detection
+    cache, so later runs whose detection settings are equal
+    (:func:`agvviz.graph.detect.detection_settings`) only solve. Work in progress: no-op."""
+    return None

@@ -187,6 +187,15 @@ class RunSettings:
         "patterns' corners, each refined on its own with cornerSubPix)",
         ("vertices", "finder"),
     )
+    tracking: bool = setting(
+        True,
+        "between keyframes, follow each decoded code from its predicted corners by ECC template "
+        "alignment instead of searching the whole frame (falls back to full detection when a "
+        "check fails)",
+    )
+    keyframe_every: int = setting(
+        10, "tracking: full detection on every K-th frame of each camera (K)", min=1, max=10000
+    )
     sigma_px: str = setting(
         "auto",
         "pixel noise σ for covariances and the Cramér–Rao bound: auto (pooled residuals of the "
