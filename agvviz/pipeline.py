@@ -25,9 +25,16 @@ import numpy as np
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import PinholeCamera, euler, se3
 from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners
-from agvviz.markers.aruco import ArucoError, ArucoMap, detect_aruco, parse_aruco_map
+from agvviz.graph.detect import (
+    CodeDetection,
+    DetectParams,
+    FrameDetections,
+    FrameJob,
+    SegmentDetector,
+    camera_model,
+)
+from agvviz.markers.aruco import ArucoError, ArucoMap, parse_aruco_map
 from agvviz.markers.payload import PayloadError, parse_payload
-from agvviz.markers.qr import detect_qr_codes, finder_corners
 from agvviz.recording.contract import (
     IMAGE_FORMATS,
     REJECT_IMAGE,
@@ -44,7 +51,6 @@ from agvviz.recording.reader import (
     CompressedFrame,
     FrameTransformMsg,
     RecordedMessage,
-    image_size_problem,
 )
 from agvviz.recording.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
 from agvviz.results import (
@@ -78,7 +84,6 @@ class _Camera:
     calibration_problem: str = ""  # why the last calibration of this camera was refused
     T_agv_cam: np.ndarray | None = None  # T_body_cam (the body frame is a setting)
     T_world_cam: np.ndarray | None = None  # a camera fixed in the world (paper 003's wall cameras)
-    undistort_maps: tuple[np.ndarray, np.ndarray] | None = None
     calibration: CalibrationMsg | None = None  # the message ``camera`` came from
     extrinsic_problem: str = ""  # why neither extrinsic is known
 
@@ -162,6 +167,35 @@ class Replay:
             settings.solver, settings.objective, settings.ambiguity, settings.sigma_px_value,
             self._solver_options,
         )
+        #: per camera: the detect stage run in process, when :meth:`feed` is not given the
+        #: frame's detections (computed ahead by :mod:`agvviz.graph.detect_pool`)
+        self._detectors: dict[str, SegmentDetector] = {}
+
+    @property
+    def detect_params(self) -> DetectParams:
+        """The detect stage's parameters: the detection settings and the marker family."""
+        aruco = self.ctx.aruco_map
+        return DetectParams.of(self.settings, aruco.dictionary if aruco is not None else None)
+
+    def image_frame(self, message: RecordedMessage) -> CompressedFrame:
+        """The message's frame under the camera name of its role (the role map names cameras)."""
+        value = message.value
+        cam_role = camera_of_role(message.role)
+        if cam_role is not None and cam_role[0] != value.cam_name:
+            value = CompressedFrame(cam_role[0], value.frame_id, value.image_format, value.data,
+                                    value.stamp_ns, value.source_encoding)
+        return value
+
+    def detect_job(self, message: RecordedMessage) -> FrameJob | None:
+        """The detect stage's input for an image message, or None when its camera has no
+        calibration at its time (the frame is then rejected without a search). After
+        :meth:`prime`, the same for every message whatever was fed before it, which is what
+        lets :mod:`agvviz.graph.detect_pool` detect frames ahead of the replay."""
+        frame = self.image_frame(message)
+        calibration = self.sync.calibration_at(frame.cam_name, message.time_ns)
+        if calibration is None:
+            return None
+        return FrameJob(frame.cam_name, frame.image_format, frame.data, calibration)
 
     # -- message handling ---------------------------------------------------------------
     def set_side_inputs(
@@ -209,11 +243,20 @@ class Replay:
         except ArucoError as exc:
             self.ctx.aruco_map, self.ctx.marker_map_problem = None, str(exc)
 
-    def feed(self, message: RecordedMessage) -> FrameResult | None:
-        """Consume one message; returns a FrameResult for camera frames, else None."""
+    def feed(self, message: RecordedMessage, detections: FrameDetections | None = None) -> FrameResult | None:
+        """Consume one message; returns a FrameResult for camera frames, else None.
+
+        ``detections`` are the frame's detect-stage output when computed elsewhere (a worker
+        pool, the detection cache: :mod:`agvviz.graph.detect_pool`); without them the frame is
+        detected here, by the same code and with the same segments."""
         value = message.value
         is_image = isinstance(value, CompressedFrame)
         t_ns = message.time_ns
+        if is_image and detections is None:
+            job = self.detect_job(message)
+            if job is not None:
+                detector = self._detectors.setdefault(job.cam_name, SegmentDetector(self.detect_params))
+                detections = detector.detect(job)
         time_problem = self.time_checks.message(message.topic, t_ns, is_image, is_truth=message.role == ROLE_TRUTH)
         if not is_image:
             if not self.primed:
@@ -223,10 +266,7 @@ class Replay:
                 ):
                     self._update_all_cameras(t_ns)
             return None
-        cam_role = camera_of_role(message.role)
-        if cam_role is not None and cam_role[0] != value.cam_name:
-            value = CompressedFrame(cam_role[0], value.frame_id, value.image_format, value.data,
-                                    value.stamp_ns, value.source_encoding)
+        value = self.image_frame(message)
         # Frames of several cameras at one time stamp share one frame index; a second frame
         # of one camera (a repeated time stamp) gets its own.
         if self._last_frame_time_ns is not None and (
@@ -246,7 +286,7 @@ class Replay:
         odometry = self.sync.odometry_at(t_ns)
         if odometry is not None:
             self._diagnostics.odometry = odometry  # T_odom_agv at this frame, for ambiguity=odometry
-        result = self.process_frame(value, t_ns)
+        result = self.process_frame(value, t_ns, detections)
         if result.rejected is None:
             self.frames_solved += 1
             self.frames_scored += result.position_error_m is not None
@@ -297,7 +337,7 @@ class Replay:
         if calib is not cam.calibration:
             cam.calibration = calib
             if calib is None:
-                cam.camera, cam.undistort_maps = None, None
+                cam.camera = None
             else:
                 self._set_calibration(cam, calib)
         T_body_cam, T_world_cam, why = self.sync.extrinsic(cam_name, frame_id, t_ns)
@@ -306,23 +346,13 @@ class Replay:
         cam.T_agv_cam, cam.T_world_cam, cam.extrinsic_problem = T_body_cam, T_world_cam, why
 
     def _set_calibration(self, cam: _Camera, calib: CalibrationMsg) -> None:
-        cam.camera, cam.undistort_maps, cam.calibration_problem = None, None, ""
-        c = calib.camera
-        problem = image_size_problem(c.width_px, c.height_px)
-        if problem is None and c.has_distortion:
-            try:
-                cam.undistort_maps = cv2.initUndistortRectifyMap(
-                    c.K, c.dist, None, c.K, (c.width_px, c.height_px), cv2.CV_32FC2
-                )
-            except (cv2.error, MemoryError) as exc:
-                problem = f"undistortion maps could not be built ({str(exc).strip().splitlines()[-1]})"
-        if problem is not None:
-            cam.calibration_problem = f"calibration refused: {problem}"
-            return
-        cam.camera = c
+        model = camera_model(calib)  # shared with the detect stage
+        cam.camera, cam.calibration_problem = model.camera, model.problem
 
     # -- one frame ------------------------------------------------------------------------
-    def process_frame(self, frame: CompressedFrame, log_time_ns: int) -> FrameResult:
+    def process_frame(
+        self, frame: CompressedFrame, log_time_ns: int, detections: FrameDetections | None = None
+    ) -> FrameResult:
         t_start = time.perf_counter()
         result = FrameResult(
             index=self._frame_index,
@@ -338,9 +368,9 @@ class Replay:
                 euler.hpr_from_matrix(truth[:3, :3], self.settings.gimbal_threshold)
             )
         try:
-            self._solve_frame(frame, result)
+            self._solve_frame(frame, result, detections)
         finally:
-            result.total_s = time.perf_counter() - t_start
+            result.total_s = time.perf_counter() - t_start + (detections.detect_s if detections else 0.0)
         return result
 
     def _reject(self, result: FrameResult, reason: str, detail: str) -> FrameResult:
@@ -348,11 +378,14 @@ class Replay:
         result.reject_detail = detail
         return result
 
-    def _solve_frame(self, frame: CompressedFrame, result: FrameResult) -> FrameResult:
+    def _solve_frame(self, frame: CompressedFrame, result: FrameResult, detections: FrameDetections | None) -> FrameResult:
         cam = self.ctx.cameras.get(frame.cam_name)
-        if cam is None or cam.camera is None or (cam.T_agv_cam is None and cam.T_world_cam is None):
+        if (
+            cam is None or cam.camera is None or (cam.T_agv_cam is None and cam.T_world_cam is None)
+            or detections is None
+        ):
             missing = (
-                "calibration" if cam is None or cam.camera is None
+                "calibration" if cam is None or cam.camera is None or detections is None
                 else f"extrinsic ({self.sync.body_frame}→camera or {self.sync.world_frame}→camera)"
             )
             detail = (
@@ -364,56 +397,39 @@ class Replay:
             elif cam is not None and cam.camera is not None and cam.extrinsic_problem:
                 detail += f": {cam.extrinsic_problem}"
             return self._reject(result, REJECT_NO_CALIBRATION, detail)
-        camera = cam.camera
-        problem = frame_problem(frame.image_format, frame.data, camera)  # header only, no decode
-        if problem is not None:
-            if problem[0] == REJECT_IMAGE:
+        result.detect_s = detections.detect_s
+        if detections.reject is not None:
+            if detections.drop_image:
                 # Nothing a viewer should try to show (not jpeg/png, empty, or a header claiming
                 # a huge image): the bytes are dropped; the detail names the recorded format.
                 result.image_bytes = b""
                 result.image_format = frame.image_format if frame.image_format in IMAGE_FORMATS else "jpeg"
-            return self._reject(result, *problem)
-        t0 = time.perf_counter()
-        try:
-            gray = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_GRAYSCALE)
-        except cv2.error as exc:
-            gray, error = None, str(exc).strip().splitlines()[-1]
-        else:
-            error = ""
-        if gray is None:
-            result.detect_s = time.perf_counter() - t0
-            return self._reject(
-                result, REJECT_DECODE, f"{frame.image_format} frame does not decode" + (f" ({error})" if error else "")
-            )
-        problem = frame_problem(frame.image_format, frame.data, camera, size=(gray.shape[1], gray.shape[0]))
-        if problem is not None:
-            result.detect_s = time.perf_counter() - t0
-            return self._reject(result, *problem)
-        if cam.undistort_maps is not None:
-            gray = cv2.remap(gray, *cam.undistort_maps, interpolation=cv2.INTER_LINEAR)
+            return self._reject(result, *detections.reject)
+        camera = cam.camera
         if self.ctx.aruco_map is not None:
-            candidates, problems = self._aruco_candidates(gray, camera, result)
+            candidates, problems = self._aruco_candidates(detections.codes, camera, result)
         else:
-            candidates, problems = self._qr_candidates(gray, camera, result)
-        result.detect_s = time.perf_counter() - t0
+            candidates, problems = self._qr_candidates(detections.codes, camera, result)
         if not candidates:
             # The reason of a code that was read and refused outranks one that was not read.
             reason = min((r for r, _ in problems), key=lambda r: _REASON_RANK.get(r, len(_REASON_RANK)))
             return self._reject(result, reason, "; ".join(d for _, d in problems))
         return self._solve_candidates(cam, candidates, result)
 
-    def _aruco_candidates(self, gray: np.ndarray, camera: PinholeCamera, result: FrameResult):
-        """ArUco markers of the map found in ``gray``: (candidates, problems) as in
+    def _aruco_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameResult):
+        """ArUco markers of the map among the detected codes: (candidates, problems) as in
         :meth:`_qr_candidates`; a marker id the map does not list is a problem, not a pose."""
         aruco_map = self.ctx.aruco_map
         candidates, problems = [], []
-        for det in detect_aruco(gray, aruco_map.dictionary, refine=self.settings.refine):
-            marker = aruco_map.markers.get(det.marker_id)
+        for det in codes:
+            if det.kind != "aruco":
+                continue
+            marker = aruco_map.markers.get(det.aruco_id)
             if marker is None:
-                problems.append((REJECT_PAYLOAD, f"ArUco id {det.marker_id} is not in the marker map"))
+                problems.append((REJECT_PAYLOAD, f"ArUco id {det.aruco_id} is not in the marker map"))
                 continue
             observation = MarkerObservation(
-                marker_id=str(det.marker_id),
+                marker_id=str(det.aruco_id),
                 payload="",
                 corners_px=_ideal_to_image_px(camera, det.corners_px),
                 points_world_m=marker.corners_m,
@@ -425,20 +441,20 @@ class Replay:
             problems.append((REJECT_NO_MARKER, f"no {aruco_map.dictionary} marker found"))
         return candidates, problems
 
-    def _qr_candidates(self, gray: np.ndarray, camera: PinholeCamera, result: FrameResult):
-        """Decoded, parsed QR codes in ``gray``.
+    def _qr_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameResult):
+        """The detected QR codes whose payload parses and agrees with the marker map.
 
         Returns ``(candidates, problems)``: candidates are (observation, ideal corners px,
         marker-frame points, frame of the marker, ``T_frame_marker``); problems are
         (reject reason, detail) of every code that could not be used.
         """
-        detections = detect_qr_codes(gray, refine=self.settings.refine)
-        if not detections:
+        codes = [c for c in codes if c.kind == "qr"]
+        if not codes:
             return [], [(REJECT_NO_MARKER, "no QR code found")]
         candidates = []
         problems = []
-        for det in detections:
-            if det.text is None and det.payload_bytes is None:
+        for det in codes:
+            if not det.decoded:
                 problems.append((REJECT_DECODE, "a QR code was found but not decoded"))
                 continue
             try:
@@ -460,12 +476,11 @@ class Replay:
             # The 4 vertices are measured in the image; edge midpoints (if the payload carries
             # them) have no image measurement of their own (a point of the fitted homography
             # adds no information). feature_points=finder adds the finder-pattern corners,
-            # each measured on its own (agvviz.markers.qr.finder_corners).
+            # each measured on its own by the detect stage (agvviz.markers.qr.finder_corners).
             ideal_px, points_m = det.corners_px, points_marker_m[:4]
-            if self.settings.feature_points == "finder" and det.n_modules is not None:
-                finder_px, finder_modules = finder_corners(gray, det.corners_px, det.n_modules)
-                ideal_px = np.vstack([ideal_px, finder_px])
-                points_m = np.vstack([points_m, _module_to_marker(finder_modules, det.n_modules, points_m)])
+            if det.finder_px is not None:
+                ideal_px = np.vstack([ideal_px, det.finder_px])
+                points_m = np.vstack([points_m, _module_to_marker(det.finder_modules, det.n_modules, points_m)])
             observation = MarkerObservation(
                 marker_id=payload.marker_id,
                 payload=det.text,

@@ -15,10 +15,12 @@ from typing import Callable
 import numpy as np
 
 from agvviz import __version__
-from agvviz.errors import InputError, RecordingError, RunError
+from agvviz.errors import InputError, OutputError, RecordingError, RunError
 from agvviz.evaluation.summary import FrameScore, summarize, timing
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.fusion_replay import FrameSetResult, FusionReplay
+from agvviz.graph import detect_cache
+from agvviz.graph.detect_pool import DetectionFeed, default_jobs
 from agvviz.pipeline import Replay
 from agvviz.conventions import camera_frame
 from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
@@ -241,6 +243,87 @@ def _unusable_run_error(recording: Recording, rejections: dict[str, list], cause
     )
 
 
+@dataclass
+class DetectionPlan:
+    """The detect stage of one run: its feed (pool or cache) and where its output is stored."""
+
+    feed: DetectionFeed
+    cache_path: Path | None
+    from_cache: bool
+    problems: list[str] = field(default_factory=list)
+
+    def store(self, read_report: ReadReport) -> None:
+        """Store a complete, undamaged detection pass in the cache (a failure to write it is a
+        warning: the run itself is fine)."""
+        if self.from_cache or self.cache_path is None or read_report.problems or not self.feed.frames:
+            return
+        try:
+            detect_cache.save(self.cache_path, self.feed.frames)
+        except OSError as exc:
+            self.problems.append(f"the detection cache could not be written ({exc.strerror or exc}): {self.cache_path}")
+
+    def summary(self) -> dict:
+        """What the detect stage did (the same whether detected now or read from the cache)."""
+        params = self.feed.params
+        return {
+            "tracking": params.tracking and params.aruco_dictionary is None,
+            "keyframe_every": params.keyframe_every,
+            "keyframes": self.feed.keyframes,
+            "tracked_frames": self.feed.tracked_frames,
+        }
+
+    def timing(self) -> dict:
+        """Not stored in the ``.rrd``: where detections came from and on how many workers."""
+        return {
+            "detection_source": "cache" if self.from_cache else "detected",
+            "detect_workers": 0 if self.from_cache else self.feed.jobs,
+        }
+
+    def warnings(self) -> list[str]:
+        return list(self.problems) + ([self.feed.cache_mismatch] if self.feed.cache_mismatch else [])
+
+
+def _detection_inputs(prepared: "Prepared", side: SideInputs | None) -> dict:
+    """Everything besides the recording's bytes and the detect parameters that decides which
+    frames are detected with which calibration (the cache key's inputs)."""
+    side = side or SideInputs()
+    calibrations = {}
+    for cam, calib in sorted(side.calibrations.items()):
+        c = calib.camera
+        calibrations[cam] = [c.width_px, c.height_px, np.asarray(c.K, float).tolist(), np.asarray(c.dist, float).tolist()]
+    return {
+        "images": {cam: prepared.roles.roles[image_role(cam)] for cam in prepared.roles.cameras()},
+        "calibration_roles": {
+            cam: prepared.roles.roles.get(calibration_role(cam)) for cam in prepared.roles.cameras()
+        },
+        "time_source": prepared.time_source,
+        "side_calibrations": calibrations,
+    }
+
+
+def _detection_feed(
+    prepared: "Prepared", recording_sha256: str, side: SideInputs | None, jobs: int | None,
+    cache_dir: Path | None | bool,
+) -> DetectionPlan:
+    params = prepared.replay.detect_params
+    cache_path = None
+    cached = None
+    if cache_dir is not False:
+        folder = Path(cache_dir) if cache_dir not in (None, True) else detect_cache.default_cache_dir()
+        cache_path = detect_cache.entry_path(
+            folder, recording_sha256, detect_cache.cache_key(params, _detection_inputs(prepared, side))
+        )
+        cached = detect_cache.load(cache_path)
+    # Worker processes take a while to start: not worth it for a few segments of work.
+    frames = sum(prepared.scan.topics[prepared.roles.roles[image_role(c)]].count for c in prepared.roles.cameras())
+    workers = min(jobs or default_jobs(), max(1, frames // (2 * params.segment_frames)))
+    feed = DetectionFeed(
+        params, prepared.replay.detect_job, jobs=workers, cached=cached,
+        keep=cache_path is not None and cached is None,
+    )
+    return DetectionPlan(feed, cache_path, cached is not None)
+
+
 def run_recording(
     recording_path: Path,
     settings: RunSettings,
@@ -251,6 +334,8 @@ def run_recording(
     roles_file: Path | None = None,
     side: SideInputs | None = None,
     on_total: Callable[[int], None] | None = None,
+    jobs: int | None = None,
+    cache_dir: Path | None | bool = None,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -261,6 +346,10 @@ def run_recording(
     run summary and manifest (both also stored in the ``.rrd``) and the wall-clock timing
     (not stored). Raises :class:`RunError` — and writes nothing — when the recording has no
     camera image or none of its frames can be used, one line per cause.
+
+    ``jobs`` detection worker processes (default: one per CPU; 1 = detect in this process);
+    ``cache_dir`` the detection cache folder (None: :func:`agvviz.graph.detect_cache.default_cache_dir`,
+    False: no cache). Neither changes the run's results.
     """
     recording_path = Path(recording_path)
     if not recording_path.exists():
@@ -307,6 +396,7 @@ def run_recording(
     }
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    detection = _detection_feed(prepared, recording_sha256, side, jobs, cache_dir)
     scores: list[FrameScore] = []
     rejections: dict[str, list] = {}  # reason -> [count, first detail]
 
@@ -367,9 +457,7 @@ def run_recording(
                 fusion_stats.add(item)
 
         log_cameras()
-        t_start = time.perf_counter()
-        for message in iter_role_messages(recording, roles, prepared.time_source, read_report):
-            frame = replay.feed(message)
+        def after_frame(frame, message) -> None:
             if frame is not None and frame.rejected == REJECT_TIME:
                 # A frame that cannot be placed in time (repeated or reversed time stamp) is
                 # logged and counted on its own, never grouped with the frames of its time stamp.
@@ -387,6 +475,13 @@ def run_recording(
                 for step in correction.feed(message, frame):
                     correction_logger.log(step)
                     correction_stats.add(step)
+
+        t_start = time.perf_counter()
+        with detection.feed as feed:
+            for message, detections in feed.annotate(
+                iter_role_messages(recording, roles, prepared.time_source, read_report)
+            ):
+                after_frame(replay.feed(message, detections), message)
         for item in fusion.finish():
             log_item(item)
         if correction is not None:
@@ -411,14 +506,16 @@ def run_recording(
             summary["correction"] = {"solver": settings.correction, **correction_stats.summary()}
             logger.blueprint = correction_blueprint(sorted(replay.ctx.cameras))
         summary["recording_damage"] = list(read_report.problems)
-        summary["warnings"] = run_warnings(replay.warnings() + prepared.causes, read_report)
+        detection.store(read_report)
+        summary["detection"] = detection.summary()
+        summary["warnings"] = run_warnings(replay.warnings() + prepared.causes + detection.warnings(), read_report)
         logger.log_summary(summary)
     return RunOutcome(
         out_path=out_path,
         summary=summary,
         manifest=manifest,
         read_report=read_report,
-        timing=timing(scores, wall_time_s),
+        timing={**timing(scores, wall_time_s), **detection.timing()},
     )
 
 
@@ -432,8 +529,34 @@ def detect_recording(
     jobs: int | None = None,
     cache_dir: Path | None = None,
     progress: Callable[[int], None] | None = None,
-) -> None:
+) -> dict:
     """Run the detect stage over ``recording_path`` and store its output in the detection
-    cache, so later runs whose detection settings are equal
-    (:func:`agvviz.graph.detect.detection_settings`) only solve. Work in progress: no-op."""
-    return None
+    cache (``cache_dir``, default :func:`agvviz.graph.detect_cache.default_cache_dir`), so that
+    every later run whose detection settings are equal
+    (:func:`agvviz.graph.detect.detection_settings`) only solves. A no-op when the cache holds
+    them already. Returns ``{"source": "cache" | "detected", "frames": n, "cache": path}``;
+    raises like :func:`run_recording` on a recording it cannot read."""
+    recording_path = Path(recording_path)
+    if not recording_path.exists():
+        raise RecordingError(
+            f"{recording_path}: no such file or directory; give an .mcap recording or a rosbag2 directory"
+        )
+    prepared = prepare(recording_path, settings, topics, roles_file, side)
+    if not prepared.can_run:
+        raise _unusable_run_error(prepared.recording, {}, prepared.causes)
+    plan = _detection_feed(prepared, prepared.recording.sha256(), side, jobs, cache_dir if cache_dir is not None else None)
+    if plan.from_cache:
+        return {"source": "cache", "frames": len(plan.feed.cached), "cache": str(plan.cache_path)}
+    read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    frames = 0
+    with plan.feed as feed:
+        stream = iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, read_report)
+        for _, detections in feed.annotate(stream):
+            if detections is not None:
+                frames += 1
+                if progress is not None:
+                    progress(frames)
+    plan.store(read_report)
+    if plan.problems:
+        raise OutputError(plan.problems[0])
+    return {"source": "detected", "frames": frames, "cache": str(plan.cache_path)}

@@ -188,7 +188,7 @@ class RunSettings:
         ("vertices", "finder"),
     )
     tracking: bool = setting(
-        True,
+        False,
         "between keyframes, follow each decoded code from its predicted corners by ECC template "
         "alignment instead of searching the whole frame (falls back to full detection when a "
         "check fails)",

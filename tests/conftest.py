@@ -22,3 +22,22 @@ def pytest_collection_modifyitems(config, items):
     if drop:
         config.hook.pytest_deselected(items=drop)
         items[:] = keep
+
+
+import pytest
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _detection_cache_in_tmp(tmp_path_factory):
+    """Runs store detections in a cache folder (agvviz.graph.detect_cache): the suite's go to a
+    temporary folder, never the user's ~/.cache (subprocesses inherit the variable)."""
+    import os
+
+    folder = tmp_path_factory.mktemp("detection-cache")
+    old = os.environ.get("AGVVIZ_CACHE_DIR")
+    os.environ["AGVVIZ_CACHE_DIR"] = str(folder)
+    yield folder
+    if old is None:
+        os.environ.pop("AGVVIZ_CACHE_DIR", None)
+    else:
+        os.environ["AGVVIZ_CACHE_DIR"] = old

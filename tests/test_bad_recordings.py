@@ -228,9 +228,9 @@ def test_non_utf8_payload_bytes_are_refused_by_the_pipeline(monkeypatch):
     assert raw.text is None
     detection = qr._refine(gray, raw, "none")
     assert detection.text is None and detection.payload_bytes == raw.data
-    monkeypatch.setattr("agvviz.pipeline.detect_qr_codes", lambda *a, **k: [detection])
+    monkeypatch.setattr("agvviz.markers.qr.detect_qr_codes", lambda *a, **k: [detection])
     camera = PinholeCamera(np.array([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]]), np.zeros(5), 64, 64)
-    engine = Replay(RunSettings())
+    engine = Replay(RunSettings(tracking=False))  # the detect stage calls detect_qr_codes itself
     engine.feed(RecordedMessage("/cam/front/calibration", 0, "", CalibrationMsg("front", "cam_front", camera, "")))
     engine.feed(RecordedMessage("/tf_static", 0, "", [FrameTransformMsg("agv", "cam_front", np.eye(4))]))
     png = cv2.imencode(".png", gray)[1].tobytes()

@@ -1,7 +1,36 @@
-"""Detect stage: camera frame → marker corners, ids and payloads (no pose). Work in progress."""
+"""Detect stage: one camera frame → its markers' corners, ids and payloads (no pose).
+
+A frame is detected from its recorded bytes and its camera's calibration only: the header is
+checked (:func:`agvviz.recording.contract.frame_problem`), the image decoded, checked against
+the calibration's size and undistorted, then QR codes (zxing-cpp, ECC-refined corners,
+:mod:`agvviz.markers.qr`) or the map's ArUco markers are found. What a code *means* (its
+payload parsed, its place in the marker map) is the solve stage's business, so detections do
+not depend on the marker map's contents — only on its ArUco dictionary, when it names one.
+
+Tracking (setting ``tracking``): the frames of each camera are cut into *segments* of
+``keyframe_every`` consecutive frames (by the camera's own frame count: frames 0..K-1, K..2K-1,
+…). The first frame of a segment is a keyframe (full detection); the others follow the codes
+found so far (:class:`agvviz.markers.tracking.CodeTracker`), falling back to full detection
+when a check fails. A segment is the unit of work of a detection worker, so detections are the
+same whatever the number of workers, the window of frames in flight or the cache
+(:mod:`agvviz.graph.detect_cache`) — and runs of equal settings write equal ``.rrd`` files.
+
+Everything here is pure (no I/O beyond the bytes given, no Rerun, no printing) and picklable,
+so :mod:`agvviz.graph.detect_pool` can run it in worker processes.
+"""
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from agvviz.geometry import PinholeCamera
+from agvviz.recording.contract import REJECT_IMAGE, frame_problem
+from agvviz.recording.reader import CalibrationMsg, image_size_problem
+from agvviz.results import REJECT_DECODE
 from agvviz.settings import RunSettings
 
 #: The run settings that change what the detect stage outputs; every other setting (solver,
@@ -12,3 +41,213 @@ DETECTION_SETTINGS = ("refine", "feature_points", "tracking", "keyframe_every")
 def detection_settings(settings: RunSettings) -> dict:
     """The detection-relevant part of ``settings`` (equal dicts ⇒ equal detections)."""
     return {name: getattr(settings, name) for name in DETECTION_SETTINGS}
+
+
+@dataclass(frozen=True)
+class DetectParams:
+    """What detection depends on besides the frame: the detection settings and the marker
+    family (``aruco_dictionary`` of the marker map, or None for QR codes)."""
+
+    refine: str = "ecc"
+    feature_points: str = "vertices"
+    tracking: bool = True
+    keyframe_every: int = 10
+    aruco_dictionary: str | None = None
+
+    @classmethod
+    def of(cls, settings: RunSettings, aruco_dictionary: str | None) -> "DetectParams":
+        return cls(**detection_settings(settings), aruco_dictionary=aruco_dictionary)
+
+    @property
+    def segment_frames(self) -> int:
+        """Frames per unit of work: a tracking segment, else a small batch (results do not
+        depend on the batch when every frame is a keyframe)."""
+        return self.keyframe_every if self.tracking and self.aruco_dictionary is None else 4
+
+
+@dataclass(frozen=True)
+class CodeDetection:
+    """One marker found in one frame, in the *undistorted* (ideal) image's pixels.
+
+    ``kind`` is ``"qr"`` (``text`` or ``payload_bytes`` carry the payload) or ``"aruco"``
+    (``aruco_id``). ``corners_px`` (4, 2) are the refined symbol corners TL, TR, BR, BL;
+    ``finder_px`` / ``finder_modules`` (M, 2) the finder patterns' corners measured on their own
+    (setting ``feature_points=finder``) and their module coordinates.
+    """
+
+    kind: str
+    corners_px: np.ndarray
+    raw_corners_px: np.ndarray
+    text: str | None = None
+    payload_bytes: bytes | None = None
+    aruco_id: int | None = None
+    n_modules: int | None = None
+    finder_px: np.ndarray | None = None
+    finder_modules: np.ndarray | None = None
+    refine_method: str = ""
+    refine_note: str = ""
+
+    @property
+    def decoded(self) -> bool:
+        return self.kind == "aruco" or self.text is not None or self.payload_bytes is not None
+
+
+@dataclass(frozen=True)
+class FrameDetections:
+    """The detect stage's output for one frame.
+
+    ``reject`` is ``(reason, detail)`` when the frame itself could not be searched (an invalid
+    or undecodable image, a size that is not the calibration's); ``drop_image`` then says the
+    bytes are nothing a viewer should try to show. ``keyframe`` is False for a frame whose codes
+    were tracked (``tracked`` of them); ``note`` says why tracking fell back, if it did.
+    """
+
+    codes: tuple[CodeDetection, ...] = ()
+    reject: tuple[str, str] | None = None
+    drop_image: bool = False
+    detect_s: float = 0.0
+    keyframe: bool = True
+    tracked: int = 0
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """One frame to detect: its camera's calibration and its recorded bytes."""
+
+    cam_name: str
+    image_format: str
+    data: bytes
+    calibration: CalibrationMsg
+
+
+@dataclass
+class CameraModel:
+    """A calibration made usable: the camera, its undistortion maps, or why it was refused."""
+
+    camera: PinholeCamera | None
+    undistort_maps: tuple[np.ndarray, np.ndarray] | None = None
+    problem: str = ""
+
+
+def camera_model(calibration: CalibrationMsg) -> CameraModel:
+    """The camera of ``calibration`` with its undistortion maps (when it has distortion), or a
+    refusal (an absurd image size, maps that cannot be built). Cached per calibration value
+    (the maps of a 1280×1024 camera are 10 MB and take ≈20 ms to build)."""
+    c = calibration.camera
+    key = (c.width_px, c.height_px, np.asarray(c.K, float).tobytes(), np.asarray(c.dist, float).tobytes())
+    model = _CAMERA_MODELS.get(key)
+    if model is None:
+        if len(_CAMERA_MODELS) >= 8:
+            _CAMERA_MODELS.clear()
+        model = _CAMERA_MODELS[key] = _build_camera_model(c)
+    return model
+
+
+_CAMERA_MODELS: dict[tuple, CameraModel] = {}
+
+
+def _build_camera_model(camera: PinholeCamera) -> CameraModel:
+    problem = image_size_problem(camera.width_px, camera.height_px)
+    maps = None
+    if problem is None and camera.has_distortion:
+        try:
+            maps = cv2.initUndistortRectifyMap(
+                camera.K, camera.dist, None, camera.K, (camera.width_px, camera.height_px), cv2.CV_32FC2
+            )
+        except (cv2.error, MemoryError) as exc:
+            problem = f"undistortion maps could not be built ({str(exc).strip().splitlines()[-1]})"
+    if problem is not None:
+        return CameraModel(None, None, f"calibration refused: {problem}")
+    return CameraModel(camera, maps)
+
+
+def _decode(job: FrameJob, model: CameraModel) -> tuple[np.ndarray | None, tuple[str, str] | None, bool]:
+    """(undistorted gray image, rejection, drop the bytes)."""
+    problem = frame_problem(job.image_format, job.data, model.camera)  # header only, no decode
+    if problem is not None:
+        return None, problem, problem[0] == REJECT_IMAGE
+    try:
+        gray = cv2.imdecode(np.frombuffer(job.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    except cv2.error as exc:
+        gray, error = None, str(exc).strip().splitlines()[-1]
+    else:
+        error = ""
+    if gray is None:
+        return None, (REJECT_DECODE, f"{job.image_format} frame does not decode" + (f" ({error})" if error else "")), False
+    problem = frame_problem(job.image_format, job.data, model.camera, size=(gray.shape[1], gray.shape[0]))
+    if problem is not None:
+        return None, problem, problem[0] == REJECT_IMAGE
+    if model.undistort_maps is not None:
+        gray = cv2.remap(gray, *model.undistort_maps, interpolation=cv2.INTER_LINEAR)
+    return gray, None, False
+
+
+def _qr_code(gray: np.ndarray, det, params: DetectParams) -> CodeDetection:
+    from agvviz.markers.qr import finder_corners
+
+    finder_px = finder_modules = None
+    if params.feature_points == "finder" and det.n_modules is not None and det.text is not None:
+        finder_px, finder_modules = finder_corners(gray, det.corners_px, det.n_modules)
+    return CodeDetection(
+        kind="qr", corners_px=det.corners_px, raw_corners_px=det.raw_corners_px, text=det.text,
+        payload_bytes=det.payload_bytes, n_modules=det.n_modules, finder_px=finder_px,
+        finder_modules=finder_modules, refine_method=det.refine_method, refine_note=det.refine_note,
+    )
+
+
+@dataclass
+class SegmentDetector:
+    """Detects the consecutive frames of one camera in order; tracking state lives here and
+    restarts every ``params.segment_frames`` frames (a new segment starts with a keyframe).
+    Used whole by a worker for one segment, or fed frame by frame by an in-process replay."""
+
+    params: DetectParams
+    _tracker: object | None = field(default=None, repr=False)
+    _frames: int = 0
+
+    def detect(self, job: FrameJob) -> FrameDetections:
+        t0 = time.perf_counter()
+        if self._frames % self.params.segment_frames == 0:
+            self._tracker = None  # a new segment: its first frame is a keyframe
+        position = self._frames % self.params.segment_frames
+        self._frames += 1
+        model = camera_model(job.calibration)
+        if model.camera is None:
+            return FrameDetections(reject=None, detect_s=time.perf_counter() - t0, note=model.problem)
+        gray, reject, drop = _decode(job, model)
+        if gray is None:
+            return FrameDetections(reject=reject, drop_image=drop, detect_s=time.perf_counter() - t0)
+        params = self.params
+        keyframe, tracked, note = True, 0, ""
+        if params.aruco_dictionary is not None:
+            from agvviz.markers.aruco import detect_aruco
+
+            codes = tuple(
+                CodeDetection(
+                    kind="aruco", corners_px=d.corners_px, raw_corners_px=d.raw_corners_px, aruco_id=d.marker_id,
+                    refine_method=d.refine_method, refine_note=d.refine_note,
+                )
+                for d in detect_aruco(gray, params.aruco_dictionary, refine=params.refine)
+            )
+        elif params.tracking:
+            if self._tracker is None:
+                from agvviz.markers.tracking import CodeTracker
+
+                self._tracker = CodeTracker(refine=params.refine, keyframe_every=params.segment_frames)
+            outcome = self._tracker.detect(gray, position)
+            keyframe, tracked, note = outcome.keyframe, outcome.tracked, outcome.fallback_reason
+            codes = tuple(_qr_code(gray, d, params) for d in outcome.detections)
+        else:
+            from agvviz.markers.qr import detect_qr_codes
+
+            codes = tuple(_qr_code(gray, d, params) for d in detect_qr_codes(gray, refine=params.refine))
+        return FrameDetections(
+            codes=codes, detect_s=time.perf_counter() - t0, keyframe=keyframe, tracked=tracked, note=note
+        )
+
+
+def detect_segment(params: DetectParams, jobs: list[FrameJob]) -> list[FrameDetections]:
+    """Detections of one segment (consecutive frames of one camera, the first a keyframe)."""
+    detector = SegmentDetector(params)
+    return [detector.detect(job) for job in jobs]
