@@ -35,7 +35,9 @@ from agvviz.recording.source import Recording, Scan, iter_role_messages, open_re
 from agvviz.recording.topics import ROLE_CORNERS, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.results import REJECT_NO_CALIBRATION
 from agvviz.settings import RunSettings, as_dict
+from agvviz.graph.trials import is_trials_recording, replay_trials, trials_timing
 from agvviz.viz.run_logger import RunLogger
+from agvviz.viz.trials_logger import log_trials, trials_blueprint
 from agvviz.viz.uwb_blueprint import uwb_blueprint
 from agvviz.viz.uwb_logger import FusionLogger
 from agvviz.correction import CorrectionReplay, CorrectionSettings, CorrectionStats
@@ -324,6 +326,35 @@ def _detection_feed(
     return DetectionPlan(feed, cache_path, cached is not None)
 
 
+def _run_trials(
+    prepared: Prepared, settings: RunSettings, out_path: Path, inputs: list[Path], manifest: dict,
+    recording_id: str, progress: Callable[[int], None] | None, on_total: Callable[[int], None] | None,
+) -> RunOutcome:
+    """Run a Monte-Carlo study recording (:func:`agvviz.graph.trials.is_trials_recording`): every
+    trial solved by every study solver, the error series and report logged beside the manifest
+    and summary. ``progress(trials_done)`` after each cell, ``on_total(trials)`` once."""
+    if on_total is not None:
+        on_total(prepared.scan.topics[prepared.roles.roles[ROLE_CORNERS]].count)
+    read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    t_start = time.perf_counter()
+    with RunLogger(out_path, recording_name=manifest["recording_name"], recording_id=recording_id, inputs=inputs) as logger:
+        logger.log_manifest(manifest)
+        messages = iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, read_report)
+        trials = replay_trials(messages, settings, progress=progress)
+        log_trials(logger.stream, trials)
+        summary = {
+            **trials.summary,
+            "recording_damage": list(read_report.problems),
+            "warnings": run_warnings(list(trials.warnings), read_report),
+        }
+        logger.blueprint = trials_blueprint(trials)
+        logger.log_summary(summary)
+    return RunOutcome(
+        out_path=out_path, summary=summary, manifest=manifest, read_report=read_report,
+        timing=trials_timing(trials, time.perf_counter() - t_start),
+    )
+
+
 def run_recording(
     recording_path: Path,
     settings: RunSettings,
@@ -369,6 +400,12 @@ def run_recording(
     recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
     if not prepared.can_run:
         raise _unusable_run_error(recording, {}, prepared.causes)
+    corners_only = not roles.cameras() and ROLE_CORNERS in roles.roles and ROLE_UWB_RANGE not in roles.roles
+    if corners_only and settings.correction == "none" and not is_trials_recording(recording.scenario, roles):
+        raise InputError(
+            f"{recording.path.name} holds corner observations and no camera images: only the multi-frame "
+            "correction replays them; give --set correction=cnoem (or correction=bundle)"
+        )
     if on_total is not None:
         on_total(max((prepared.scan.topics[roles.roles[image_role(c)]].count for c in roles.cameras()), default=0))
 
@@ -394,6 +431,9 @@ def run_recording(
         "time_source": prepared.time_source,
         "side_files": (side or SideInputs()).describe(),
     }
+
+    if is_trials_recording(scenario, roles):  # a Monte-Carlo study: the trials stage, not the camera replay
+        return _run_trials(prepared, settings, out_path, inputs, manifest, recording_id, progress, on_total)
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     detection = _detection_feed(prepared, recording_sha256, side, jobs, cache_dir)
@@ -497,7 +537,8 @@ def run_recording(
             )
         if scores and all(s.rejected in UNUSABLE_REJECTIONS for s in scores):
             raise _unusable_run_error(recording, rejections, prepared.causes)
-        summary = summarize(scores)
+        # A corner-only correction run has no camera frames: no frame statistics to claim.
+        summary = summarize(scores) if scores or correction is None else {}
         if fusion.has_uwb:
             summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **fusion_stats.summary()}
             fixed = {name for name, cam in replay.ctx.cameras.items() if cam.T_agv_cam is None}

@@ -25,6 +25,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from agvviz.evaluation import cnoem_study as cs  # noqa: E402
+from agvviz.geometry import se3  # noqa: E402
 from agvviz.sim import auv  # noqa: E402
 from agvviz.solvers import cnoem  # noqa: E402
 from agvviz.viz.cnoem_report import write_report_rrd  # noqa: E402
@@ -111,7 +112,7 @@ def timing_section(seed: int) -> tuple[list[str], dict]:
 
     def jacobian_iteration():
         r, J = cnoem.ray_residuals_and_jacobian(window, T)
-        return cnoem._se3_exp(np.linalg.solve(J.T @ J, -(J.T @ r))) @ T
+        return se3.exp(np.linalg.solve(J.T @ J, -(J.T @ r))) @ T
 
     per_ms = best_ms(lambda: cnoem.gauss_newton_step(window, T), 2000)
     jac_ms = best_ms(jacobian_iteration, 500)

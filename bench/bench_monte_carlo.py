@@ -1,5 +1,6 @@
 """Paper 000 §6 Monte-Carlo study: record p4p_monte_carlo, solve every trial with p4p, lm,
-lm_pixel, lm_amb, ippe and sqpnp (agvviz.evaluation.monte_carlo), and write the report (markdown table + .rrd with the plots).
+lm_pixel, lm_amb, ippe and sqpnp through the library's trials stage (agvviz.graph.trials, the same
+as `agvviz run` on the recording), and write the report (markdown table + .rrd with the plots).
 
 Usage:  python bench/bench_monte_carlo.py [--trials 1000] [--cells all] [--seed 0] [--out DIR]
 
@@ -15,8 +16,9 @@ import time
 from pathlib import Path
 
 from agvviz import scenario_registry
-from agvviz.evaluation.monte_carlo import SOLVERS, checks, collect, evaluate_cell, report_markdown
+from agvviz.graph.trials import replay_trials
 from agvviz.recording.reader import iter_messages
+from agvviz.settings import RunSettings
 from agvviz.viz.monte_carlo_report import write_report_rrd
 
 
@@ -35,16 +37,17 @@ def main() -> None:
     )
     print(f"recorded {recording} in {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()
-    K, cells = collect(iter_messages(recording))
-    results = {cell_id: evaluate_cell(cell, K) for cell_id, cell in cells.items()}
-    print(f"solved {len(cells)} cells × {args.trials} trials × {len(SOLVERS)} solvers in {time.perf_counter() - t0:.1f} s")
-    report = report_markdown(results, args.trials)
+    outcome = replay_trials(iter_messages(recording), RunSettings())
+    print(
+        f"solved {len(outcome.results)} cells × {outcome.trials_per_cell} trials × {len(outcome.solvers)} solvers "
+        f"in {time.perf_counter() - t0:.1f} s"
+    )
     md_path = args.out / "p4p_monte_carlo_report.md"
     tmp = md_path.with_name(f".{md_path.name}.tmp")
-    tmp.write_text(report)
+    tmp.write_text(outcome.report_markdown)
     os.replace(tmp, md_path)
-    write_report_rrd(args.out / "p4p_monte_carlo_report.rrd", results, report)
-    summary = checks(results)
+    write_report_rrd(md_path.with_suffix(".rrd"), outcome.results, outcome.report_markdown)
+    summary = outcome.checks
     print(f"report: {md_path} and {md_path.with_suffix('.rrd')}")
     print(f"well-conditioned cells: {summary['well_conditioned_cells']}; max RMSE/CRLB: {summary['max_rmse_over_crlb']}")
     for name, worse in summary["worse_than_peer"].items():

@@ -22,6 +22,7 @@ from typing import Iterable
 
 import numpy as np
 
+from agvviz.errors import RecordingError
 from agvviz.recording.reader import CalibrationMsg, RecordedMessage
 from agvviz.solvers import SolverOptions, solve
 from agvviz.solvers import uncertainty
@@ -33,7 +34,7 @@ SOLVERS = ("p4p", "lm", "lm_pixel", "lm_amb", "ippe", "sqpnp")
 #: valley for 50–100 Gauss–Newton steps before the default stopping rule fires; the study
 #: measures accuracy, so they get room (the run setting lm_max_iterations defaults to 50).
 MC_LM_MAX_ITERATIONS = 200
-from agvviz.recording.topics import CORNERS_TOPIC  # noqa: E402
+from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS  # noqa: E402
 
 #: Paper 000 §6 figures with numbers: figure → (cell id, solver, mean t (m), variance of t (m²)).
 #: Figures 9–11 (the SNR sweep of t1, t2, t3) are plots without numbers in the text; their cells
@@ -88,31 +89,51 @@ class CellResult:
     crlb_t_m: float  # sqrt(trace) of the CRLB position block
     crlb_var_t_m2: np.ndarray  # (3,) diagonal of the CRLB position block
     stats: dict[str, SolverStats]
+    #: solver → (trials,) ‖t̂ − t‖ of every trial in recording order (m), NaN where it failed.
+    errors_t_m: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def collect(messages: Iterable[RecordedMessage]) -> tuple[np.ndarray, dict[str, CellTrials]]:
-    """(K, cells) from a p4p_monte_carlo recording's messages (file order)."""
+    """(K, cells) from a p4p_monte_carlo recording's messages (file order): the calibration and
+    every corner-observation message (role ``corners``) that carries a ``cell``. Raises
+    :class:`RecordingError` when either is missing or a trial message is malformed."""
     K = None
     cells: dict[str, CellTrials] = {}
     for message in messages:
         value = message.value
         if isinstance(value, CalibrationMsg):
             K = value.camera.K
-        elif message.topic == CORNERS_TOPIC and isinstance(value, dict) and "cell" in value:
-            marker = value["markers"][0]
-            cell = cells.get(value["cell"])
-            if cell is None:
-                cell = cells[value["cell"]] = CellTrials(
-                    value["cell"],
-                    np.asarray(marker["points_marker_m"], dtype=float),
-                    np.asarray(marker["T_cam_marker_truth"], dtype=float),
-                    float(value["noise_sigma_px"]),
-                )
-            cell.pixels_px.append(marker["corners_px"])
+        elif message.role == ROLE_CORNERS and isinstance(value, dict) and "cell" in value:
+            try:
+                marker = value["markers"][0]
+                cell = cells.get(str(value["cell"]))
+                if cell is None:
+                    cell = cells[str(value["cell"])] = CellTrials(
+                        str(value["cell"]),
+                        np.asarray(marker["points_marker_m"], dtype=float),
+                        np.asarray(marker["T_cam_marker_truth"], dtype=float),
+                        float(value["noise_sigma_px"]),
+                    )
+                corners_px = np.asarray(marker["corners_px"], dtype=float)
+                n_points = len(cell.points_marker_m)
+                if n_points < 4 or cell.points_marker_m.shape != (n_points, 3) or cell.T_cam_marker_truth.shape != (4, 4):
+                    raise ValueError("points_marker_m must be (N ≥ 4, 3) and T_cam_marker_truth (4, 4)")
+                if not (cell.sigma_px > 0 and np.isfinite(cell.sigma_px)):
+                    raise ValueError(f"noise_sigma_px must be a positive number, got {cell.sigma_px}")
+                if corners_px.shape != (n_points, 2):
+                    raise ValueError(f"corners_px has shape {corners_px.shape}, the cell's points need ({n_points}, 2)")
+            except (KeyError, IndexError, TypeError, ValueError) as exc:
+                detail = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+                raise RecordingError(
+                    f"{message.topic} message at {message.time_ns} ns is not a p4p_monte_carlo trial: {detail}"
+                ) from None
+            cell.pixels_px.append(corners_px)
     if K is None:
-        raise ValueError("the recording has no camera calibration; record it with the p4p_monte_carlo scenario")
+        raise RecordingError("the recording has no camera calibration; record it with the p4p_monte_carlo scenario")
     if not cells:
-        raise ValueError(f"the recording has no {CORNERS_TOPIC} messages with a 'cell': not a p4p_monte_carlo recording")
+        raise RecordingError(
+            f"the recording has no corner messages ({CORNERS_TOPIC}) with a 'cell': not a p4p_monte_carlo recording"
+        )
     return K, cells
 
 
@@ -171,10 +192,12 @@ def evaluate_cell(cell: CellTrials, K: np.ndarray, solvers=SOLVERS) -> CellResul
         uncertainty.crlb(T_true, cell.points_marker_m, K, cell.sigma_px), T_true
     )
     stats = {}
+    errors = {}
     for name in solvers:
         T = solve_all(name, cell.points_marker_m, pixels, K)
         ok = np.all(np.isfinite(T), axis=(1, 2))
         t = T[ok, :3, 3]
+        errors[name] = np.where(ok, np.linalg.norm(T[:, :3, 3] - t_true, axis=1), np.nan)
         stats[name] = SolverStats(
             n_ok=int(ok.sum()),
             n_failed=int((~ok).sum()),
@@ -188,7 +211,7 @@ def evaluate_cell(cell: CellTrials, K: np.ndarray, solvers=SOLVERS) -> CellResul
     tilt_deg = float(np.degrees(np.arccos(np.clip(T_true[2, 2], -1.0, 1.0))))
     return CellResult(
         cell.cell_id, cell.sigma_px, len(cell.points_marker_m), tilt_deg, side_px,
-        uncertainty.position_bound_m(bound), np.diag(bound).copy(), stats,
+        uncertainty.position_bound_m(bound), np.diag(bound).copy(), stats, errors,
     )
 
 

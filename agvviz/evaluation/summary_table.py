@@ -1,0 +1,125 @@
+"""The rows of the table a run prints, fitting the run's kind. Pure: no printing, no Rerun.
+
+A run summary (stored in the ``.rrd``) has one section per kind of output the run produced, and
+:func:`summary_rows` shows each section that is there:
+
+- camera frames: ``frames``, ``solved``, ``rejected`` and the error statistics
+  (:func:`agvviz.evaluation.summary.summarize`) — shown when the run had camera frames, or had
+  nothing else (a run whose every frame failed still says "frames N / solved 0");
+- UWB fusion: ``fusion`` (:class:`agvviz.evaluation.fusion_summary.FusionStats`);
+- corrections: ``correction`` (:class:`agvviz.correction.CorrectionStats`), e.g. a corner-only
+  ``auv_under_ice`` run, which has no camera frame and so no frame rows;
+- Monte-Carlo trials: ``trials`` (:mod:`agvviz.graph.trials`): cells × trials × solvers and
+  each solver's RMSE ÷ CRLB.
+
+``timing`` holds the wall-clock figures (:func:`agvviz.evaluation.summary.timing`,
+:func:`agvviz.graph.trials.trials_timing`), printed but never stored.
+"""
+
+from __future__ import annotations
+
+#: Summary sections that are a run's output on their own, without camera frames.
+OTHER_KINDS = ("trials", "fusion", "correction")
+
+
+def _fmt(value, digits: int = 2) -> str:
+    return "—" if value is None else f"{value:.{digits}f}"
+
+
+def _mm(value_m):
+    return None if value_m is None else 1000.0 * value_m
+
+
+def has_frame_rows(summary: dict) -> bool:
+    """Whether the table shows the camera-frame rows: the run had camera frames, or it has no
+    other output to show (then "frames 0" is the honest answer)."""
+    if "frames" not in summary:
+        return False
+    return summary["frames"] > 0 or not any(kind in summary for kind in OTHER_KINDS)
+
+
+def summary_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
+    """(metric, value) rows of the run's terminal table, section by section (module docstring)."""
+    rows: list[tuple[str, str]] = []
+    if "trials" in summary:
+        rows += _trials_rows(summary["trials"], timing)
+    frames = has_frame_rows(summary)
+    if frames:
+        rows += _frame_rows(summary, timing)
+    if "fusion" in summary:
+        rows += _fusion_rows(summary["fusion"])
+    if "correction" in summary:
+        rows += _correction_rows(summary["correction"])
+    if not frames and "trials" not in summary and timing.get("wall_time_s") is not None:
+        rows.append(("wall time (s)", _fmt(timing["wall_time_s"], 1)))
+    return rows
+
+
+def _frame_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
+    rows = [("frames", str(summary["frames"])), ("solved", str(summary["solved"]))]
+    rows += [(f"rejected: {reason}", str(count)) for reason, count in summary.get("rejected", {}).items()]
+    pos = summary["position_error_mm"]
+    hdg = summary["heading_error_deg"]
+    rows.append(("position RMSE / median / p95 (mm)", f"{_fmt(pos['rmse'])} / {_fmt(pos['median'])} / {_fmt(pos['p95'])}"))
+    rows.append(
+        ("heading RMSE / median / p95 (deg)", f"{_fmt(hdg['rmse'], 3)} / {_fmt(hdg['median'], 3)} / {_fmt(hdg['p95'], 3)}")
+    )
+    rows.append(("reprojection RMS median (px)", _fmt(summary["reproj_rms_px"]["median"], 3)))
+    rows.append((
+        "time per frame (ms): total / detect / solve",
+        f"{_fmt(timing.get('time_per_frame_ms'), 1)} / {_fmt(timing.get('detect_ms'), 1)} / {_fmt(timing.get('solve_ms'), 2)}",
+    ))
+    if "frames_per_s" in timing:
+        rows.append(("throughput (frames/s, incl. logging)", _fmt(timing["frames_per_s"], 1)))
+    return rows
+
+
+def _fusion_rows(f: dict) -> list[tuple[str, str]]:
+    """Paper 003: 2-D errors, the mean as the paper reports them."""
+    rows = [("UWB ranges / fixes scored", f"{f.get('uwb_ranges', 0)} / {f['uwb_xy_error_mm']['n']}")]
+    for label, key in (
+        ("camera fix 2-D error mean / p95 (mm)", "camera_xy_error_mm"),
+        (f"UWB ({f['uwb']}) 2-D error mean / p95 (mm)", "uwb_xy_error_mm"),
+        (f"fused ({f['fusion']}) 2-D error mean / p95 (mm)", "fused_xy_error_mm"),
+        ("fused while cameras blocked: mean / p95 (mm)", "fused_blocked_xy_error_mm"),
+    ):
+        rows.append((label, f"{_fmt(f[key]['mean'])} / {_fmt(f[key]['p95'])}"))
+    rows.append(("switches / mean jump (mm)", f"{f['switches']} / {_fmt(f['switch_jump_mm']['mean'])}"))
+    rows.append(("UWB ranges gated (residual gate / Kalman)", f"{f['uwb_ranges_gated']} / {f['kalman_ranges_gated']}"))
+    return rows
+
+
+def _correction_rows(c: dict) -> list[tuple[str, str]]:
+    """Paper 002: navigation corrected over cycles."""
+    return [
+        ("correction cycles / applied", f"{c['cycles']} / {c['corrections_applied']}"),
+        ("navigation RMSE raw → corrected (mm)", f"{_fmt(_mm(c['nav_rmse_m']))} → {_fmt(_mm(c['corrected_rmse_m']))}"),
+        (
+            "final error raw → corrected (mm)",
+            f"{_fmt(_mm(c['nav_final_error_m']))} → {_fmt(_mm(c['corrected_final_error_m']))}",
+        ),
+        ("mean correction jump (mm)", _fmt(_mm(c["mean_jump_m"]))),
+    ]
+
+
+def _trials_rows(t: dict, timing: dict) -> list[tuple[str, str]]:
+    """Monte-Carlo study: its size, then per solver RMSE ÷ CRLB over the cells and the failures;
+    the solver the run's settings name is marked."""
+    rows = [
+        ("study", str(t["study"])),
+        ("cells × trials × solvers", f"{t['cells']} × {t['trials_per_cell']} × {len(t['solvers'])}"),
+        ("per solver", "RMSE ÷ CRLB median / max, failed"),
+    ]
+    marked = t.get("run_solver", {}).get("study_solver")
+    for name in t["solvers"]:
+        s = t["per_solver"][name]
+        ratio = s["rmse_over_crlb"]
+        label = f"  {name}{' (the run setting)' if name == marked else ''}"
+        rows.append((label, f"{_fmt(ratio['median'], 3)} / {_fmt(ratio['max'], 3)}, {s['failed']}"))
+    well = t.get("well_conditioned_max_rmse_over_crlb", {})
+    if well:
+        rows.append(("well-conditioned cells", str(t["well_conditioned_cells"])))
+        rows.append((f"  max RMSE ÷ CRLB {' / '.join(well)}", " / ".join(_fmt(v, 3) for v in well.values())))
+    if timing.get("wall_time_s") is not None:
+        rows.append(("time (s) / trials per s", f"{_fmt(timing['wall_time_s'], 1)} / {_fmt(timing.get('trials_per_s'), 1)}"))
+    return rows

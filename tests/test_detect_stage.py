@@ -1,0 +1,174 @@
+"""The detect stage (agvviz.graph.detect), its worker pool (detect_pool) and its cache
+(detect_cache): detections — and so runs — are the same whoever computes them.
+
+Equality here is exact, not within a tolerance: the same frames go through the same code in
+the same segments, whether in this process, in worker processes or read back from Parquet
+(float64 round-trips exactly), so any difference is a bug in the plumbing.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agvviz import scenario_registry
+from agvviz.graph import detect_cache
+from agvviz.graph.detect import DetectParams, detection_settings
+from agvviz.graph.detect_pool import DetectionFeed
+from agvviz.pipeline import Replay
+from agvviz.recording.reader import iter_messages
+from agvviz.runner import detect_recording, prepare, run_recording
+from agvviz.settings import RunSettings
+
+# 4 s at 10 Hz = 40 frames: several segments of the default keyframe interval (10).
+SMALL = ["duration_s=4", "rate_hz=10"]
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("detect") / "qr_floor.mcap"
+    scenario_registry.record("qr_floor", path, seed=5, overrides=SMALL)
+    return path
+
+
+def _codes(detections):
+    return [
+        (c.kind, c.text, c.aruco_id, np.asarray(c.corners_px).tolist(), c.refine_method)
+        for c in detections.codes
+    ]
+
+
+def _feed_detections(recording: Path, settings: RunSettings, jobs: int) -> list:
+    prepared = prepare(recording, settings)
+    feed = DetectionFeed(prepared.replay.detect_params, prepared.replay.detect_job, jobs=jobs)
+    with feed:
+        out = [
+            (m.topic, m.time_ns, _codes(d), d.keyframe)
+            for m, d in feed.annotate(iter_messages(recording))
+            if d is not None
+        ]
+    return out
+
+
+def _inline_detections(recording: Path, settings: RunSettings) -> list:
+    """The replay detecting in process, frame by frame (no feed), as `pipeline.replay` does."""
+    prepared = prepare(recording, settings)
+    replay = prepared.replay
+    out = []
+    for message in iter_messages(recording):
+        job = replay.detect_job(message) if message.topic.endswith("/image") else None
+        if job is None:
+            continue
+        detector = replay._detectors.setdefault(job.cam_name, __import__(
+            "agvviz.graph.detect", fromlist=["SegmentDetector"]).SegmentDetector(replay.detect_params))
+        d = detector.detect(job)
+        out.append((message.topic, message.time_ns, _codes(d), d.keyframe))
+    return out
+
+
+@pytest.mark.parametrize("tracking", [False, True])
+def test_detections_do_not_depend_on_workers(recording, tracking):
+    settings = RunSettings(tracking=tracking)
+    serial = _feed_detections(recording, settings, jobs=1)
+    parallel = _feed_detections(recording, settings, jobs=2)
+    inline = _inline_detections(recording, settings)
+    assert len(serial) == 40
+    assert serial == parallel == inline
+    keyframes = sum(k for *_, k in serial)
+    if tracking:
+        # One keyframe per segment of 10 frames at least; tracking must carry most frames
+        # of a smooth drive (a fallback makes a frame a keyframe, so ≤ 40).
+        assert 4 <= keyframes < 40
+    else:
+        assert keyframes == 40
+
+
+def test_detection_settings_are_what_detection_depends_on():
+    assert detection_settings(RunSettings(solver="p4p", fusion="kalman")) == detection_settings(RunSettings())
+    assert detection_settings(RunSettings(refine="subpix")) != detection_settings(RunSettings())
+    assert DetectParams.of(RunSettings(tracking=True, keyframe_every=7), None).segment_frames == 7
+    assert DetectParams.of(RunSettings(tracking=False), None).segment_frames == 4
+
+
+def _summary_without_timing(summary: dict) -> dict:
+    return json.loads(json.dumps(summary, default=str))
+
+
+def test_second_run_reuses_detections_and_equals_the_first(recording, tmp_path):
+    cache = tmp_path / "cache"
+    first = run_recording(recording, RunSettings(solver="lm"), tmp_path / "a.rrd", cache_dir=cache, jobs=2)
+    assert first.timing["detection_source"] == "detected"
+    entries = list(cache.rglob("*.parquet"))
+    assert len(entries) == 1
+    again = run_recording(recording, RunSettings(solver="lm"), tmp_path / "b.rrd", cache_dir=cache)
+    assert again.timing["detection_source"] == "cache"
+    assert _summary_without_timing(again.summary) == _summary_without_timing(first.summary)
+    # Another solver: the same detections, a different pose.
+    other = run_recording(recording, RunSettings(solver="p4p"), tmp_path / "c.rrd", cache_dir=cache)
+    assert other.timing["detection_source"] == "cache"
+    assert other.summary["solved"] > 30
+    # Another refinement is another entry.
+    run_recording(recording, RunSettings(refine="subpix"), tmp_path / "d.rrd", cache_dir=cache)
+    assert len(list(cache.rglob("*.parquet"))) == 2
+    # No cache: the same answer again.
+    uncached = run_recording(recording, RunSettings(solver="lm"), tmp_path / "e.rrd", cache_dir=False, jobs=1)
+    assert uncached.timing["detection_source"] == "detected"
+    assert _summary_without_timing(uncached.summary) == _summary_without_timing(first.summary)
+    rerun = shutil.which("rerun") or str(Path(__file__).resolve().parents[1] / ".venv/bin/rerun")
+    if Path(rerun).exists():
+        for name in ("b.rrd", "e.rrd"):
+            result = subprocess.run(
+                [rerun, "rrd", "compare", "--unordered", str(tmp_path / "a.rrd"), str(tmp_path / name)],
+                capture_output=True, text=True, timeout=120,
+            )
+            assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_damaged_cache_entry_is_a_miss_and_is_rewritten(recording, tmp_path):
+    cache = tmp_path / "cache"
+    info = detect_recording(recording, RunSettings(), cache_dir=cache, jobs=1)
+    assert info["source"] == "detected" and info["frames"] == 40
+    entry = Path(info["cache"])
+    entry.write_bytes(b"PAR1 not really parquet")
+    assert detect_cache.load(entry) is None
+    outcome = run_recording(recording, RunSettings(), tmp_path / "run.rrd", cache_dir=cache, jobs=1)
+    assert outcome.timing["detection_source"] == "detected"
+    assert detect_cache.load(entry) is not None
+    assert detect_recording(recording, RunSettings(), cache_dir=cache)["source"] == "cache"
+
+
+def test_cache_key_follows_version_and_inputs(monkeypatch):
+    params = DetectParams()
+    key = detect_cache.cache_key(params, {"images": {"front": "/cam/front/image"}})
+    assert key == detect_cache.cache_key(params, {"images": {"front": "/cam/front/image"}})
+    assert key != detect_cache.cache_key(params, {"images": {"front": "/other"}})
+    assert key != detect_cache.cache_key(DetectParams(refine="none"), {"images": {"front": "/cam/front/image"}})
+    monkeypatch.setattr(detect_cache, "__version__", "999.0")
+    assert key != detect_cache.cache_key(params, {"images": {"front": "/cam/front/image"}})
+
+
+def test_cache_mismatch_falls_back_to_detecting(recording, tmp_path):
+    """A cache entry whose frames do not match the recording (it cannot happen for a
+    content-keyed entry unless it was tampered with) is abandoned with a warning."""
+    cache = tmp_path / "cache"
+    info = detect_recording(recording, RunSettings(), cache_dir=cache, jobs=1)
+    entry = Path(info["cache"])
+    frames = detect_cache.load(entry)
+    shifted = [type(f)(f.seq, f.cam_name, f.log_time_ns + (1 if f.seq == 5 else 0), f.detections) for f in frames]
+    detect_cache.save(entry, shifted)
+    outcome = run_recording(recording, RunSettings(), tmp_path / "run.rrd", cache_dir=cache, jobs=1)
+    assert any("detection cache did not match" in w for w in outcome.summary["warnings"])
+    reference = run_recording(recording, RunSettings(), tmp_path / "ref.rrd", cache_dir=False, jobs=1)
+    assert outcome.summary["solved"] == reference.summary["solved"]
+
+
+def test_replay_without_a_feed_detects_in_process(recording):
+    """`Replay.feed` without detections (tests, benches, in-order callers) detects itself."""
+    replay = Replay(RunSettings(tracking=False))
+    frames = [f for f in (replay.feed(m) for m in iter_messages(recording)) if f is not None]
+    assert len(frames) == 40 and sum(f.solved for f in frames) >= 36
