@@ -268,7 +268,7 @@ class DetectionPlan:
         """What the detect stage did (the same whether detected now or read from the cache)."""
         params = self.feed.params
         return {
-            "tracking": params.tracking and params.aruco_dictionary is None,
+            "tracking": params.tracks,
             "keyframe_every": params.keyframe_every,
             "keyframes": self.feed.keyframes,
             "tracked_frames": self.feed.tracked_frames,

@@ -188,13 +188,13 @@ class RunSettings:
         ("vertices", "finder"),
     )
     tracking: bool = setting(
-        False,
+        True,
         "between keyframes, follow each decoded code from its predicted corners by ECC template "
         "alignment instead of searching the whole frame (falls back to full detection when a "
         "check fails)",
     )
     keyframe_every: int = setting(
-        10, "tracking: full detection on every K-th frame of each camera (K)", min=1, max=10000
+        10, "tracking: full detection on every K-th frame of each camera (K)", min=1, max=100
     )
     sigma_px: str = setting(
         "auto",

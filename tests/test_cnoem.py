@@ -71,8 +71,6 @@ def test_normal_equations_equal_the_jacobian_form():
     assert cost == pytest.approx(0.5 * r @ r, rel=1e-10)
     np.testing.assert_allclose(H, J.T @ J, atol=1e-10 * np.abs(H).max())
     np.testing.assert_allclose(g, J.T @ r, atol=1e-9 * np.abs(g).max())
-    d = np.array([0.3, -0.2, 0.1, 0.2, -0.1, 0.05])
-    np.testing.assert_allclose(cnoem._se3_exp(d), se3.exp(d), atol=TOL_UNIT)
 
 
 def test_euler_derivatives_match_eq_18_and_finite_differences():

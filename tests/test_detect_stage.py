@@ -91,7 +91,9 @@ def test_detections_do_not_depend_on_workers(recording, tracking):
 def test_detection_settings_are_what_detection_depends_on():
     assert detection_settings(RunSettings(solver="p4p", fusion="kalman")) == detection_settings(RunSettings())
     assert detection_settings(RunSettings(refine="subpix")) != detection_settings(RunSettings())
-    assert DetectParams.of(RunSettings(tracking=True, keyframe_every=7), None).segment_frames == 7
+    assert DetectParams.of(RunSettings(tracking=True, keyframe_every=7), None).segment_frames == 35
+    assert DetectParams.of(RunSettings(tracking=True, keyframe_every=50), None).segment_frames == 50
+    assert DetectParams.of(RunSettings(tracking=True), "DICT_4X4_50").segment_frames == 4
     assert DetectParams.of(RunSettings(tracking=False), None).segment_frames == 4
 
 

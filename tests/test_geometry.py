@@ -125,6 +125,43 @@ def test_se3_exp_matches_expm_and_log_inverts_it():
             np.testing.assert_allclose(se3.log(T), xi, atol=1e-11)
 
 
+def test_se3_exp_is_so3_exp_and_left_jacobian():
+    """se3.exp writes so3.exp and so3.left_jacobian out in scalar arithmetic: the same
+    formulas, so the same numbers up to the order of a few roundings per entry."""
+    for xi in tangent_vectors():
+        T = se3.exp(xi)
+        np.testing.assert_allclose(T[:3, :3], so3.exp(xi[3:]), atol=TOL_UNIT)
+        np.testing.assert_allclose(T[:3, 3], so3.left_jacobian(xi[3:]) @ xi[:3], atol=TOL_UNIT * np.abs(xi[:3]).max())
+
+
+def test_batched_forms_equal_the_single_ones():
+    """so3.hat_batch, se3.exp_batch, se3.transform_points_batch and the stacked
+    J_point_wrt_left_perturbation: per row the single function's arithmetic, so equal to it up
+    to a few roundings (np.sin against math.sin may differ by an ulp)."""
+    xis = np.array(tangent_vectors())
+    W = so3.hat_batch(xis[:, 3:])
+    T = se3.exp_batch(xis)
+    assert W.shape == (len(xis), 3, 3) and T.shape == (len(xis), 4, 4)
+    for k, xi in enumerate(xis):
+        np.testing.assert_array_equal(W[k], so3.hat(xi[3:]))
+        np.testing.assert_allclose(T[k], se3.exp(xi), atol=TOL_UNIT * max(1.0, np.abs(xi[:3]).max()))
+    np.testing.assert_array_equal(so3.hat_batch(xis[:6, 3:].reshape(2, 3, 3))[1, 2], so3.hat(xis[5, 3:]))
+    rng = np.random.default_rng(11)
+    poses = np.array(random_poses(11, n=4))
+    points = rng.normal(size=(4, 5, 3))
+    moved = se3.transform_points_batch(poses, points)
+    shared = se3.transform_points_batch(poses, points[0])
+    J = se3.J_point_wrt_left_perturbation(moved)
+    assert J.shape == (4, 5, 3, 6)
+    for k in range(4):
+        scale = TOL_UNIT * max(1.0, np.abs(poses[k]).max()) * max(1.0, np.abs(points).max())
+        np.testing.assert_allclose(moved[k], se3.transform_points(poses[k], points[k]), atol=scale)
+        np.testing.assert_allclose(shared[k], se3.transform_points(poses[k], points[0]), atol=scale)
+        np.testing.assert_array_equal(J[k], se3.J_point_wrt_left_perturbation(moved[k]))
+    assert se3.J_point_wrt_left_perturbation(np.array([1.0, 2.0, 3.0])).shape == (1, 3, 6)
+    assert np.all(np.isnan(se3.exp(np.array([np.inf, 0, 0, 0, 0, 0]))))
+
+
 def test_inverse_and_transform_points():
     rng = np.random.default_rng(6)
     for T in random_poses(6):

@@ -9,8 +9,8 @@ from agvviz.geometry import se3
 from agvviz.geometry.euler import Rx, Rz
 from agvviz.geometry.plane import square_points_marker
 from agvviz.solvers import SolverOptions, solve
-from agvviz.solvers.lm import reprojection_rms_px, residuals_and_jacobian
-from agvviz.solvers.lm_batch import p4p_batch, solve_lm_batch
+from agvviz.solvers.lm import refine_lm, reprojection_rms_px, residuals_and_jacobian
+from agvviz.solvers.lm_batch import p4p_batch, refine_lm_batch, solve_lm_batch
 
 K = np.array([[1000.0, 0.0, 639.5], [0.0, 1000.0, 511.5], [0.0, 0.0, 1.0]])
 
@@ -132,3 +132,21 @@ def test_batch_lm_keeps_best_pose_when_out_of_iterations():
         kappa = np.linalg.cond(H + 1e-3 * np.mean(np.diag(H)) * np.eye(6))
         atol = 256 * EPS * kappa * np.abs(single.T_cam_marker).max()
         np.testing.assert_allclose(batch.T_cam_marker[k], single.T_cam_marker, atol=atol, rtol=0)
+
+
+
+def test_batch_lm_refuses_bad_frames_one_by_one():
+    """A frame without a start pose and one whose start puts a point behind the camera fail
+    alone, with refine_lm's reasons; the others are solved."""
+    P, X, truth = problems(5, 4, seed=5)
+    T0 = np.array(truth)
+    T0[1] = np.nan
+    T0[3] = se3.make(np.eye(3), [0.0, 0.0, -4.0]) @ T0[3]  # the marker behind the camera
+    batch = refine_lm_batch(T0, P, X, K)
+    assert list(batch.ok) == [True, False, True, False, True]
+    assert batch.reason[1] == "no start pose" and batch.reason[3] == "point behind camera"
+    assert np.all(np.isnan(batch.T_cam_marker[[1, 3]])) and np.all(np.isnan(batch.reproj_rms_px[[1, 3]]))
+    options = dict(objective="depth", max_iterations=50, initial_damping=1e-3, step_tol=1e-12, cost_rel_tol=1e-14)
+    for k in (1, 3):  # a NaN start has no point in front of the camera either
+        assert refine_lm(T0[k], P[k], X[k], K, **options)[:2] == (None, "point behind camera")
+    assert np.all(batch.reproj_rms_px[[0, 2, 4]] < 3.0)  # σ = 0.5 px noise on 4 points

@@ -3,6 +3,9 @@ a fronto-parallel floor code, and a clear error when the prior does not hold."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -92,3 +95,10 @@ def test_planar_error_is_zero_at_truth_and_reads_heading():
     T = planar_pose(1.0, 2.0, 0.5)
     np.testing.assert_allclose(planar_error(T, T), 0.0, atol=1e-15)
     np.testing.assert_allclose(planar_error(planar_pose(1.0, 2.0, 0.51), T), [0, 0, 0.01], atol=1e-12)
+
+
+def test_importing_the_solvers_does_not_load_scipy_stats():
+    """scipy.stats costs ≈0.8 s of every agvviz start; planar imports it on its first prior test."""
+    code = "import sys, agvviz.solvers, agvviz.solvers.planar; print('scipy.stats' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -5,6 +5,8 @@ See :mod:`agvviz.conventions`. Homogeneous transforms are 4×4 arrays named ``T_
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from agvviz.geometry import so3
@@ -31,6 +33,14 @@ def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
 
 
+def transform_points_batch(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """:func:`transform_points` for a stack of transforms: ``T_a_b`` (B, 4, 4) and points
+    (B, P, 3), or (P, 3) shared by every transform → (B, P, 3). Any leading shape broadcasts
+    the same way (one (4, 4) with (P, 3) gives (P, 3))."""
+    T_a_b = np.asarray(T_a_b, dtype=float)
+    return np.asarray(points_b, dtype=float) @ np.swapaxes(T_a_b[..., :3, :3], -1, -2) + T_a_b[..., None, :3, 3]
+
+
 def hat(xi: np.ndarray) -> np.ndarray:
     """4×4 Lie-algebra matrix of ξ = (ρ, φ)."""
     xi = np.asarray(xi, dtype=float)
@@ -46,10 +56,65 @@ def vee(X: np.ndarray) -> np.ndarray:
 
 
 def exp(xi: np.ndarray) -> np.ndarray:
-    """Exp(ξ) for ξ = (ρ, φ): rotation Exp(φ), translation J_l(φ)·ρ (paper 000 eqs 28–30)."""
-    xi = np.asarray(xi, dtype=float)
-    rho, phi = xi[:3], xi[3:]
-    return make(so3.exp(phi), so3.left_jacobian(phi) @ rho)
+    """Exp(ξ) for ξ = (ρ, φ): rotation Exp(φ), translation J_l(φ)·ρ (paper 000 eqs 28–30).
+
+    The formulas of :func:`so3.exp` and :func:`so3.left_jacobian` written out in scalar
+    arithmetic (every LM step calls this once, so its overhead counts): with K = φ^ and
+    K² = φφᵀ − θ²I, ``R = I + a K + b K²`` and ``J_l = I + b K + c K²``, a = sin θ/θ,
+    b = (1 − cos θ)/θ² = 2 sin²(θ/2)/θ², c = (θ − sin θ)/θ³; below the small-angle switch
+    the second-order series (a, b, c) = (1, ½, ⅙), as in :mod:`so3`. :func:`exp_batch` is
+    the same arithmetic over many ξ.
+    """
+    r1, r2, r3, x, y, z = np.asarray(xi, dtype=float).reshape(6).tolist()
+    tt = x * x + y * y + z * z
+    if not math.isfinite(tt + r1 + r2 + r3):
+        return np.full((4, 4), np.nan)  # as the array formulas give (math.sin(inf) would raise)
+    theta = math.sqrt(tt)
+    if theta < so3._SMALL_ANGLE_RAD:
+        a, b, c = 1.0, 0.5, 1.0 / 6.0
+    else:
+        s, half = math.sin(theta), math.sin(0.5 * theta)
+        a, b, c = s / theta, 2.0 * half * half / tt, (theta - s) / (tt * theta)
+    xy, xz, yz = x * y, x * z, y * z
+    v00, v11, v22 = 1.0 + c * (x * x - tt), 1.0 + c * (y * y - tt), 1.0 + c * (z * z - tt)
+    v01, v02, v12 = c * xy - b * z, c * xz + b * y, c * yz - b * x
+    v10, v20, v21 = c * xy + b * z, c * xz - b * y, c * yz + b * x
+    return np.array(
+        [
+            [1.0 + b * (x * x - tt), b * xy - a * z, b * xz + a * y, v00 * r1 + v01 * r2 + v02 * r3],
+            [b * xy + a * z, 1.0 + b * (y * y - tt), b * yz - a * x, v10 * r1 + v11 * r2 + v12 * r3],
+            [b * xz - a * y, b * yz + a * x, 1.0 + b * (z * z - tt), v20 * r1 + v21 * r2 + v22 * r3],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def exp_batch(xi: np.ndarray) -> np.ndarray:
+    """:func:`exp` of every row of ``xi`` (B, 6) → (B, 4, 4), the same arithmetic vectorised."""
+    xi = np.asarray(xi, dtype=float).reshape(-1, 6)
+    r1, r2, r3, x, y, z = xi.T
+    tt = x * x + y * y + z * z
+    theta = np.sqrt(tt)
+    small = theta < so3._SMALL_ANGLE_RAD
+    safe = np.where(small, 1.0, theta)  # keeps the unused branch free of 0/0
+    safe_tt = np.where(small, 1.0, tt)
+    s, half = np.sin(safe), np.sin(0.5 * safe)
+    a = np.where(small, 1.0, s / safe)
+    b = np.where(small, 0.5, 2.0 * half * half / safe_tt)
+    c = np.where(small, 1.0 / 6.0, (safe - s) / (safe_tt * safe))
+    xy, xz, yz = x * y, x * z, y * z
+    T = np.zeros((xi.shape[0], 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = 1.0 + b * (x * x - tt), b * xy - a * z, b * xz + a * y
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = b * xy + a * z, 1.0 + b * (y * y - tt), b * yz - a * x
+    T[:, 2, 0], T[:, 2, 1], T[:, 2, 2] = b * xz - a * y, b * yz + a * x, 1.0 + b * (z * z - tt)
+    v00, v11, v22 = 1.0 + c * (x * x - tt), 1.0 + c * (y * y - tt), 1.0 + c * (z * z - tt)
+    v01, v02, v12 = c * xy - b * z, c * xz + b * y, c * yz - b * x
+    v10, v20, v21 = c * xy + b * z, c * xz - b * y, c * yz + b * x
+    T[:, 0, 3] = v00 * r1 + v01 * r2 + v02 * r3
+    T[:, 1, 3] = v10 * r1 + v11 * r2 + v12 * r3
+    T[:, 2, 3] = v20 * r1 + v21 * r2 + v22 * r3
+    T[:, 3, 3] = 1.0
+    return T
 
 
 def log(T: np.ndarray) -> np.ndarray:
@@ -71,17 +136,20 @@ def adjoint(T: np.ndarray) -> np.ndarray:
 
 def J_point_wrt_left_perturbation(points_a: np.ndarray) -> np.ndarray:
     """Jacobian of ``Exp(δ)·p`` w.r.t. δ = (ρ, φ) at δ = 0, for points ``p = T·s`` already
-    transformed (N, 3). Returns (N, 3, 6) = [I, -p^] (paper 000 eq 27)."""
-    p = np.asarray(points_a, dtype=float).reshape(-1, 3)
-    J = np.zeros((p.shape[0], 3, 6))
-    J[:, 0, 0] = J[:, 1, 1] = J[:, 2, 2] = 1.0
+    transformed (N, 3), or any stack (..., N, 3). Returns (N, 3, 6) (resp. (..., N, 3, 6))
+    = [I, -p^] (paper 000 eq 27); a single point (3,) gives (1, 3, 6)."""
+    p = np.asarray(points_a, dtype=float)
+    if p.ndim == 1:
+        p = p.reshape(1, 3)
+    J = np.zeros(p.shape[:-1] + (3, 6))
+    J[..., 0, 0] = J[..., 1, 1] = J[..., 2, 2] = 1.0
     # -p^ = [[0, z, -y], [-z, 0, x], [y, -x, 0]]
-    J[:, 0, 4] = p[:, 2]
-    J[:, 0, 5] = -p[:, 1]
-    J[:, 1, 3] = -p[:, 2]
-    J[:, 1, 5] = p[:, 0]
-    J[:, 2, 3] = p[:, 1]
-    J[:, 2, 4] = -p[:, 0]
+    J[..., 0, 4] = p[..., 2]
+    J[..., 0, 5] = -p[..., 1]
+    J[..., 1, 3] = -p[..., 2]
+    J[..., 1, 5] = p[..., 0]
+    J[..., 2, 3] = p[..., 1]
+    J[..., 2, 4] = -p[..., 0]
     return J
 
 

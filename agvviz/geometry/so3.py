@@ -23,6 +23,16 @@ def hat(w: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
+def hat_batch(w: np.ndarray) -> np.ndarray:
+    """:func:`hat` of every 3-vector in ``w`` (..., 3) → (..., 3, 3)."""
+    w = np.asarray(w, dtype=float)
+    W = np.zeros(w.shape[:-1] + (3, 3))
+    W[..., 0, 1], W[..., 0, 2] = -w[..., 2], w[..., 1]
+    W[..., 1, 0], W[..., 1, 2] = w[..., 2], -w[..., 0]
+    W[..., 2, 0], W[..., 2, 1] = -w[..., 1], w[..., 0]
+    return W
+
+
 def vee(W: np.ndarray) -> np.ndarray:
     """Inverse of :func:`hat`: the 3-vector of a skew-symmetric matrix."""
     W = np.asarray(W, dtype=float)

@@ -7,12 +7,13 @@ the calibration's size and undistorted, then QR codes (zxing-cpp, ECC-refined co
 payload parsed, its place in the marker map) is the solve stage's business, so detections do
 not depend on the marker map's contents — only on its ArUco dictionary, when it names one.
 
-Tracking (setting ``tracking``): the frames of each camera are cut into *segments* of
-``keyframe_every`` consecutive frames (by the camera's own frame count: frames 0..K-1, K..2K-1,
-…). The first frame of a segment is a keyframe (full detection); the others follow the codes
-found so far (:class:`agvviz.markers.tracking.CodeTracker`), falling back to full detection
-when a check fails. A segment is the unit of work of a detection worker, so detections are the
-same whatever the number of workers, the window of frames in flight or the cache
+Tracking (setting ``tracking``): the frames of each camera are cut into *segments* of whole
+keyframe intervals (:attr:`DetectParams.segment_frames`, by the camera's own frame count). The
+first frame of a segment and every ``keyframe_every``-th after it get a full detection; the
+others follow the codes found so far (:class:`agvviz.markers.tracking.CodeTracker`), falling
+back to full detection when a check fails. A code that comes into view between keyframes is
+found at the next one. A segment is the unit of work of a detection worker, so detections are
+the same whatever the number of workers, the window of frames in flight or the cache
 (:mod:`agvviz.graph.detect_cache`) — and runs of equal settings write equal ``.rrd`` files.
 
 Everything here is pure (no I/O beyond the bytes given, no Rerun, no printing) and picklable,
@@ -37,6 +38,9 @@ from agvviz.settings import RunSettings
 #: fusion, correction, …) reuses a recording's stored detections.
 DETECTION_SETTINGS = ("refine", "feature_points", "tracking", "keyframe_every")
 
+#: Shortest tracking segment (frames): the unit of work of a detection worker.
+MIN_SEGMENT_FRAMES = 30
+
 
 def detection_settings(settings: RunSettings) -> dict:
     """The detection-relevant part of ``settings`` (equal dicts ⇒ equal detections)."""
@@ -59,10 +63,20 @@ class DetectParams:
         return cls(**detection_settings(settings), aruco_dictionary=aruco_dictionary)
 
     @property
+    def tracks(self) -> bool:
+        """Tracking applies: it is on, and the markers are QR codes (ArUco frames are always
+        detected in full)."""
+        return self.tracking and self.aruco_dictionary is None
+
+    @property
     def segment_frames(self) -> int:
-        """Frames per unit of work: a tracking segment, else a small batch (results do not
-        depend on the batch when every frame is a keyframe)."""
-        return self.keyframe_every if self.tracking and self.aruco_dictionary is None else 4
+        """Frames per unit of work. Tracking: a segment of whole keyframe intervals, at least
+        :data:`MIN_SEGMENT_FRAMES` long (a track needs two frames to know a code's motion, so
+        the frame after a segment's first is a keyframe too: longer segments waste fewer).
+        Without tracking a small batch (every frame is a keyframe: results do not depend on it)."""
+        if not self.tracks:
+            return 4
+        return self.keyframe_every * -(-MIN_SEGMENT_FRAMES // self.keyframe_every)
 
 
 @dataclass(frozen=True)
@@ -230,11 +244,11 @@ class SegmentDetector:
                 )
                 for d in detect_aruco(gray, params.aruco_dictionary, refine=params.refine)
             )
-        elif params.tracking:
+        elif params.tracks:
             if self._tracker is None:
                 from agvviz.markers.tracking import CodeTracker
 
-                self._tracker = CodeTracker(refine=params.refine, keyframe_every=params.segment_frames)
+                self._tracker = CodeTracker(refine=params.refine, keyframe_every=params.keyframe_every)
             outcome = self._tracker.detect(gray, position)
             keyframe, tracked, note = outcome.keyframe, outcome.tracked, outcome.fallback_reason
             codes = tuple(_qr_code(gray, d, params) for d in outcome.detections)

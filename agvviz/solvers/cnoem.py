@@ -20,9 +20,10 @@ Cost (eqs 11–13)
     nothing.
 
 Updates (``update`` of :func:`solve_cnoem`)
-    ``"lm"`` (default) — Levenberg–Marquardt (Gauss–Newton with the damping schedule of
-    :mod:`agvviz.solvers.lm`) on the left perturbation ``T_F_world ← Exp(δ)·T_F_world``,
-    δ = (ρ, φ), with residual vectors ``r_i = p̂_i × P_i`` (|r_i| = L_i).
+    ``"lm"`` (default) — Levenberg–Marquardt (:func:`agvviz.solvers.lm_core.minimize`, the
+    damping schedule and stopping rule of every agvviz solver) on the left perturbation
+    ``T_F_world ← Exp(δ)·T_F_world``, δ = (ρ, φ), with residual vectors ``r_i = p̂_i × P_i``
+    (|r_i| = L_i).
     ``"paper"`` — the paper's first-order update, eqs 14–20: the parameters are
     ``n_W^F = (α, β, γ, X, Y, Z)`` of eq 3/4 (``T_F_world = J(n)``, R = Rz(γ)·Rx(α)·Ry(β)); each
     sighting back-propagates ``eP = E^j·∂E^j/∂P`` (eq 14) through eqs 15–19 into ``en^j`` (eq 20)
@@ -46,17 +47,16 @@ from __future__ import annotations
 
 from agvviz.errors import RunError
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from agvviz.geometry import se3
+from agvviz.geometry import se3, so3
 from agvviz.geometry.euler import Rx, Ry, Rz, hpr_from_matrix
+from agvviz.solvers import lm_core
 
 UPDATES = ("lm", "paper")
 
-_DAMPING_FACTOR = 10.0
 _EYE3 = np.eye(3)
 
 
@@ -174,7 +174,7 @@ class CornerWindow:
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
         R_cam_F = T_cam_F[:, :3, :3].copy()
         t_cam_F = T_cam_F[:, :3, 3].copy()
-        ray_hat = _hat(rays)
+        ray_hat = so3.hat_batch(rays)
         return cls(
             list(sightings), points, pixels, K, R_cam_F, t_cam_F, rays, np.concatenate(idx),
             ray_hat @ R_cam_F, (ray_hat @ t_cam_F[:, :, None])[:, :, 0],
@@ -239,15 +239,6 @@ def _is_rigid_fast(T: np.ndarray) -> bool:
         and abs(np.linalg.det(R) - 1.0) < 1e-6
         and np.max(np.abs(T[3] - [0.0, 0.0, 0.0, 1.0])) < 1e-6
     )
-
-
-def _hat(v: np.ndarray) -> np.ndarray:
-    """(N, 3) → (N, 3, 3) skew matrices, ``hat(v) @ w == cross(v, w)``."""
-    H = np.zeros(v.shape[:-1] + (3, 3))
-    H[..., 0, 1], H[..., 0, 2] = -v[..., 2], v[..., 1]
-    H[..., 1, 0], H[..., 1, 2] = v[..., 2], -v[..., 0]
-    H[..., 2, 0], H[..., 2, 1] = -v[..., 1], v[..., 0]
-    return H
 
 
 # -- the paper's parameters (eqs 3–5) ---------------------------------------------------------
@@ -361,36 +352,11 @@ def ray_normal_equations(window: CornerWindow, T_F_world: np.ndarray) -> tuple[f
     return 0.5 * float(x @ Qx), G.T @ QG, G.T @ Qx
 
 
-def _se3_exp(delta: np.ndarray) -> np.ndarray:
-    """:func:`se3.exp` written out with scalar arithmetic for one 6-vector (same formulas:
-    R = I + a K + b K², t = (I + b K + c K²) ρ with K = φ^ and K² = φφᵀ − θ² I)."""
-    r1, r2, r3, x, y, z = delta.tolist()
-    tt = x * x + y * y + z * z
-    theta = math.sqrt(tt)
-    if theta < 1e-6:
-        a, b, c = 1.0, 0.5, 1.0 / 6.0
-    else:
-        s, half = math.sin(theta), math.sin(0.5 * theta)
-        a, b, c = s / theta, 2.0 * half * half / tt, (theta - s) / (tt * theta)
-    xy, xz, yz = x * y, x * z, y * z
-    v00, v11, v22 = 1.0 + c * (x * x - tt), 1.0 + c * (y * y - tt), 1.0 + c * (z * z - tt)
-    v01, v02, v12 = c * xy - b * z, c * xz + b * y, c * yz - b * x
-    v10, v20, v21 = c * xy + b * z, c * xz - b * y, c * yz + b * x
-    return np.array(
-        [
-            [1.0 + b * (x * x - tt), b * xy - a * z, b * xz + a * y, v00 * r1 + v01 * r2 + v02 * r3],
-            [b * xy + a * z, 1.0 + b * (y * y - tt), b * yz - a * x, v10 * r1 + v11 * r2 + v12 * r3],
-            [b * xz - a * y, b * yz + a * x, 1.0 + b * (z * z - tt), v20 * r1 + v21 * r2 + v22 * r3],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
-    )
-
-
 def gauss_newton_step(window: CornerWindow, T_F_world: np.ndarray) -> np.ndarray:
     """One undamped Gauss–Newton step on the ray cost: the new ``T_F_world`` (the timed unit of
     bench/bench_cnoem.py)."""
     _, H, g = ray_normal_equations(window, T_F_world)
-    return _se3_exp(np.linalg.solve(H, -g)) @ T_F_world
+    return se3.exp(np.linalg.solve(H, -g)) @ T_F_world
 
 
 # -- translation first --------------------------------------------------------------------------
@@ -419,48 +385,30 @@ def refine_window_lm(
     step_tol: float = 1e-10,
     cost_rel_tol: float = 1e-12,
 ) -> WindowSolution:
-    """Levenberg–Marquardt on ``T_F_world`` (left perturbation), schedule as :mod:`.lm`.
+    """Levenberg–Marquardt on ``T_F_world`` (left perturbation): :func:`lm_core.minimize`.
 
     ``normal_equations(window, T_F_world) -> (cost, JᵀJ, Jᵀf)`` with cost = ½‖f‖². A trial step
-    that puts a corner behind its camera is refused (cost +inf). Converged when ‖δ‖ < step_tol
-    or a step changes the cost by at most cost_rel_tol·cost. The first iteration entry is the
-    start; each later one is a trial step, accepted or not.
+    that puts a corner behind its camera is refused. Converged when ‖δ‖ < step_tol or a step
+    changes the cost by at most cost_rel_tol·cost; out of iterations, the best pose so far. The
+    first iteration entry is the start; each later one is a trial step, accepted or not.
     """
-    T = np.array(T_start_F_world, dtype=float)
-
-    def evaluate(T_):
-        if not all_in_front(window, T_):
-            return float("inf"), None, None
-        return normal_equations(window, T_)
-
-    cost, H, g = evaluate(T)
-    if not np.isfinite(cost):
+    result = lm_core.minimize(
+        np.array(T_start_F_world, dtype=float),
+        lambda T, delta: se3.exp(delta) @ T,
+        normal_equations=lambda T: normal_equations(window, T),
+        feasible=lambda T: all_in_front(window, T),
+        reproj_rms_px=lambda T: reprojection_rms_px(window, T),
+        options=lm_core.LmOptions(max_iterations, initial_damping, step_tol, cost_rel_tol),
+    )
+    iterations = [
+        WindowIteration(it.cost, it.reproj_rms_px, it.damping, it.step_norm, it.accepted, T)
+        for it, T in zip(result.iterations, result.path)
+    ]
+    if result.stop_reason == lm_core.START_INFEASIBLE:
         return WindowSolution(None, "start pose puts a marker corner behind its camera")
-    damping = float(initial_damping)
-    iterations = [WindowIteration(cost, reprojection_rms_px(window, T), damping, 0.0, True, T.copy())]
-    for _ in range(max_iterations):
-        if cost == 0.0:
-            break
-        mu = damping * float(np.mean(np.diag(H)))
-        try:
-            delta = np.linalg.solve(H + mu * np.eye(6), -g)
-        except np.linalg.LinAlgError:
-            return WindowSolution(None, "singular normal equations", iterations)
-        step_norm = float(np.linalg.norm(delta))
-        T_trial = _se3_exp(delta) @ T
-        cost_trial, H_trial, g_trial = evaluate(T_trial)
-        accepted = cost_trial < cost
-        small_change = abs(cost - cost_trial) <= cost_rel_tol * cost
-        used = damping
-        if accepted:
-            T, cost, H, g = T_trial, cost_trial, H_trial, g_trial
-            damping /= _DAMPING_FACTOR
-        else:
-            damping *= _DAMPING_FACTOR
-        iterations.append(WindowIteration(cost, reprojection_rms_px(window, T), used, step_norm, accepted, T.copy()))
-        if step_norm < step_tol or small_change:
-            break
-    return WindowSolution(T, "", iterations)
+    if result.failed:
+        return WindowSolution(None, result.stop_reason, iterations)
+    return WindowSolution(result.x, "", iterations)
 
 
 # -- the paper's first-order update (eqs 14–20) -----------------------------------------------

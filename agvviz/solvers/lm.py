@@ -13,18 +13,16 @@ Objectives (cost = ½‖f‖², residuals stacked per point as (u, v)):
 * ``"pixel"`` — paper 000 eq 22: ``f_i = π(K w) − p_i``, the pixel reprojection error;
   ``∂f_i/∂w`` is the pinhole projection Jacobian.
 
-Both chain with ``∂w/∂δ = [I, −w^]`` (eq 27).
+Both chain with ``∂w/∂δ = [I, −w^]`` (eq 27). :func:`residuals_and_jacobian` and
+:func:`reprojection_rms_px` also take stacks of frames (used by :mod:`.lm_batch`).
 
-Damping scheme (Levenberg): the normal equations are ``(JᵀJ + μ I) δ = −Jᵀf`` with
-``μ = λ · mean(diag(JᵀJ))``, so λ is scale-free. λ starts at ``initial_damping``; an accepted
-step (lower cost, every point still in front of the camera) divides λ by 10, a rejected step
-multiplies it by 10 and leaves the pose unchanged.
-
-Convergence: the step norm ‖δ‖ < ``step_tol``, or the cost changes by at most
-``cost_rel_tol``·cost (accepted or not: a rejected step that changes the cost that little
-is round-off), or the cost is exactly 0. Running out of ``max_iterations`` returns the best
-pose so far, like OpenCV's iteration criteria: it is still an estimate, and the caller's
-reprojection check decides whether it is usable (the iteration list shows it stopped early).
+The iteration is :func:`agvviz.solvers.lm_core.minimize`: its damping schedule (λ relative to
+mean(diag(JᵀJ)), ÷10 on an accepted step, ×10 on a refused one), acceptance (lower cost, every
+point still in front of the camera) and stopping rule (‖δ‖ < ``step_tol``, or a step changes the
+cost by at most ``cost_rel_tol``·cost, or the cost is 0). Running out of ``max_iterations``
+returns the best pose so far, like OpenCV's iteration criteria: it is still an estimate, and the
+caller's reprojection check decides whether it is usable (the iteration list shows it stopped
+early).
 """
 
 from __future__ import annotations
@@ -32,22 +30,32 @@ from __future__ import annotations
 import numpy as np
 
 from agvviz.geometry import se3
-from agvviz.geometry.camera import PinholeCamera
 from agvviz.results import LmIteration
+from agvviz.solvers import lm_core
 
 OBJECTIVES = ("depth", "pixel")
 
-_DAMPING_FACTOR = 10.0
+#: What refine_lm / refine_lm_batch report for each failure of the core.
+FAILURE_REASONS = {
+    lm_core.START_INFEASIBLE: "point behind camera",
+    lm_core.START_NOT_FINITE: "non-finite residuals at the start pose",
+    lm_core.SINGULAR: "singular normal equations",
+}
 
 
 def reprojection_rms_px(
     T_cam_marker: np.ndarray, points_marker_m: np.ndarray, pixels_px: np.ndarray, K: np.ndarray
-) -> float:
-    """RMS over points of the Euclidean pixel distance between projection and measurement."""
-    w = se3.transform_points(T_cam_marker, points_marker_m)
-    projected = w @ np.asarray(K, dtype=float).T
-    projected = projected[:, :2] / projected[:, 2:3]
-    return float(np.sqrt(np.mean(np.sum((projected - pixels_px) ** 2, axis=1))))
+) -> float | np.ndarray:
+    """RMS over points of the Euclidean pixel distance between projection and measurement.
+
+    One frame: (4, 4), (N, 3), (N, 2), (3, 3) → float. A stack of B frames: (B, 4, 4),
+    (B, N, 3), (B, N, 2), (B, 3, 3) → (B,).
+    """
+    w = se3.transform_points_batch(T_cam_marker, points_marker_m)
+    projected = w @ np.swapaxes(np.asarray(K, dtype=float), -1, -2)
+    error = projected[..., :2] / projected[..., 2:3] - pixels_px
+    rms = np.sqrt(np.mean(np.sum(error**2, axis=-1), axis=-1))
+    return float(rms) if rms.ndim == 0 else rms
 
 
 def residuals_and_jacobian(
@@ -66,37 +74,46 @@ def residuals_and_jacobian(
     pixels_px : (N, 2) measured ideal pixels.
     K : (3, 3) upper-triangular camera matrix with last row (0, 0, 1).
     objective : "depth" (eq 23) or "pixel" (eq 22).
+
+    A stack of B frames — (B, 4, 4), (B, N, 3), (B, N, 2), (B, 3, 3) — gives f (B, 2N) and
+    J (B, 2N, 6): per frame the same formulas as alone.
     """
-    w = se3.transform_points(T_cam_marker, points_marker_m)  # (N, 3)
-    J_w_wrt_delta = se3.J_point_wrt_left_perturbation(w)  # (N, 3, 6)
-    n = w.shape[0]
+    w = se3.transform_points_batch(T_cam_marker, points_marker_m)  # (..., N, 3)
+    J_w_wrt_delta = se3.J_point_wrt_left_perturbation(w)  # (..., N, 3, 6)
+    K_rows = K[..., None, :2, :]  # (..., 1, 2, 3): the first two rows of K, for every point
+    z = w[..., 2]
     if objective == "depth":
-        z = w[:, 2:3]
-        f = (w @ K[:2].T) - z * pixels_px  # (k1·w − z u, k2·w − z v)
-        J_f_wrt_w = np.broadcast_to(K[:2], (n, 2, 3)).copy()
-        J_f_wrt_w[:, :, 2] -= pixels_px
+        f = w @ np.swapaxes(K[..., :2, :], -1, -2) - z[..., None] * pixels_px  # (k1·w − z u, k2·w − z v)
+        J_f_wrt_w = np.broadcast_to(K_rows, w.shape[:-1] + (2, 3)).copy()
+        J_f_wrt_w[..., 2] -= pixels_px
     elif objective == "pixel":
-        projected, J_f_wrt_w = PinholeCamera(K).project_with_jacobian(w)
-        f = projected - pixels_px
+        # Pinhole projection (ideal image, no distortion): normalise, then apply K.
+        x, y = w[..., 0] / z, w[..., 1] / z
+        K_ = K[..., None, :, :]
+        u = K_[..., 0, 0] * x + K_[..., 0, 1] * y + K_[..., 0, 2]
+        v = K_[..., 1, 1] * y + K_[..., 1, 2]
+        f = np.stack([u, v], axis=-1) - pixels_px
+        # ∂(u, v)/∂w = K[:2, :2] · [[1/z, 0, −x/z], [0, 1/z, −y/z]], x, y normalised
+        J_xy_wrt_w = np.zeros(w.shape[:-1] + (2, 3))
+        J_xy_wrt_w[..., 0, 0] = J_xy_wrt_w[..., 1, 1] = 1.0 / z
+        J_xy_wrt_w[..., 0, 2] = -x / z
+        J_xy_wrt_w[..., 1, 2] = -y / z
+        J_f_wrt_w = K_rows[..., :2] @ J_xy_wrt_w
     else:
         raise ValueError(f"unknown objective {objective!r}; valid: {OBJECTIVES}")
-    J = J_f_wrt_w @ J_w_wrt_delta  # (N, 2, 6)
-    return f.reshape(2 * n), J.reshape(2 * n, 6)
+    J = J_f_wrt_w @ J_w_wrt_delta  # (..., N, 2, 6)
+    n = w.shape[-2]
+    return f.reshape(f.shape[:-2] + (2 * n,)), J.reshape(J.shape[:-3] + (2 * n, 6))
 
 
-def _cost(
-    T_cam_marker: np.ndarray,
-    points_marker_m: np.ndarray,
-    pixels_px: np.ndarray,
-    K: np.ndarray,
-    objective: str,
-) -> float:
-    """½‖f‖², or +inf when a point is not in front of the camera (the step is then refused)."""
-    w = se3.transform_points(T_cam_marker, points_marker_m)
-    if not np.all(w[:, 2] > 0.0):
-        return float("inf")
-    f, _ = residuals_and_jacobian(T_cam_marker, points_marker_m, pixels_px, K, objective)
-    return 0.5 * float(f @ f)
+def retract_left(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """The left perturbation ``Exp(δ)·T`` of one pose, δ = (ρ, φ)."""
+    return se3.exp(delta) @ T
+
+
+def retract_left_batch(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """``Exp(δ_k)·T_k`` for a stack: T (B, 4, 4), δ (B, 6)."""
+    return se3.exp_batch(delta) @ T
 
 
 def refine_lm(
@@ -130,45 +147,17 @@ def refine_lm(
     """
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}; valid: {OBJECTIVES}")
-    T = np.array(T_start_cam_marker, dtype=float)
-    cost = _cost(T, points_marker_m, pixels_px, K, objective)
-    if not np.isfinite(cost):
-        return None, "point behind camera", []
-    damping = float(initial_damping)
-    iterations = [
-        LmIteration(cost, reprojection_rms_px(T, points_marker_m, pixels_px, K), damping, 0.0, True)
-    ]
-    if cost == 0.0:
-        return T, "", iterations
-    f, J = residuals_and_jacobian(T, points_marker_m, pixels_px, K, objective)
-    for _ in range(max_iterations):
-        JtJ = J.T @ J
-        mu = damping * float(np.mean(np.diag(JtJ)))
-        try:
-            delta = np.linalg.solve(JtJ + mu * np.eye(6), -(J.T @ f))
-        except np.linalg.LinAlgError:
-            return None, "singular normal equations", iterations
-        step_norm = float(np.linalg.norm(delta))
-        T_trial = se3.exp(delta) @ T
-        cost_trial = _cost(T_trial, points_marker_m, pixels_px, K, objective)
-        accepted = cost_trial < cost
-        small_change = abs(cost - cost_trial) <= cost_rel_tol * cost
-        damping_used = damping
-        if accepted:
-            T, cost = T_trial, cost_trial
-            damping /= _DAMPING_FACTOR
-            f, J = residuals_and_jacobian(T, points_marker_m, pixels_px, K, objective)
-        else:
-            damping *= _DAMPING_FACTOR
-        iterations.append(
-            LmIteration(
-                cost,
-                reprojection_rms_px(T, points_marker_m, pixels_px, K),
-                damping_used,
-                step_norm,
-                accepted,
-            )
-        )
-        if step_norm < step_tol or small_change or cost == 0.0:
-            return T, "", iterations
-    return T, "", iterations
+    points_marker_m = np.asarray(points_marker_m, dtype=float).reshape(-1, 3)
+    pixels_px = np.asarray(pixels_px, dtype=float)
+    K = np.asarray(K, dtype=float)
+    result = lm_core.minimize(
+        np.array(T_start_cam_marker, dtype=float),
+        retract_left,
+        residuals_and_jacobian=lambda T: residuals_and_jacobian(T, points_marker_m, pixels_px, K, objective),
+        feasible=lambda T: bool((se3.transform_points_batch(T, points_marker_m)[:, 2] > 0.0).all()),
+        reproj_rms_px=lambda T: reprojection_rms_px(T, points_marker_m, pixels_px, K),
+        options=lm_core.LmOptions(max_iterations, initial_damping, step_tol, cost_rel_tol),
+    )
+    if result.failed:
+        return None, FAILURE_REASONS[result.stop_reason], result.iterations
+    return result.x, "", result.iterations

@@ -3,8 +3,9 @@
 Paper 003 picks the single best camera; with four wall cameras watching one roof code, their
 corners can instead be solved together: unknown ``T_world_agv``, every corner of every camera
 a pixel residual ``π(K, T_cam_world · T_world_agv · p_agv) − u`` in that camera's ideal
-(undistorted) image. Levenberg–Marquardt with the left perturbation ``T ← Exp(δ)·T``, δ = (ρ, φ)
-(:mod:`agvviz.conventions`). Cameras far from the code constrain it across their line of sight,
+(undistorted) image. Levenberg–Marquardt (:func:`agvviz.solvers.lm_core.minimize`) with the left
+perturbation ``T ← Exp(δ)·T``, δ = (ρ, φ) (:mod:`agvviz.conventions`); a step that puts a
+corner behind a camera is refused. Cameras far from the code constrain it across their line of sight,
 where a single camera is weakest (depth), so the joint pose is better than any one camera's.
 
 ``planar=True`` keeps the AGV on the floor: only (x, y, heading) move — the perturbation's
@@ -21,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agvviz.geometry import euler, se3
+from agvviz.solvers import lm_core
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,13 @@ def on_floor(T_world_agv: np.ndarray) -> np.ndarray:
     return se3.make(euler.Rz(heading), [T_world_agv[0, 3], T_world_agv[1, 3], 0.0])
 
 
+def _all_in_front(T_world_agv: np.ndarray, views: list[RigView]) -> bool:
+    return all(
+        np.all(se3.transform_points(view.T_cam_world @ T_world_agv, view.points_agv_m)[:, 2] > 0.0)
+        for view in views
+    )
+
+
 def refine_rig_pose(
     T_world_agv: np.ndarray,
     views: list[RigView],
@@ -68,33 +77,36 @@ def refine_rig_pose(
     max_iterations: int = 30,
     step_tol: float = 1e-12,
 ) -> tuple[np.ndarray, float]:
-    """Refine ``T_world_agv`` on the corners of every view. Returns (pose, RMS pixel error).
+    """Refine ``T_world_agv`` on the corners of every view. Returns (pose, RMS pixel error):
+    the best pose when the iteration budget runs out.
 
-    Raises ``ValueError`` when there are no views or a point is behind a camera at the start.
+    Raises ``ValueError`` when there are no views, a point is behind a camera at the start, or
+    the pose is not determined (non-finite numbers, singular normal equations).
     """
     if not views:
         raise ValueError("no camera views to refine the pose on")
     T = on_floor(T_world_agv) if planar else np.asarray(T_world_agv, dtype=float).copy()
     free = [0, 1, 5] if planar else list(range(6))
-    for view in views:
-        depth = se3.transform_points(view.T_cam_world @ T, view.points_agv_m)[:, 2]
-        if np.any(depth <= 0):
-            raise ValueError("a marker point is behind a camera at the start pose")
-    r, J = _residuals_and_jacobian(T, views)
-    cost = float(r @ r)
-    damping = 1e-3 * float(np.mean(np.diag(J.T @ J)))
-    for _ in range(max_iterations):
-        Jf = J[:, free]
+
+    def retract(T_: np.ndarray, delta: np.ndarray) -> np.ndarray:
         step = np.zeros(6)
-        step[free] = np.linalg.solve(Jf.T @ Jf + damping * np.eye(len(free)), -Jf.T @ r)
-        T_new = se3.exp(step) @ T
-        r_new, J_new = _residuals_and_jacobian(T_new, views)
-        cost_new = float(r_new @ r_new)
-        if cost_new < cost:
-            T, r, J, cost = T_new, r_new, J_new, cost_new
-            damping /= 10.0
-        else:
-            damping *= 10.0
-        if np.linalg.norm(step) < step_tol:
-            break
-    return T, float(np.sqrt(cost / (r.size / 2)))
+        step[free] = delta
+        return se3.exp(step) @ T_
+
+    def residuals_and_jacobian(T_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, J = _residuals_and_jacobian(T_, views)
+        return r, J[:, free]
+
+    result = lm_core.minimize(
+        T,
+        retract,
+        residuals_and_jacobian=residuals_and_jacobian,
+        feasible=lambda T_: _all_in_front(T_, views),
+        options=lm_core.LmOptions(max_iterations=max_iterations, step_tol=step_tol),
+    )
+    if result.stop_reason == lm_core.START_INFEASIBLE:
+        raise ValueError("a marker point is behind a camera at the start pose")
+    if result.failed:
+        raise ValueError(f"the joint pose is not determined: {result.stop_reason}")
+    n_points = sum(len(view.points_agv_m) for view in views)
+    return result.x, float(np.sqrt(2.0 * result.cost / n_points))

@@ -10,9 +10,9 @@ Solution
     1. Closed form: each pixel's viewing ray, expressed in the AGV frame through the mount,
        meets the floor z = 0 at a point in AGV coordinates; a 2-D least-squares rigid fit
        (Kabsch) of those points to the code's world (x, y) gives x, y, ψ.
-    2. Levenberg–Marquardt on the pixel reprojection error (paper 000 eq 22, the
-       maximum-likelihood objective) over δ = (δx, δy, δψ), a perturbation in the AGV body
-       frame: ``T_world_agv ← T_world_agv · Exp((δx, δy, 0, 0, 0, δψ))``.
+    2. Levenberg–Marquardt (:func:`agvviz.solvers.lm_core.minimize`) on the pixel reprojection
+       error (paper 000 eq 22, the maximum-likelihood objective) over δ = (δx, δy, δψ), a
+       perturbation in the AGV body frame: ``T_world_agv ← T_world_agv · Exp((δx, δy, 0, 0, 0, δψ))``.
     3. Prior check (a likelihood-ratio test): a free 6-DoF fit (pixel objective, started from
        the planar solution) must not explain the pixels significantly better. With a known
        pixel σ: ``(RSS₃ − RSS₆)/σ² ~ χ²(3)``; without: ``((RSS₃ − RSS₆)/3)/(RSS₆/(2N − 6)) ~
@@ -32,17 +32,15 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.geometry.euler import Rz
+from agvviz.solvers import lm_core
 from agvviz.solvers.lm import refine_lm
 
 #: Columns (δx, δy, δψ) of the 6-vector (ρ, φ) the planar solver perturbs.
 PLANAR_DOF = (0, 1, 5)
-
-_DAMPING_FACTOR = 10.0
 
 
 @dataclass(frozen=True)
@@ -82,12 +80,21 @@ def planar_pose(x_m: float, y_m: float, heading_rad: float) -> np.ndarray:
     return se3.make(Rz(heading_rad), [x_m, y_m, 0.0])
 
 
-def _residuals(T_world_agv, T_agv_cam, points_world_m, pixels_px, K):
-    w = se3.transform_points(se3.inverse(T_world_agv @ T_agv_cam), points_world_m)
-    if not np.all(w[:, 2] > 0.0):
-        return None, w
-    projected = w @ K.T
-    return (projected[:, :2] / projected[:, 2:3] - pixels_px).reshape(-1), w
+def _points_cam(T_world_agv, T_agv_cam, points_world_m) -> np.ndarray:
+    return se3.transform_points(se3.inverse(T_world_agv @ T_agv_cam), points_world_m)
+
+
+def _residuals(T_world_agv, T_agv_cam, points_world_m, pixels_px, K) -> np.ndarray:
+    """Pixel residuals (2N,) of the pose (every point must be in front of the camera)."""
+    projected = _points_cam(T_world_agv, T_agv_cam, points_world_m) @ K.T
+    return (projected[:, :2] / projected[:, 2:3] - pixels_px).reshape(-1)
+
+
+def _retract_body(T_world_agv: np.ndarray, delta3: np.ndarray) -> np.ndarray:
+    """``T_world_agv · Exp((δx, δy, 0, 0, 0, δψ))`` (module docstring)."""
+    delta = np.zeros(6)
+    delta[list(PLANAR_DOF)] = delta3
+    return T_world_agv @ se3.exp(delta)
 
 
 def pixel_jacobian_planar(
@@ -155,33 +162,21 @@ def solve_planar(
             "planar prior violated: a pixel's viewing ray does not meet the floor in front of "
             "the camera (check the camera mounting T_agv_cam)"
         )
-    T = planar_pose(*_rigid_2d(floor_agv, points_world_m[:, :2]))
-    f, _ = _residuals(T, T_agv_cam, points_world_m, pixels_px, K)
-    if f is None:
+    result = lm_core.minimize(
+        planar_pose(*_rigid_2d(floor_agv, points_world_m[:, :2])),
+        _retract_body,
+        residuals_and_jacobian=lambda T: (
+            _residuals(T, T_agv_cam, points_world_m, pixels_px, K),
+            pixel_jacobian_planar(T, T_agv_cam, points_world_m, K),
+        ),
+        feasible=lambda T: bool(np.all(_points_cam(T, T_agv_cam, points_world_m)[:, 2] > 0.0)),
+        options=lm_core.LmOptions(max_iterations=max_iterations),
+    )
+    if result.stop_reason == lm_core.START_INFEASIBLE:
         return None, "planar prior violated: the planar start pose puts a point behind the camera"
-    cost = 0.5 * float(f @ f)
-    damping = 1e-3
-    converged = cost == 0.0
-    for _ in range(max_iterations):
-        if converged:
-            break
-        J = pixel_jacobian_planar(T, T_agv_cam, points_world_m, K)
-        JtJ = J.T @ J
-        delta3 = np.linalg.solve(JtJ + damping * np.mean(np.diag(JtJ)) * np.eye(3), -(J.T @ f))
-        delta = np.zeros(6)
-        delta[list(PLANAR_DOF)] = delta3
-        T_trial = T @ se3.exp(delta)
-        f_trial, _ = _residuals(T_trial, T_agv_cam, points_world_m, pixels_px, K)
-        cost_trial = np.inf if f_trial is None else 0.5 * float(f_trial @ f_trial)
-        small = abs(cost - cost_trial) <= 1e-14 * cost
-        if cost_trial < cost:
-            T, f, cost = T_trial, f_trial, cost_trial
-            damping /= _DAMPING_FACTOR
-        else:
-            damping *= _DAMPING_FACTOR
-        converged = np.linalg.norm(delta3) < 1e-12 or small or cost == 0.0
-    if not converged:
-        return None, "did not converge"
+    if not result.converged:
+        return None, "did not converge" if result.stop_reason == lm_core.MAX_ITERATIONS else result.stop_reason
+    T, cost = result.x, result.cost
     T_cam_marker = se3.inverse(T @ T_agv_cam) @ T_world_marker
     rss3 = 2.0 * cost
 
@@ -214,7 +209,10 @@ def solve_planar(
 
 @functools.lru_cache(maxsize=64)
 def _quantile(distribution: str, level: float, *dof: int) -> float:
-    """Cached scipy quantile (one ppf call costs milliseconds; the arguments repeat)."""
+    """Cached scipy quantile (one ppf call costs milliseconds; the arguments repeat). scipy.stats
+    is imported here, not at module level: importing it costs ≈0.8 s of every agvviz start."""
+    from scipy import stats
+
     return float(getattr(stats, distribution).ppf(level, *dof))
 
 

@@ -36,6 +36,10 @@ from agvviz.errors import OutputError
 #: The chunk batcher never cuts a chunk on a wall-clock tick (a day is "never" here), so the
 #: same data gives the same chunks and `rerun rrd compare --unordered` finds two runs equal.
 BATCHER_FLUSH_TICK_S = 86_400.0
+#: ... and cuts one whenever this much payload has accumulated, a size small enough that what
+#: the batcher holds does not grow with the run (with Rerun's default, peak memory of a run of
+#: 600 frames was 75 MB above one of 200).
+BATCHER_FLUSH_NUM_BYTES = 256 * 1024
 #: First and last bytes of a complete ``.rrd`` (Rerun 0.41: header FourCC, footer FourCC).
 RRD_MAGIC = b"RRF2"
 RRD_FOOTER_MAGIC = b"RRF2FOOT"
@@ -156,7 +160,9 @@ class AtomicRrd:
                 "agvviz",
                 recording_id=recording_id,
                 send_properties=False,
-                batcher_config=rr.ChunkBatcherConfig(flush_tick=BATCHER_FLUSH_TICK_S),
+                batcher_config=rr.ChunkBatcherConfig(
+                    flush_tick=BATCHER_FLUSH_TICK_S, flush_num_bytes=BATCHER_FLUSH_NUM_BYTES
+                ),
             )
             self.rec.set_log_time_enabled(False)
             self.rec.set_log_tick_enabled(False)
