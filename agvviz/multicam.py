@@ -21,7 +21,7 @@ solution's, and every other camera's reprojected corners are recomputed from it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -36,12 +36,15 @@ CAMERA_SELECT = ("best", "combine")
 @dataclass
 class CameraSelection:
     """The outcome of one time stamp: ``primary`` (None when no camera solved), the cameras
-    that solved and those whose corners made the fix (``used``)."""
+    that solved and those whose corners made the fix (``used``), and the time stamp's
+    ``frames`` as the fix leaves them (a joint fix replaces the primary's pose and errors and
+    every frame's reprojected corners; frames are immutable, so these are new frames)."""
 
     primary: FrameResult | None
     solved: list[str] = field(default_factory=list)
     used: list[str] = field(default_factory=list)
     note: str = ""
+    frames: list[FrameResult] = field(default_factory=list)
 
 
 def _marker_area_px2(frame: FrameResult) -> float:
@@ -60,7 +63,7 @@ def select_camera_fix(
     if policy not in CAMERA_SELECT:
         raise ValueError(f"unknown camera_select {policy!r}; valid: {', '.join(CAMERA_SELECT)}")
     solved = [f for f in frames if f.solved]
-    selection = CameraSelection(None, [f.cam_name for f in solved])
+    selection = CameraSelection(None, [f.cam_name for f in solved], frames=list(frames))
     if not solved:
         return selection
     best = max(solved, key=_marker_area_px2)
@@ -81,25 +84,33 @@ def select_camera_fix(
     except ValueError as exc:
         selection.note = f"joint LM failed ({exc}): used best"
         return selection
-    best.T_world_agv = T_world_agv
-    best.reproj_rms_px = rms_px
-    best.hpr_rad = np.array(euler.hpr_from_matrix(T_world_agv[:3, :3], gimbal_threshold))
+    hpr_rad = np.array(euler.hpr_from_matrix(T_world_agv[:3, :3], gimbal_threshold))
+    errors = {}
     if best.T_world_agv_truth is not None:
         truth = best.T_world_agv_truth
-        best.position_error_m = float(np.linalg.norm(T_world_agv[:3, 3] - truth[:3, 3]))
-        heading_err, pitch_err, roll_err = np.degrees(euler.wrap_angle_rad(best.hpr_rad - best.hpr_truth_rad))
-        best.heading_error_deg = float(heading_err)
-        best.pitch_error_deg = float(pitch_err)
-        best.roll_error_deg = float(roll_err)
+        heading_err, pitch_err, roll_err = np.degrees(euler.wrap_angle_rad(hpr_rad - best.hpr_truth_rad))
+        errors = dict(
+            position_error_m=float(np.linalg.norm(T_world_agv[:3, 3] - truth[:3, 3])),
+            heading_error_deg=float(heading_err), pitch_error_deg=float(pitch_err), roll_error_deg=float(roll_err),
+        )
+    joint = replace(best, T_world_agv=T_world_agv, reproj_rms_px=rms_px, hpr_rad=hpr_rad, **errors)
+    frames_out = []
     for frame in frames:
+        frame = joint if frame is best else frame
         cam = cameras.get(frame.cam_name)
-        if cam is None or cam.T_world_cam is None:
-            continue
-        T_cam_agv = se3.inverse(cam.T_world_cam) @ T_world_agv
-        for obs in frame.observations:
-            if obs.points_frame == AGV_FRAME:
-                points_cam = se3.transform_points(T_cam_agv, obs.points_world_m)
-                if np.all(points_cam[:, 2] > 0):
-                    obs.reprojected_px = cam.camera.project(points_cam)
+        if cam is not None and cam.T_world_cam is not None:
+            T_cam_agv = se3.inverse(cam.T_world_cam) @ T_world_agv
+            observations = []
+            for obs in frame.observations:
+                if obs.points_frame == AGV_FRAME:
+                    points_cam = se3.transform_points(T_cam_agv, obs.points_world_m)
+                    if np.all(points_cam[:, 2] > 0):
+                        obs = replace(obs, reprojected_px=cam.camera.project(points_cam))
+                observations.append(obs)
+            frame = replace(frame, observations=tuple(observations))
+            if frame.cam_name == best.cam_name and frame.index == best.index:
+                joint = frame
+        frames_out.append(frame)
+    selection.primary, selection.frames = joint, frames_out
     selection.used = [f.cam_name for f in solved] if policy == "combine" else [best.cam_name]
     return selection

@@ -1,7 +1,7 @@
 """Per-frame pose diagnostics of a replay: planar ambiguity and its resolution, and uncertainty
 (covariance, Cramér–Rao bound, NEES). State carried between frames; no I/O.
 
-Used by :class:`agvviz.pipeline.Replay`; the math is in :mod:`agvviz.solvers.ambiguity`,
+Used by :class:`agvviz.graph.solve.Replay`; the math is in :mod:`agvviz.solvers.ambiguity`,
 :mod:`agvviz.solvers.uncertainty` and :mod:`agvviz.solvers.planar`.
 
 Ambiguity (every frame with a 6-DoF solver): both IPPE poses are computed and their

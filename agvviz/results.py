@@ -1,13 +1,13 @@
 """Per-frame results of a replay: what the pipeline saw and decided.
 
-Plain dataclasses shared by :mod:`agvviz.pipeline` (which produces them),
+Plain dataclasses shared by :mod:`agvviz.graph.solve` (which produces them),
 :mod:`agvviz.viz` (which logs them) and :mod:`agvviz.evaluation` (which scores them).
 Frames and units follow :mod:`agvviz.conventions`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, make_dataclass
 
 import numpy as np
 
@@ -39,7 +39,7 @@ REJECT_REASONS = (
 )
 
 
-@dataclass
+@dataclass(frozen=True)
 class LmIteration:
     """One Levenberg–Marquardt iteration: cost ½‖f‖² of the chosen objective after the
     step, the RMS reprojection error in pixels, the damping λ and the step norm."""
@@ -51,7 +51,7 @@ class LmIteration:
     accepted: bool
 
 
-@dataclass
+@dataclass(frozen=True)
 class MarkerObservation:
     """One decoded QR code in one frame.
 
@@ -71,16 +71,17 @@ class MarkerObservation:
     points_frame: str = "world"
 
 
-@dataclass
+@dataclass(frozen=True)
 class FrameResult:
-    """Everything one camera frame produced."""
+    """Everything one camera frame produced: the solve stage's immutable output (it is built
+    as a :data:`FrameDraft` and frozen once complete, :func:`freeze`)."""
 
     index: int
     log_time_ns: int
     cam_name: str
     image_format: str  # "jpeg" | "png" (media of the recorded bytes)
     image_bytes: bytes  # the recorded frame, never re-encoded
-    observations: list[MarkerObservation] = field(default_factory=list)
+    observations: tuple[MarkerObservation, ...] = ()
     rejected: str | None = None  # one of REJECT_REASONS, None when solved
     reject_detail: str = ""
     used_marker_id: str | None = None
@@ -88,7 +89,7 @@ class FrameResult:
     T_world_agv: np.ndarray | None = None
     hpr_rad: np.ndarray | None = None  # heading, pitch, roll of T_world_agv (eq 57)
     reproj_rms_px: float | None = None
-    lm_iterations: list[LmIteration] = field(default_factory=list)
+    lm_iterations: tuple[LmIteration, ...] = ()
     T_world_agv_truth: np.ndarray | None = None
     hpr_truth_rad: np.ndarray | None = None
     position_error_m: float | None = None
@@ -119,3 +120,24 @@ class FrameResult:
     @property
     def solved(self) -> bool:
         return self.rejected is None
+
+
+#: The mutable twin of :class:`FrameResult` (same fields), filled step by step while the solve
+#: stage works on one frame — and by :class:`agvviz.pose_diagnostics.PoseDiagnostics` — then
+#: frozen by :func:`freeze`. Nothing outside the solve stage sees a draft.
+FrameDraft = make_dataclass(
+    "FrameDraft",
+    [
+        (f.name, f.type, field(default_factory=list) if f.name in ("observations", "lm_iterations") else f)
+        for f in fields(FrameResult)
+    ],
+    namespace={"solved": property(lambda self: self.rejected is None)},
+)
+
+
+def freeze(draft) -> FrameResult:
+    """The :class:`FrameResult` of a finished draft."""
+    values = {f.name: getattr(draft, f.name) for f in fields(FrameResult)}
+    values["observations"] = tuple(values["observations"])
+    values["lm_iterations"] = tuple(values["lm_iterations"])
+    return FrameResult(**values)

@@ -15,34 +15,22 @@ from typing import Callable
 import numpy as np
 
 from agvviz import __version__
+from agvviz.conventions import camera_frame
 from agvviz.errors import InputError, OutputError, RecordingError, RunError
-from agvviz.evaluation.summary import FrameScore, summarize, timing
-from agvviz.evaluation.fusion_summary import FusionStats
-from agvviz.fusion_replay import FrameSetResult, FusionReplay
+from agvviz.evaluation.summary import timing
 from agvviz.graph import detect_cache
 from agvviz.graph.detect_pool import DetectionFeed, default_jobs
-from agvviz.pipeline import Replay
-from agvviz.conventions import camera_frame
+from agvviz.graph.replay_graph import ReplayGraph
+from agvviz.graph.sinks import RunSinks
+from agvviz.graph.solve import Replay
 from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
-from agvviz.recording.reader import (
-    DATA_SECTION_CRC_PROBLEM,
-    CalibrationMsg,
-    FrameTransformMsg,
-    ReadReport,
-)
+from agvviz.recording.reader import DATA_SECTION_CRC_PROBLEM, CalibrationMsg, FrameTransformMsg, ReadReport
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import Recording, Scan, iter_role_messages, open_recording, resolve_roles, scan
 from agvviz.recording.topics import ROLE_CORNERS, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.results import REJECT_NO_CALIBRATION
 from agvviz.settings import RunSettings, as_dict
-from agvviz.graph.trials import is_trials_recording, replay_trials, trials_timing
 from agvviz.viz.run_logger import RunLogger
-from agvviz.viz.trials_logger import log_trials, trials_blueprint
-from agvviz.viz.uwb_blueprint import uwb_blueprint
-from agvviz.viz.uwb_logger import FusionLogger
-from agvviz.correction import CorrectionReplay, CorrectionSettings, CorrectionStats
-from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint
-
 
 
 @dataclass
@@ -333,6 +321,9 @@ def _run_trials(
     """Run a Monte-Carlo study recording (:func:`agvviz.graph.trials.is_trials_recording`): every
     trial solved by every study solver, the error series and report logged beside the manifest
     and summary. ``progress(trials_done)`` after each cell, ``on_total(trials)`` once."""
+    from agvviz.graph.trials import replay_trials, trials_timing
+    from agvviz.viz.trials_logger import log_trials, trials_blueprint
+
     if on_total is not None:
         on_total(prepared.scan.topics[prepared.roles.roles[ROLE_CORNERS]].count)
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
@@ -400,6 +391,8 @@ def run_recording(
     recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
     if not prepared.can_run:
         raise _unusable_run_error(recording, {}, prepared.causes)
+    from agvviz.graph.trials import is_trials_recording  # (scipy.stats: only when needed)
+
     corners_only = not roles.cameras() and ROLE_CORNERS in roles.roles and ROLE_UWB_RANGE not in roles.roles
     if corners_only and settings.correction == "none" and not is_trials_recording(recording.scenario, roles):
         raise InputError(
@@ -437,115 +430,28 @@ def run_recording(
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     detection = _detection_feed(prepared, recording_sha256, side, jobs, cache_dir)
-    scores: list[FrameScore] = []
-    rejections: dict[str, list] = {}  # reason -> [count, first detail]
-
-    def note_rejection(frame) -> None:
-        if frame.rejected is not None:
-            rejections.setdefault(frame.rejected, [0, frame.reject_detail or ""])[0] += 1
-
     with RunLogger(
         out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs
     ) as logger:
         logger.log_manifest(manifest)
         if replay.ctx.marker_map is not None:
             logger.log_world_static(_markers_from_map(replay.ctx.marker_map))
-        # Frames of one time stamp (several cameras) → one camera fix; UWB; fusion.
-        fusion = FusionReplay(settings, replay.ctx.cameras)
-        fusion_logger = FusionLogger(logger.stream)
-        fusion_stats = FusionStats()
-        cameras_logged: set[str] = set()
-        correction = None
-        if settings.correction != "none":
-            correction = CorrectionReplay(
-                CorrectionSettings(
-                    solver=settings.correction, update=settings.cnoem_update,
-                    cycle_distance_m=settings.cycle_distance_m, max_reproj_px=settings.max_reproj_px,
-                ),
-                replay.ctx.cameras,
-            )
-            correction_logger = CorrectionLogger(logger.stream)
-            correction_stats = CorrectionStats()
-
-        def log_cameras() -> None:
-            # Log each camera once both its calibration and its extrinsic are known.
-            for cam_name, cam in replay.ctx.cameras.items():
-                if cam.camera is None or cam_name in cameras_logged:
-                    continue
-                if cam.T_agv_cam is not None:
-                    logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
-                elif cam.T_world_cam is not None:
-                    logger.log_fixed_camera_static(cam_name, cam.camera, cam.T_world_cam)
-                else:
-                    continue
-                cameras_logged.add(cam_name)
-
-        def log_item(item) -> None:
-            if isinstance(item, FrameSetResult):
-                logger.log_frame(item.scored)
-                for other in item.frames:
-                    if other is not item.scored:
-                        logger.log_camera_view(other)
-                scores.append(FrameScore.of(item.scored))
-                note_rejection(item.scored)
-                if progress is not None:
-                    progress(len(scores))
-            if fusion.has_uwb:
-                if not fusion_logger.anchor_ids:
-                    fusion_logger.log_anchors(fusion.anchors_m, fusion.tag_z_m, list(replay.ctx.cameras))
-                fusion_logger.log(item)
-                fusion_stats.add(item)
-
-        log_cameras()
-        def after_frame(frame, message) -> None:
-            if frame is not None and frame.rejected == REJECT_TIME:
-                # A frame that cannot be placed in time (repeated or reversed time stamp) is
-                # logged and counted on its own, never grouped with the frames of its time stamp.
-                logger.log_frame(frame)
-                scores.append(FrameScore.of(frame))
-                note_rejection(frame)
-                if progress is not None:
-                    progress(len(scores))
-                frame = None
-            if frame is not None or isinstance(message.value, (CalibrationMsg, list)):
-                log_cameras()
-            for item in fusion.feed(message, frame):
-                log_item(item)
-            if correction is not None:
-                for step in correction.feed(message, frame):
-                    correction_logger.log(step)
-                    correction_stats.add(step)
-
+        sinks = RunSinks(logger, settings, replay.ctx.cameras, progress)
+        graph = ReplayGraph.compose(settings, detection.feed, replay, sinks)
         t_start = time.perf_counter()
-        with detection.feed as feed:
-            for message, detections in feed.annotate(
-                iter_role_messages(recording, roles, prepared.time_source, read_report)
-            ):
-                after_frame(replay.feed(message, detections), message)
-        for item in fusion.finish():
-            log_item(item)
-        if correction is not None:
-            for step in correction.finish():
-                correction_logger.log(step)
-                correction_stats.add(step)
+        graph.run(iter_role_messages(recording, roles, prepared.time_source, read_report))
         wall_time_s = time.perf_counter() - t_start
-        corners_only = correction is not None and not scores
-        if not scores and not corners_only and not fusion.has_uwb:
+        scores = sinks.scores
+        has_uwb = graph.fuse.has_uwb
+        corners_only = graph.correct is not None and not scores
+        if not scores and not corners_only and not has_uwb:
             lines = prepared.causes + read_report.problems[-5:] or ["the image topics hold no decodable frame"]
             raise NoUsableFrameError(
                 f"no camera frame of {recording.path.name} could be read; no .rrd written: " + "; ".join(lines), lines
             )
         if scores and all(s.rejected in UNUSABLE_REJECTIONS for s in scores):
-            raise _unusable_run_error(recording, rejections, prepared.causes)
-        # A corner-only correction run has no camera frames: no frame statistics to claim.
-        summary = summarize(scores) if scores or correction is None else {}
-        if fusion.has_uwb:
-            summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **fusion_stats.summary()}
-            fixed = {name for name, cam in replay.ctx.cameras.items() if cam.T_agv_cam is None}
-            logger.blueprint = uwb_blueprint(logger.cam_names, fixed, fusion_logger.anchor_ids)
-        if correction is not None:
-            summary["correction"] = {"solver": settings.correction, **correction_stats.summary()}
-            logger.blueprint = correction_blueprint(sorted(replay.ctx.cameras))
+            raise _unusable_run_error(recording, sinks.rejections, prepared.causes)
+        summary = sinks.summary(has_uwb)
         summary["recording_damage"] = list(read_report.problems)
         detection.store(read_report)
         summary["detection"] = detection.summary()

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from agvviz import scenario_registry
-from agvviz.pipeline import replay
+from agvviz.graph.solve import replay
 from agvviz.recording.reader import iter_messages
 from agvviz.settings import RunSettings
 

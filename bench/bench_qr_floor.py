@@ -25,7 +25,7 @@ import numpy as np
 from agvviz import scenario_registry
 from agvviz.evaluation import FrameScore
 from agvviz.geometry.plane import square_points_marker
-from agvviz.pipeline import replay
+from agvviz.graph.solve import replay
 from agvviz.recording.reader import CompressedFrame, iter_messages, CalibrationMsg
 from agvviz.runner import run_recording
 from agvviz.settings import RunSettings

@@ -26,8 +26,8 @@ from pathlib import Path
 
 from agvviz import scenario_registry
 from agvviz.evaluation.fusion_summary import FusionStats
-from agvviz.fusion_replay import FusionReplay
-from agvviz.pipeline import Replay
+from agvviz.graph.fuse import FusionReplay
+from agvviz.graph.solve import Replay
 from agvviz.recording.reader import CompressedFrame, RecordedMessage, iter_messages
 from agvviz.settings import RunSettings
 

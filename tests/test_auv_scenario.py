@@ -105,7 +105,7 @@ def test_grid_recording_carries_the_cells_truth(tmp_path):
 
 
 def test_images_show_the_markers_under_fluctuating_light(tmp_path):
-    from agvviz.pipeline import Replay
+    from agvviz.graph.solve import Replay
     from agvviz.settings import RunSettings
 
     o = scenario.Options(duration_s=6.0)

@@ -29,7 +29,7 @@ from agvviz import scenario_registry
 from agvviz.geometry import PinholeCamera, se3
 from agvviz.markers import qr
 from agvviz.markers.qr import detect_qr_codes
-from agvviz.pipeline import Replay
+from agvviz.graph.solve import Replay
 from agvviz.recording.contract import (
     PAYLOAD_MAP_TOLERANCE_M,
     REJECT_CALIBRATION_SIZE,

@@ -1,4 +1,4 @@
-"""Paper 002's correction cycle (agvviz.correction): window bookkeeping, latency compensation
+"""Paper 002's correction cycle (agvviz.graph.correct): window bookkeeping, latency compensation
 through T_F_G, gates, and the replay + run integration on an auv_under_ice recording."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agvviz.correction import (
+from agvviz.graph.correct import (
     CorrectionCycle,
     CorrectionError,
     CorrectionReplay,
@@ -107,7 +107,7 @@ def route_recording(tmp_path_factory):
 
 @pytest.mark.parametrize("solver", ["cnoem", "bundle"])
 def test_correction_replay_beats_the_drifting_navigation(route_recording, solver):
-    from agvviz.pipeline import Replay
+    from agvviz.graph.solve import Replay
     from agvviz.recording.reader import iter_messages
     from agvviz.settings import RunSettings
 

@@ -20,7 +20,7 @@ from agvviz import scenario_registry
 from agvviz.graph import detect_cache
 from agvviz.graph.detect import DetectParams, detection_settings
 from agvviz.graph.detect_pool import DetectionFeed
-from agvviz.pipeline import Replay
+from agvviz.graph.solve import Replay
 from agvviz.recording.reader import iter_messages
 from agvviz.runner import detect_recording, prepare, run_recording
 from agvviz.settings import RunSettings

@@ -4,11 +4,13 @@ then read back from the .rrd with Rerun's chunk API."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from agvviz.geometry import se3
-from agvviz.pipeline import replay
+from agvviz.graph.solve import replay
 from agvviz.recording.reader import PoseMsg
 from agvviz.settings import RunSettings, SettingsError, apply_overrides
 from agvviz.viz import paths
@@ -72,7 +74,7 @@ def test_sigma_px_setting_is_validated():
 
 def test_new_entities_read_back_from_the_rrd(messages, tmp_path):
     frames = list(replay(messages, RunSettings()))
-    frames[1].flipped = True  # as the pipeline would mark a branch switch
+    frames[1] = dataclasses.replace(frames[1], flipped=True)  # as the pipeline would mark a branch switch
     out = tmp_path / "run.rrd"
     with RunLogger(out, recording_name="diag", recording_id="diag") as logger:
         for f in frames:

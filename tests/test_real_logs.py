@@ -643,7 +643,7 @@ def test_every_ros2_type_decodes(tmp_path):
 def test_extrinsic_through_a_time_varying_link():
     """A camera on a pan unit: base_link → pan (/tf) → camera_optical_frame (/tf_static)."""
     from agvviz.recording.reader import RecordedMessage
-    from agvviz.sync import SyncState
+    from agvviz.graph.sync import SyncState
 
     sync = SyncState(body_frame="base_link")
     pan = lambda a: se3.make(cv2.Rodrigues(np.array([0.0, 0.0, a]))[0], np.array([0.0, 0.0, 1.0]))  # noqa: E731

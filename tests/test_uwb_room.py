@@ -9,7 +9,7 @@ import pytest
 
 from agvviz import scenario_registry
 from agvviz.geometry import euler, se3
-from agvviz.pipeline import agv_pose_from_marker
+from agvviz.graph.solve import agv_pose_from_marker
 from agvviz.recording.contract import inspect_recording
 from agvviz.runner import run_recording
 from agvviz.settings import RunSettings

@@ -8,6 +8,8 @@ bytes are compared byte for byte.
 
 from __future__ import annotations
 
+import dataclasses
+
 import os
 import subprocess
 import sys
@@ -262,8 +264,7 @@ def test_bad_input_is_refused(tmp_path):
     with pytest.raises(OutputError, match="not a folder"):
         RunLogger(tmp_path / "file" / "run.rrd", recording_name="bad", recording_id="bad")
     logger = RunLogger(tmp_path / "ok.rrd", recording_name="bad", recording_id="bad")
-    frame = _frames(np.random.default_rng(2))[0]
-    frame.image_format = "bmp"
+    frame = dataclasses.replace(_frames(np.random.default_rng(2))[0], image_format="bmp")
     with pytest.raises(RunLogError, match="image_format 'bmp'"):
         logger.log_frame(frame)
     with pytest.raises(RunLogError, match="shape"):
@@ -289,7 +290,7 @@ def test_same_run_gives_equal_rrd(tmp_path):
     for name in ("a.rrd", "b.rrd"):
         _write_run(tmp_path / name, _frames(np.random.default_rng(5)))
     changed = _frames(np.random.default_rng(5))
-    changed[4].position_error_m += 1e-6
+    changed[4] = dataclasses.replace(changed[4], position_error_m=changed[4].position_error_m + 1e-6)
     _write_run(tmp_path / "c.rrd", changed)
 
     def compare(x: str, y: str) -> int:
@@ -307,7 +308,8 @@ def test_bad_frame_logs_nothing(tmp_path):
     logger = RunLogger(tmp_path / "partial.rrd", recording_name="partial", recording_id="partial")
     good, bad = _frames(np.random.default_rng(3))[:2]
     logger.log_frame(good)
-    bad.observations[0].reprojected_px = np.full((4, 2), np.nan)
+    nan_obs = dataclasses.replace(bad.observations[0], reprojected_px=np.full((4, 2), np.nan))
+    bad = dataclasses.replace(bad, observations=(nan_obs, *bad.observations[1:]))
     with pytest.raises(RunLogError, match="reprojected_px of marker 'm1' contains NaN"):
         logger.log_frame(bad)
     logger.close()

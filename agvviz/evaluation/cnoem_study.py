@@ -176,7 +176,7 @@ def trials_from_recording(messages) -> dict[str, list[auv.CycleTrial]]:
     Each trial starts with its ``/markers/map`` message; its first ``/agv/odometry`` and
     ``/agv/ground_truth`` poses are F's (navigation, truth); every ``/markers/corners`` message
     becomes a sighting placed in F through the navigation and the camera's ``/tf_static``
-    extrinsic — the same chain as :class:`agvviz.correction.CorrectionCycle`. Corners are taken as
+    extrinsic — the same chain as :class:`agvviz.graph.correct.CorrectionCycle`. Corners are taken as
     ideal pixels (the scenario's cameras have no distortion).
     """
     from agvviz.conventions import AGV_FRAME

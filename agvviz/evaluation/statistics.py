@@ -16,7 +16,6 @@ import math
 from typing import Callable
 
 import numpy as np
-from scipy import stats as scipy_stats
 
 #: Statistics of absolute errors reported for every per-frame quantity.
 STATISTICS = ("rmse", "median", "p95", "max")
@@ -135,4 +134,6 @@ def wilcoxon_paired(a: np.ndarray, b: np.ndarray) -> float:
         raise ValueError(f"paired samples must be 1-D, got shape {d.shape}")
     if d.size == 0 or not np.any(d != 0.0):
         return 1.0
+    from scipy import stats as scipy_stats  # here, not at import: scipy.stats costs ~1 s of start-up
+
     return float(scipy_stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)

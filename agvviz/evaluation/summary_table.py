@@ -7,7 +7,7 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
   (:func:`agvviz.evaluation.summary.summarize`) — shown when the run had camera frames, or had
   nothing else (a run whose every frame failed still says "frames N / solved 0");
 - UWB fusion: ``fusion`` (:class:`agvviz.evaluation.fusion_summary.FusionStats`);
-- corrections: ``correction`` (:class:`agvviz.correction.CorrectionStats`), e.g. a corner-only
+- corrections: ``correction`` (:class:`agvviz.graph.correct.CorrectionStats`), e.g. a corner-only
   ``auv_under_ice`` run, which has no camera frame and so no frame rows;
 - Monte-Carlo trials: ``trials`` (:mod:`agvviz.graph.trials`): cells × trials × solvers and
   each solver's RMSE ÷ CRLB.

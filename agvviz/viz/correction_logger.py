@@ -1,4 +1,4 @@
-"""Log paper 002's correction cycle (:mod:`agvviz.correction`) into a run ``.rrd``.
+"""Log paper 002's correction cycle (:mod:`agvviz.graph.correct`) into a run ``.rrd``.
 
 Entities (all under ``correction/`` or ``world/correction/``; timelines ``time``, ``frame`` and,
 for the solver's iterations only, ``cnoem_iter``):
@@ -28,7 +28,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.correction import CorrectionEvent, CorrectionStep
+from agvviz.graph.correct import CorrectionEvent, CorrectionStep
 from agvviz.viz import paths
 from agvviz.viz.run_logger import COLOR_CAMERA, COLOR_TRUTH, _trajectory
 

@@ -1,7 +1,7 @@
 """Log UWB ranging, UWB fixes, the camera choice and camera–UWB fusion into a run ``.rrd``.
 
 Entities are in :mod:`agvviz.viz.paths` (the "UWB and camera–UWB fusion" section); items come
-from :class:`agvviz.fusion_replay.FusionReplay`. Everything is logged on the ``time``
+from :class:`agvviz.graph.fuse.FusionReplay`. Everything is logged on the ``time``
 timeline and on ``frame`` (the latest camera frame index), never with wall-clock values.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
-from agvviz.fusion_replay import FrameSetResult, RangeResult, UwbFixResult
+from agvviz.graph.fuse import FrameSetResult, RangeResult, UwbFixResult
 from agvviz.viz import paths
 from agvviz.viz.run_logger import COLOR_CAMERA, COLOR_REJECTED, COLOR_TRUTH, _trajectory
 

@@ -1,6 +1,6 @@
 """Replay of multi-camera frames, UWB ranges and their fusion (paper 003). No I/O of its own.
 
-:class:`FusionReplay` sits beside :class:`agvviz.pipeline.Replay`: the runner hands it every
+:class:`FusionReplay` sits beside :class:`agvviz.graph.solve.Replay`: the runner hands it every
 recording message together with the per-camera :class:`~agvviz.results.FrameResult` the
 pipeline made of it (or None). It
 
@@ -185,7 +185,7 @@ class FusionReplay:
         error = self._note_fused(step, None if truth is None else truth[:2, 3])
         if xy is not None and self._estimate_xy is None:
             self._estimate_xy = xy
-        return FrameSetResult(frames, selection, step, self._camera_available, error)
+        return FrameSetResult(selection.frames, selection, step, self._camera_available, error)
 
     def _range(self, log_time_ns: int, msg: dict) -> list:
         anchor = str(msg["anchor"])

@@ -246,7 +246,7 @@ class CorrectionReplay:
     """Feeds :class:`CorrectionCycle` from recording messages and the pipeline's frames.
 
     ``cameras`` : camera name → object with ``camera`` (PinholeCamera) and ``T_agv_cam`` (as
-    :class:`agvviz.pipeline.ReplayContext` holds them; read when frames arrive, so calibrations
+    :class:`agvviz.graph.solve.ReplayContext` holds them; read when frames arrive, so calibrations
     recorded later than construction are seen). Frames of one time stamp are grouped; a group is
     complete when a message with a later time arrives, so :meth:`finish` must be called last.
     """

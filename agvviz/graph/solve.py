@@ -16,7 +16,7 @@ caller's summary (:meth:`Replay.warnings`).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Iterable, Iterator
 
 import cv2
@@ -37,11 +37,9 @@ from agvviz.markers.aruco import ArucoError, ArucoMap, parse_aruco_map
 from agvviz.markers.payload import PayloadError, parse_payload
 from agvviz.recording.contract import (
     IMAGE_FORMATS,
-    REJECT_IMAGE,
     REJECT_MAP_MISMATCH,
     REJECT_TIME,
     TimeChecks,
-    frame_problem,
     payload_map_problem,
     qr_map_of,
     unmapped_tolerance_m,
@@ -61,14 +59,16 @@ from agvviz.results import (
     REJECT_PAYLOAD,
     REJECT_REPROJECTION,
     REJECT_SOLVER,
+    FrameDraft,
     FrameResult,
+    freeze,
     MarkerObservation,
 )
 from agvviz.pose_diagnostics import PoseDiagnostics
 from agvviz.settings import RunSettings
 from agvviz.solvers import SolverOptions, solve
 from agvviz.solvers.planar import PlanarPrior
-from agvviz.sync import SyncState
+from agvviz.graph.sync import SyncState
 
 #: When no code of a frame is usable, the frame's reason is the first of these its codes had.
 _REASON_RANK = {
@@ -133,7 +133,7 @@ class Replay:
     """Streams :class:`FrameResult` s from recording messages under fixed settings.
 
     A run first calls :meth:`prime` with every non-image message of the recording (the sync
-    stage, :class:`agvviz.sync.SyncState`: calibrations, transforms, truth, odometry, marker
+    stage, :class:`agvviz.graph.sync.SyncState`: calibrations, transforms, truth, odometry, marker
     map), then :meth:`feed` with the messages in file order; calibration and transforms then
     apply to every frame whatever order the file holds them in, and truth is interpolated at
     each image's stamp. Fed without :meth:`prime`, a frame knows what came before it.
@@ -277,11 +277,11 @@ class Replay:
         self._cams_at_index.add(value.cam_name)
         self._last_frame_time_ns = t_ns
         if time_problem is not None:
-            result = FrameResult(
+            result = FrameDraft(
                 index=self._frame_index, log_time_ns=t_ns, cam_name=value.cam_name,
                 image_format=value.image_format, image_bytes=value.data,
             )
-            return self._reject(result, REJECT_TIME, time_problem)
+            return freeze(self._reject(result, REJECT_TIME, time_problem))
         self._update_camera(value.cam_name, value.frame_id, t_ns)
         odometry = self.sync.odometry_at(t_ns)
         if odometry is not None:
@@ -354,7 +354,7 @@ class Replay:
         self, frame: CompressedFrame, log_time_ns: int, detections: FrameDetections | None = None
     ) -> FrameResult:
         t_start = time.perf_counter()
-        result = FrameResult(
+        result = FrameDraft(
             index=self._frame_index,
             log_time_ns=log_time_ns,
             cam_name=frame.cam_name,
@@ -371,14 +371,14 @@ class Replay:
             self._solve_frame(frame, result, detections)
         finally:
             result.total_s = time.perf_counter() - t_start + (detections.detect_s if detections else 0.0)
-        return result
+        return freeze(result)
 
-    def _reject(self, result: FrameResult, reason: str, detail: str) -> FrameResult:
+    def _reject(self, result: FrameDraft, reason: str, detail: str) -> FrameDraft:
         result.rejected = reason
         result.reject_detail = detail
         return result
 
-    def _solve_frame(self, frame: CompressedFrame, result: FrameResult, detections: FrameDetections | None) -> FrameResult:
+    def _solve_frame(self, frame: CompressedFrame, result: FrameDraft, detections: FrameDetections | None) -> FrameResult:
         cam = self.ctx.cameras.get(frame.cam_name)
         if (
             cam is None or cam.camera is None or (cam.T_agv_cam is None and cam.T_world_cam is None)
@@ -416,7 +416,7 @@ class Replay:
             return self._reject(result, reason, "; ".join(d for _, d in problems))
         return self._solve_candidates(cam, candidates, result)
 
-    def _aruco_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameResult):
+    def _aruco_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameDraft):
         """ArUco markers of the map among the detected codes: (candidates, problems) as in
         :meth:`_qr_candidates`; a marker id the map does not list is a problem, not a pose."""
         aruco_map = self.ctx.aruco_map
@@ -441,7 +441,7 @@ class Replay:
             problems.append((REJECT_NO_MARKER, f"no {aruco_map.dictionary} marker found"))
         return candidates, problems
 
-    def _qr_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameResult):
+    def _qr_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameDraft):
         """The detected QR codes whose payload parses and agrees with the marker map.
 
         Returns ``(candidates, problems)``: candidates are (observation, ideal corners px,
@@ -492,7 +492,7 @@ class Replay:
             candidates.append((observation, ideal_px, points_m, WORLD_FRAME, T_world_marker))
         return candidates, problems
 
-    def _solve_candidates(self, cam: _Camera, candidates: list, result: FrameResult) -> FrameResult:
+    def _solve_candidates(self, cam: _Camera, candidates: list, result: FrameDraft) -> FrameResult:
         """Pose of the largest candidate, then the AGV through whichever of the camera and the
         marker is fixed in the world and whichever rides on the AGV (:func:`agv_pose_from_marker`)."""
         camera = cam.camera
@@ -542,10 +542,13 @@ class Replay:
         )
         T_cam_world = se3.inverse(T_world_cam)
         T_cam_frame = {WORLD_FRAME: T_cam_world, AGV_FRAME: T_cam_world @ T_world_agv}
+        observations = []
         for obs in result.observations:
             points_cam = se3.transform_points(T_cam_frame[obs.points_frame], obs.points_world_m)
             if np.all(points_cam[:, 2] > 0):
-                obs.reprojected_px = camera.project(points_cam)
+                obs = replace(obs, reprojected_px=camera.project(points_cam))
+            observations.append(obs)
+        result.observations = observations
         if result.T_world_agv_truth is not None:
             truth = result.T_world_agv_truth
             result.position_error_m = float(np.linalg.norm(T_world_agv[:3, 3] - truth[:3, 3]))
