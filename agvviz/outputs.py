@@ -219,7 +219,12 @@ def prepare_output(
 
 # -- small text files --------------------------------------------------------------------------
 def atomic_write_text(path: str | os.PathLike, text: str, *, inputs: Iterable[str | os.PathLike] = ()) -> Path:
-    """Write ``text`` to ``path`` through a temporary file renamed into place.
+    """Write ``text`` (UTF-8) to ``path`` atomically: :func:`atomic_write_bytes`."""
+    return atomic_write_bytes(path, text.encode("utf-8"), inputs=inputs)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, inputs: Iterable[str | os.PathLike] = ()) -> Path:
+    """Write ``data`` to ``path`` through a temporary file renamed into place.
 
     Every ``OSError`` becomes :class:`OutputError`; the temporary file is removed and ``path``
     is left as it was.
@@ -231,7 +236,6 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, inputs: Iterable[st
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         try:
-            data = text.encode("utf-8")
             view = memoryview(data)
             while view:
                 view = view[os.write(fd, view):]

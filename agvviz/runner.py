@@ -249,8 +249,8 @@ class DetectionPlan:
             return
         try:
             detect_cache.save(self.cache_path, self.feed.frames)
-        except OSError as exc:
-            self.problems.append(f"the detection cache could not be written ({exc.strerror or exc}): {self.cache_path}")
+        except (OSError, OutputError) as exc:
+            self.problems.append(f"the detection cache was not stored ({exc}); runs will detect again")
 
     def summary(self) -> dict:
         """What the detect stage did (the same whether detected now or read from the cache)."""

@@ -18,6 +18,8 @@ through the camera pipeline once; the fusion variants reuse its frame results.
 
 from __future__ import annotations
 
+import dataclasses
+
 import argparse
 import copy
 import tempfile
@@ -41,16 +43,17 @@ def replay_once(recording: Path) -> tuple[list, dict]:
     for message in iter_messages(recording):
         frame = replay.feed(message)
         if frame is not None:
-            frame.image_bytes = b""
+            frame = dataclasses.replace(frame, image_bytes=b"")
         light = RecordedMessage(message.topic, message.log_time_ns, message.schema_name, None) if isinstance(
             message.value, CompressedFrame) else message
         pairs.append((light, frame))
-    return pairs, replay.ctx.cameras
+    return pairs, replay
 
 
-def fusion_summary(pairs: list, cameras: dict, **settings) -> dict:
-    """The fusion statistics of one setting over replayed pairs."""
-    fusion = FusionReplay(RunSettings(**settings), cameras)
+def fusion_summary(pairs: list, replay, **settings) -> dict:
+    """The fusion statistics of one setting over replayed pairs (``replay``: the solve stage
+    that made them, for its cameras and its sync stage's ground truth)."""
+    fusion = FusionReplay(RunSettings(**settings), replay.ctx.cameras, replay.sync)
     stats = FusionStats()
     for message, frame in copy.deepcopy(pairs):
         for item in fusion.feed(message, frame):

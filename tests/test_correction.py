@@ -112,7 +112,7 @@ def test_correction_replay_beats_the_drifting_navigation(route_recording, solver
     from agvviz.settings import RunSettings
 
     replay = Replay(RunSettings())
-    correction = CorrectionReplay(CorrectionSettings(solver=solver, cycle_distance_m=3.0), replay.ctx.cameras)
+    correction = CorrectionReplay(CorrectionSettings(solver=solver, cycle_distance_m=3.0), replay.ctx.cameras, replay.sync)
     steps = []
     for message in iter_messages(route_recording):
         steps += correction.feed(message, replay.feed(message))

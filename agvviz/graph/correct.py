@@ -40,6 +40,7 @@ import numpy as np
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.recording.reader import PoseMsg, RecordedMessage
+from agvviz.graph.sync import SyncState
 from agvviz.results import FrameResult
 from agvviz.solvers import window_baselines
 from agvviz.solvers.bundle import pixel_residuals_and_jacobian, solve_bundle
@@ -47,7 +48,7 @@ from agvviz.solvers.cnoem import CornerWindow, Sighting, WindowSolution, solve_c
 from agvviz.solvers.uncertainty import UncertaintyError
 from agvviz.solvers.window_crlb import position_bound_m, window_crlb
 
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TRUTH  # noqa: E402
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY  # noqa: E402
 
 
 class CorrectionError(InputError):
@@ -251,13 +252,13 @@ class CorrectionReplay:
     complete when a message with a later time arrives, so :meth:`finish` must be called last.
     """
 
-    def __init__(self, settings: CorrectionSettings, cameras: dict):
+    def __init__(self, settings: CorrectionSettings, cameras: dict, sync: SyncState):
         self.settings = settings
         self.cameras = cameras
+        self.sync = sync  # the sync stage: ground truth at each step's stamp
         self.cycle: CorrectionCycle | None = None
         self.map_corners: dict[str, np.ndarray] = {}
         self._nav: PoseMsg | None = None
-        self._truth: tuple[int, np.ndarray] | None = None
         self._pending_time: int | None = None
         self._pending: list[FrameSighting] = []
         self._pending_any = False
@@ -273,8 +274,6 @@ class CorrectionReplay:
                     self.map_corners[str(m.get("id"))] = corners
         elif message.role == ROLE_ODOMETRY and isinstance(message.value, PoseMsg):
             self._nav = message.value
-        elif message.role == ROLE_TRUTH and isinstance(message.value, PoseMsg):
-            self._truth = (message.time_ns, message.value.T)
         elif message.role == ROLE_CORNERS and isinstance(message.value, dict):
             self._add_pending(message.time_ns, self._corner_sightings(message.value))
         if frame is not None:
@@ -331,7 +330,7 @@ class CorrectionReplay:
             self.cycle = CorrectionCycle(self.settings, mounts)
         T_nav = self._nav.T
         event = self.cycle.add_frame(t, T_nav, sightings)
-        truth = self._truth[1] if self._truth is not None and abs(self._truth[0] - t) <= 5_000_000 else None
+        truth = self.sync.truth_at(t)
         return [CorrectionStep(t, T_nav, self.cycle.corrected(T_nav), truth, sightings, event)]
 
 

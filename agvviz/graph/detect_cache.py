@@ -18,12 +18,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import uuid
 from pathlib import Path
 
 import numpy as np
 
-from agvviz import __version__
+from agvviz import __version__, outputs
 from agvviz.graph.detect import CodeDetection, DetectParams, FrameDetections
 from agvviz.graph.detect_pool import DetectedFrame
 
@@ -59,7 +58,8 @@ def _array(values, columns: int = 2) -> np.ndarray | None:
 
 
 def save(path: Path, frames: list[DetectedFrame]) -> None:
-    """Write ``frames`` to ``path`` atomically (a temp file in the same folder, then rename)."""
+    """Write ``frames`` to ``path`` atomically (:func:`agvviz.outputs.atomic_write_bytes`);
+    :class:`~agvviz.errors.OutputError` when it cannot be written."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -96,13 +96,10 @@ def save(path: Path, frames: list[DetectedFrame]) -> None:
         ("codes", pa.list_(code_type)),
     ])
     table = pa.Table.from_pylist(rows, schema=schema)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        pq.write_table(table, tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    buffer = pa.BufferOutputStream()
+    pq.write_table(table, buffer)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    outputs.atomic_write_bytes(path, buffer.getvalue().to_pybytes())
 
 
 def load(path: Path) -> list[DetectedFrame] | None:

@@ -18,19 +18,20 @@ called after the last message.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from agvviz.fusion import FusionStep, KalmanSettings, make_fusion
 from agvviz.multicam import CameraSelection, select_camera_fix
-from agvviz.recording.reader import FrameTransformMsg, PoseMsg, RecordedMessage
+from agvviz.recording.reader import FrameTransformMsg, RecordedMessage
 from agvviz.results import FrameResult
+from agvviz.graph.sync import SyncState
 from agvviz.settings import RunSettings
 from agvviz.uwb import RangeRecord, UwbFix, UwbTracker, range_from_timestamps_m
 from agvviz.uwb.localize import predicted_ranges_m
 
-from agvviz.recording.topics import ROLE_TRUTH, ROLE_UWB_ANCHORS, ROLE_UWB_RANGE  # noqa: E402
+from agvviz.recording.topics import ROLE_UWB_ANCHORS, ROLE_UWB_RANGE  # noqa: E402
 TAG_FRAME = "uwb_tag"
 
 
@@ -86,33 +87,20 @@ class UwbFixResult:
         return float(np.linalg.norm(self.fix.position_m[:2] - self.truth_xy_m))
 
 
-@dataclass
-class _Truth:
-    """The last two ground-truth samples, for interpolation at a range time."""
-
-    samples: list[tuple[int, np.ndarray]] = field(default_factory=list)
-
-    def add(self, t_ns: int, T: np.ndarray) -> None:
-        self.samples = (self.samples + [(t_ns, T)])[-2:]
-
-    def xy_at(self, t_ns: int, max_dt_ns: int) -> np.ndarray | None:
-        near = [(abs(t - t_ns), T) for t, T in self.samples if abs(t - t_ns) <= max_dt_ns]
-        return None if not near else min(near, key=lambda item: item[0])[1][:2, 3].copy()
-
-
 class FusionReplay:
-    """See the module docstring. ``cameras`` is the pipeline's per-camera state
-    (``Replay.ctx.cameras``), read when a frame set is completed."""
+    """See the module docstring. ``cameras`` is the solve stage's per-camera state
+    (``Replay.ctx.cameras``), read when a frame set is completed; ``sync`` the sync stage, whose
+    ground truth (interpolated at each stamp) scores ranges, fixes and fused positions."""
 
-    def __init__(self, settings: RunSettings, cameras: dict):
+    def __init__(self, settings: RunSettings, cameras: dict, sync: SyncState):
         self.settings = settings
         self.cameras = cameras
+        self.sync = sync
         self.anchors_m: dict[str, np.ndarray] = {}
         self.tag_z_m: float | None = None
         self.tracker: UwbTracker | None = None
         self.fusion = make_fusion("camera_only", {}, 0.0)
         self._pending: list[FrameResult] = []
-        self._truth = _Truth()
         self._camera_available = False
         self._estimate_xy: np.ndarray | None = None
 
@@ -140,9 +128,7 @@ class FusionReplay:
         if self._pending and message.time_ns != self._pending[0].log_time_ns:
             out.append(self._complete_frame_set())
         value = message.value
-        if message.role == ROLE_TRUTH and isinstance(value, PoseMsg):
-            self._truth.add(message.time_ns, value.T)
-        elif isinstance(value, list) and value and isinstance(value[0], FrameTransformMsg):
+        if isinstance(value, list) and value and isinstance(value[0], FrameTransformMsg):
             for tf in value:
                 if tf.parent_frame == "agv" and tf.child_frame == TAG_FRAME:
                     # The tag is taken to sit above the AGV origin; its height is what counts.
@@ -162,8 +148,9 @@ class FusionReplay:
         return [self._complete_frame_set()] if self._pending else []
 
     # -- internals --------------------------------------------------------------------------
-    def _max_dt_ns(self) -> int:
-        return int(self.settings.truth_max_dt_s * 1e9)
+    def _truth_xy(self, t_ns: int) -> np.ndarray | None:
+        truth = self.sync.truth_at(t_ns)
+        return None if truth is None else truth[:2, 3].copy()
 
     def _note_fused(self, step: FusionStep, truth_xy: np.ndarray | None) -> float | None:
         """Remember the fused position as the current estimate; its 2-D error, if known."""
@@ -191,7 +178,7 @@ class FusionReplay:
         anchor = str(msg["anchor"])
         range_m = float(msg["range_m"])
         tof_range_m = float(range_from_timestamps_m(msg["t1_ns"], msg["t2_ns"], msg["t3_ns"], msg["t4_ns"]))
-        truth_xy = self._truth.xy_at(log_time_ns, self._max_dt_ns())
+        truth_xy = self._truth_xy(log_time_ns)
         anchor_m = self.anchors_m.get(anchor)
 
         def predicted(xy):
@@ -210,7 +197,7 @@ class FusionReplay:
         ]
         fix = self.tracker.add(RangeRecord(log_time_ns, anchor, range_m))
         if fix is not None:
-            fix_truth = self._truth.xy_at(fix.log_time_ns, self._max_dt_ns())
+            fix_truth = self._truth_xy(fix.log_time_ns)
             fix_step = self.fusion.uwb_fix(fix)
             error = self._note_fused(fix_step, fix_truth)
             if self._estimate_xy is None:

@@ -54,8 +54,9 @@ class ReplayGraph:
                     cycle_distance_m=settings.cycle_distance_m, max_reproj_px=settings.max_reproj_px,
                 ),
                 solve.ctx.cameras,
+                solve.sync,
             )
-        return cls(detect, solve, FusionReplay(settings, solve.ctx.cameras), correct, sinks)
+        return cls(detect, solve, FusionReplay(settings, solve.ctx.cameras, solve.sync), correct, sinks)
 
     def run(self, messages: Iterable[RecordedMessage]) -> None:
         """Drive every message through the stages, in file order, then flush them."""
