@@ -170,42 +170,13 @@ def _run_help() -> str:
 
 
 def _print_summary(summary: dict, timing: dict, title: str) -> None:
+    from agvviz.evaluation.summary_table import summary_rows
+
     table = Table(title=title, title_justify="left")
     table.add_column("metric")
     table.add_column("value", justify="right")
-    table.add_row("frames", str(summary["frames"]))
-    table.add_row("solved", str(summary["solved"]))
-    for reason, count in summary["rejected"].items():
-        table.add_row(f"rejected: {reason}", str(count))
-    pos = summary["position_error_mm"]
-    hdg = summary["heading_error_deg"]
-    fmt = lambda v, p=2: "—" if v is None else f"{v:.{p}f}"  # noqa: E731
-    table.add_row("position RMSE / median / p95 (mm)", f"{fmt(pos['rmse'])} / {fmt(pos['median'])} / {fmt(pos['p95'])}")
-    table.add_row("heading RMSE / median / p95 (deg)", f"{fmt(hdg['rmse'], 3)} / {fmt(hdg['median'], 3)} / {fmt(hdg['p95'], 3)}")
-    table.add_row("reprojection RMS median (px)", fmt(summary["reproj_rms_px"]["median"], 3))
-    table.add_row("time per frame (ms): total / detect / solve",
-                  f"{fmt(timing['time_per_frame_ms'], 1)} / {fmt(timing['detect_ms'], 1)} / {fmt(timing['solve_ms'], 2)}")
-    if "frames_per_s" in timing:
-        table.add_row("throughput (frames/s, incl. logging)", fmt(timing["frames_per_s"], 1))
-    if "fusion" in summary:  # paper 003: 2-D errors, mean as the paper reports them
-        f = summary["fusion"]
-        for label, key in (
-            ("camera fix 2-D error mean / p95 (mm)", "camera_xy_error_mm"),
-            (f"UWB ({f['uwb']}) 2-D error mean / p95 (mm)", "uwb_xy_error_mm"),
-            (f"fused ({f['fusion']}) 2-D error mean / p95 (mm)", "fused_xy_error_mm"),
-            ("fused while cameras blocked: mean / p95 (mm)", "fused_blocked_xy_error_mm"),
-        ):
-            table.add_row(label, f"{fmt(f[key]['mean'])} / {fmt(f[key]['p95'])}")
-        table.add_row("switches / mean jump (mm)", f"{f['switches']} / {fmt(f['switch_jump_mm']['mean'])}")
-        table.add_row("UWB ranges gated (residual gate / Kalman)", f"{f['uwb_ranges_gated']} / {f['kalman_ranges_gated']}")
-    if "correction" in summary:  # paper 002: navigation corrected over cycles
-        c = summary["correction"]
-        mm = lambda v: None if v is None else 1000.0 * v  # noqa: E731
-        table.add_row("correction cycles / applied", f"{c['cycles']} / {c['corrections_applied']}")
-        table.add_row("navigation RMSE raw → corrected (mm)", f"{fmt(mm(c['nav_rmse_m']))} → {fmt(mm(c['corrected_rmse_m']))}")
-        table.add_row("final error raw → corrected (mm)",
-                      f"{fmt(mm(c['nav_final_error_m']))} → {fmt(mm(c['corrected_final_error_m']))}")
-        table.add_row("mean correction jump (mm)", fmt(mm(c["mean_jump_m"])))
+    for metric, value in summary_rows(summary, timing):
+        table.add_row(metric, value)
     console.print(table)
     for problem in summary.get("recording_damage", []):
         err_console.print(f"[yellow]recording damage:[/] {escape(problem)}")
@@ -250,14 +221,25 @@ def _side_inputs(markers: Optional[Path], calibration: list[str], extrinsic: lis
     return side
 
 
+JOBS_HELP = "detection worker processes (default: one per CPU; 1 = detect in this process); results do not depend on it"
+CACHE_HELP = (
+    "reuse and store detections (corners, ids, payloads) per recording and detection settings, so a "
+    "run that only changes solve/fusion/correction settings skips detection"
+)
+CACHE_DIR_HELP = "detection cache folder (default: $AGVVIZ_CACHE_DIR, else ~/.cache/agvviz/detections)"
+
+
 def _run(
     recording: Path, solver: Optional[str], sets: list[str], out: Optional[Path],
     topics: list[str] = (), roles: Optional[Path] = None, markers: Optional[Path] = None,
-    calibration: list[str] = (), extrinsic: list[str] = (),
+    calibration: list[str] = (), extrinsic: list[str] = (), jobs: Optional[int] = None,
+    cache_dir=None,
 ) -> Path:
     from agvviz.recording.roles import parse_topic_options
     from agvviz.runner import NoUsableFrameError, run_recording
 
+    if jobs is not None and not 1 <= jobs <= 256:
+        _fail(f"--jobs must lie in 1..256 (or be left out for one per CPU), got {jobs}")
     settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
     topic_map = parse_topic_options(list(topics))
     side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
@@ -275,7 +257,7 @@ def _run(
         try:
             outcome = run_recording(
                 recording, settings, out, progress=on_frame, topics=topic_map, roles_file=roles,
-                side=side, on_total=on_total,
+                side=side, on_total=on_total, jobs=jobs, cache_dir=cache_dir,
             )
         except NoUsableFrameError as exc:
             progress.stop()
@@ -300,8 +282,12 @@ def run(
     markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
     calibration: List[str] = typer.Option([], "--calibration", help=CALIBRATION_HELP),
     extrinsic: List[str] = typer.Option([], "--extrinsic", help=EXTRINSIC_HELP),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help=JOBS_HELP),
+    cache: bool = typer.Option(True, "--cache/--no-cache", help=CACHE_HELP),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
 ) -> None:
-    _run(recording, solver, set_, out, topic, roles, markers, calibration, extrinsic)
+    _run(recording, solver, set_, out, topic, roles, markers, calibration, extrinsic,
+         jobs=jobs, cache_dir=(cache_dir if cache else False))
 
 
 # -- inspect / view / demo ---------------------------------------------------------------
@@ -483,68 +469,81 @@ def diff(
 @app.command()
 @handle_errors
 def sweep(
-    recording: Path = typer.Argument(..., help="recording .mcap"),
+    recordings: List[Path] = typer.Argument(..., help="recordings (.mcap or rosbag2 folders)"),
     set_: List[str] = typer.Option(
         [], "--set", help="setting=value1,value2,... (repeatable); the sweep runs every combination",
     ),
-    jobs: Optional[int] = typer.Option(None, "--jobs", help="parallel processes (default: number of CPUs)"),
-    out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="default runs/sweep-<recording>"),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="worker processes of the local cluster (default: "
+                                       "number of CPUs)"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="address of an existing Dask cluster's "
+                                            "scheduler (tcp://host:8786) to run on instead of a local cluster"),
+    out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="default runs/sweep-<recording>; with several "
+                                           "recordings one folder per recording under it (default runs/sweep)"),
     rank_by: str = typer.Option("position_rmse_mm", "--rank-by", help="metric to rank by (lower is better, "
                                 "except solved / solved_pct)"),
     align: str = typer.Option("none", "--align", help="APE alignment: none | se3 | se2 | yaw"),
     images: bool = typer.Option(True, "--images/--no-images", help="camera images in the overlay"),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
 ) -> None:
-    """Replay RECORDING under every combination of the --set values in parallel; rank the runs.
+    """Replay each RECORDING under every combination of the --set values on a Dask cluster; rank
+    each recording's runs.
 
-    Writes one .rrd per setting, overlay.rrd, ranking.csv and ranking.md into --out-dir. A setting
-    that fails is reported and the others go on. Names are the run settings of `agvviz run --help`
-    (lm.max_iters is accepted for lm_max_iterations).
+    Each recording is detected once per detection settings; every setting then only solves.
+    Writes one .rrd per setting, overlay.rrd, ranking.csv and ranking.md into --out-dir (with
+    several recordings, into --out-dir/<recording name>/). A setting that fails is reported and
+    the others go on. Names are the run settings of `agvviz run --help` (lm.max_iters is accepted
+    for lm_max_iterations). Needs Dask: pip install 'agvviz\\[distributed]'.
 
     Example: agvviz sweep recordings/qr_floor.mcap --set solver=p4p,lm,ippe --set lm_max_iterations=3,10
     """
     from agvviz.compare import grid_settings, parse_grid, ranking_rows
     from agvviz.compare import sweep as sweep_runs
-    from agvviz.recording.reader import count_image_times
 
     if jobs is not None and jobs < 1:
         _fail(f"--jobs must be ≥ 1 (or left out for one per CPU), got {jobs}")
     grid = parse_grid(set_)
-    n_settings = len(grid_settings(grid))
-    frames = count_image_times(recording) if recording.is_file() else 0
+    n_runs = len(grid_settings(grid)) * len(recordings)
+    what = f"{n_runs} runs" if len(recordings) > 1 else f"{n_runs} settings"
     with _progress() as progress:
-        task = progress.add_task(f"sweeping {n_settings} settings", total=frames * n_settings, rate="")
+        task = progress.add_task(f"sweeping {what}", total=None, rate="starting")
 
-        def on_progress(frames_done: int, settings_done: int) -> None:
-            progress.update(task, completed=frames_done, rate=f"{settings_done}/{n_settings} settings done")
+        def on_total(frames: int) -> None:
+            progress.update(task, total=frames or None)
+
+        def on_progress(frames_done: int, runs_done: int) -> None:
+            progress.update(task, completed=frames_done, rate=f"{runs_done}/{n_runs} done")
 
         outcome = sweep_runs(
-            recording, grid, out_dir=out_dir, jobs=jobs, rank_by=rank_by, align=align,
-            images=images, progress=on_progress,
+            recordings[0] if len(recordings) == 1 else recordings, grid, out_dir=out_dir, jobs=jobs,
+            rank_by=rank_by, align=align, images=images, progress=on_progress, on_total=on_total,
+            scheduler=scheduler, cache_dir=cache_dir,
         )
-    header, rows = ranking_rows(outcome.entries, outcome.rank_by)
-    table = Table(title=f"sweep of {recording.name}, ranked by {outcome.rank_by} "
-                  f"(every column in {outcome.markdown_path.name})", title_justify="left")
-    wanted = dict.fromkeys(["rank", "setting", outcome.rank_by, "solved", "position_p95_mm",
-                            "heading_rmse_deg", "p_vs_best", "time_per_frame_ms", "status"])
-    shown = [header.index(h) for h in wanted]
-    for i in shown:
-        table.add_column(header[i], justify="left" if header[i] in ("setting", "status") else "right",
-                         no_wrap=True, min_width=6 if header[i] == "status" else None)
-    for row in rows:
-        table.add_row(*[row[i] if not row[i].startswith("failed") else "failed" for i in shown])
-    Console(width=max(console.width, 160)).print(table)
-    for entry in outcome.entries:
-        if not entry.ok:
-            err_console.print(f"[bold red]setting {entry.label} failed:[/] {entry.error}")
-    console.print(f"runs in [bold]{outcome.csv_path.parent}[/]; table: {outcome.csv_path.name}, "
-                  f"{outcome.markdown_path.name}" + (f"; overlay: [bold]{outcome.overlay_path}[/]"
-                                                     if outcome.overlay_path else ""))
+    wanted = ["rank", "setting", outcome.rank_by, "solved", "position_p95_mm",
+              "heading_rmse_deg", "p_vs_best", "time_per_frame_ms", "status"]
+    for result in outcome.recordings:
+        header, rows = ranking_rows(result.entries, outcome.rank_by)
+        table = Table(title=f"sweep of {result.recording.name}, ranked by {outcome.rank_by} "
+                      f"(every column in {result.markdown_path.name})", title_justify="left")
+        shown = [header.index(h) for h in dict.fromkeys(wanted)]
+        for i in shown:
+            table.add_column(header[i], justify="left" if header[i] in ("setting", "status") else "right",
+                             no_wrap=True, min_width=6 if header[i] == "status" else None)
+        for row in rows:
+            table.add_row(*[row[i] if not row[i].startswith("failed") else "failed" for i in shown])
+        Console(width=max(console.width, 160)).print(table)
+        for entry in result.entries:
+            if not entry.ok:
+                where = f" of {result.recording.name}" if len(outcome.recordings) > 1 else ""
+                err_console.print(f"[bold red]setting {escape(entry.label)}{escape(where)} failed:[/] "
+                                  f"{escape(entry.error)}")
+        console.print(f"runs in [bold]{escape(str(result.out_dir))}[/]; table: {result.csv_path.name}, "
+                      f"{result.markdown_path.name}" + (f"; overlay: [bold]{escape(str(result.overlay_path))}[/]"
+                                                        if result.overlay_path else ""))
     console.print(f"sweep took {outcome.wall_time_s:.1f} s")
     if not any(entry.ok for entry in outcome.entries):  # nothing to rank: say so in the exit code
         all_output = all(entry.error.startswith("OutputError") for entry in outcome.entries)
         error_line("every setting failed; see the messages above")
         raise typer.Exit(code=EXIT_OUTPUT if all_output else EXIT_BAD_INPUT)
-
 
 @app.command()
 @handle_errors

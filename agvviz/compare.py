@@ -4,8 +4,9 @@
   :class:`~agvviz.evaluation.comparison.RunSeries` (the ``.rrd`` alone is enough).
 - :func:`diff` compares two runs (table, paired tests, intervals, most different frames),
   optionally writes the overlay ``.rrd`` and evaluates a ``--fail-if`` condition.
-- :func:`sweep` replays one recording under the cross product of setting values in
-  parallel processes, ranks the runs, and writes one ``.rrd`` per setting, an overlay
+- :func:`sweep` replays one or several recordings under the cross product of setting values
+  on a Dask cluster (:mod:`agvviz.cluster`; each recording detected once per detection
+  settings), ranks each recording's runs, and writes one ``.rrd`` per setting, an overlay
   ``.rrd`` and the ranking as CSV and markdown.
 """
 
@@ -15,17 +16,12 @@ import csv
 import io
 import itertools
 import math
-import multiprocessing
 import os
-import queue as queue_module
 import re
-import signal
-import sys
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -368,7 +364,7 @@ def grid_settings(grid: dict[str, list[str]], base: RunSettings = RunSettings())
 
 @dataclass
 class SweepEntry:
-    """One setting of a sweep and how it went."""
+    """One setting of a sweep over one recording, and how it went."""
 
     label: str
     settings: RunSettings
@@ -377,7 +373,8 @@ class SweepEntry:
     metrics: dict = field(default_factory=dict)
     timing: dict = field(default_factory=dict)  # wall-clock figures (not in the .rrd)
     p_vs_best: float | None = None  # Wilcoxon p of the ranking quantity vs the best setting
-    rank: int | None = None  # 1 = best; None when failed
+    rank: int | None = None  # 1 = best among its recording's settings; None when failed
+    recording: Path | None = None  # the recording replayed
 
     @property
     def ok(self) -> bool:
@@ -385,8 +382,26 @@ class SweepEntry:
 
 
 @dataclass
+class RecordingSweep:
+    """One recording of a sweep: its ranked entries (best first, failed last) and its files."""
+
+    recording: Path
+    out_dir: Path
+    entries: list[SweepEntry]
+    overlay_path: Path | None
+    csv_path: Path
+    markdown_path: Path
+
+
+@dataclass
 class SweepOutcome:
-    """Ranked entries (best first, failed last) and the files written."""
+    """Ranked entries and the files written.
+
+    ``entries`` holds every recording's entries, each recording's ranked (best first, failed
+    last), recordings in the order given; ``overlay_path``, ``csv_path`` and ``markdown_path``
+    are the first recording's (the only one's in a sweep of one recording); ``recordings`` has
+    each recording's own.
+    """
 
     entries: list[SweepEntry]
     rank_by: str
@@ -394,96 +409,7 @@ class SweepOutcome:
     csv_path: Path
     markdown_path: Path
     wall_time_s: float
-
-
-_progress_queue = None  # set in each worker process by _init_worker
-_worker_busy = False  # a worker is inside _run_one
-
-
-def _worker_sigterm(signum, frame) -> None:
-    """SIGTERM in a worker: unwind a run in progress (its temporary file is removed), or
-    leave at once when idle."""
-    if _worker_busy:
-        raise KeyboardInterrupt
-    os._exit(130)
-
-
-def _terminate_with_parent() -> None:
-    """Linux: SIGTERM this worker when the sweep process dies (even by SIGKILL), so a worker
-    never runs on alone; elsewhere a no-op."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
-        parent = multiprocessing.parent_process()
-        if parent is not None and parent.pid != os.getppid():  # the parent died before the call
-            os._exit(130)
-    except (OSError, AttributeError):
-        pass
-
-
-def _init_worker(progress_queue) -> None:
-    global _progress_queue
-    _progress_queue = progress_queue
-    # Ctrl-C reaches the whole process group: the parent alone handles it and stops the
-    # workers with SIGTERM, so a worker never prints a traceback of its own.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, _worker_sigterm)
-    _terminate_with_parent()
-    # One OpenCV thread per worker: `jobs` workers already fill the CPUs, more threads only
-    # contend for them.
-    import cv2
-
-    cv2.setNumThreads(1)
-
-
-def _run_one(index: int, recording: str, settings: RunSettings, out_path: str) -> tuple[int, dict]:
-    """Worker: replay one setting (in its own process); returns its wall-clock timing."""
-    global _worker_busy
-    from agvviz.runner import run_recording
-
-    def progress(done: int) -> None:
-        if _progress_queue is not None:
-            _progress_queue.put((index, done))
-
-    _worker_busy = True
-    try:
-        outcome = run_recording(Path(recording), settings, Path(out_path), progress=progress)
-    except KeyboardInterrupt:  # stopped by the parent: remove the run's temporary file, leave
-        outputs.remove_live_temps()
-        os._exit(130)
-    finally:
-        _worker_busy = False
-    return index, outcome.timing
-
-
-def stop_pool(pool: ProcessPoolExecutor, grace_s: float = 10.0) -> None:
-    """Cancel what has not started and stop every worker of ``pool``: SIGTERM (a run in
-    progress removes its temporary file and exits), then SIGKILL after ``grace_s``."""
-    processes = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
-    for process in processes:
-        if process.is_alive():
-            process.terminate()
-    deadline = time.monotonic() + grace_s
-    for process in processes:
-        process.join(timeout=max(0.0, deadline - time.monotonic()))
-        if process.is_alive():
-            process.kill()
-            process.join(timeout=2.0)
-
-
-def _drain(progress_queue, frames_done: list[int]) -> None:
-    """Move the (setting index, frames done) reports of the workers into ``frames_done``."""
-    while True:
-        try:
-            index, done_frames = progress_queue.get_nowait()
-        except queue_module.Empty:
-            return
-        frames_done[index] = max(frames_done[index], done_frames)
+    recordings: list[RecordingSweep] = field(default_factory=list)
 
 
 def _rank_quantity(rank_by: str) -> str:
@@ -492,8 +418,47 @@ def _rank_quantity(rank_by: str) -> str:
     return matches[0] if matches else "position"
 
 
+def sweep_out_dirs(recordings: Sequence[Path], out_dir: str | os.PathLike | None) -> list[Path]:
+    """Where each recording's runs go: ``out_dir`` (default ``runs/sweep-<stem>``) for one
+    recording; ``<out_dir>/<stem>`` (default ``runs/sweep/<stem>``) for several.
+
+    Raises
+    ------
+    CompareError
+        A recording is given twice, or two recordings have the same file stem.
+    """
+    if len(recordings) == 1:
+        return [Path(out_dir) if out_dir is not None else Path("runs") / f"sweep-{recordings[0].stem}"]
+    seen: dict[str, Path] = {}
+    for recording in recordings:
+        if recording.stem in seen:
+            same = outputs.same_file(recording, seen[recording.stem])
+            raise CompareError(
+                f"recording {recording} is given twice" if same else
+                f"recordings {seen[recording.stem]} and {recording} have the same name "
+                f"{recording.stem!r}; their runs would share the folder {recording.stem}/: rename one"
+            )
+        seen[recording.stem] = recording
+    root = Path(out_dir) if out_dir is not None else Path("runs") / "sweep"
+    return [root / recording.stem for recording in recordings]
+
+
+def _count_frames(recording: Path) -> int:
+    """Frames of ``recording`` for the progress bar; 0 when it cannot be counted (a bag folder,
+    a file that is no recording: its runs report why)."""
+    from agvviz.errors import AgvvizError
+    from agvviz.recording.reader import count_image_times
+
+    if not recording.is_file():
+        return 0
+    try:
+        return count_image_times(recording)
+    except (AgvvizError, OSError, ValueError):
+        return 0
+
+
 def sweep(
-    recording: str | os.PathLike,
+    recording: str | os.PathLike | Sequence[str | os.PathLike],
     grid: dict[str, list[str]],
     *,
     base: RunSettings = RunSettings(),
@@ -504,30 +469,46 @@ def sweep(
     rpe_delta: int = 1,
     images: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    on_total: Callable[[int], None] | None = None,
+    scheduler: str | None = None,
+    cache_dir: str | os.PathLike | None = None,
 ) -> SweepOutcome:
-    """Replay ``recording`` under every combination of ``grid`` in parallel processes.
+    """Replay every recording under every combination of ``grid`` on a Dask cluster.
 
     Parameters
     ----------
+    recording : path or sequence of paths
+        One recording (an ``.mcap`` or a rosbag2 folder) or several.
     grid : dict
         Setting name → values (strings, as on the command line); see :func:`parse_grid`.
     base : RunSettings
         Settings the grid values are applied to.
     out_dir : path, optional
-        Default ``runs/sweep-<recording stem>``. Gets ``<stem>-<label>.rrd`` per setting,
-        ``overlay.rrd``, ``ranking.csv`` and ``ranking.md``.
+        See :func:`sweep_out_dirs`. Each recording's folder gets ``<stem>-<label>.rrd`` per
+        setting, ``overlay.rrd``, ``ranking.csv`` and ``ranking.md``.
     jobs : int, optional
-        Worker processes (default: the number of CPUs).
+        Worker processes of the local cluster (default: one per CPU, at most one per run).
     rank_by : str
         Metric to rank by (lower is better, except ``solved``/``solved_pct``).
     progress : callable, optional
-        ``progress(frames_done, settings_finished)`` summed over all settings.
+        ``progress(frames_done, runs_finished)`` summed over all runs; the frames of each
+        recording's detections count too (``on_total(frames)`` is called first with the total).
+    scheduler : str, optional
+        Address of an existing Dask cluster's scheduler; None starts a local cluster.
+    cache_dir : path, optional
+        Detection cache folder (default: :func:`agvviz.graph.detect_cache.default_cache_dir`).
 
-    A setting that fails is reported in its entry (``error``) and ranked last; the others go on.
+    Each recording is detected once per distinct detection settings of the grid
+    (:mod:`agvviz.cluster`), then every setting only solves. A run that fails is reported in its
+    entry (``error``) and ranked last; the others go on. Needs Dask (``agvviz[distributed]``).
     """
-    recording = Path(recording)
-    if not recording.exists():  # an .mcap file or a rosbag2 directory
-        raise CompareError(f"recording not found: {recording}")
+    single = isinstance(recording, (str, os.PathLike))
+    recordings = [Path(recording)] if single else [Path(r) for r in recording]
+    if not recordings:
+        raise CompareError("nothing to sweep: give at least one recording")
+    for path in recordings:
+        if not path.exists():  # an .mcap file or a rosbag2 directory
+            raise CompareError(f"recording not found: {path}")
     if rank_by not in metric_names():
         raise CompareError(f"unknown metric {rank_by!r} to rank by; known: {', '.join(metric_names())}")
     if align not in ALIGNMENTS:
@@ -536,51 +517,58 @@ def sweep(
         raise CompareError("nothing to sweep: give at least one --set key=value1,value2,...")
     if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
         raise CompareError(f"--jobs must be a whole number ≥ 1 (or left out for one per CPU), got {jobs}")
+    if jobs is not None and scheduler is not None:
+        raise CompareError("--jobs sets the processes of the local cluster; with --scheduler the cluster's own "
+                           "workers run the sweep: give one or the other")
     settings_list = grid_settings(grid, base)
-    jobs = jobs if jobs is not None else (os.cpu_count() or 1)
-    out_dir = Path(out_dir) if out_dir is not None else Path("runs") / f"sweep-{recording.stem}"
-    entries = [SweepEntry(s.label(), s, out_dir / f"{recording.stem}-{s.label()}.rrd") for s in settings_list]
-    for target in [e.out_path for e in entries] + [out_dir / n for n in ("overlay.rrd", "ranking.csv", "ranking.md")]:
-        outputs.check_not_input(target, (recording,), option="the sweep output")
-    outputs.prepare_dir(out_dir, option="--out-dir")
+    out_dirs = sweep_out_dirs(recordings, out_dir)
+    from agvviz import cluster
 
+    cluster.import_distributed()  # without Dask: one line, before anything is written
+    per_recording = []
+    for path, folder in zip(recordings, out_dirs):
+        entries = [
+            SweepEntry(s.label(), s, folder / f"{path.stem}-{s.label()}.rrd", recording=path) for s in settings_list
+        ]
+        for target in [e.out_path for e in entries] + [folder / n for n in ("overlay.rrd", "ranking.csv", "ranking.md")]:
+            outputs.check_not_input(target, recordings, option="the sweep output")
+        per_recording.append(entries)
     t_start = time.perf_counter()
-    context = multiprocessing.get_context("spawn")  # no fork of a process holding Rerun threads
-    progress_queue = context.Queue()
-    frames_done = [0] * len(entries)
-    finished = 0
-    pool = ProcessPoolExecutor(
-        max_workers=min(jobs, len(entries)), mp_context=context,
-        initializer=_init_worker, initargs=(progress_queue,),
-    )
-    completed = False
-    try:
-        futures = {
-            pool.submit(_run_one, i, str(recording), e.settings, str(e.out_path)): i for i, e in enumerate(entries)
-        }
-        pending = set(futures)
-        while pending:
-            done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
-            for future in done:
-                index = futures[future]
-                try:
-                    entries[index].timing = future.result()[1]
-                except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
-                    entries[index].error = f"{type(exc).__name__}: {exc}"
-                finished += 1
-            _drain(progress_queue, frames_done)
-            if progress is not None:
-                progress(sum(frames_done), finished)
-        completed = True
-    finally:
-        if completed:
-            pool.shutdown(wait=True)
-        else:  # interrupted or failed: stop the workers now, never leave them behind
-            stop_pool(pool)
-    _drain(progress_queue, frames_done)  # the workers have exited: their last counts are in
-    if progress is not None:
-        progress(sum(frames_done), finished)
+    all_entries = [e for entries in per_recording for e in entries]
+    tasks = [cluster.RunTask(e.recording, e.settings, e.out_path) for e in all_entries]
+    workers = min(jobs or os.cpu_count() or 1, len(tasks))
+    # The cluster first: an unreachable scheduler leaves nothing behind.
+    with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs]) as client:
+        for folder in out_dirs:
+            outputs.prepare_dir(folder, option="--out-dir")
+        frames = {}
+        if progress is not None or on_total is not None:
+            frames = {path: _count_frames(path) for path in recordings}
+            if on_total is not None:
+                on_total(cluster.progress_total(tasks, frames))
+        results = cluster.run_sweep_tasks(
+            client, tasks, cache_dir=Path(cache_dir) if cache_dir is not None else None, frames=frames,
+            progress=progress,
+        )
+    for entry, result in zip(all_entries, results):
+        entry.timing, entry.error = result.timing, result.error
 
+    done = [
+        _finish_recording(path, folder, entries, rank_by, align, rpe_delta, images)
+        for path, folder, entries in zip(recordings, out_dirs, per_recording)
+    ]
+    return SweepOutcome(
+        entries=[e for r in done for e in r.entries], rank_by=rank_by, overlay_path=done[0].overlay_path,
+        csv_path=done[0].csv_path, markdown_path=done[0].markdown_path,
+        wall_time_s=time.perf_counter() - t_start, recordings=done,
+    )
+
+
+def _finish_recording(
+    recording: Path, out_dir: Path, entries: list[SweepEntry], rank_by: str, align: str, rpe_delta: int,
+    images: bool,
+) -> RecordingSweep:
+    """Read back one recording's runs, rank them, write its tables and overlay."""
     series: dict[int, RunSeries] = {}
     for index, entry in enumerate(entries):
         if entry.ok:
@@ -596,10 +584,7 @@ def sweep(
     ok = [e for e in ranked if e.ok]
     if ok:
         overlay_path = _write_sweep_overlay(out_dir / "overlay.rrd", recording, ok, series, entries, rank_by, images)
-    return SweepOutcome(
-        entries=ranked, rank_by=rank_by, overlay_path=overlay_path, csv_path=csv_path,
-        markdown_path=markdown_path, wall_time_s=time.perf_counter() - t_start,
-    )
+    return RecordingSweep(recording, out_dir, ranked, overlay_path, csv_path, markdown_path)
 
 
 def _rank(entries: list[SweepEntry], series: dict[int, RunSeries], rank_by: str, align: str, rpe_delta: int) -> None:

@@ -27,7 +27,7 @@ from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJ
 from agvviz.recording.reader import DATA_SECTION_CRC_PROBLEM, CalibrationMsg, FrameTransformMsg, ReadReport
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import Recording, Scan, iter_role_messages, open_recording, resolve_roles, scan
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_UWB_RANGE, calibration_role, image_role
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.results import REJECT_NO_CALIBRATION
 from agvviz.settings import RunSettings, as_dict
 from agvviz.viz.run_logger import RunLogger
@@ -288,6 +288,12 @@ def _detection_inputs(prepared: "Prepared", side: SideInputs | None) -> dict:
         },
         "time_source": prepared.time_source,
         "side_calibrations": calibrations,
+        # Tracking predicts codes from odometry through the camera's extrinsic:
+        "odometry": prepared.roles.roles.get(ROLE_ODOMETRY),
+        "body_frame": prepared.body_frame,
+        "side_extrinsics": {
+            cam: np.asarray(tf.T_parent_child, float).round(12).tolist() for cam, tf in sorted(side.extrinsics.items())
+        },
     }
 
 

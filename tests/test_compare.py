@@ -2,7 +2,8 @@
 through Rerun's API; and run determinism under `rerun rrd compare`.
 
 One module-scoped sweep (lm with refine=ecc and refine=none, plus a setting made to fail)
-provides the runs every test here uses, so the file stays around 20 s.
+provides the runs most tests here use; the sweep tests of several recordings, of a missing Dask
+and of an existing Dask cluster (--scheduler) use tiny recordings and one or two workers.
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ from typer.testing import CliRunner
 
 from agvviz import scenario_registry
 from agvviz.cli import app
+from agvviz import cluster
 from agvviz.compare import CompareError, diff, load_run, parse_grid, sweep
+from agvviz.errors import InputError
 from agvviz.evaluation.expression import ExpressionError
 from agvviz.runner import run_recording
 from agvviz.settings import RunSettings
@@ -35,6 +38,8 @@ from agvviz.viz.readback import (
 
 # 2 s at 10 Hz = 20 frames of the default paper 000 geometry.
 SMALL = ["duration_s=2", "rate_hz=10"]
+# 1 s at 5 Hz = 5 frames: the sweeps of several recordings and on an existing cluster.
+TINY = ["duration_s=1", "rate_hz=5"]
 CAM = "front"
 
 
@@ -186,6 +191,87 @@ def test_sweep_grid_errors_are_clear(tmp_path):
         sweep(recording, parse_grid(["lm_max_iterations=0,3"]), out_dir=tmp_path)
     with pytest.raises(CompareError, match="same settings more than once"):
         sweep(recording, parse_grid(["lm_max_iterations=3,03"]), out_dir=tmp_path)
+
+
+def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp_path):
+    """Two recordings × two solvers, and a text file named .mcap: each recording's runs, tables
+    and overlay go to its own folder; every run of a recording reuses its one detection; the
+    file that is no recording fails its own entries, with the reader's message, and no other."""
+    a, b, bad = tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "bad.mcap"
+    scenario_registry.record("qr_floor", a, seed=1, overrides=TINY)
+    scenario_registry.record("qr_floor", b, seed=2, overrides=TINY)
+    bad.write_text("this is not an MCAP recording\n")
+    out = tmp_path / "sweep"
+    reports = []
+    outcome = sweep([a, b, bad], parse_grid(["solver=lm,p4p"]), out_dir=out, jobs=2, images=False,
+                    progress=lambda frames, runs: reports.append((frames, runs)), on_total=reports.append)
+    assert [r.recording for r in outcome.recordings] == [a, b, bad]
+    assert [e.recording for e in outcome.entries] == [a, a, b, b, bad, bad]
+    for recording in (a, b):
+        result = next(r for r in outcome.recordings if r.recording == recording)
+        assert result.out_dir == out / recording.stem
+        assert sorted(e.label for e in result.entries) == ["lm", "p4p"]
+        assert [e.rank for e in result.entries] == [1, 2]
+        for entry in result.entries:
+            assert entry.ok and entry.recording == recording
+            assert entry.out_path == out / recording.stem / f"{recording.stem}-{entry.label}.rrd"
+            assert entry.metrics["frames"] == 5
+            assert entry.timing["detection_source"] == "cache"  # the group's one detection, reused
+        assert result.overlay_path == out / recording.stem / "overlay.rrd" and result.overlay_path.is_file()
+        with open(result.csv_path, newline="") as f:
+            assert [r["status"] for r in csv.DictReader(f)] == ["ok", "ok"]
+    failed = next(r for r in outcome.recordings if r.recording == bad)
+    assert [e.ok for e in failed.entries] == [False, False] and failed.overlay_path is None
+    for entry in failed.entries:
+        assert entry.error.startswith(("RecordingError", "RunError")) and "bad.mcap" in entry.error, entry.error
+        assert "\n" not in entry.error and not entry.out_path.exists()
+    assert "failed: RecordingError" in failed.csv_path.read_text() or "failed: RunError" in failed.csv_path.read_text()
+    # The first recording's files are the outcome's own (as for a sweep of one recording).
+    assert outcome.csv_path == out / "a" / "ranking.csv"
+    # Progress: the total first (2 recordings × (1 detection + 2 runs) × 5 frames; the bad file
+    # has no frames to count), then counts that never go down and end at the total, 6 runs done.
+    assert reports[0] == 30
+    counts = reports[1:]
+    assert counts[-1] == (30, 6)
+    assert all(x[0] <= y[0] and x[1] <= y[1] for x, y in zip(counts, counts[1:]))
+    assert not [n for d in out.iterdir() for n in (p.name for p in d.iterdir()) if n.endswith(".tmp")]
+
+
+def test_sweep_without_dask_is_one_line(tmp_path, monkeypatch):
+    recording = tmp_path / "r.mcap"
+    recording.write_bytes(b"")
+    monkeypatch.setitem(sys.modules, "distributed", None)  # `import distributed` raises ImportError
+    with pytest.raises(InputError, match=r"pip install 'agvviz\[distributed\]'"):
+        sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    result = CliRunner().invoke(app, ["sweep", str(recording), "--set", "solver=lm,p4p", "--out-dir",
+                                      str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert lines[-1] == f"error: {cluster.DASK_MISSING}", result.output
+
+
+def test_sweep_on_an_existing_cluster(tmp_path):
+    """--scheduler ADDRESS: the sweep runs on that cluster's workers (here a local cluster of
+    one daemonic worker process, which detects in-process), leaves the cluster running, and
+    refuses --jobs with it."""
+    distributed = pytest.importorskip("distributed")
+    import logging
+
+    recording = tmp_path / "r.mcap"
+    scenario_registry.record("qr_floor", recording, seed=3, overrides=TINY)
+    out = tmp_path / "sweep"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  silence_logs=logging.ERROR) as local:
+        result = CliRunner().invoke(app, ["sweep", str(recording), "--set", "solver=lm,p4p", "--scheduler",
+                                          local.scheduler_address, "--out-dir", str(out), "--no-images"])
+        assert result.exit_code == 0, result.output
+        assert "sweep of r.mcap" in result.output and "failed" not in result.output
+        assert {p.name for p in out.iterdir()} == {"r-lm.rrd", "r-p4p.rrd", "overlay.rrd", "ranking.csv",
+                                                   "ranking.md"}
+        assert len(local.workers) == 1  # the cluster is the caller's: still there
+        with pytest.raises(CompareError, match="--jobs .* --scheduler"):
+            sweep(recording, parse_grid(["solver=lm"]), out_dir=out, jobs=1, scheduler=local.scheduler_address)
 
 
 def _rerun_cli() -> Path:
