@@ -68,6 +68,9 @@ def _init_worker() -> None:
     """Worker set-up: Ctrl-C is the parent's to handle (it cancels the pool); die with the
     parent; one OpenCV thread (the workers already fill the CPUs)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # A fork server started by a process that ignores SIGTERM (a sweep's Dask worker) passes
+    # that on; the parent-death signal below must be able to end this worker.
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if sys.platform.startswith("linux"):
         try:
             import ctypes
@@ -124,9 +127,20 @@ class DetectionFeed:
             self._pool = ProcessPoolExecutor(self.jobs, mp_context=_pool_context(), initializer=_init_worker)
 
     def close(self, cancel: bool = False) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=cancel)
-            self._pool = None
+        """Stop the workers; ``cancel`` (an error or Ctrl-C): drop queued segments and end the
+        running ones at once rather than waiting seconds for them."""
+        if self._pool is None:
+            return
+        pool, self._pool = self._pool, None
+        if cancel:
+            processes = list(getattr(pool, "_processes", {}).values())
+            pool.shutdown(wait=False, cancel_futures=True)
+            for process in processes:
+                process.terminate()
+            for process in processes:
+                process.join(timeout=5)
+        else:
+            pool.shutdown(wait=True)
 
     def __enter__(self) -> "DetectionFeed":
         self.start()
