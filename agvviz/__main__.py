@@ -54,6 +54,16 @@ def _remove_temps() -> None:
         pass
 
 
+def outputs_complete() -> None:
+    """The command's outputs are complete and in place: from now on a signal is ignored rather
+    than ending the process by exit 130 (which would say the outputs failed). Only in the
+    console script; a program calling the CLI in-process keeps its own handlers."""
+    if signal.getsignal(signal.SIGTERM) is _on_signal:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        if signal.getsignal(signal.SIGINT) is _on_signal:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the agvviz command line; returns the exit code."""
     signal.signal(signal.SIGTERM, _on_signal)

@@ -264,6 +264,11 @@ def _run(
             for cause in exc.causes:  # one line per cause, then the one-line error
                 err_console.print(Text.assemble(("cause:", "bold"), " ", cause), soft_wrap=True, highlight=False)
             raise
+    # The run's .rrd is complete and in place: an interrupt from here on would only make the exit
+    # code say it failed (the robustness campaign's "output of a failed command").
+    from agvviz.__main__ import outputs_complete
+
+    outputs_complete()
     _print_summary(outcome.summary, outcome.timing, f"run {outcome.manifest['recording_name']}")
     console.print(f"run written: [bold]{outcome.out_path}[/]")
     console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]")
