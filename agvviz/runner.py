@@ -27,7 +27,7 @@ from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJ
 from agvviz.recording.reader import DATA_SECTION_CRC_PROBLEM, CalibrationMsg, FrameTransformMsg, ReadReport
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import Recording, Scan, iter_role_messages, open_recording, resolve_roles, scan
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.results import REJECT_NO_CALIBRATION
 from agvviz.settings import RunSettings, as_dict
 from agvviz.viz.run_logger import RunLogger
@@ -323,28 +323,36 @@ def _detection_feed(
 def _run_trials(
     prepared: Prepared, settings: RunSettings, out_path: Path, inputs: list[Path], manifest: dict,
     recording_id: str, progress: Callable[[int], None] | None, on_total: Callable[[int], None] | None,
+    study: str = "monte_carlo",
 ) -> RunOutcome:
-    """Run a Monte-Carlo study recording (:func:`agvviz.graph.trials.is_trials_recording`): every
-    trial solved by every study solver, the error series and report logged beside the manifest
-    and summary. ``progress(trials_done)`` after each cell, ``on_total(trials)`` once."""
+    """Run a study recording: a Monte-Carlo study (``study="monte_carlo"``,
+    :func:`agvviz.graph.trials.is_trials_recording`; every trial solved by every study solver)
+    or a CNOEM grid study (``study="cnoem"``, :func:`agvviz.graph.cnoem_trials.is_cnoem_trials_recording`;
+    every cycle solved by every study method); the error series and report logged beside the
+    manifest and summary. ``progress(trials_done)`` as trials are solved, ``on_total(trials)`` once."""
+    from agvviz.graph.cnoem_trials import replay_cnoem_trials
     from agvviz.graph.trials import replay_trials, trials_timing
-    from agvviz.viz.trials_logger import log_trials, trials_blueprint
+    from agvviz.viz.trials_logger import cnoem_trials_blueprint, log_cnoem_trials, log_trials, trials_blueprint
 
-    if on_total is not None:
-        on_total(prepared.scan.topics[prepared.roles.roles[ROLE_CORNERS]].count)
+    replay_study, log_study, study_blueprint, trial_role = {  # trial_role: one message per trial
+        "monte_carlo": (replay_trials, log_trials, trials_blueprint, ROLE_CORNERS),
+        "cnoem": (replay_cnoem_trials, log_cnoem_trials, cnoem_trials_blueprint, ROLE_MARKER_MAP),
+    }[study]
+    if on_total is not None and trial_role in prepared.roles.roles:
+        on_total(prepared.scan.topics[prepared.roles.roles[trial_role]].count)
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     t_start = time.perf_counter()
     with RunLogger(out_path, recording_name=manifest["recording_name"], recording_id=recording_id, inputs=inputs) as logger:
         logger.log_manifest(manifest)
         messages = iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, read_report)
-        trials = replay_trials(messages, settings, progress=progress)
-        log_trials(logger.stream, trials)
+        trials = replay_study(messages, settings, progress=progress)
+        log_study(logger.stream, trials)
         summary = {
             **trials.summary,
             "recording_damage": list(read_report.problems),
             "warnings": run_warnings(list(trials.warnings), read_report),
         }
-        logger.blueprint = trials_blueprint(trials)
+        logger.blueprint = study_blueprint(trials)
         logger.log_summary(summary)
     return RunOutcome(
         out_path=out_path, summary=summary, manifest=manifest, read_report=read_report,
@@ -397,10 +405,17 @@ def run_recording(
     recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
     if not prepared.can_run:
         raise _unusable_run_error(recording, {}, prepared.causes)
+    from agvviz.graph.cnoem_trials import is_cnoem_trials_recording
     from agvviz.graph.trials import is_trials_recording  # (scipy.stats: only when needed)
 
+    # A study recording goes to its trials stage, not the camera or correction replay.
+    study = (
+        "monte_carlo" if is_trials_recording(recording.scenario, roles)
+        else "cnoem" if is_cnoem_trials_recording(recording.scenario, roles)
+        else None
+    )
     corners_only = not roles.cameras() and ROLE_CORNERS in roles.roles and ROLE_UWB_RANGE not in roles.roles
-    if corners_only and settings.correction == "none" and not is_trials_recording(recording.scenario, roles):
+    if corners_only and settings.correction == "none" and study is None:
         raise InputError(
             f"{recording.path.name} holds corner observations and no camera images: only the multi-frame "
             "correction replays them; give --set correction=cnoem (or correction=bundle)"
@@ -431,8 +446,8 @@ def run_recording(
         "side_files": (side or SideInputs()).describe(),
     }
 
-    if is_trials_recording(scenario, roles):  # a Monte-Carlo study: the trials stage, not the camera replay
-        return _run_trials(prepared, settings, out_path, inputs, manifest, recording_id, progress, on_total)
+    if study is not None:  # a Monte-Carlo or CNOEM grid study: its trials stage
+        return _run_trials(prepared, settings, out_path, inputs, manifest, recording_id, progress, on_total, study)
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     detection = _detection_feed(prepared, recording_sha256, side, jobs, cache_dir)

@@ -30,69 +30,21 @@ from agvviz.sim import auv  # noqa: E402
 from agvviz.solvers import cnoem  # noqa: E402
 from agvviz.viz.cnoem_report import write_report_rrd  # noqa: E402
 
-PAPER_RATIO = 0.217
-
-
 def _run_cell(args):
     index, cell, trials, seed = args
     return cs.evaluate_cell(cell, trials, seed * 100_000 + index)
 
 
 def grid_section(trials: int, seed: int, workers: int) -> tuple[list[str], dict]:
+    """Every cell of the grid, drawn from agvviz.sim.auv on ``workers`` processes; the report is
+    the library's (cnoem_study.report_markdown, the same as `agvviz run` on a grid recording)."""
     cells = auv.grid_cells()
     t0 = time.perf_counter()
     with Pool(workers) as pool:
         results = pool.map(_run_cell, [(i, c, trials, seed) for i, c in enumerate(cells)], chunksize=4)
     elapsed = time.perf_counter() - t0
-    s = cs.summarise(results)
-    lines = [
-        f"## Grid: {len(cells)} cells × {trials} trials (seed {seed}, {elapsed:.0f} s on {workers} workers)",
-        "",
-        "Position error of the start frame F (m). Ratio = CNOEM's mean error ÷ the baseline's.",
-        "",
-        "| baseline | Σ mean(cnoem) / Σ mean(baseline) | mean over cells of the ratio |",
-        "| --- | --- | --- |",
-    ]
-    for b, v in s.ratio_of_means.items():
-        lines.append(f"| {b} | {v:.3f} | {s.mean_of_ratios[b]:.3f} |")
-    lines += [
-        "",
-        f"Paper: 0.217 (CNOEM vs IPPE). cnoem_multistart's own Σ mean ÷ ippe_first's Σ mean: "
-        f"{sum(r.mean_m('cnoem_multistart') for r in results) / sum(r.mean_m('ippe_first') for r in results):.3f}.",
-        "",
-        "| estimator | mean RMS ÷ CRLB, well-conditioned cells | mean RMS ÷ CRLB, on-axis L ≥ 10 m cells |",
-        "| --- | --- | --- |",
-    ]
-    for m, v in s.rms_over_crlb_well.items():
-        lines.append(f"| {m} | {v:.3f} | {s.rms_over_crlb_singular[m]:.3f} |")
-    lines += [
-        "",
-        f"CNOEM from the navigation start reaches the right minimum in {100 * s.converged_fraction:.2f} % of all trials, "
-        f"{100 * s.converged_fraction_well:.2f} % in the well-conditioned cells; with the IPPE-pair multi-start "
-        f"{100 * s.converged_fraction_multistart:.2f} % of all trials. CNOEM failures: {s.cnoem_failures}.",
-        "",
-    ]
-    for attr, label in (("distance_m", "L (m)"), ("lateral_fraction", "X / L"), ("vertical_fraction", "Y / L"),
-                        ("speed_mps", "v (m/s)"), ("sigma_px", "σ (px)")):
-        lines += [f"| {label} | cnoem mean (m) | ippe_first mean (m) | ratio |", "| --- | --- | --- | --- |"]
-        lines += [f"| {v:g} | {c:.4f} | {i:.4f} | {r:.3f} |" for v, c, i, r in cs.marginal_table(results, attr)]
-        lines.append("")
-    lines += [
-        "<details><summary>every cell</summary>",
-        "",
-        "| cell | frames | sightings | CRLB (m) | cond | " + " | ".join(f"{m} mean" for m in cs.METHODS)
-        + " | cnoem RMS/CRLB | bundle RMS/CRLB | right min % |",
-        "| --- " * (8 + len(cs.METHODS)) + "|",
-    ]
-    for r in results:
-        lines.append(
-            f"| {r.cell.cell_id} | {r.n_frames} | {r.n_sightings} | {r.crlb_position_m:.4f} | {r.condition:.2g} | "
-            + " | ".join(f"{r.mean_m(m):.4f}" for m in cs.METHODS)
-            + f" | {r.rms_m('cnoem') / r.crlb_position_m:.3f} | {r.rms_m('bundle') / r.crlb_position_m:.3f}"
-            f" | {100 * r.converged_right.mean():.1f} |"
-        )
-    lines += ["", "</details>", ""]
-    return lines, {"summary": s, "results": results}
+    heading = f"## Grid: {len(cells)} cells × {trials} trials (seed {seed}, {elapsed:.0f} s on {workers} workers)"
+    return [cs.report_markdown(results, heading)], {"summary": cs.summarise(results), "results": results}
 
 
 def _window_66(seed: int) -> tuple[cnoem.CornerWindow, np.ndarray]:
@@ -190,18 +142,15 @@ def sweep_section(trials: int, seed: int) -> list[str]:
 
 
 def recording_section(path: Path) -> list[str]:
+    """A grid recording through the library's study stage (agvviz.graph.cnoem_trials), as
+    `agvviz run` solves it."""
+    from agvviz.graph.cnoem_trials import replay_cnoem_trials
     from agvviz.recording.reader import iter_messages
+    from agvviz.settings import RunSettings
 
-    lines = [f"## From the recording {path.name} (auv_under_ice mode=grid, read back through /markers/corners)", "",
-             "| cell | trials | CRLB (m) | " + " | ".join(f"{m} mean (m)" for m in cs.METHODS) + " | cnoem RMS/CRLB |",
-             "| --- " * (4 + len(cs.METHODS)) + "|"]
-    for cell_id, trials in cs.trials_from_recording(iter_messages(path)).items():
-        cell = auv.GridCell.from_id(cell_id)
-        r = cs.evaluate_trials(cell, trials, len(trials), 0)
-        lines.append(f"| {cell_id} | {len(trials)} | {r.crlb_position_m:.4f} | " + " | ".join(f"{r.mean_m(m):.4f}" for m in cs.METHODS)
-                     + f" | {r.rms_m('cnoem') / r.crlb_position_m:.3f} |")
-    lines.append("")
-    return lines
+    outcome = replay_cnoem_trials(iter_messages(path), RunSettings())
+    # The report's title becomes a section of this report.
+    return ["#" + outcome.report_markdown, f"Recording: `{path.name}`.", *(f"Warning: {w}" for w in outcome.warnings), ""]
 
 
 def main() -> None:

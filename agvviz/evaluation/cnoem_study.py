@@ -23,17 +23,38 @@ as the issue names it, not by a threshold.)
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from agvviz.errors import RecordingError
 from agvviz.sim import auv
 from agvviz.solvers import window_baselines
 from agvviz.solvers.bundle import solve_bundle
 from agvviz.solvers.cnoem import CornerWindow, solve_cnoem, solve_cnoem_multistart
+from agvviz.solvers.uncertainty import UncertaintyError
 from agvviz.solvers.window_crlb import condition_number, position_bound_m, window_crlb
 
 METHODS = ("cnoem", "cnoem_multistart", "bundle", *window_baselines.BASELINES)
+
+#: Paper 002's simulation result (§3.1, Table 3): CNOEM's mean error ÷ IPPE's over the whole
+#: grid (1000 trials per cell), and for the far cells at the edge of view (L = 15 m, X = 0.4L,
+#: Y = 0.2L). Its Table 3 itself is an image; these are the figures its text states.
+PAPER_CNOEM_OVER_IPPE = 0.217
+PAPER_CNOEM_OVER_IPPE_FAR_EDGE = 0.103
+#: The baseline the paper calls IPPE (the single-frame IPPE pose of the first sighting).
+PAPER_BASELINE = "ippe_first"
+
+
+def paper_ratio(cells: Iterable[auv.GridCell]) -> tuple[float, str]:
+    """(the paper's CNOEM ÷ IPPE mean-error ratio, what it covers) to set beside ``cells``':
+    the far-edge figure when every cell is an L = 15 m, X = 0.4L, Y = 0.2L cell, else the
+    whole-grid one."""
+    cells = list(cells)
+    if cells and all((c.distance_m, c.lateral_fraction, c.vertical_fraction) == (15.0, 0.4, 0.2) for c in cells):
+        return PAPER_CNOEM_OVER_IPPE_FAR_EDGE, "cells L = 15 m, X = 0.4L, Y = 0.2L"
+    return PAPER_CNOEM_OVER_IPPE, "the 243-cell grid"
 
 
 def well_conditioned(cell: auv.GridCell) -> bool:
@@ -82,9 +103,12 @@ def evaluate_cell(
     return evaluate_trials(cell, drawn, trials, len(geometry.T_F_agv))
 
 
-def evaluate_trials(cell: auv.GridCell, cycle_trials, trials: int, n_frames: int) -> CellResult:
+def evaluate_trials(
+    cell: auv.GridCell, cycle_trials, trials: int, n_frames: int, progress: Callable[[int], None] | None = None
+) -> CellResult:
     """Every method of :data:`METHODS` on ``trials`` given cycles of ``cell`` (generated, or read
-    back from a recording with :func:`trials_from_recording`)."""
+    back from a recording with :func:`read_grid_recording`). ``progress(k)`` is called after
+    the k-th trial."""
     errors = {m: np.full(trials, np.nan) for m in METHODS}
     right = np.zeros(trials, dtype=bool)
     right_multi = np.zeros(trials, dtype=bool)
@@ -96,7 +120,7 @@ def evaluate_trials(cell: auv.GridCell, cycle_trials, trials: int, n_frames: int
         truth = trial.T_world_F_truth
         if k == 0:
             n_sightings = window.n_sightings
-            bound = position_bound_m(window_crlb(window, truth, cell.sigma_px))
+            bound = _bound_m(window, truth, cell.sigma_px)
             cond = condition_number(window, truth)
         sol = solve_cnoem(window, trial.T_world_F_nav)
         poses = {"cnoem": sol.T_world_F if sol.success else None}
@@ -120,7 +144,20 @@ def evaluate_trials(cell: auv.GridCell, cycle_trials, trials: int, n_frames: int
         for m, T in poses.items():
             if T is not None:
                 errors[m][k] = float(np.linalg.norm(T[:3, 3] - truth[:3, 3]))
+        if progress is not None:
+            progress(k + 1)
     return CellResult(cell, n_frames, n_sightings, bound, cond, errors, right, right_multi, iters)
+
+
+def _bound_m(window: CornerWindow, T_world_F_truth: np.ndarray, sigma_px: float) -> float:
+    """The cell's CRLB position bound (m); NaN when there is none (noise-free corners, σ = 0,
+    or a window that does not determine the pose)."""
+    if not sigma_px > 0.0:
+        return float("nan")
+    try:
+        return position_bound_m(window_crlb(window, T_world_F_truth, sigma_px))
+    except UncertaintyError:
+        return float("nan")
 
 
 @dataclass
@@ -151,9 +188,8 @@ def summarise(results: list[CellResult]) -> Summary:
         s.rms_over_crlb_well[m] = float(np.mean(well)) if well else float("nan")
         s.rms_over_crlb_singular[m] = float(np.mean(bad)) if bad else float("nan")
     s.converged_fraction = float(np.mean(np.concatenate([r.converged_right for r in results])))
-    s.converged_fraction_well = float(
-        np.mean(np.concatenate([r.converged_right for r in results if well_conditioned(r.cell)]))
-    )
+    well_right = [r.converged_right for r in results if well_conditioned(r.cell)]
+    s.converged_fraction_well = float(np.mean(np.concatenate(well_right))) if well_right else float("nan")
     s.converged_fraction_multistart = float(np.mean(np.concatenate([r.converged_right_multistart for r in results])))
     s.cnoem_failures = sum(r.failures("cnoem") for r in results)
     return s
@@ -170,14 +206,102 @@ def marginal_table(results: list[CellResult], attribute: str) -> list[tuple[floa
     return rows
 
 
-def trials_from_recording(messages) -> dict[str, list[auv.CycleTrial]]:
-    """The cycles of an ``auv_under_ice`` ``mode=grid`` recording, grouped by cell id.
+def _f(value: float, digits: int = 3) -> str:
+    """A table number; "—" where there is none (NaN: no estimate, or no cell of that kind)."""
+    return f"{value:.{digits}f}" if np.isfinite(value) else "—"
+
+
+#: The cell attributes the report tabulates marginally (label of each).
+MARGINALS = (
+    ("distance_m", "L (m)"), ("lateral_fraction", "X / L"), ("vertical_fraction", "Y / L"),
+    ("speed_mps", "v (m/s)"), ("sigma_px", "σ (px)"),
+)
+
+
+def report_markdown(results: list[CellResult], heading: str) -> str:
+    """The study's report (markdown) over ``results`` under ``heading`` (a markdown heading line
+    naming where the trials came from): every method's mean error against CNOEM's and the
+    paper's ratio (:func:`paper_ratio`), RMS ÷ CRLB in the well-conditioned and the singular
+    cells, convergence to the right minimum, failures, the marginal tables of the attributes
+    that vary over ``results``, and every cell. ``bench/bench_cnoem.py`` (the whole grid) and
+    ``agvviz run`` on a grid recording (:mod:`agvviz.graph.cnoem_trials`) both write it."""
+    s = summarise(results)
+    paper, scope = paper_ratio(r.cell for r in results)
+    multistart = sum(r.mean_m("cnoem_multistart") for r in results) / sum(r.mean_m(PAPER_BASELINE) for r in results)
+    lines = [
+        heading,
+        "",
+        "Position error of the start frame F (m). Ratio = CNOEM's mean error ÷ the baseline's.",
+        "",
+        "| baseline | Σ mean(cnoem) / Σ mean(baseline) | mean over cells of the ratio |",
+        "| --- | --- | --- |",
+    ]
+    for b, v in s.ratio_of_means.items():
+        lines.append(f"| {b} | {_f(v)} | {_f(s.mean_of_ratios[b])} |")
+    lines += [
+        "",
+        f"Paper: {paper:g} (CNOEM vs IPPE, over {scope}). cnoem_multistart's own Σ mean ÷ {PAPER_BASELINE}'s Σ mean: "
+        f"{_f(multistart)}.",
+        "",
+        "| estimator | mean RMS ÷ CRLB, well-conditioned cells | mean RMS ÷ CRLB, on-axis L ≥ 10 m cells |",
+        "| --- | --- | --- |",
+    ]
+    for m, v in s.rms_over_crlb_well.items():
+        lines.append(f"| {m} | {_f(v)} | {_f(s.rms_over_crlb_singular[m])} |")
+    lines += [
+        "",
+        f"CNOEM from the navigation start reaches the right minimum in {_f(100 * s.converged_fraction, 2)} % of all trials, "
+        f"{_f(100 * s.converged_fraction_well, 2)} % in the well-conditioned cells; with the IPPE-pair multi-start "
+        f"{_f(100 * s.converged_fraction_multistart, 2)} % of all trials. Failed solves (no estimate): "
+        + ", ".join(f"{m} {sum(r.failures(m) for r in results)}" for m in METHODS) + ".",
+        "",
+    ]
+    for attr, label in MARGINALS:
+        if len({getattr(r.cell, attr) for r in results}) < 2:
+            continue
+        lines += [f"| {label} | cnoem mean (m) | {PAPER_BASELINE} mean (m) | ratio |", "| --- | --- | --- | --- |"]
+        lines += [f"| {v:g} | {_f(c, 4)} | {_f(i, 4)} | {_f(r)} |" for v, c, i, r in marginal_table(results, attr)]
+        lines.append("")
+    lines += [
+        "<details><summary>every cell</summary>",
+        "",
+        "| cell | frames | sightings | CRLB (m) | cond | " + " | ".join(f"{m} mean" for m in METHODS)
+        + " | cnoem RMS/CRLB | bundle RMS/CRLB | right min % |",
+        "| --- " * (8 + len(METHODS)) + "|",
+    ]
+    for r in results:
+        lines.append(
+            f"| {r.cell.cell_id} | {r.n_frames} | {r.n_sightings} | {_f(r.crlb_position_m, 4)} | {r.condition:.2g} | "
+            + " | ".join(_f(r.mean_m(m), 4) for m in METHODS)
+            + f" | {_f(r.rms_m('cnoem') / r.crlb_position_m)} | {_f(r.rms_m('bundle') / r.crlb_position_m)}"
+            f" | {100 * r.converged_right.mean():.1f} |"
+        )
+    lines += ["", "</details>", ""]
+    return "\n".join(lines)
+
+
+@dataclass
+class RecordedCell:
+    """One cell's trials read back from a recording; ``n_frames`` the frames (navigation poses)
+    of its longest trial."""
+
+    cell: auv.GridCell
+    trials: list[auv.CycleTrial] = field(default_factory=list)
+    n_frames: int = 0
+
+
+def read_grid_recording(messages) -> dict[str, RecordedCell]:
+    """The cycles of an ``auv_under_ice`` ``mode=grid`` recording's messages (role-tagged, file
+    order), grouped by cell id in recording order.
 
     Each trial starts with its ``/markers/map`` message; its first ``/agv/odometry`` and
     ``/agv/ground_truth`` poses are F's (navigation, truth); every ``/markers/corners`` message
     becomes a sighting placed in F through the navigation and the camera's ``/tf_static``
     extrinsic — the same chain as :class:`agvviz.graph.correct.CorrectionCycle`. Corners are taken as
-    ideal pixels (the scenario's cameras have no distortion).
+    ideal pixels (the scenario's cameras have no distortion). Raises
+    :class:`~agvviz.errors.RecordingError` when the messages hold no trial or a trial that
+    cannot be placed (no calibration or extrinsic for its camera, no pose before its corners, a
+    marker not on the map, malformed corners).
     """
     from agvviz.conventions import AGV_FRAME
     from agvviz.geometry import se3
@@ -187,11 +311,12 @@ def trials_from_recording(messages) -> dict[str, list[auv.CycleTrial]]:
 
     K: dict[str, np.ndarray] = {}
     T_agv_cam: dict[str, np.ndarray] = {}
-    cells: dict[str, list[auv.CycleTrial]] = {}
+    cells: dict[str, RecordedCell] = {}
     corners: dict[str, np.ndarray] = {}
     nav_F = truth_F = nav_now = None
     frame_index = -1
     current: auv.CycleTrial | None = None
+    current_cell: RecordedCell | None = None
     for m in messages:
         v = m.value
         if isinstance(v, CalibrationMsg):
@@ -201,25 +326,65 @@ def trials_from_recording(messages) -> dict[str, list[auv.CycleTrial]]:
                 if tf.parent_frame == AGV_FRAME and tf.child_frame.startswith("cam_"):
                     T_agv_cam[tf.child_frame[4:]] = tf.T_parent_child
         elif m.role == ROLE_MARKER_MAP and isinstance(v, dict):
-            corners = {str(e["id"]): np.asarray(e["corners_world_m"], dtype=float) for e in v.get("markers", [])}
-            nav_F = truth_F = current = None
+            try:
+                corners = {str(e["id"]): np.asarray(e["corners_world_m"], dtype=float) for e in v.get("markers", [])}
+                for marker_id, corners_world_m in corners.items():
+                    if corners_world_m.shape != (4, 3) or not np.all(np.isfinite(corners_world_m)):
+                        raise ValueError(f"marker {marker_id}: corners_world_m must be 4 finite points, got shape {corners_world_m.shape}")
+            except (KeyError, TypeError, ValueError) as exc:
+                raise RecordingError(f"{m.topic} message at {m.time_ns} ns is not a marker map: {_detail(exc)}") from None
+            nav_F = truth_F = current = current_cell = None
             frame_index = -1
         elif m.role == ROLE_ODOMETRY and isinstance(v, PoseMsg):
             nav_now = v.T
             frame_index += 1
             if nav_F is None:
                 nav_F = v.T
+            if current_cell is not None:
+                current_cell.n_frames = max(current_cell.n_frames, frame_index + 1)
         elif m.role == ROLE_TRUTH and isinstance(v, PoseMsg) and truth_F is None:
             truth_F = v.T
-        elif m.role == ROLE_CORNERS and isinstance(v, dict) and nav_F is not None:
+        elif m.role == ROLE_CORNERS and isinstance(v, dict):
+            try:
+                cell = auv.GridCell.from_id(str(v["cell"]))
+                cam = str(v["cam_name"])
+                if nav_F is None or truth_F is None:
+                    raise ValueError("no navigation and ground-truth pose of its trial before it")
+                if cam not in K or cam not in T_agv_cam:
+                    raise ValueError(f"camera {cam!r} has no calibration or no /tf_static extrinsic {AGV_FRAME} → cam_{cam}")
+                seen = []
+                for marker in v["markers"]:
+                    marker_id = str(marker["id"])
+                    if marker_id not in corners:
+                        raise ValueError(f"marker {marker_id} is not on the trial's marker map")
+                    pixels_px = np.asarray(marker["corners_px"], dtype=float)
+                    if pixels_px.shape != (4, 2) or not np.all(np.isfinite(pixels_px)):
+                        raise ValueError(f"corners_px must be 4 finite (u, v) pixels, got shape {pixels_px.shape}")
+                    seen.append((marker_id, pixels_px))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise RecordingError(
+                    f"{m.topic} message at {m.time_ns} ns is not an auv_under_ice grid trial: {_detail(exc)}"
+                ) from None
             if current is None:
                 current = auv.CycleTrial(truth_F, nav_F, [])
-                cells.setdefault(str(v.get("cell")), []).append(current)
-            cam = str(v["cam_name"])
+                current_cell = cells.setdefault(cell.cell_id, RecordedCell(cell))
+                current_cell.trials.append(current)
+                current_cell.n_frames = max(current_cell.n_frames, frame_index + 1)
             T_F_cam = se3.inverse(nav_F) @ nav_now @ T_agv_cam[cam]
-            for marker in v["markers"]:
-                current.sightings.append(
-                    Sighting(str(marker["id"]), cam, frame_index, corners[str(marker["id"])],
-                             np.asarray(marker["corners_px"], dtype=float)[:4], K[cam], T_F_cam)
-                )
+            for marker_id, pixels_px in seen:
+                current.sightings.append(Sighting(marker_id, cam, frame_index, corners[marker_id], pixels_px, K[cam], T_F_cam))
+    if not cells:
+        raise RecordingError(
+            "the recording has no corner messages (/markers/corners) of a grid trial: not an auv_under_ice "
+            "mode=grid recording"
+        )
     return cells
+
+
+def _detail(exc: Exception) -> str:
+    return f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+
+
+def trials_from_recording(messages) -> dict[str, list[auv.CycleTrial]]:
+    """The trials alone of :func:`read_grid_recording`, by cell id."""
+    return {cell_id: recorded.trials for cell_id, recorded in read_grid_recording(messages).items()}

@@ -10,7 +10,9 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
 - corrections: ``correction`` (:class:`agvviz.graph.correct.CorrectionStats`), e.g. a corner-only
   ``auv_under_ice`` run, which has no camera frame and so no frame rows;
 - Monte-Carlo trials: ``trials`` (:mod:`agvviz.graph.trials`): cells × trials × solvers and
-  each solver's RMSE ÷ CRLB.
+  each solver's RMSE ÷ CRLB;
+- CNOEM grid trials: ``cnoem_study`` (:mod:`agvviz.graph.cnoem_trials`): cells × trials ×
+  methods, each method's mean and RMS error and RMS ÷ CRLB, CNOEM ÷ IPPE against the paper.
 
 ``timing`` holds the wall-clock figures (:func:`agvviz.evaluation.summary.timing`,
 :func:`agvviz.graph.trials.trials_timing`), printed but never stored.
@@ -19,7 +21,9 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
 from __future__ import annotations
 
 #: Summary sections that are a run's output on their own, without camera frames.
-OTHER_KINDS = ("trials", "fusion", "correction")
+OTHER_KINDS = ("trials", "cnoem_study", "fusion", "correction")
+#: Summary sections of studies (they print their own time row).
+STUDY_KINDS = ("trials", "cnoem_study")
 
 
 def _fmt(value, digits: int = 2) -> str:
@@ -43,6 +47,8 @@ def summary_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
     rows: list[tuple[str, str]] = []
     if "trials" in summary:
         rows += _trials_rows(summary["trials"], timing)
+    if "cnoem_study" in summary:
+        rows += _cnoem_study_rows(summary["cnoem_study"], timing)
     frames = has_frame_rows(summary)
     if frames:
         rows += _frame_rows(summary, timing)
@@ -50,7 +56,7 @@ def summary_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
         rows += _fusion_rows(summary["fusion"])
     if "correction" in summary:
         rows += _correction_rows(summary["correction"])
-    if not frames and "trials" not in summary and timing.get("wall_time_s") is not None:
+    if not frames and not any(kind in summary for kind in STUDY_KINDS) and timing.get("wall_time_s") is not None:
         rows.append(("wall time (s)", _fmt(timing["wall_time_s"], 1)))
     return rows
 
@@ -123,3 +129,43 @@ def _trials_rows(t: dict, timing: dict) -> list[tuple[str, str]]:
     if timing.get("wall_time_s") is not None:
         rows.append(("time (s) / trials per s", f"{_fmt(timing['wall_time_s'], 1)} / {_fmt(timing.get('trials_per_s'), 1)}"))
     return rows
+
+
+def _cnoem_study_rows(c: dict, timing: dict) -> list[tuple[str, str]]:
+    """CNOEM grid study (paper 002, Table 3): its size, the cell (when one), then per method the
+    mean and RMS position error of F, RMS ÷ CRLB (median over the cells) and the failures; the
+    method the run's settings name is marked; CNOEM ÷ IPPE against the paper's figure."""
+    rows = [
+        ("study", str(c["study"])),
+        ("cells × trials × methods", f"{c['cells']} × {c['trials_per_cell']} × {len(c['methods'])}"),
+    ]
+    bound = c["crlb_position_m"]
+    if c["cells"] == 1:
+        rows.append(("cell / CRLB of F's position (m)", f"{c['cell_ids'][0]} / {_fmt(bound['min'], 4)}"))
+    else:
+        rows.append(("CRLB of F's position min / max (m)", f"{_fmt(bound['min'], 4)} / {_fmt(bound['max'], 4)}"))
+    rows.append(("per method: error of F", "mean / RMS (m), RMS ÷ CRLB, failed"))
+    marked = c.get("run_setting", {}).get("study_method")
+    for name in c["methods"]:
+        m = c["per_method"][name]
+        label = f"  {name}{' (the run setting)' if name == marked else ''}"
+        rows.append((
+            label,
+            f"{_fmt(m['error_m']['mean'], 4)} / {_fmt(m['error_m']['rmse'], 4)}, "
+            f"{_fmt(m['rms_over_crlb']['median'], 3)}, {m['failed']}",
+        ))
+    ratio = c["cnoem_over_ippe"]
+    rows.append((
+        f"cnoem ÷ {ratio['baseline']} mean error (paper)",
+        f"{_fmt(ratio['ratio_of_means'], 3)} ({ratio['paper']:.3f}, {ratio['paper_scope']})",
+    ))
+    right = c["cnoem_right_minimum"]
+    rows.append(("cnoem right min: nav / multistart (%)",
+                 f"{_fmt(_percent(right['all']), 1)} / {_fmt(_percent(right['multistart']), 1)}"))
+    if timing.get("wall_time_s") is not None:
+        rows.append(("time (s) / trials per s", f"{_fmt(timing['wall_time_s'], 1)} / {_fmt(timing.get('trials_per_s'), 1)}"))
+    return rows
+
+
+def _percent(fraction):
+    return None if fraction is None else 100.0 * fraction

@@ -9,6 +9,9 @@ t against truth and the Cramér–Rao bound (:func:`~agvviz.evaluation.monte_car
 LM budget :data:`~agvviz.evaluation.monte_carlo.MC_LM_MAX_ITERATIONS`, not the run's
 ``lm_max_iterations``). The summary names the study solver the run's pose-solver settings
 correspond to (:func:`study_solver`). No file I/O, no Rerun, no printing.
+
+The other study kind, paper 002's CNOEM grid (``auv_under_ice`` ``mode=grid``), has the same
+shape in :mod:`agvviz.graph.cnoem_trials`; :func:`trials_timing` serves both.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +30,9 @@ from agvviz.recording.reader import RecordedMessage
 from agvviz.recording.roles import RoleMap
 from agvviz.recording.topics import ROLE_CORNERS
 from agvviz.settings import RunSettings
+
+if TYPE_CHECKING:
+    from agvviz.graph.cnoem_trials import CnoemTrialsOutcome
 
 #: Scenarios whose recordings are Monte-Carlo studies for this stage.
 TRIALS_SCENARIOS = ("p4p_monte_carlo",)
@@ -121,9 +128,9 @@ def replay_trials(
     )
 
 
-def trials_timing(outcome: TrialsOutcome, wall_time_s: float) -> dict:
-    """Wall-clock figures of a trials run (printed, never stored): wall time and trials per
-    second (each trial solved by every study solver)."""
+def trials_timing(outcome: TrialsOutcome | CnoemTrialsOutcome, wall_time_s: float) -> dict:
+    """Wall-clock figures of a study run, either kind (printed, never stored): wall time and
+    trials per second (each trial solved by every study solver or method)."""
     timing = {"wall_time_s": float(wall_time_s)}
     if wall_time_s > 0:
         timing["trials_per_s"] = outcome.trials / wall_time_s
