@@ -1,8 +1,9 @@
 """Detect stage: one camera frame → its markers' corners, ids and payloads (no pose).
 
-A frame is detected from its recorded bytes and its camera's calibration only: the header is
-checked (:func:`agvviz.recording.contract.frame_problem`), the image decoded, checked against
-the calibration's size and undistorted, then QR codes (zxing-cpp, ECC-refined corners,
+A frame is detected from its recorded bytes and its camera's calibration (and, when tracking,
+the odometry of its segment's frames, below): the header is checked
+(:func:`agvviz.recording.contract.frame_problem`), the image decoded, checked against the
+calibration's size and undistorted, then QR codes (zxing-cpp, ECC-refined corners,
 :mod:`agvviz.markers.qr`) or the map's ArUco markers are found. What a code *means* (its
 payload parsed, its place in the marker map) is the solve stage's business, so detections do
 not depend on the marker map's contents — only on its ArUco dictionary, when it names one.
@@ -11,9 +12,16 @@ Tracking (setting ``tracking``): the frames of each camera are cut into *segment
 keyframe intervals (:attr:`DetectParams.segment_frames`, by the camera's own frame count). The
 first frame of a segment and every ``keyframe_every``-th after it get a full detection; the
 others follow the codes found so far (:class:`agvviz.markers.tracking.CodeTracker`), falling
-back to full detection when a check fails. A code that comes into view between keyframes is
-found at the next one. A segment is the unit of work of a detection worker, so detections are
-the same whatever the number of workers, the window of frames in flight or the cache
+back to full detection when a check fails. When the frame and the one before it carry the
+vehicle's odometry pose and the camera's extrinsic (:class:`FrameJob`), the tracker is given
+the floor's motion between them as its ``motion_hint``: the homography the floor (z = 0 of the
+body frame) induces in the undistorted image
+(:func:`agvviz.geometry.homography.floor_homography`). It predicts every code, also on the frame
+after a segment's first and through the AGV's turns, where a code's own image motion does not;
+the tracker's checks refuse a wrong prediction (bad odometry) and fall back to full detection.
+A code that comes into view between keyframes is found at the next one. A segment is the unit
+of work of a detection worker, so detections are a function of the segment's jobs alone, the
+same whatever the number of workers, the window of frames in flight or the cache
 (:mod:`agvviz.graph.detect_cache`) — and runs of equal settings write equal ``.rrd`` files.
 
 Everything here is pure (no I/O beyond the bytes given, no Rerun, no printing) and picklable,
@@ -29,6 +37,8 @@ import cv2
 import numpy as np
 
 from agvviz.geometry import PinholeCamera
+from agvviz.geometry.homography import floor_homography
+from agvviz.geometry.plane import DegenerateGeometryError
 from agvviz.recording.contract import REJECT_IMAGE, frame_problem
 from agvviz.recording.reader import CalibrationMsg, image_size_problem
 from agvviz.results import REJECT_DECODE
@@ -37,6 +47,11 @@ from agvviz.settings import RunSettings
 #: The run settings that change what the detect stage outputs; every other setting (solver,
 #: fusion, correction, …) reuses a recording's stored detections.
 DETECTION_SETTINGS = ("refine", "feature_points", "tracking", "keyframe_every")
+
+#: Bumped whenever a change to detection or tracking changes what they output, so that cached
+#: detections (:mod:`agvviz.graph.detect_cache`, keyed by it and agvviz's version) of an earlier
+#: build are never reused.
+DETECT_REVISION = 2
 
 #: Shortest tracking segment (frames): the unit of work of a detection worker.
 MIN_SEGMENT_FRAMES = 30
@@ -71,8 +86,9 @@ class DetectParams:
     @property
     def segment_frames(self) -> int:
         """Frames per unit of work. Tracking: a segment of whole keyframe intervals, at least
-        :data:`MIN_SEGMENT_FRAMES` long (a track needs two frames to know a code's motion, so
-        the frame after a segment's first is a keyframe too: longer segments waste fewer).
+        :data:`MIN_SEGMENT_FRAMES` long (without odometry a track needs two frames to know a
+        code's motion, so the frame after a segment's first is a keyframe too: longer segments
+        waste fewer).
         Without tracking a small batch (every frame is a keyframe: results do not depend on it)."""
         if not self.tracks:
             return 4
@@ -127,12 +143,17 @@ class FrameDetections:
 
 @dataclass(frozen=True)
 class FrameJob:
-    """One frame to detect: its camera's calibration and its recorded bytes."""
+    """One frame to detect: its camera's calibration and its recorded bytes; for a camera on
+    the vehicle of a recording with odometry, also the odometry pose ``T_odom_agv`` at the
+    frame's stamp and the camera's extrinsic ``T_agv_cam`` (4×4; None when unknown, or for a
+    camera fixed in the world), which let tracking predict the floor's motion."""
 
     cam_name: str
     image_format: str
     data: bytes
     calibration: CalibrationMsg
+    T_odom_agv: np.ndarray | None = None
+    T_agv_cam: np.ndarray | None = None
 
 
 @dataclass
@@ -219,11 +240,14 @@ class SegmentDetector:
     params: DetectParams
     _tracker: object | None = field(default=None, repr=False)
     _frames: int = 0
+    #: (K, T_odom_agv, T_agv_cam) of the last frame given to the tracker, None when unknown
+    _last_motion: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
 
     def detect(self, job: FrameJob) -> FrameDetections:
         t0 = time.perf_counter()
         if self._frames % self.params.segment_frames == 0:
             self._tracker = None  # a new segment: its first frame is a keyframe
+            self._last_motion = None
         position = self._frames % self.params.segment_frames
         self._frames += 1
         model = camera_model(job.calibration)
@@ -249,7 +273,9 @@ class SegmentDetector:
                 from agvviz.markers.tracking import CodeTracker
 
                 self._tracker = CodeTracker(refine=params.refine, keyframe_every=params.keyframe_every)
-            outcome = self._tracker.detect(gray, position)
+            motion = _motion_of(job, model.camera)
+            outcome = self._tracker.detect(gray, position, motion_hint=_floor_hint(self._last_motion, motion))
+            self._last_motion = motion
             keyframe, tracked, note = outcome.keyframe, outcome.tracked, outcome.fallback_reason
             codes = tuple(_qr_code(gray, d, params) for d in outcome.detections)
         else:
@@ -259,6 +285,29 @@ class SegmentDetector:
         return FrameDetections(
             codes=codes, detect_s=time.perf_counter() - t0, keyframe=keyframe, tracked=tracked, note=note
         )
+
+
+def _motion_of(job: FrameJob, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(K, T_odom_agv, T_agv_cam) of a frame whose job carries its odometry and extrinsic."""
+    if job.T_odom_agv is None or job.T_agv_cam is None:
+        return None
+    return camera.K, np.asarray(job.T_odom_agv, dtype=float), np.asarray(job.T_agv_cam, dtype=float)
+
+
+def _floor_hint(previous, current) -> np.ndarray | None:
+    """The tracker's ``motion_hint``: the floor's homography from the previous frame's
+    undistorted pixels to this frame's, from the odometry motion between them (None when
+    either frame lacks odometry or extrinsic, the camera matrix changed, or the geometry is
+    degenerate — a camera at floor height)."""
+    if previous is None or current is None or not np.array_equal(previous[0], current[0]):
+        return None
+    K, T_odom_agv_previous, T_agv_cam_previous = previous
+    _, T_odom_agv, T_agv_cam = current
+    try:
+        H = floor_homography(K, T_odom_agv_previous, T_odom_agv, T_agv_cam_previous, T_agv_cam)
+    except DegenerateGeometryError:
+        return None
+    return H if np.all(np.isfinite(H)) else None
 
 
 def detect_segment(params: DetectParams, jobs: list[FrameJob]) -> list[FrameDetections]:

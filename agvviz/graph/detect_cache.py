@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from agvviz import __version__, outputs
-from agvviz.graph.detect import CodeDetection, DetectParams, FrameDetections
+from agvviz.graph.detect import DETECT_REVISION, CodeDetection, DetectParams, FrameDetections
 from agvviz.graph.detect_pool import DetectedFrame
 
 CACHE_ENV = "AGVVIZ_CACHE_DIR"
@@ -40,7 +40,8 @@ def cache_key(params: DetectParams, inputs: dict) -> str:
     """Hash of agvviz's version, the detect parameters and the other detection ``inputs``
     (JSON-able: image roles, time source, side-file calibrations…)."""
     text = json.dumps(
-        {"agvviz": __version__, "params": params.__dict__, "inputs": inputs}, sort_keys=True, default=str
+        {"agvviz": __version__, "detect_revision": DETECT_REVISION, "params": params.__dict__, "inputs": inputs},
+        sort_keys=True, default=str,
     )
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 

@@ -190,12 +190,20 @@ class Replay:
         """The detect stage's input for an image message, or None when its camera has no
         calibration at its time (the frame is then rejected without a search). After
         :meth:`prime`, the same for every message whatever was fed before it, which is what
-        lets :mod:`agvviz.graph.detect_pool` detect frames ahead of the replay."""
+        lets :mod:`agvviz.graph.detect_pool` detect frames ahead of the replay. A camera on
+        the vehicle (an extrinsic ``T_body_cam``) of a recording with odometry at the frame's
+        stamp also gets both poses, for tracking's floor prediction."""
         frame = self.image_frame(message)
         calibration = self.sync.calibration_at(frame.cam_name, message.time_ns)
         if calibration is None:
             return None
-        return FrameJob(frame.cam_name, frame.image_format, frame.data, calibration)
+        T_odom_agv = self.sync.odometry_at(message.time_ns)
+        T_agv_cam = None
+        if T_odom_agv is not None:
+            T_agv_cam, _, _ = self.sync.extrinsic(frame.cam_name, frame.frame_id, message.time_ns)
+        if T_agv_cam is None:
+            T_odom_agv = None
+        return FrameJob(frame.cam_name, frame.image_format, frame.data, calibration, T_odom_agv, T_agv_cam)
 
     # -- message handling ---------------------------------------------------------------
     def set_side_inputs(

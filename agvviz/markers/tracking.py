@@ -11,16 +11,22 @@ detection's ECC optimum to within ECC's stopping tolerance (a few thousandths of
 ``qr_floor``). From a good prediction ECC needs fewer iterations (≈3 against ≈5 from zxing's
 corners on ``qr_floor``).
 
-Prediction, per code, in this order of preference:
+Predictions, per code, tried in this order until one passes every check below:
 
-1. the caller's ``motion_hint`` (:meth:`CodeTracker.detect`): a homography of the previous
-   frame's pixels into this frame's, or predicted corners per payload — e.g. from odometry;
+1. the caller's predicted corners for its payload (``motion_hint`` as a mapping,
+   :meth:`CodeTracker.detect`);
 2. the code's own motion: the homography that took its corners from the frame before the last
    to the last frame, applied once more (a constant frame-to-frame homography: exact for a
    plane moving at constant velocity and turn rate; on ``qr_floor`` it predicts the corners to
    ≈0.01 module, median, except in the two frames after the AGV enters or leaves a turn);
-3. for a code seen in one frame only (new at the last keyframe), the least-squares homography
-   of every code that has its own motion (all codes on one plane — a floor — share it).
+   for a code seen in one frame only (new at the last keyframe), the least-squares homography
+   of every code that has its own motion (all codes on one plane — a floor — share it);
+3. the caller's homography (``motion_hint`` as a 3×3 array, e.g. the floor's motion from
+   odometry): the only prediction of a code without a motion of its own (the frame after a
+   tracker's first, a code new at the last keyframe), and the second chance of one whose own
+   motion failed (a turn begins or ends). Odometry is noisier than a code's own motion
+   (≈1.2 px median on ``qr_floor``, against ≈0.02 px), so it does not come first, and a wrong
+   odometry costs no more than having none.
 
 A code without any prediction (the first frames of a tracker, without a hint) is not tracked:
 that frame is a keyframe.
@@ -234,29 +240,28 @@ class CodeTracker:
         """Every code tracked into this frame, or (None, why not)."""
         gap = frame_index - self._last_index
         has_motion = self._step is not None and gap == self._step
-        H_common = self._common_step_homography() if has_motion and hint_H is None else None
+        H_common = self._common_step_homography() if has_motion else None
         counts = Counter(_payload_key(t.detection) for t in self._tracks)
         tracked = []
         for track in self._tracks:
             detection = track.detection
             key = _payload_key(detection)
+            predictions = []  # in order of preference (module docstring)
             if key in hint_corners and counts[key] == 1:
-                predicted = hint_corners[key]
-            elif hint_H is not None:
-                predicted = _apply(hint_H, detection.corners_px)
-            elif has_motion and track.previous_corners_px is not None:
-                predicted = _apply(_step_homography(track.previous_corners_px, detection.corners_px), detection.corners_px)
+                predictions.append(hint_corners[key])
+            if has_motion and track.previous_corners_px is not None:
+                predictions.append(_apply(_step_homography(track.previous_corners_px, detection.corners_px), detection.corners_px))
             elif H_common is not None:
-                predicted = _apply(H_common, detection.corners_px)
-            else:
+                predictions.append(_apply(H_common, detection.corners_px))
+            if hint_H is not None:
+                predictions.append(_apply(hint_H, detection.corners_px))
+            if not predictions:
                 return None, f"no motion known yet for {_label(detection)} (seen in one frame only)"
-            if not (np.all(np.isfinite(predicted)) and _is_convex(predicted)):
-                return None, f"{_label(detection)}: prediction is not a convex quadrilateral"
-            if not _inside(predicted, gray.shape):
-                continue  # leaving the view: its track ends (full detection would not decode it either)
-            corners_px, problem = _align(gray, detection.symbol, predicted)
+            corners_px, predicted, problem = _first_alignment(gray, detection, predictions)
+            if problem:
+                return None, problem
             if corners_px is None:
-                return None, f"{_label(detection)}: {problem}"
+                continue  # leaving the view: its track ends (full detection would not decode it either)
             tracked.append(
                 _Track(
                     detection=replace(
@@ -308,6 +313,28 @@ class CodeTracker:
         self._frame_shape = shape
         self._last_index = frame_index
         self._last_keyframe_index = frame_index
+
+
+def _first_alignment(
+    gray: np.ndarray, detection: QrDetection, predictions: list[np.ndarray]
+) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """``(corners, prediction, "")`` of the first prediction ECC aligns with every check
+    passed; ``(None, None, "")`` when the first usable prediction leaves the image (the code is
+    leaving the view); else ``(None, None, why the first failed)``."""
+    problem = ""
+    for predicted in predictions:
+        if not (np.all(np.isfinite(predicted)) and _is_convex(predicted)):
+            problem = problem or f"{_label(detection)}: prediction is not a convex quadrilateral"
+            continue
+        if not _inside(predicted, gray.shape):
+            if not problem:
+                return None, None, ""
+            continue
+        corners_px, why = _align(gray, detection.symbol, predicted)
+        if corners_px is not None:
+            return corners_px, predicted, ""
+        problem = problem or f"{_label(detection)}: {why}"
+    return None, None, problem
 
 
 def _align(gray: np.ndarray, symbol: np.ndarray, predicted_px: np.ndarray) -> tuple[np.ndarray | None, str]:
