@@ -64,8 +64,19 @@ def outputs_complete() -> None:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def _unraisable(unraisable) -> None:
+    """After a signal, an object the interrupt left half-built (e.g. a Rerun RecordingStream
+    interrupted in its constructor) may complain from its ``__del__`` while the process unwinds;
+    that is not an error of the command, and must not print a traceback. Otherwise: Python's own
+    report."""
+    if _signalled:
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the agvviz command line; returns the exit code."""
+    sys.unraisablehook = _unraisable
     signal.signal(signal.SIGTERM, _on_signal)
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # keep "ignore" (nohup, `&`)
         signal.signal(signal.SIGINT, _on_signal)
