@@ -102,6 +102,12 @@ def main(argv: list[str] | None = None) -> int:
             _remove_temps()
         if code == EXIT_INTERRUPTED or _signalled:
             _interrupted(message=code != EXIT_INTERRUPTED)  # 130: the CLI printed its line
+        # The command is over and its exit code decided: a signal landing while the interpreter
+        # shuts down would otherwise end the process *by* that signal (exit -2).
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if _signalled:  # it landed between the check above and here
+            _interrupted()
         return code
     except KeyboardInterrupt:  # a second Ctrl-C / SIGTERM while cleaning up
         _remove_temps()
