@@ -464,8 +464,8 @@ def run_recording(
         wall_time_s = time.perf_counter() - t_start
         scores = sinks.scores
         has_uwb = graph.fuse.has_uwb
-        corners_only = graph.correct is not None and not scores
-        if not scores and not corners_only and not has_uwb:
+        correction_only = graph.correct is not None and not scores  # corner observations, no frame
+        if not scores and not correction_only and not has_uwb:
             lines = prepared.causes + read_report.problems[-5:] or ["the image topics hold no decodable frame"]
             raise NoUsableFrameError(
                 f"no camera frame of {recording.path.name} could be read; no .rrd written: " + "; ".join(lines), lines

@@ -18,7 +18,7 @@ import pytest
 
 from agvviz import scenario_registry
 from agvviz.graph import detect_cache
-from agvviz.graph.detect import DetectParams, detection_settings
+from agvviz.graph.detect import DetectParams, SegmentDetector, detection_settings
 from agvviz.graph.detect_pool import DetectionFeed
 from agvviz.graph.solve import Replay
 from agvviz.recording.reader import iter_messages
@@ -59,13 +59,13 @@ def _inline_detections(recording: Path, settings: RunSettings) -> list:
     """The replay detecting in process, frame by frame (no feed), as `pipeline.replay` does."""
     prepared = prepare(recording, settings)
     replay = prepared.replay
+    detectors: dict[str, SegmentDetector] = {}
     out = []
     for message in iter_messages(recording):
         job = replay.detect_job(message) if message.topic.endswith("/image") else None
         if job is None:
             continue
-        detector = replay._detectors.setdefault(job.cam_name, __import__(
-            "agvviz.graph.detect", fromlist=["SegmentDetector"]).SegmentDetector(replay.detect_params))
+        detector = detectors.setdefault(job.cam_name, SegmentDetector(replay.detect_params))
         d = detector.detect(job)
         out.append((message.topic, message.time_ns, _codes(d), d.keyframe))
     return out
