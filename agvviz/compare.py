@@ -56,7 +56,7 @@ from agvviz.viz.readback import (
 
 #: Per-frame error series of a run: quantity key → (entity, scale to the quantity's unit).
 ERROR_ENTITIES = {
-    "position": (paths.ERROR_POSITION_M, 1000.0),
+    "position": (paths.ERROR_POSITION_MM, 1.0),
     "heading": (paths.ERROR_HEADING_DEG, 1.0),
     "pitch": (paths.ERROR_PITCH_DEG, 1.0),
     "roll": (paths.ERROR_ROLL_DEG, 1.0),

@@ -87,9 +87,9 @@ def test_sweep_overlay_holds_every_successful_run(swept):
         key = f"s{rank}_" + entry.label.replace("=", "_")
         run = read_rrd(entry.out_path)
         frames, values = scalar_series(contents, f"errors/position_mm/{key}")
-        run_frames, run_values = scalar_series(run, paths.ERROR_POSITION_M)
+        run_frames, run_values = scalar_series(run, paths.ERROR_POSITION_MM)
         np.testing.assert_array_equal(frames, run_frames)
-        np.testing.assert_allclose(values, run_values * 1000.0, rtol=1e-12)
+        np.testing.assert_allclose(values, run_values, rtol=1e-12)
         assert f"world/trajectory/{key}" in contents.entity_paths
     assert "lm-refine=subpix" not in text_document(contents, overlay.REPORT)
 
@@ -147,12 +147,12 @@ def test_diff_overlay_contents(swept, tmp_path):
         for frame, pts in run_corners.items():
             np.testing.assert_array_equal(corners[frame], pts)
     # Δ position error = |error B| − |error A| on frames both solved.
-    fa, ea = scalar_series(a, paths.ERROR_POSITION_M)
-    fb, eb = scalar_series(b, paths.ERROR_POSITION_M)
+    fa, ea = scalar_series(a, paths.ERROR_POSITION_MM)
+    fb, eb = scalar_series(b, paths.ERROR_POSITION_MM)
     common = sorted(set(fa) & set(fb))
     frames, delta = scalar_series(contents, "delta/position_mm")
     np.testing.assert_array_equal(frames, common)
-    expected = [abs(eb[list(fb).index(f)]) * 1000 - abs(ea[list(fa).index(f)]) * 1000 for f in common]
+    expected = [abs(eb[list(fb).index(f)]) - abs(ea[list(fa).index(f)]) for f in common]
     np.testing.assert_allclose(delta, expected, rtol=1e-9, atol=1e-12)
     # A's images, byte for byte, on the same frames; the report is the diff table.
     images = encoded_images(contents, f"image/{CAM}")

@@ -147,7 +147,7 @@ def test_entity_tree_and_timelines(run):
         paths.AGV_CAMERA, paths.AGV_CAMERA_BODY, paths.camera(CAM), paths.image(CAM),
         paths.detected(CAM), paths.reprojected(CAM), paths.TRAJECTORY_TRUTH, paths.TRAJECTORY_CAMERA,
         paths.LM_COST_PER_ITERATION, paths.LM_COST, paths.LM_REPROJ_RMS_PX, paths.LM_DAMPING,
-        paths.LM_STEP_NORM, paths.ERROR_POSITION_M, paths.ERROR_HEADING_DEG, paths.ERROR_REPROJ_RMS_PX,
+        paths.LM_STEP_NORM, paths.ERROR_POSITION_MM, paths.ERROR_HEADING_DEG, paths.ERROR_REPROJ_RMS_PX,
         paths.ERROR_REJECTED, paths.EVENTS_REJECTIONS, paths.RUN_MANIFEST, paths.RUN_SUMMARY,
     }
     assert expected <= contents.entity_paths, expected - contents.entity_paths
@@ -165,12 +165,12 @@ def test_entity_tree_and_timelines(run):
 
 def test_scalar_series_equal_input(run):
     _, frames, contents = run
-    for entity, attr in (
-        (paths.ERROR_POSITION_M, "position_error_m"),
-        (paths.ERROR_HEADING_DEG, "heading_error_deg"),
-        (paths.ERROR_REPROJ_RMS_PX, "reproj_rms_px"),
+    for entity, attr, scale in (
+        (paths.ERROR_POSITION_MM, "position_error_m", 1000.0),
+        (paths.ERROR_HEADING_DEG, "heading_error_deg", 1.0),
+        (paths.ERROR_REPROJ_RMS_PX, "reproj_rms_px", 1.0),
     ):
-        logged = [(f.index, getattr(f, attr)) for f in frames if getattr(f, attr) is not None]
+        logged = [(f.index, scale * getattr(f, attr)) for f in frames if getattr(f, attr) is not None]
         idx, values = scalar_series(contents, entity)
         np.testing.assert_array_equal(idx, [i for i, _ in logged])
         np.testing.assert_array_equal(values, [v for _, v in logged])

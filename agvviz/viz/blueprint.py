@@ -79,7 +79,7 @@ def default_blueprint(cam_names: list[str]) -> rrb.Blueprint:
         column_shares=[0.56, 0.44],
     )
     bottom = rrb.Horizontal(
-        _error_view(paths.ERROR_POSITION_M, "position error [m]"),
+        _error_view(paths.ERROR_POSITION_MM, "position error [mm]"),
         rrb.Tabs(
             _error_view(paths.ERROR_HEADING_DEG, "heading error [deg]"),
             _error_view(paths.ERROR_PITCH_DEG, "pitch error [deg]"),

@@ -30,7 +30,8 @@ import rerun.blueprint as rrb
 
 from agvviz.graph.correct import CorrectionEvent, CorrectionStep
 from agvviz.viz import paths
-from agvviz.viz.run_logger import COLOR_CAMERA, COLOR_TRUTH, _trajectory
+from agvviz.viz.run_logger import _trajectory
+from agvviz.viz.style import COLOR_CAMERA, COLOR_CORRECTED, COLOR_NAV, COLOR_OBSERVED, COLOR_THEORETICAL, COLOR_TRUTH
 
 TIMELINE_CNOEM_ITER = "cnoem_iter"
 TRAJECTORY_TRUTH = "world/correction/trajectory/truth"
@@ -47,10 +48,6 @@ ERROR_NAV_M = "errors/nav_position_m"
 ERROR_CORRECTED_M = "errors/corrected_position_m"
 EVENTS_CORRECTIONS = "events/corrections"
 
-COLOR_NAV = (230, 90, 60)
-COLOR_CORRECTED = (60, 200, 120)
-COLOR_OBSERVED = (255, 255, 255)
-COLOR_THEORETICAL = (255, 170, 0)
 
 
 def image_observed(cam_name: str) -> str:

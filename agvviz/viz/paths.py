@@ -22,7 +22,7 @@ the camera is).
     world/trajectory/truth|camera           LineStrips3D, growing over time
     solver/lm/cost_per_iteration            BarChart: cost of each LM iteration of the frame
     solver/lm/cost|reproj_rms_px|damping|step_norm   Scalars on timelines lm_iter + frame + time
-    errors/position_m|heading_deg|pitch_deg|roll_deg|reproj_rms_px   Scalars per frame (when known)
+    errors/position_mm|heading_deg|pitch_deg|roll_deg|reproj_rms_px   Scalars per frame (when known)
     errors/rejected                         Scalars 0.0 on rejected frames (a marker in plots)
     events/rejections                       TextLog (WARN) with reason and detail
     run/manifest, run/summary               TextDocument (static, markdown + JSON block)
@@ -37,6 +37,9 @@ from agvviz.conventions import camera_frame
 TIMELINE_TIME = "time"
 #: Frame index (sequence timeline, ``FrameResult.index``).
 TIMELINE_FRAME = "frame"
+#: Time since the recording's first stamp (duration timeline, seconds): what the time panel
+#: shows, so no wall-clock date from the log appears. ``time`` keeps the absolute stamps.
+TIMELINE_ELAPSED = "elapsed"
 #: LM iteration index (sequence timeline, only on ``solver/lm/*`` scalar columns).
 TIMELINE_LM_ITER = "lm_iter"
 
@@ -57,7 +60,7 @@ LM_COST = "solver/lm/cost"
 LM_REPROJ_RMS_PX = "solver/lm/reproj_rms_px"
 LM_DAMPING = "solver/lm/damping"
 LM_STEP_NORM = "solver/lm/step_norm"
-ERROR_POSITION_M = "errors/position_m"
+ERROR_POSITION_MM = "errors/position_mm"
 ERROR_HEADING_DEG = "errors/heading_deg"
 ERROR_PITCH_DEG = "errors/pitch_deg"
 ERROR_ROLL_DEG = "errors/roll_deg"

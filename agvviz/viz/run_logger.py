@@ -28,24 +28,25 @@ from agvviz.results import FrameResult, LmIteration
 from agvviz.viz import paths
 from agvviz.viz.blueprint import default_blueprint
 from agvviz.viz.rrd_file import AtomicRrd
+from agvviz.viz.style import (
+    COLOR_CAMERA,
+    COLOR_DETECTED,
+    COLOR_GHOST,
+    COLOR_HEADING,
+    COLOR_MARKER,
+    COLOR_MARKER_FILL,
+    COLOR_PITCH,
+    COLOR_REJECTED,
+    COLOR_REPROJECTED,
+    COLOR_ROLL,
+    COLOR_STALE,
+    COLOR_TRUTH,
+)
+
 
 #: Media type of each ``FrameResult.image_format``.
 MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 
-#: Colours (RGB): truth green, camera estimate orange, rejected/stale grey.
-COLOR_TRUTH = (40, 200, 90)
-COLOR_CAMERA = (255, 140, 0)
-COLOR_STALE = (150, 150, 150)
-COLOR_MARKER = (80, 160, 255)
-COLOR_MARKER_FILL = (25, 45, 75)  # dark: a faint face on the viewer's dark background
-COLOR_DETECTED = (0, 230, 255)
-COLOR_REPROJECTED = (255, 0, 200)
-COLOR_REJECTED = (230, 40, 40)
-COLOR_HEADING = (200, 120, 255)
-COLOR_PITCH = (90, 200, 230)
-COLOR_ROLL = (240, 220, 80)
-
-COLOR_GHOST = (150, 110, 255)
 #: The covariance ellipsoid is magnified by this factor (positions are sub-millimetre).
 POSITION_COV_SCALE = 100.0
 #: Ambiguity ratios above this are plotted at this value (exact fits give inf).
@@ -119,7 +120,7 @@ class RunLogger:
         rec = self._rec
         rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         series = (
-            (paths.ERROR_POSITION_M, "position error [m]", COLOR_CAMERA),
+            (paths.ERROR_POSITION_MM, "position error [mm]", COLOR_CAMERA),
             (paths.ERROR_HEADING_DEG, "heading error [deg]", COLOR_HEADING),
             (paths.ERROR_PITCH_DEG, "pitch error [deg]", COLOR_PITCH),
             (paths.ERROR_ROLL_DEG, "roll error [deg]", COLOR_ROLL),
@@ -330,7 +331,7 @@ class RunLogger:
     def _log_errors(self, frame: FrameResult) -> None:
         rec = self._rec
         for entity, value in (
-            (paths.ERROR_POSITION_M, frame.position_error_m),
+            (paths.ERROR_POSITION_MM, None if frame.position_error_m is None else 1000.0 * frame.position_error_m),
             (paths.ERROR_HEADING_DEG, frame.heading_error_deg),
             (paths.ERROR_PITCH_DEG, frame.pitch_error_deg),
             (paths.ERROR_ROLL_DEG, frame.roll_error_deg),

@@ -45,7 +45,7 @@ def uwb_blueprint(cam_names: list[str], fixed_cams: set[str], anchor_ids: list[s
     errors = rrb.TimeSeriesView(
         origin="/",
         contents=[
-            f"/{paths.ERROR_POSITION_M}",
+            f"/{paths.ERROR_POSITION_MM}",
             f"/{paths.ERROR_UWB_POSITION_M}",
             f"/{paths.ERROR_FUSED_POSITION_M}",
             f"/{paths.ERROR_REJECTED}",

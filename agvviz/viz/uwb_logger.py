@@ -12,11 +12,9 @@ import rerun as rr
 
 from agvviz.graph.fuse import FrameSetResult, RangeResult, UwbFixResult
 from agvviz.viz import paths
-from agvviz.viz.run_logger import COLOR_CAMERA, COLOR_REJECTED, COLOR_TRUTH, _trajectory
+from agvviz.viz.run_logger import _trajectory
+from agvviz.viz.style import COLOR_ANCHOR, COLOR_CAMERA, COLOR_FUSED, COLOR_REJECTED, COLOR_TRUTH, COLOR_UWB
 
-COLOR_UWB = (70, 150, 255)
-COLOR_FUSED = (250, 220, 60)
-COLOR_ANCHOR = (120, 190, 255)
 #: Colours of the three range series of each anchor.
 RANGE_COLORS = {"measured": COLOR_UWB, "predicted_truth": COLOR_TRUTH, "predicted_estimate": COLOR_FUSED}
 POSITION_MARKER_RADIUS = rr.Radius.ui_points(6.0)
