@@ -1,0 +1,172 @@
+"""Render each scenario's default run in the real Rerun viewer, headless, into ``docs/images/``.
+
+For every scenario this records the default recording (seed 0), replays it with the default
+settings (``auv_under_ice`` needs ``correction=cnoem``: its default recording holds corner
+observations only), and screenshots the viewer at a telling moment of the run — the pictures
+shown in the README. Rerun them whenever a layout changes, and look at every image.
+
+    python docs/make_pictures.py                     # all scenarios → docs/images/<scenario>.png
+    python docs/make_pictures.py --only qr_floor --at 20,100,180 --out-dir /tmp/pics
+    python docs/make_pictures.py --rrd run.rrd --at 50 --out-dir /tmp/pics   # any run
+
+The viewer runs headless (``rerun --headless``; it needs a Vulkan driver, e.g. Debian's
+``mesa-vulkan-drivers``) and is driven through ``rerun.experimental.ViewerClient``: open the
+file, put the time cursor on the ``frame`` timeline (or the one given), screenshot. A screenshot
+is retaken until two in a row are equal, since images decode after the first paint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+DOCS = Path(__file__).resolve().parent
+WINDOW_SIZE = "1600x1000"
+
+
+@dataclass(frozen=True)
+class Picture:
+    """A scenario's default run and where on its timeline to look at it."""
+
+    scenario: str
+    run_sets: tuple[str, ...] = ()
+    timeline: str = "frame"
+    at: tuple[int, ...] = (100,)  # sequence values on ``timeline``; the first is the README's
+    record_sets: tuple[str, ...] = field(default=())
+
+
+PICTURES = (
+    Picture("qr_floor", at=(100, 20, 180)),
+    Picture("uwb_room", at=(150, 20, 280)),
+    Picture("auv_under_ice", run_sets=("correction=cnoem",), at=(40, 5, 70)),
+    Picture("p4p_monte_carlo", timeline="trial", at=(0,)),
+)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class HeadlessViewer:
+    """A headless Rerun viewer process and a client driving it (a context manager)."""
+
+    def __init__(self, rerun_exe: str, window_size: str = WINDOW_SIZE):
+        self.port = _free_port()
+        self.process = subprocess.Popen(
+            [rerun_exe, "--headless", "--bind", "127.0.0.1", "--port", str(self.port),
+             "--window-size", window_size, "--hide-welcome-screen"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )
+        self.client = self._connect()
+
+    def _connect(self, timeout_s: float = 30.0):
+        from rerun.experimental import ViewerClient
+
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if self.process.poll() is not None:
+                raise SystemExit(f"the Rerun viewer exited: {self.process.stderr.read().decode()[-500:]}")
+            try:
+                client = ViewerClient.connect(f"rerun+http://127.0.0.1:{self.port}/proxy")
+                client.get_state()
+                return client
+            except Exception as exc:  # noqa: BLE001 — not listening yet
+                if time.monotonic() > deadline:
+                    raise SystemExit(f"cannot reach the headless Rerun viewer: {exc}") from None
+                time.sleep(0.2)
+
+    def screenshots(self, rrd: Path, timeline: str, at: list[int], out_paths: list[Path]) -> None:
+        """Open ``rrd`` and save one screenshot per time in ``at``."""
+        import cv2
+
+        try:
+            self.client.close("all")  # the previous run's; raises when nothing is open
+        except Exception:  # noqa: BLE001
+            pass
+        self.client.open(str(rrd.resolve()))
+        for value, out in zip(at, out_paths):
+            self.client.set_time(timeline, sequence=int(value), play_state="paused")
+            previous = None
+            for _ in range(6):  # until two shots in a row are equal (images decode late)
+                time.sleep(0.5)
+                self.client.save_screenshot(str(out.resolve()))
+                image = cv2.imread(str(out))
+                if previous is not None and image is not None and np.array_equal(image, previous):
+                    break
+                previous = image
+            print(f"  {out}")
+
+    def __enter__(self) -> "HeadlessViewer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.process.terminate()
+        try:
+            self.process.wait(10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+
+
+def _agvviz(*args: str) -> None:
+    command = [sys.executable, "-m", "agvviz", *args]
+    result = subprocess.run(command, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise SystemExit(f"{' '.join(command)} failed:\n{result.stderr[-2000:]}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out-dir", type=Path, default=DOCS / "images", help="where the PNGs go")
+    parser.add_argument("--work", type=Path, default=None, help="folder for recordings and runs (kept)")
+    parser.add_argument("--only", default=None, help="comma-separated scenarios")
+    parser.add_argument("--at", default=None, help="comma-separated times on the timeline (overrides)")
+    parser.add_argument("--timeline", default=None, help="timeline for --at (default: the picture's)")
+    parser.add_argument("--rrd", type=Path, default=None, help="screenshot this run instead of the scenarios")
+    parser.add_argument("--all-times", action="store_true", help="every time of each picture, not the first")
+    args = parser.parse_args()
+
+    rerun_exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    if rerun_exe is None:
+        raise SystemExit("the rerun executable is not on PATH: pip install rerun-sdk")
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    work = args.work or Path(tempfile.mkdtemp(prefix="agvviz-pictures-"))
+    work.mkdir(parents=True, exist_ok=True)
+    at_override = [int(v) for v in args.at.split(",")] if args.at else None
+
+    with HeadlessViewer(rerun_exe) as viewer:
+        if args.rrd is not None:
+            at = at_override or [0]
+            outs = [args.out_dir / f"{args.rrd.stem}-{v}.png" for v in at]
+            viewer.screenshots(args.rrd, args.timeline or "frame", at, outs)
+            return
+        wanted = set(args.only.split(",")) if args.only else None
+        for picture in PICTURES:
+            if wanted is not None and picture.scenario not in wanted:
+                continue
+            print(picture.scenario)
+            recording = work / f"{picture.scenario}.mcap"
+            if not recording.exists():
+                _agvviz("record", picture.scenario, "--out", str(recording),
+                        *[a for s in picture.record_sets for a in ("--set", s)])
+            run = work / f"{picture.scenario}.rrd"
+            _agvviz("run", str(recording), "--out", str(run), *[a for s in picture.run_sets for a in ("--set", s)])
+            at = at_override or (list(picture.at) if args.all_times else [picture.at[0]])
+            names = [picture.scenario] if len(at) == 1 and at_override is None else [
+                f"{picture.scenario}-{v}" for v in at
+            ]
+            viewer.screenshots(run, args.timeline or picture.timeline, at, [args.out_dir / f"{n}.png" for n in names])
+
+
+if __name__ == "__main__":
+    main()
