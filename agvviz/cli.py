@@ -30,7 +30,32 @@ from agvviz import __version__, outputs
 from agvviz.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OUTPUT, AgvvizError, InputError
 from agvviz.settings import RunSettings, apply_overrides, describe
 
+
+class _Command(typer.core.TyperCommand):
+    """A command whose ``--help`` lists on/off options as flags: typer's help would print a
+    value type (``--cache/--no-cache <bool>``, ``--help <bool>``) as if they took a value."""
+
+    def format_help(self, ctx, formatter):
+        _flags_without_type(self, ctx)
+        return super().format_help(ctx, formatter)
+
+
+class _Group(typer.core.TyperGroup):
+    """The ``agvviz`` group, its ``--help`` flag shown without a value type (see :class:`_Command`)."""
+
+    def format_help(self, ctx, formatter):
+        _flags_without_type(self, ctx)
+        return super().format_help(ctx, formatter)
+
+
+def _flags_without_type(command, ctx) -> None:
+    for param in command.get_params(ctx):
+        if getattr(param, "is_flag", False) and param.metavar is None:
+            param.metavar = ""  # typer shows an option's metavar in place of its type
+
+
 app = typer.Typer(
+    cls=_Group,
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_show_locals=False,
@@ -106,7 +131,7 @@ def _progress() -> Progress:
 
 
 # -- scenarios / record -------------------------------------------------------------------
-@app.command()
+@app.command(cls=_Command)
 @handle_errors
 def scenarios() -> None:
     """List every scenario with its options and defaults."""
@@ -137,12 +162,12 @@ def _record(scenario: str, seed: int, sets: list[str], out: Path) -> Path:
     return out
 
 
-@app.command()
+@app.command(cls=_Command)
 @handle_errors
 def record(
-    scenario: str = typer.Argument("qr_floor", help="scenario name (see `agvviz scenarios`)"),
+    scenario: str = typer.Argument("qr_floor", metavar="SCENARIO", help="scenario name (see `agvviz scenarios`)"),
     seed: int = typer.Option(0, "--seed", help="fixes all randomness; same seed ⇒ same recording"),
-    set_: List[str] = typer.Option([], "--set", help=SET_HELP),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help=SET_HELP),
     out: Optional[Path] = typer.Option(None, "--out", help="output .mcap (default: recordings/<scenario>.mcap)"),
 ) -> None:
     """Simulate SCENARIO and write an MCAP recording.
@@ -165,7 +190,10 @@ def _run_help() -> str:
         "Example: agvviz run recordings/qr_floor.mcap --solver lm --set objective=pixel\n\n"
         "Example: agvviz run robot_bag/ --topic truth=/vicon/agv/pose --markers map.yaml "
         "--set body_frame=base_link\n\n"
-        "Settings (--set key=value):\n\n" + rows.replace("\n", "\n\n")
+        "Settings (--set key=value). One that cannot act on the recording (fusion and uwb settings "
+        "without UWB ranges, correction without odometry, camera_select with one camera) or under the "
+        "other settings (kalman_gate_chi2, camera_sigma_m without fusion=kalman) is ignored with a "
+        "warning and left out of the run name:\n\n" + rows.replace("\n", "\n\n")
     )
 
 
@@ -244,7 +272,7 @@ def _run(
     topic_map = parse_topic_options(list(topics))
     side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
     with _progress() as progress:
-        task = progress.add_task(f"replaying ({settings.label()})", total=None, rate="")
+        task = progress.add_task(f"replaying {recording.name}", total=None, rate="")
 
         def on_total(total: int) -> None:
             progress.update(task, total=total)
@@ -269,24 +297,27 @@ def _run(
     from agvviz.__main__ import outputs_complete
 
     outputs_complete()
+    for name, item in outcome.manifest.get("ignored_settings", {}).items():
+        text = f" {name}={item['value']} does not apply: {item['reason']}; ignored (not in the run name)"
+        err_console.print(Text.assemble(("warning:", "yellow"), text), soft_wrap=True, highlight=False)
     _print_summary(outcome.summary, outcome.timing, f"run {outcome.manifest['recording_name']}")
     console.print(f"run written: [bold]{outcome.out_path}[/]")
     console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]")
     return outcome.out_path
 
 
-@app.command(help=_run_help())
+@app.command(help=_run_help(), cls=_Command)
 @handle_errors
 def run(
-    recording: Path = typer.Argument(..., help="recording: an .mcap file or a rosbag2 directory"),
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file or a rosbag2 directory"),
     solver: Optional[str] = typer.Option(None, "--solver", help="shortcut for --set solver=NAME"),
-    set_: List[str] = typer.Option([], "--set", help=SET_HELP),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help=SET_HELP),
     out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-<settings>.rrd)"),
-    topic: List[str] = typer.Option([], "--topic", help=TOPIC_HELP),
+    topic: List[str] = typer.Option([], "--topic", metavar="ROLE=TOPIC", help=TOPIC_HELP),
     roles: Optional[Path] = typer.Option(None, "--roles", help=ROLES_HELP),
     markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
-    calibration: List[str] = typer.Option([], "--calibration", help=CALIBRATION_HELP),
-    extrinsic: List[str] = typer.Option([], "--extrinsic", help=EXTRINSIC_HELP),
+    calibration: List[str] = typer.Option([], "--calibration", metavar="CAM=FILE", help=CALIBRATION_HELP),
+    extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=EXTRINSIC_HELP),
     jobs: Optional[int] = typer.Option(None, "--jobs", help=JOBS_HELP),
     cache: bool = typer.Option(True, "--cache/--no-cache", help=CACHE_HELP),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
@@ -296,17 +327,17 @@ def run(
 
 
 # -- inspect / view / demo ---------------------------------------------------------------
-@app.command()
+@app.command(cls=_Command)
 @handle_errors
 def inspect(
-    recording: Path = typer.Argument(..., help="recording: an .mcap file or a rosbag2 directory"),
-    set_: List[str] = typer.Option([], "--set", help="run settings that change what a run can use (body_frame, time_source, ...)"),
-    topic: List[str] = typer.Option([], "--topic", help=TOPIC_HELP),
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file or a rosbag2 directory"),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="run settings that change what a run can use (body_frame, time_source, ...)"),
+    topic: List[str] = typer.Option([], "--topic", metavar="ROLE=TOPIC", help=TOPIC_HELP),
     roles: Optional[Path] = typer.Option(None, "--roles", help=ROLES_HELP),
     write_roles: Optional[Path] = typer.Option(None, "--write-roles", help="write the role map to this file (edit it, then run --roles FILE)"),
     markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
-    calibration: List[str] = typer.Option([], "--calibration", help=CALIBRATION_HELP),
-    extrinsic: List[str] = typer.Option([], "--extrinsic", help=EXTRINSIC_HELP),
+    calibration: List[str] = typer.Option([], "--calibration", metavar="CAM=FILE", help=CALIBRATION_HELP),
+    extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=EXTRINSIC_HELP),
 ) -> None:
     """Print topics, counts, time span, cameras, calibration, the role map and whether a run can use the frames; check agvviz recordings against the recording contract.
 
@@ -341,12 +372,154 @@ def inspect(
         raise typer.Exit(code=1)
 
 
-@app.command()
+WEB_PORT = 9090  # Rerun's web viewer (HTTP) default
+GRPC_PORT = 9876  # Rerun's viewer / proxy (gRPC) default
+
+
+def _rerun_executable() -> str:
+    """The ``rerun`` viewer installed with this Python's rerun-sdk (the same version), else on PATH."""
+    beside = Path(sys.executable).with_name("rerun")
+    rerun_bin = str(beside) if beside.exists() else shutil.which("rerun")
+    if rerun_bin is None:
+        _fail("the `rerun` viewer executable was not found next to this Python; reinstall rerun-sdk")
+    return rerun_bin
+
+
+def viewer_url(address: str) -> str:
+    """A running viewer's gRPC URL from ``--connect``: a port (``9876``), ``host:port`` or a
+    ``rerun+http://host:port/proxy`` URL (schemes ``rerun``, ``rerun+http``, ``rerun+https``)."""
+    from urllib.parse import urlsplit
+
+    text = address.strip()
+    if text.isdigit():
+        text = f"127.0.0.1:{text}"
+    if "://" not in text:
+        text = f"rerun+http://{text}/proxy"
+    try:
+        parts = urlsplit(text)
+        port = parts.port
+    except ValueError:
+        parts, port = None, None
+    if (parts is None or parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not parts.hostname
+            or parts.path != "/proxy" or not port):
+        _fail(f"--connect {address!r}: expected a port, HOST:PORT or a URL like rerun+http://HOST:{GRPC_PORT}/proxy")
+    return text
+
+
+def _send_to_viewer(run_file: Path, address: str) -> str:
+    """Send the run (its recording and blueprint) to the Rerun viewer at ``address``; returns its URL."""
+    import socket
+    from urllib.parse import urlsplit
+
+    import rerun as rr
+    from rerun.chunk import RrdReader
+
+    url = viewer_url(address)
+    parts = urlsplit(url)
+    try:  # the SDK would wait for an absent viewer for ever: ask first
+        socket.create_connection((parts.hostname, parts.port), timeout=5).close()
+    except OSError as exc:
+        _fail(f"no Rerun viewer answers at {url} ({exc.strerror or exc}); start one there with `rerun` "
+              f"(it listens on port {GRPC_PORT}) or give its address to --connect")
+    try:
+        recordings = RrdReader(run_file).recordings()
+    except (RuntimeError, ValueError, OSError) as exc:
+        _fail(f"cannot read {run_file}: {' '.join(str(exc).split())}; write it again with `agvviz run`")
+    if not recordings:
+        _fail(f"{run_file} holds no recording; write it again with `agvviz run`")
+    entry = recordings[0]
+    # The run's own application and recording id: the viewer shows the run, not an empty sender.
+    stream = rr.RecordingStream(entry.application_id, recording_id=entry.recording_id)
+    try:
+        stream.connect_grpc(url)
+        stream.log_file_from_path(run_file)  # the .rrd as it is: recording and blueprint
+        stream.flush(timeout_sec=120)
+    except (RuntimeError, ValueError) as exc:
+        _fail(f"sending {run_file} to {url} failed: {' '.join(str(exc).split())}")
+    finally:
+        stream.disconnect()
+    return url
+
+
+def _port_free(bind: str, port: int, option: str) -> None:
+    import socket
+
+    family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((bind, port))
+        except OSError as exc:
+            _fail(f"cannot listen on {bind} port {port} ({exc.strerror or exc}); choose another with {option}")
+
+
+def _stop_group(process: subprocess.Popen) -> None:
+    """SIGTERM to the process group ``process`` leads (started with ``start_new_session``), then
+    SIGKILL after 10 s."""
+    import signal
+
+    for sig, wait_s in ((signal.SIGTERM, 10), (signal.SIGKILL, None)):
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            process.wait(timeout=wait_s)
+            break
+        except subprocess.TimeoutExpired:
+            continue
+
+
+def _serve_web(run_file: Path, bind: str, web_port: int, grpc_port: int) -> None:
+    """Serve the run in Rerun's web viewer until Ctrl-C (exit 130)."""
+    import socket
+    from urllib.parse import quote
+
+    for port, option in ((web_port, "--port"), (grpc_port, "--grpc-port")):
+        if not 1 <= port <= 65535:
+            _fail(f"{option} must lie in 1..65535, got {port}")
+        _port_free(bind, port, option)
+    host = socket.gethostname() if bind in ("0.0.0.0", "::") else bind
+    command = [_rerun_executable(), "--web-viewer", "--bind", bind, "--web-viewer-port", str(web_port),
+               "--port", str(grpc_port), str(run_file)]
+    # Its own process group: the `rerun` script runs the viewer binary as a child, and both must
+    # stop with us (Ctrl-C, SIGTERM), whoever gets the signal.
+    server = subprocess.Popen(command, env={**os.environ, "RUST_LOG": "warn"}, start_new_session=True)
+    try:
+        def url(at: str) -> str:
+            return f"http://{at}:{web_port}/?url={quote(f'rerun+http://{at}:{grpc_port}/proxy', safe='')}"
+
+        local = f"; on this machine: {url('127.0.0.1')}" if host != "127.0.0.1" else ""
+        console.print(f"serving {run_file} in Rerun's web viewer; open in a browser:\n  {url(host)}\n"
+                      f"(Ctrl-C stops it{local})", highlight=False, markup=False, soft_wrap=True)
+        code = server.wait()
+    except KeyboardInterrupt:
+        _stop_group(server)
+        err_console.print("web viewer stopped", highlight=False)
+        raise typer.Exit(code=EXIT_INTERRUPTED) from None
+    _fail(f"the Rerun web viewer stopped with exit code {code} (see its message above)")
+
+
+@app.command(cls=_Command)
 @handle_errors
-def view(run_file: Path = typer.Argument(..., help="run .rrd")) -> None:
-    """Open a run in the Rerun viewer (with its default layout).
+def view(
+    run_file: Path = typer.Argument(..., metavar="RUN", help="run .rrd"),
+    web: bool = typer.Option(False, "--web", help="serve the run in Rerun's web viewer (for a machine without a "
+                             "screen: open the printed URL in a browser elsewhere); Ctrl-C stops it"),
+    connect: Optional[str] = typer.Option(None, "--connect", metavar="ADDRESS", help="send the run to a running "
+                                          f"Rerun viewer: a port, HOST:PORT or rerun+http://HOST:{GRPC_PORT}/proxy"),
+    port: int = typer.Option(WEB_PORT, "--port", help="--web: the web viewer's HTTP port"),
+    grpc_port: int = typer.Option(GRPC_PORT, "--grpc-port", help="--web: the port the browser fetches the run from"),
+    bind: str = typer.Option("0.0.0.0", "--bind",
+                             help="--web: the address to listen on (127.0.0.1: this machine only)"),
+) -> None:
+    """Open a run in the Rerun viewer (with its default layout); --web serves it to a browser, --connect sends it to a viewer elsewhere.
 
     Example: agvviz view runs/qr_floor-lm.rrd
+
+    Example (on a robot without a screen): agvviz view runs/qr_floor-lm.rrd --web
+
+    Example: agvviz view runs/qr_floor-lm.rrd --connect laptop:9876
     """
     from agvviz.viz.rrd_file import looks_complete
 
@@ -354,23 +527,30 @@ def view(run_file: Path = typer.Argument(..., help="run .rrd")) -> None:
         _fail(f"no such file: {run_file}")
     if not looks_complete(run_file):
         _fail(f"{run_file} is not a complete .rrd file (no Rerun header or footer); write it again with `agvviz run`")
+    if web and connect is not None:
+        _fail("give --web (serve it here) or --connect (send it to a viewer elsewhere), not both")
+    if connect is not None:
+        url = _send_to_viewer(run_file, connect)
+        console.print(f"sent {run_file} to the Rerun viewer at {url}", highlight=False, markup=False, soft_wrap=True)
+        return
+    if web:
+        _serve_web(run_file, bind, port, grpc_port)
+        return
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        _fail("no display to open the viewer on (DISPLAY and WAYLAND_DISPLAY are unset); copy "
-              f"{run_file} to a machine with a screen, or run `rerun --web-viewer {run_file}`")
-    rerun_bin = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
-    if not Path(rerun_bin).exists():
-        _fail("the `rerun` viewer executable was not found next to this Python; reinstall rerun-sdk")
-    code = subprocess.call([rerun_bin, str(run_file)])
+        _fail(f"no display to open the viewer on (DISPLAY and WAYLAND_DISPLAY are unset): serve it to a browser "
+              f"with `agvviz view {run_file} --web`, or send it to a viewer elsewhere with "
+              f"`agvviz view {run_file} --connect HOST:{GRPC_PORT}`")
+    code = subprocess.call([_rerun_executable(), str(run_file)])
     if code != 0:
         _fail(f"the Rerun viewer could not open {run_file} (it exited with code {code}; see its messages above)")
 
 
-@app.command()
+@app.command(cls=_Command)
 @handle_errors
 def demo(
     seed: int = typer.Option(0, "--seed", help="scenario seed"),
     solver: str = typer.Option("lm", "--solver", help="pose solver"),
-    set_: List[str] = typer.Option([], "--set", help="scenario options key=value"),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="scenario options key=value"),
 ) -> None:
     """The main job: record the default scenario qr_floor, replay it, write the .rrd.
 
@@ -380,7 +560,7 @@ def demo(
     _run(recording, solver, [], None)
 
 
-@app.command()
+@app.command(cls=_Command)
 @handle_errors
 def version() -> None:
     """Print the agvviz version."""
@@ -388,26 +568,11 @@ def version() -> None:
 
 
 # -- diff / sweep / export --------------------------------------------------------------------
-def _fmt_value(value, digits: int = 4) -> str:
-    if value is None:
-        return "—"
-    if isinstance(value, int):
-        return str(value)
-    return f"{value:.{digits}g}"
-
-
-def _fmt_p(p) -> str:
-    if p is None:
-        return "—"
-    text = "<1e-4" if p < 1e-4 else f"{p:.4f}"
-    return f"[bold]{text}[/]" if p < 0.01 else text
-
-
-@app.command()
+@app.command(cls=_Command)
 @handle_errors
 def diff(
-    a: Path = typer.Argument(..., help="run A .rrd (the reference)"),
-    b: Path = typer.Argument(..., help="run B .rrd (compared with A)"),
+    a: Path = typer.Argument(..., metavar="A", help="run A .rrd (the reference)"),
+    b: Path = typer.Argument(..., metavar="B", help="run B .rrd (compared with A)"),
     out: Optional[Path] = typer.Option(None, "--out", help="write the overlay .rrd (both runs on one clock) here"),
     fail_if: Optional[str] = typer.Option(
         None, "--fail-if",
@@ -419,35 +584,34 @@ def diff(
     time_offset: bool = typer.Option(False, "--time-offset", help="also estimate each run's time offset to truth"),
     images: bool = typer.Option(True, "--images/--no-images", help="copy A's camera images into the overlay"),
     seed: int = typer.Option(0, "--seed", help="bootstrap seed"),
+    all_metrics: bool = typer.Option(False, "--all", help="print every metric (default: the main ones)"),
 ) -> None:
-    """Compare run B with run A: every metric, B − A, a paired test and a confidence interval.
+    """Compare run B with run A: a verdict first, then the metrics, B − A, a paired test and a confidence interval.
 
     Frames are matched by time; error metrics are over the frames both runs solved.
     Exit codes: 0 fine, 1 the --fail-if condition holds, 2 bad input, 3 the overlay could not be written (never over A or B).
 
     Example: agvviz diff runs/lm.rrd runs/p4p.rrd --out runs/diff.rrd --fail-if "B.position_rmse_mm > 1.05*A.position_rmse_mm"
     """
-    from agvviz.compare import diff as diff_runs
+    from agvviz.compare import diff as diff_runs, diff_table, diff_table_title, diff_verdict
 
     outcome = diff_runs(
         a, b, overlay_path=out, fail_if=fail_if, align=align, rpe_delta=rpe_delta,
         time_offset=time_offset, images=images, seed=seed,
     )
     c = outcome.comparison
-    table = Table(
-        title=f"A = {c.a_name} ({a.name})   B = {c.b_name} ({b.name})\n"
-        f"{len(c.matched)} frames matched by time, errors over the {len(c.common)} both solved; "
-        f"CI {round(c.confidence * 100)} % block bootstrap of B − A; p Wilcoxon signed-rank",
-        title_justify="left",
-    )
-    for col in ("metric", "A", "B", "B − A", "CI of B − A", "p", "n"):
+    verdict = diff_verdict(c)
+    console.print(f"[bold]{escape(verdict.headline)}[/]")
+    for line in verdict.lines[1:]:
+        console.print(escape(line))
+    header, rows = diff_table(c, all_metrics)
+    table = Table(title=escape(diff_table_title(c, all_metrics)), title_justify="left")
+    for col in header:
         table.add_column(col, justify="left" if col == "metric" else "right", no_wrap=True)
-    for r in c.rows:
-        ci = "—" if r.ci_low is None else f"{r.ci_low:.3g} … {r.ci_high:.3g}"
-        table.add_row(r.name, _fmt_value(r.a), _fmt_value(r.b), _fmt_value(r.diff), ci, _fmt_p(r.p_value),
-                      _fmt_value(r.n))
+    for row in rows:
+        table.add_row(*row)
     # Wide enough for every metric name and interval even when stdout is not a terminal.
-    Console(width=max(console.width, 110)).print(table)
+    Console(width=max(console.width, 100)).print(table)
     if c.settings_changed:
         console.print("settings that differ: " + ", ".join(
             f"{name} {va!r} → {vb!r}" for name, (va, vb) in c.settings_changed.items()))
@@ -471,12 +635,12 @@ def diff(
         console.print(f"--fail-if does not hold: {fail_if}")
 
 
-@app.command()
+@app.command(cls=_Command)
 @handle_errors
 def sweep(
-    recordings: List[Path] = typer.Argument(..., help="recordings (.mcap or rosbag2 folders)"),
+    recordings: List[Path] = typer.Argument(..., metavar="RECORDING", help="recordings (.mcap or rosbag2 folders)"),
     set_: List[str] = typer.Option(
-        [], "--set", help="setting=value1,value2,... (repeatable); the sweep runs every combination",
+        [], "--set", metavar="KEY=V1,V2", help="setting=value1,value2,... (repeatable); the sweep runs every combination",
     ),
     jobs: Optional[int] = typer.Option(None, "--jobs", help="worker processes of the local cluster (default: "
                                        "number of CPUs)"),
@@ -490,8 +654,7 @@ def sweep(
     images: bool = typer.Option(True, "--images/--no-images", help="camera images in the overlay"),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
 ) -> None:
-    """Replay each RECORDING under every combination of the --set values on a Dask cluster; rank
-    each recording's runs.
+    """Replay each RECORDING under every combination of the --set values on a Dask cluster; rank each recording's runs.
 
     Each recording is detected once per detection settings; every setting then only solves.
     Writes one .rrd per setting, overlay.rrd, ranking.csv and ranking.md into --out-dir (with
@@ -550,23 +713,29 @@ def sweep(
         error_line("every setting failed; see the messages above")
         raise typer.Exit(code=EXIT_OUTPUT if all_output else EXIT_BAD_INPUT)
 
-@app.command()
+@app.command(cls=_Command)
 @handle_errors
 def export(
-    run_file: Path = typer.Argument(..., help="run .rrd"),
-    format_: str = typer.Option("tum", "--format", help="output format: tum"),
-    out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="default: the run's folder"),
+    run_file: Path = typer.Argument(..., metavar="RUN", help="run .rrd"),
+    format_: str = typer.Option("tum", "--format", help="output format: tum (evo, TUM tools) or mcap (Foxglove)"),
+    out_dir: Optional[Path] = typer.Option(None, "--out-dir",
+                                           help="output folder, created if missing (default: the run's folder)"),
 ) -> None:
     """Write the run's estimated and true trajectories (T_world_agv) for other tools.
 
-    TUM: `<run>.estimate.tum` and `<run>.truth.tum`, lines `t tx ty tz qx qy qz qw`.
+    tum: `<run>.estimate.tum` and `<run>.truth.tum`, lines `t tx ty tz qx qy qz qw`.
+
+    mcap: `<run>.poses.mcap`, Foxglove PoseInFrame on /agvviz/estimate/pose and /agvviz/truth/pose and FrameTransforms (world → agv_estimate, agv_truth) on /agvviz/tf, stamped with the recording's times: open it beside the recording in Foxglove. Needs pip install 'agvviz\\[export]'.
+
     Example: agvviz export runs/qr_floor-lm.rrd --format tum && evo_ape tum runs/qr_floor-lm.truth.tum runs/qr_floor-lm.estimate.tum
+
+    Example: agvviz export runs/qr_floor-lm.rrd --format mcap --out-dir exports
     """
     from agvviz.export import export_run
 
     written = export_run(run_file, format_, out_dir)
     for item in written:
-        console.print(f"{item.which}: {item.poses} poses → [bold]{item.path}[/]")
+        console.print(f"{item.which}: {item.poses} poses → [bold]{escape(str(item.path))}[/]", soft_wrap=True)
 
 
 if __name__ == "__main__":

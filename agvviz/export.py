@@ -7,10 +7,20 @@ frame in metres and its orientation as a unit quaternion (x, y, z, w) with w ≥
 ``T_world_agv``. Lines starting with ``#`` are comments. The estimate holds the solved frames
 only; the truth every frame that has one. Rerun stores poses as float32, so positions carry
 ≈1 µm of rounding at 10 m.
+
+MCAP format (to open beside the recording in Foxglove): one file ``<run>.poses.mcap`` written
+with the ``foxglove-sdk`` package (the ``export`` extra), protobuf-encoded Foxglove schemas
+stamped with the frames' recording times (``log_time`` and the message stamp): per trajectory a
+``foxglove.PoseInFrame`` topic ``/agvviz/<which>/pose`` (the pose ``T_world_agv`` in frame
+``world``) and, on ``/agvviz/tf``, a ``foxglove.FrameTransforms`` with the transform
+``world`` → ``<body frame>_<which>`` (e.g. ``agv_estimate``, ``agv_truth``) at each pose, so the
+3D panel draws both next to the recording's own frames. The truth is written when the run has
+one; a metadata record ``agvviz`` names the run.
 """
 
 from __future__ import annotations
 
+import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,12 +28,16 @@ from pathlib import Path
 import numpy as np
 
 from agvviz import outputs
-from agvviz.errors import InputError
+from agvviz.conventions import WORLD_FRAME
+from agvviz.errors import InputError, OutputError
 from agvviz.geometry import se3, so3
 from agvviz.viz import paths
 from agvviz.viz.readback import RrdReadError, document_json, read_rrd, transforms
 
-FORMATS = ("tum",)
+FORMATS = ("tum", "mcap")
+#: Topics of the MCAP export: PoseInFrame per trajectory (format with ``which``), FrameTransforms.
+MCAP_POSE_TOPIC = "/agvviz/{which}/pose"
+MCAP_TF_TOPIC = "/agvviz/tf"
 #: Which trajectory → the entity holding it.
 TRAJECTORIES = {"estimate": paths.AGV_CAMERA, "truth": paths.AGV_TRUTH}
 
@@ -62,7 +76,9 @@ def export_run(
     out_dir: str | os.PathLike | None = None,
     which: tuple[str, ...] = ("estimate", "truth"),
 ) -> list[ExportedTrajectory]:
-    """Write ``<run stem>.<which>.tum`` for each trajectory in ``which``; returns what was written.
+    """Write ``<run stem>.<which>.tum`` for each trajectory in ``which`` (``fmt="tum"``), or one
+    ``<run stem>.poses.mcap`` holding them (``fmt="mcap"``; the truth only when the run has one);
+    returns what was written. Every trajectory is read before anything is written.
 
     Parameters
     ----------
@@ -90,22 +106,36 @@ def export_run(
         raise ExportError(f"unknown trajectory {unknown}; choose from: {', '.join(TRAJECTORIES)}")
     run_path = Path(run_path)
     out_dir = Path(out_dir) if out_dir is not None else run_path.parent
-    targets = {key: out_dir / f"{run_path.stem}.{key}.{fmt}" for key in which}
-    for target in targets.values():  # before any work: never over the run itself
+    if fmt == "mcap":
+        targets = {key: out_dir / f"{run_path.stem}.poses.mcap" for key in which}
+    else:
+        targets = {key: out_dir / f"{run_path.stem}.{key}.{fmt}" for key in which}
+    for target in dict.fromkeys(targets.values()):  # before any work: never over the run, nor a folder
         outputs.check_not_input(target, (run_path,), option="the export")
+        if target.is_dir():
+            raise OutputError(f"cannot write {target}: it is an existing folder; remove it or choose another --out-dir")
     contents = read_rrd(run_path)
-    outputs.prepare_dir(out_dir, option="--out-dir")
-    name = document_json(contents, paths.RUN_MANIFEST).get("recording_name", run_path.stem) \
-        if paths.RUN_MANIFEST in contents.entity_paths else run_path.stem
-    written = []
+    manifest = document_json(contents, paths.RUN_MANIFEST) if paths.RUN_MANIFEST in contents.entity_paths else {}
+    name = manifest.get("recording_name", run_path.stem)
+    trajectories = {}  # which → (stamps ns, T_world_agv), all read before anything is written
     for key in which:
         entity = TRAJECTORIES[key]
         if entity not in contents.entity_paths:
+            if fmt == "mcap" and key != "estimate":
+                continue  # the MCAP holds the truth when the run has one
             raise ExportError(f"{run_path} has no {key} trajectory ({entity}): nothing was solved or no truth")
         try:
             _, time_ns, T = transforms(contents, entity)
         except RrdReadError as exc:
             raise ExportError(f"{run_path}: cannot read the {key} trajectory: {exc}") from exc
+        trajectories[key] = (time_ns, T)
+    outputs.prepare_dir(out_dir, option="--out-dir")
+    if fmt == "mcap":
+        data = mcap_bytes(trajectories, body_frame=str(manifest.get("body_frame") or "agv"), run_name=name)
+        out_path = outputs.atomic_write_bytes(targets[which[0]], data, inputs=(run_path,))
+        return [ExportedTrajectory(key, out_path, len(T)) for key, (_, T) in trajectories.items()]
+    written = []
+    for key, (time_ns, T) in trajectories.items():
         header = [
             f"# agvviz {key} trajectory of run {name} ({run_path.name}): T_world_agv",
             "# timestamp[s] tx[m] ty[m] tz[m] qx qy qz qw",
@@ -114,3 +144,48 @@ def export_run(
         outputs.atomic_write_text(out_path, "\n".join(header + tum_lines(time_ns, T)) + "\n", inputs=(run_path,))
         written.append(ExportedTrajectory(key, out_path, len(T)))
     return written
+
+
+def mcap_bytes(trajectories: dict[str, tuple[np.ndarray, np.ndarray]], *, body_frame: str, run_name: str) -> bytes:
+    """An MCAP file (its bytes) of ``trajectories`` (which → ((N,) stamps in ns, (N, 4, 4)
+    ``T_world_agv``)) as Foxglove ``PoseInFrame`` and ``FrameTransforms`` messages in time order
+    (see the module docstring). Needs the ``foxglove-sdk`` package: :class:`ExportError` naming
+    the extra to install when it is missing."""
+    try:
+        import foxglove
+        from foxglove.channels import FrameTransformsChannel, PoseInFrameChannel
+        from foxglove.messages import FrameTransform, FrameTransforms, Pose, PoseInFrame, Quaternion, Timestamp, Vector3
+    except ImportError:
+        raise ExportError("--format mcap needs the foxglove-sdk package: pip install 'agvviz[export]'") from None
+    messages = []  # (time ns, trajectory order, channel key, message)
+    for order, (key, (time_ns, T_world_agv)) in enumerate(trajectories.items()):
+        for t, T in zip(time_ns, T_world_agv):
+            t = int(t)
+            if t < 0:
+                raise ExportError(f"the {key} trajectory has a negative time stamp ({t} ns); MCAP times are ≥ 0")
+            q = se3.to_quaternion_xyzw(so3.project_to_so3(T[:3, :3]))
+            x, y, z = (float(v) for v in T[:3, 3])
+            stamp = Timestamp(t // 1_000_000_000, t % 1_000_000_000)
+            orientation = Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+            messages.append((t, order, key, PoseInFrame(
+                timestamp=stamp, frame_id=WORLD_FRAME, pose=Pose(position=Vector3(x=x, y=y, z=z), orientation=orientation),
+            )))
+            messages.append((t, order, "tf", FrameTransforms(transforms=[FrameTransform(
+                timestamp=stamp, parent_frame_id=WORLD_FRAME, child_frame_id=f"{body_frame}_{key}",
+                translation=Vector3(x=x, y=y, z=z), rotation=orientation,
+            )])))
+    messages.sort(key=lambda m: (m[0], m[1]))
+    context = foxglove.Context()  # not the SDK's global one: only these channels go to this file
+    buffer = io.BytesIO()
+    writer = foxglove.open_mcap(buffer, context=context)
+    try:
+        channels = {key: PoseInFrameChannel(MCAP_POSE_TOPIC.format(which=key), context=context) for key in trajectories}
+        channels["tf"] = FrameTransformsChannel(MCAP_TF_TOPIC, context=context)
+        for t, _, key, message in messages:
+            channels[key].log(message, log_time=t)
+        writer.write_metadata("agvviz", {
+            "run": run_name, "pose": "T_world_agv (metres, quaternion x y z w)", "trajectories": ",".join(trajectories),
+        })
+    finally:
+        writer.close()
+    return buffer.getvalue()

@@ -29,7 +29,7 @@ from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import Recording, Scan, iter_role_messages, open_recording, resolve_roles, scan
 from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.results import REJECT_NO_CALIBRATION
-from agvviz.settings import RunSettings, as_dict
+from agvviz.settings import RunSettings, as_dict, inapplicable, without
 from agvviz.viz.run_logger import RunLogger
 
 
@@ -392,15 +392,16 @@ def run_recording(
         raise RecordingError(
             f"{recording_path}: no such file or directory; give an .mcap recording or a rosbag2 directory"
         )
-    out_path = Path(out_path) if out_path is not None else default_run_path(recording_path, settings)
-    if out_path.suffix != ".rrd":
+    if out_path is not None and Path(out_path).suffix != ".rrd":
         raise RunError(f"output must be a .rrd file, got {out_path}")
     # OutputError when out_path is the recording (also through a link; for a bag directory,
     # any of its files) or cannot be written.
     from agvviz import outputs
 
     inputs = [recording_path] + (sorted(recording_path.iterdir()) if recording_path.is_dir() else [])
-    outputs.prepare_output(out_path, inputs=inputs)
+    if out_path is not None:
+        out_path = Path(out_path)
+        outputs.prepare_output(out_path, inputs=inputs)
     prepared = prepare(recording_path, settings, topics, roles_file, side)
     recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
     if not prepared.can_run:
@@ -420,6 +421,17 @@ def run_recording(
             f"{recording.path.name} holds corner observations and no camera images: only the multi-frame "
             "correction replays them; give --set correction=cnoem (or correction=bundle)"
         )
+    # Settings the recording has no data for (or that the other settings switch off) are reset
+    # and kept out of the run's name; the manifest names them (settings.inapplicable).
+    ignored = {} if study is not None else inapplicable(
+        settings, has_uwb=ROLE_UWB_RANGE in roles.roles, has_odometry=ROLE_ODOMETRY in roles.roles,
+        n_cameras=len(roles.cameras()),
+    )
+    ignored_settings = {name: {"value": getattr(settings, name), "reason": why} for name, why in ignored.items()}
+    settings = without(settings, ignored)
+    if out_path is None:
+        out_path = default_run_path(recording_path, settings)
+        outputs.prepare_output(out_path, inputs=inputs)
     if on_total is not None:
         on_total(max((prepared.scan.topics[roles.roles[image_role(c)]].count for c in roles.cameras()), default=0))
 
@@ -438,6 +450,7 @@ def run_recording(
         "recording_sha256": recording_sha256,
         "scenario": scenario,
         "settings": as_dict(settings),
+        "ignored_settings": ignored_settings,
         "recording_name": recording_name,
         "roles": dict(sorted(roles.roles.items())),
         "unplaced_topics": dict(sorted(roles.unplaced.items())),

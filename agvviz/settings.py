@@ -263,6 +263,52 @@ class RunSettings:
         return "-".join(parts)
 
 
+#: Settings that act only on UWB ranges (the ``uwb.range`` role).
+UWB_SETTINGS = ("uwb", "uwb_gate", "uwb_sigma_m", "fusion", "kalman_gate_chi2", "camera_sigma_m")
+#: Settings of the Kalman filter alone (``fusion=kalman``).
+KALMAN_SETTINGS = ("kalman_gate_chi2", "camera_sigma_m")
+
+
+def inapplicable(settings: RunSettings, *, has_uwb: bool, has_odometry: bool, n_cameras: int) -> dict[str, str]:
+    """Setting name → why it does not apply, for each setting changed from its default that
+    cannot act on a recording with this data (``fusion=kalman`` without UWB ranges, a
+    ``correction`` without odometry to correct, ``camera_select`` with fewer than two cameras) or
+    under the other settings (``kalman_gate_chi2`` when ``fusion`` is not kalman,
+    ``cycle_distance_m`` without a correction). The reasons complete the sentence "NAME=VALUE
+    does not apply: …". A run replays with these reset (:func:`without`) and keeps them out of
+    its name."""
+    defaults = RunSettings()
+    changed = {f.name for f in dataclasses.fields(settings) if getattr(settings, f.name) != getattr(defaults, f.name)}
+    reasons = {}
+    if not has_uwb:
+        for name in UWB_SETTINGS:
+            reasons[name] = "the recording has no UWB ranges (no uwb.range topic)"
+    if not has_odometry:
+        for name in ("correction", "cycle_distance_m", "cnoem_update"):
+            reasons[name] = "the recording has no odometry (no odometry topic), the navigation a correction corrects"
+    if n_cameras < 2:
+        reasons["camera_select"] = (
+            f"the recording has {n_cameras} camera image topic{'s' if n_cameras != 1 else ''}; it chooses among "
+            "several cameras at one time"
+        )
+    effective = without(settings, {name: "" for name in changed & reasons.keys()})
+    if effective.fusion != "kalman":
+        for name in KALMAN_SETTINGS:
+            reasons.setdefault(name, f"fusion is {effective.fusion}, not kalman")
+    if effective.correction == "none":
+        for name in ("cycle_distance_m", "cnoem_update"):
+            reasons.setdefault(name, "correction is none")
+    elif effective.correction != "cnoem":
+        reasons.setdefault("cnoem_update", f"correction is {effective.correction}, not cnoem")
+    return {name: reasons[name] for name in (f.name for f in dataclasses.fields(settings)) if name in changed & reasons.keys()}
+
+
+def without(settings: RunSettings, names) -> RunSettings:
+    """A copy of ``settings`` with the fields ``names`` back at their defaults."""
+    defaults = RunSettings()
+    return dataclasses.replace(settings, **{name: getattr(defaults, name) for name in names})
+
+
 def validate(obj) -> None:
     """Check every field of a settings or scenario-options dataclass: its type (an int is a
     valid float; a bool is only a bool), finiteness of numbers, ``choices`` metadata and the

@@ -33,6 +33,15 @@ cycles, each a straight approach from a random start frame F towards one marker 
 (0.5/1/1.5 px), 10 Hz, over a 1.5 m cycle; the navigation starts with the paper's error
 (attitude σ 1°, position σ 10 m) and then follows the true motion. Each /markers/corners message
 carries its cell and trial. bench/bench_cnoem.py runs the full grid from the same generator.
+
+Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``ideal``; route mode only —
+grid mode is the paper's cell and takes ``ideal`` only): the recorded calibrations and camera
+mounts are perturbed, the map holds the markers where they were meant to hang while images and
+corners come from their true placement and print size; each camera's frame stamped t shows the
+world at its capture time t − delay (``/agv/ground_truth`` then also gets a sample at each
+capture time); dropped frames write neither image nor corners. Bumps and slip do not apply
+under water (the route already pitches and rolls). Draws in the ``agvviz.realism`` metadata
+(not under ``ideal``).
 """
 
 from __future__ import annotations
@@ -51,6 +60,7 @@ from agvviz.markers.aruco import aruco_modules
 from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim import auv
+from agvviz.sim import realism as rl
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
 from agvviz.sim.room import placed, roof_code
 
@@ -88,6 +98,9 @@ class Options:
     grid_lateral_fraction: float = setting(0.2, "grid mode: lateral offset as a fraction of L", min=0.0, max=10.0)
     grid_vertical_fraction: float = setting(0.1, "grid mode: vertical offset as a fraction of L", min=0.0, max=10.0)
     trials: int = setting(100, "grid mode: number of cycles (the paper: 1000 per cell)", min=1, max=100000)
+    realism: str = setting("ideal", rl.HELP_PROFILE + " (route mode)", rl.PROFILE_NAMES)
+    realism_off: str = setting("", rl.HELP_OFF)
+    realism_set: str = setting("", rl.HELP_SET)
 
 
 def validate(options: Options) -> None:
@@ -108,6 +121,10 @@ def validate(options: Options) -> None:
         raise ValueError("supersample and trials must be ≥ 1 and jpeg_quality in 1..100")
     if o.mode == "grid" and o.images:
         raise ValueError("grid mode is corner-only; set images=false")
+    realism = rl.make_realism(o.realism, o.realism_off, o.realism_set)
+    rl.check_timing(realism.timing, 1.0 / o.frame_rate_hz)
+    if o.mode == "grid" and realism.parameters() != rl.PROFILES["ideal"].parameters():
+        raise ValueError("grid mode is the paper's simulation cell: set realism=ideal (error sources apply to route mode)")
     if o.mode == "route":
         check_total("frames = duration_s × frame_rate_hz", round(o.duration_s * o.frame_rate_hz), MAX_FRAMES,
                     "shorten duration_s or lower frame_rate_hz")
@@ -175,15 +192,31 @@ def _brightness(o: Options, t_s: float, shape: tuple[int, int], phase: float) ->
     return np.float32(g_time) * caustic.astype(np.float32)
 
 
-def _record_route(writer, o: Options, rng: np.random.Generator, progress) -> None:
-    cam = auv.camera()
-    mounts = auv.camera_mounts()
+def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: int) -> None:
+    realism = rl.make_realism(o.realism, o.realism_off, o.realism_set)
+    cam = auv.camera()  # true
+    mounts = auv.camera_mounts()  # true
+    calib = rl.draw_calibration(realism.calibration, rl.source_rng(seed, "calibration"), {n: (cam, T) for n, T in mounts.items()})
     t0 = START_TIME_NS
-    for name, T in mounts.items():
-        writer.write_calibration(name, cam, t0)
-    writer.write_tf_static([(AGV_FRAME, camera_frame(n), T) for n, T in mounts.items()], t0)
     markers = route_markers(o)
     codes = [placed(roof_code(aruco_modules(DICTIONARY, int(mid)), mid, auv.MARKER_SIDE_M, 1), T) for mid, T in markers]
+    marker_draws = rl.draw_map(realism.map, rl.source_rng(seed, "map"), [(c.marker_id, c.T_world_marker, c.side_m) for c in codes])
+    true_codes = [rl.placed_as_drawn(c, d) for c, d in zip(codes, marker_draws)]
+    dt = 1.0 / o.frame_rate_hz
+    n = int(o.duration_s * o.frame_rate_hz) + 1
+    stamps_ns = np.array([t0 + int(round(k * dt * 1e9)) for k in range(n)], dtype=np.int64)
+    timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), n, list(mounts))
+    draws = rl.new_draws(realism, seed)
+    draws.sources.update(
+        calibration={name: d.to_json() for name, d in calib.items()},
+        map=[d.to_json() for d in marker_draws],
+        timing={"stamp_ns": stamps_ns, "cameras": {name: t.to_json() for name, t in timing.items()}},
+    )
+    if not realism.is_ideal:  # an ideal recording stays message for message what it was
+        writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
+    for name in mounts:
+        writer.write_calibration(name, calib[name].recorded_camera, t0)
+    writer.write_tf_static([(AGV_FRAME, camera_frame(n_), calib[n_].T_parent_cam_recorded) for n_ in mounts], t0)
     writer.write_marker_map(
         {
             "dictionary": DICTIONARY,
@@ -191,32 +224,40 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress) -> Non
         },
         t0,
     )
-    dt = 1.0 / o.frame_rate_hz
-    n = int(o.duration_s * o.frame_rate_hz) + 1
     truth = [route_pose(o, o.speed_mps * k * dt) for k in range(n)]
     nav = navigation(o, truth, dt, rng)
-    scene = FloorScene(codes=tuple(codes), floor_dn=150.0, black_dn=20.0, white_dn=215.0)
+    scene = FloorScene(codes=tuple(true_codes), floor_dn=150.0, black_dn=20.0, white_dn=215.0)
     phase = rng.uniform(0, 2 * math.pi)
-    corners_marker = auv.marker_corners_marker()
     for k in range(n):
-        t_ns = t0 + int(round(k * dt * 1e9))
+        t_ns = int(stamps_ns[k])
+        captured = {}  # camera → true T_world_agv at its capture time
+        for name in mounts:
+            delay_ns = int(timing[name].delay_ns[k])
+            captured[name] = truth[k] if delay_ns == 0 else route_pose(o, o.speed_mps * ((t_ns - delay_ns - t0) * 1e-9))
+        extra = sorted({t_ns - int(timing[name].delay_ns[k]): name for name in mounts if timing[name].delay_ns[k] != 0}.items())
+        for t_capture_ns, name in [e for e in extra if e[0] < t_ns]:
+            writer.write_pose(topics.GROUND_TRUTH_TOPIC, captured[name], WORLD_FRAME, t_capture_ns)
         writer.write_pose(topics.GROUND_TRUTH_TOPIC, truth[k], WORLD_FRAME, t_ns)
+        for t_capture_ns, name in [e for e in extra if e[0] > t_ns]:
+            writer.write_pose(topics.GROUND_TRUTH_TOPIC, captured[name], WORLD_FRAME, t_capture_ns)
         writer.write_pose(topics.ODOMETRY_TOPIC, nav[k], WORLD_FRAME, t_ns)
         for name, T_agv_cam in mounts.items():
-            T_world_cam = truth[k] @ T_agv_cam
+            T_world_cam = captured[name] @ T_agv_cam
+            dropped = bool(timing[name].dropped[k])  # still rendered / drawn: other frames stay the same
             if o.images:
                 image = render_frame(scene, cam, T_world_cam, rng, supersample=o.supersample, noise_sigma_dn=0.0)
                 lit = image.astype(np.float32) * _brightness(o, k * dt, image.shape, phase)
                 lit += np.float32(o.noise_sigma_dn) * rng.standard_normal(image.shape, dtype=np.float32)
-                writer.write_image(name, encode_jpeg(np.clip(np.rint(lit), 0, 255).astype(np.uint8), o.jpeg_quality), "jpeg", t_ns)
+                if not dropped:
+                    writer.write_image(name, encode_jpeg(np.clip(np.rint(lit), 0, 255).astype(np.uint8), o.jpeg_quality), "jpeg", t_ns)
                 continue
             seen = []
             T_cam_world = se3.inverse(T_world_cam)
-            for c in codes:
-                px = auv.visible_pixels(cam, T_cam_world @ c.T_world_marker, corners_marker)
+            for c in true_codes:
+                px = auv.visible_pixels(cam, T_cam_world @ c.T_world_marker, auv.marker_corners_marker(c.side_m))
                 if px is not None:
                     seen.append({"id": c.marker_id, "corners_px": px + rng.normal(0.0, o.sigma_px, px.shape)})
-            if seen:
+            if seen and not dropped:
                 writer.write_json(
                     topics.CORNERS_TOPIC, "agvviz.CornerObservations",
                     {"cam_name": name, "noise_sigma_px": o.sigma_px, "markers": seen}, t_ns,
@@ -273,4 +314,4 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
     if options.mode == "grid":
         _record_grid(writer, options, rng, progress)
     else:
-        _record_route(writer, options, rng, progress)
+        _record_route(writer, options, rng, progress, seed)

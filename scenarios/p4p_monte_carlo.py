@@ -23,6 +23,9 @@ Recorded: the calibration of camera ``mc`` once, then one ``/markers/corners``
 (``agvviz.CornerObservations``) message per trial with its cell, trial index, σ, the
 marker-frame points and the true ``T_cam_marker``. ``duration_s``/``rate_hz`` do not apply:
 nothing moves; ``trials`` sets the sample size.
+
+``realism`` (the error sources of :mod:`agvviz.sim.realism`) accepts only ``ideal``: the study
+measures the solvers against its own noise model and the CRLB.
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ TRIAL_PERIOD_NS = 1_000_000
 class Options:
     trials: int = setting(1000, "noisy trials per cell (paper 000 §6: 1000)", min=1, max=100000)
     cells: str = setting("all", "which cells: paper (§6 parameters, SNR 15–24 dB), crlb (tilted views, σ in px) or all")
+    realism: str = setting("ideal", "error sources: a solver study keeps the ideal world (its noise is the study's own)", ("ideal",))
 
 
 @dataclass(frozen=True)

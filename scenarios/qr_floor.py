@@ -11,10 +11,20 @@ height, 1000 mm horizontal distance).
 Recorded: calibration, ``/tf_static`` (agv → cam_front) and the marker map once at the first
 time stamp; then per frame ``/agv/ground_truth`` (world), ``/agv/odometry`` (odom) and the
 JPEG frame, all at the frame's log time, in that order.
+
+Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``ideal``: none): the
+calibration and ``/tf_static`` written are the recorded (perturbed) ones, the map and the
+payloads the mapped (nominal) code placement, while rendering and truth use the true camera,
+mount and code placement; a frame stamped t shows the world at its capture time t − delay
+(then ``/agv/ground_truth`` gets a sample at the capture time too, before or after the one at
+t); a dropped frame has no image (it is still rendered, so the other frames do not change);
+floor bumps pitch and roll the true AGV; wheel slip scales the odometry steps. The draws are in
+the ``agvviz.realism`` metadata record, written before the first message (not under ``ideal``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,7 +38,8 @@ from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim.qr_texture import PAYLOAD_RESOLUTION_M, QUIET_ZONE_MODULES, make_floor_code
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
-from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track
+from agvviz.sim import realism as rl
+from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track, track_pose
 
 NAME = "qr_floor"
 DESCRIPTION = "Paper 000: AGV with a tilted camera over a floor grid of QR codes carrying their world coordinates"
@@ -71,6 +82,9 @@ class Options:
     odom_heading_bias_deg_per_s: float = setting(0.1, "odometry heading drift in deg/s", min=-10.0, max=10.0)
     odom_step_noise_m: float = setting(0.002, "odometry position noise per step and axis (sigma, m)", min=0.0, max=1.0)
     odom_heading_noise_deg: float = setting(0.05, "odometry heading noise per step (sigma, deg)", min=0.0, max=10.0)
+    realism: str = setting("ideal", rl.HELP_PROFILE, rl.PROFILE_NAMES)
+    realism_off: str = setting("", rl.HELP_OFF)
+    realism_set: str = setting("", rl.HELP_SET)
 
 
 def validate(options: Options) -> None:
@@ -121,6 +135,7 @@ def validate(options: Options) -> None:
             f"{o.code_size_m * MAX_LABEL_TO_SYMBOL:.3f} m wide, grid_spacing_m is {o.grid_spacing_m}; "
             "increase grid_spacing_m or decrease code_size_m"
         )
+    rl.check_timing(rl.make_realism(o.realism, o.realism_off, o.realism_set).timing, 1.0 / o.rate_hz)
     # The lens model must be one-to-one over the image: d(r·(1 + k1 r² + k2 r⁴))/dr > 0 up to
     # beyond the image corner's normalised radius.
     corner_r = math.hypot(o.width_px / 2.0, o.height_px / 2.0) / o.focal_px
@@ -198,15 +213,22 @@ def record(
 ) -> None:
     """Write the whole recording to ``writer`` (an open :class:`RecordingWriter`).
 
-    Random draws, all from ``np.random.default_rng(seed)`` in this order: scene, odometry,
-    then the sensor noise of each frame — the same seed and options give identical messages.
+    Random draws from ``np.random.default_rng(seed)`` in this order: scene, odometry, then the
+    sensor noise of each frame — the same seed and options give identical messages. The error
+    sources draw from their own generators (:func:`agvviz.sim.realism.source_rng`).
     """
     validate(options)
+    o = options
+    realism = rl.make_realism(o.realism, o.realism_off, o.realism_set)
     rng = np.random.default_rng(seed)
-    scene = build_scene(options, rng)
-    camera = make_camera(options)
-    T_agv_cam = forward_camera_mount(options.cam_height_m, options.cam_lookahead_m)
-    trajectory = sample_track(make_track(options), options.speed_mps, options.rate_hz, options.duration_s)
+    scene = build_scene(options, rng)  # as mapped: the map and the payloads
+    camera = make_camera(options)  # true
+    T_agv_cam = forward_camera_mount(options.cam_height_m, options.cam_lookahead_m)  # true
+    track = make_track(options)
+    trajectory = sample_track(track, options.speed_mps, options.rate_hz, options.duration_s)
+    stamps_ns = trajectory.log_time_ns
+    total = len(stamps_ns)
+    slip = rl.draw_slip(realism.slip, rl.source_rng(seed, "slip"), total - 1)
     T_odom_agv = dead_reckoning(
         trajectory,
         rng,
@@ -214,26 +236,65 @@ def record(
         heading_bias_rad_per_s=math.radians(options.odom_heading_bias_deg_per_s),
         step_noise_m=options.odom_step_noise_m,
         heading_noise_rad=math.radians(options.odom_heading_noise_deg),
+        slip_fraction=slip,
     )
-    t0_ns = int(trajectory.log_time_ns[0])
-    writer.write_calibration(CAM_NAME, camera, t0_ns)
-    writer.write_tf_static([(AGV_FRAME, camera_frame(CAM_NAME), T_agv_cam)], t0_ns)
+    calib = rl.draw_calibration(realism.calibration, rl.source_rng(seed, "calibration"), {CAM_NAME: (camera, T_agv_cam)})
+    marker_draws = rl.draw_map(
+        realism.map, rl.source_rng(seed, "map"), [(c.marker_id, c.T_world_marker, c.side_m) for c in scene.codes]
+    )
+    true_scene = dataclasses.replace(
+        scene, codes=tuple(rl.placed_as_drawn(c, d) for c, d in zip(scene.codes, marker_draws))
+    )
+    timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), total, [CAM_NAME])[CAM_NAME]
+    bumps = rl.draw_bumps(realism.bumps, rl.source_rng(seed, "bumps"))
+
+    def true_pose(t_ns: int, k: int) -> tuple[np.ndarray, float, float]:
+        """True ``T_world_agv`` (bumps included) at ``t_ns``, near frame k's stamp."""
+        flat = trajectory.T_world_agv[k] if t_ns == stamps_ns[k] else track_pose(track, o.speed_mps, (t_ns - stamps_ns[0]) * 1e-9)
+        return bumps.apply(flat)
+
+    capture_ns = stamps_ns - timing.delay_ns
+    truth = [true_pose(int(stamps_ns[k]), k) for k in range(total)]
+    captured = [truth[k] if capture_ns[k] == stamps_ns[k] else true_pose(int(capture_ns[k]), k) for k in range(total)]
+    draws = rl.new_draws(realism, seed)
+    draws.sources.update(
+        calibration={CAM_NAME: calib[CAM_NAME].to_json()},
+        map=[d.to_json() for d in marker_draws],
+        timing={"stamp_ns": stamps_ns, "cameras": {CAM_NAME: timing.to_json()}},
+        bumps={
+            "field": bumps.to_json(),
+            "stamp_pitch_deg": np.degrees([p for _, p, _ in truth]), "stamp_roll_deg": np.degrees([r for _, _, r in truth]),
+            "capture_pitch_deg": {CAM_NAME: np.degrees([p for _, p, _ in captured])},
+            "capture_roll_deg": {CAM_NAME: np.degrees([r for _, _, r in captured])},
+        },
+        slip={"fraction": slip},
+    )
+    if not realism.is_ideal:  # an ideal recording stays message for message what it was
+        writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
+
+    t0_ns = int(stamps_ns[0])
+    writer.write_calibration(CAM_NAME, calib[CAM_NAME].recorded_camera, t0_ns)
+    writer.write_tf_static([(AGV_FRAME, camera_frame(CAM_NAME), calib[CAM_NAME].T_parent_cam_recorded)], t0_ns)
     writer.write_marker_map(marker_map(scene), t0_ns)
-    total = len(trajectory.log_time_ns)
     for k in range(total):
-        t_ns = int(trajectory.log_time_ns[k])
-        T_world_agv = trajectory.T_world_agv[k]
-        writer.write_pose(topics.GROUND_TRUTH_TOPIC, T_world_agv, WORLD_FRAME, t_ns)
+        t_ns, t_capture_ns = int(stamps_ns[k]), int(capture_ns[k])
+        T_world_agv_capture = captured[k][0]
+        if t_capture_ns < t_ns:
+            writer.write_pose(topics.GROUND_TRUTH_TOPIC, T_world_agv_capture, WORLD_FRAME, t_capture_ns)
+        writer.write_pose(topics.GROUND_TRUTH_TOPIC, truth[k][0], WORLD_FRAME, t_ns)
+        if t_capture_ns > t_ns:
+            writer.write_pose(topics.GROUND_TRUTH_TOPIC, T_world_agv_capture, WORLD_FRAME, t_capture_ns)
         writer.write_pose(topics.ODOMETRY_TOPIC, T_odom_agv[k], "odom", t_ns)
         image = render_frame(
-            scene,
+            true_scene,
             camera,
-            T_world_agv @ T_agv_cam,
+            T_world_agv_capture @ T_agv_cam,
             rng,
             supersample=options.supersample,
             blur_sigma_px=options.blur_sigma_px,
             noise_sigma_dn=options.noise_sigma_dn,
         )
-        writer.write_image(CAM_NAME, encode_jpeg(image, options.jpeg_quality), "jpeg", t_ns)
+        if not timing.dropped[k]:  # a dropped frame is rendered all the same: later frames' noise stays
+            writer.write_image(CAM_NAME, encode_jpeg(image, options.jpeg_quality), "jpeg", t_ns)
         if progress is not None:
             progress(k + 1, total)

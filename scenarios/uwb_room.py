@@ -27,6 +27,16 @@ Recorded at the first time stamp: calibrations, ``/tf_static`` (world → cam_<w
 marker_<id>, agv → uwb_tag), ``/markers/map`` (frame ``agv``) and ``/uwb/anchors``. Then, in
 time order: per camera frame ``/agv/ground_truth`` and the four JPEG frames; per range
 ``/agv/ground_truth`` and ``/uwb/range``.
+
+Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``ideal``: none): each wall
+camera's calibration and ``/tf_static`` extrinsic are the recorded (perturbed) ones and the
+map's roof code is where it was meant to be, while rendering and truth use the true cameras and
+the code's true place and print size on the roof; each camera's frame stamped t shows the AGV at
+its own capture time t − delay (``/agv/ground_truth`` then also gets a sample at every capture
+time); a dropped frame of a camera has no image (still rendered, so nothing else changes);
+floor bumps pitch and roll the true AGV (truth, roof code and tag). No odometry, so no slip.
+The draws are in the ``agvviz.realism`` metadata record, written before the first message
+(not under ``ideal``).
 """
 
 from __future__ import annotations
@@ -43,6 +53,7 @@ from agvviz.geometry.camera import PinholeCamera
 from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, MAX_UWB_ROUNDS, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.markers.aruco import aruco_dictionary, aruco_modules, is_aruco_dictionary
+from agvviz.sim import realism as rl
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
 from agvviz.sim.room import WALLS, agv_pose, grid_points, horizontal_fov_focal_px, look_at, placed, roof_code, wall_points
 from agvviz.sim.trajectory import SIM_START_TIME_NS, RoundedRectangleTrack
@@ -97,6 +108,9 @@ class Options:
     noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers", min=0.0, max=100.0)
     jpeg_quality: int = setting(95, "JPEG quality 1..100", min=1, max=100)
     supersample: int = setting(4, "s x s samples per pixel for area integration", min=1, max=16)
+    realism: str = setting("ideal", rl.HELP_PROFILE, rl.PROFILE_NAMES)
+    realism_off: str = setting("", rl.HELP_OFF)
+    realism_set: str = setting("", rl.HELP_SET)
 
 
 def validate(options: Options) -> None:
@@ -142,6 +156,7 @@ def validate(options: Options) -> None:
     count = aruco_dictionary(o.dictionary).bytesList.shape[0]
     if not 0 <= o.marker_id < count:
         raise ValueError(f"marker_id must lie in 0..{count - 1} for {o.dictionary}, got {o.marker_id}")
+    rl.check_timing(rl.make_realism(o.realism, o.realism_off, o.realism_set).timing, 1.0 / o.rate_hz)
     if o.variant == "path":
         half_x = o.track_length_m / 2.0 + o.turn_radius_m
         half_y = o.track_width_m / 2.0 + o.turn_radius_m
@@ -220,7 +235,9 @@ def _schedule(o: Options, n_anchors: int, rng: np.random.Generator) -> _Schedule
     ranges = (rounds[:, None] + (np.arange(n_anchors) + 0.5) * slot_s).ravel()
 
     def grid_pose(t_s: float) -> np.ndarray:
-        index = min(int(t_s // period_s), len(points) - 1)
+        # The AGV moves on in the middle of the gap, so a capture a little before a point's
+        # first fix (timing errors) sees it at that point already.
+        index = min(max(int((t_s + GRID_GAP_S / 2.0) // period_s), 0), len(points) - 1)
         return agv_pose(points[index], float(headings[index]))
 
     return _Schedule(frames, ranges, lambda t: False, grid_pose)
@@ -229,12 +246,14 @@ def _schedule(o: Options, n_anchors: int, rng: np.random.Generator) -> _Schedule
 def record(writer, options: Options, seed: int, progress: Callable[[int, int], None] | None = None) -> None:
     """Write the whole recording to ``writer`` (an open :class:`RecordingWriter`).
 
-    Random draws, all from ``np.random.default_rng(seed)`` in this order: static-grid headings,
+    Random draws from ``np.random.default_rng(seed)`` in this order: static-grid headings,
     device clocks, scene grey levels, then per event in time order the NLOS draw and TWR noise
-    of each range and the sensor noise of each frame.
+    of each range and the sensor noise of each frame. The error sources draw from their own
+    generators (:func:`agvviz.sim.realism.source_rng`).
     """
     validate(options)
     o = options
+    realism = rl.make_realism(o.realism, o.realism_off, o.realism_set)
     rng = np.random.default_rng(seed)
     camera = make_camera(o)
     cams = camera_poses(o)
@@ -245,14 +264,50 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
     anchor_clocks = {a: DeviceClock(rng.uniform(0.0, 10.0), rng.normal(0.0, o.clock_drift_ppm)) for a in anchor_ids}
     roof_dn, black_dn, white_dn = rng.uniform([80.0, 20.0, 210.0], [120.0, 30.0, 230.0])
     code = roof_code(aruco_modules(o.dictionary, o.marker_id), str(o.marker_id), o.marker_side_m, 2)
-    T_agv_marker = se3.make(np.eye(3), [0.0, 0.0, o.roof_height_m])
+    T_agv_marker = se3.make(np.eye(3), [0.0, 0.0, o.roof_height_m])  # as mapped
     T_agv_tag = se3.make(np.eye(3), [0.0, 0.0, o.tag_height_m])
 
+    calib = rl.draw_calibration(
+        realism.calibration, rl.source_rng(seed, "calibration"), {wall: (camera, cams[wall]) for wall in WALLS}
+    )
+    (marker_draw,) = rl.draw_map(realism.map, rl.source_rng(seed, "map"), [(str(o.marker_id), T_agv_marker, o.marker_side_m)])
+    true_code = rl.placed_as_drawn(code, marker_draw, np.eye(4))  # in the agv frame: placed per frame below
+    T_agv_marker_true = marker_draw.T_parent_marker_true
     t0_ns = SIM_START_TIME_NS
+    stamps_ns = np.array([t0_ns + int(round(float(t) * 1e9)) for t in schedule.frame_times_s], dtype=np.int64)
+    timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), len(stamps_ns), WALLS)
+    bumps = rl.draw_bumps(realism.bumps, rl.source_rng(seed, "bumps"))
+
+    def true_pose(t_s: float) -> tuple[np.ndarray, float, float]:
+        return bumps.apply(schedule.pose(t_s))
+
+    def capture_s(k: int, wall: str) -> float:
+        """Capture time of camera ``wall``'s frame k (s from the start; exactly the frame time
+        without a delay)."""
+        delay_ns = int(timing[wall].delay_ns[k])
+        t_s = float(schedule.frame_times_s[k])
+        return t_s if delay_ns == 0 else (int(stamps_ns[k]) - delay_ns - t0_ns) * 1e-9
+
+    captures = {wall: [capture_s(k, wall) for k in range(len(stamps_ns))] for wall in WALLS}
+    angles = {wall: [true_pose(t)[1:] for t in captures[wall]] for wall in WALLS}
+    draws = rl.new_draws(realism, seed)
+    draws.sources.update(
+        calibration={wall: d.to_json() for wall, d in calib.items()},
+        map=[marker_draw.to_json()],
+        timing={"stamp_ns": stamps_ns, "cameras": {wall: t.to_json() for wall, t in timing.items()}},
+        bumps={
+            "field": bumps.to_json(),
+            "capture_pitch_deg": {wall: np.degrees([a[0] for a in angles[wall]]) for wall in WALLS},
+            "capture_roll_deg": {wall: np.degrees([a[1] for a in angles[wall]]) for wall in WALLS},
+        },
+    )
+    if not realism.is_ideal:  # an ideal recording stays message for message what it was
+        writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
+
     for wall in WALLS:
-        writer.write_calibration(wall, camera, t0_ns)
+        writer.write_calibration(wall, calib[wall].recorded_camera, t0_ns)
     writer.write_tf_static(
-        [(WORLD_FRAME, camera_frame(wall), cams[wall]) for wall in WALLS]
+        [(WORLD_FRAME, camera_frame(wall), calib[wall].T_parent_cam_recorded) for wall in WALLS]
         + [(AGV_FRAME, f"marker_{o.marker_id}", T_agv_marker), (AGV_FRAME, TAG_FRAME, T_agv_tag)],
         t0_ns,
     )
@@ -269,17 +324,26 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
         topics.UWB_ANCHORS_TOPIC, "agvviz.UwbAnchors", {"anchors": [{"id": a, "position_m": p} for a, p in anchors.items()]}, t0_ns
     )
 
+    # Events: (time s, kind, detail): 0 camera frame (detail: frame index), 1 UWB range
+    # (anchor), 2 truth at a capture time that is not a frame time (exact ns).
     events = sorted(
-        [(float(t), 0, None) for t in schedule.frame_times_s]
+        [(float(t), 0, k) for k, t in enumerate(schedule.frame_times_s)]
         + [(float(t), 1, anchor_ids[i % len(anchor_ids)]) for i, t in enumerate(schedule.range_times_s)]
+        + sorted({
+            (captures[wall][k], 2, int(stamps_ns[k] - timing[wall].delay_ns[k]))
+            for wall in WALLS for k in range(len(stamps_ns)) if timing[wall].delay_ns[k] != 0
+        })
     )
     total = len(schedule.frame_times_s)
     done = 0
-    for t_s, kind, anchor in events:
-        t_ns = t0_ns + int(round(t_s * 1e9))
-        T_world_agv = schedule.pose(t_s)
+    for t_s, kind, detail in events:
+        t_ns = detail if kind == 2 else t0_ns + int(round(t_s * 1e9))
+        T_world_agv = true_pose(t_s)[0]
         writer.write_pose(topics.GROUND_TRUTH_TOPIC, T_world_agv, WORLD_FRAME, t_ns)
+        if kind == 2:
+            continue
         if kind == 1:
+            anchor = detail
             tag_m = se3.transform_points(T_world_agv @ T_agv_tag, np.zeros((1, 3)))[0]
             nlos = rng.random() < o.nlos_probability
             excess = rng.uniform(o.nlos_excess_min_m, o.nlos_excess_max_m) if nlos else 0.0
@@ -295,14 +359,18 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
                 t_ns,
             )
             continue
-        codes = () if schedule.blocked(t_s) else (placed(code, T_world_agv @ T_agv_marker),)
-        scene = FloorScene(codes=codes, floor_dn=float(roof_dn), black_dn=float(black_dn), white_dn=float(white_dn))
+        k = detail
         for wall in WALLS:
+            t_capture_s = captures[wall][k]
+            T_world_agv_capture = T_world_agv if t_capture_s == t_s else true_pose(t_capture_s)[0]
+            codes = () if schedule.blocked(t_capture_s) else (placed(true_code, T_world_agv_capture @ T_agv_marker_true),)
+            scene = FloorScene(codes=codes, floor_dn=float(roof_dn), black_dn=float(black_dn), white_dn=float(white_dn))
             image = render_frame(
-                scene, camera, cams[wall], rng, supersample=o.supersample,
+                scene, calib[wall].true_camera, cams[wall], rng, supersample=o.supersample,
                 blur_sigma_px=o.blur_sigma_px, noise_sigma_dn=o.noise_sigma_dn,
             )
-            writer.write_image(wall, encode_jpeg(image, o.jpeg_quality), "jpeg", t_ns)
+            if not timing[wall].dropped[k]:  # a dropped frame is rendered all the same: nothing else changes
+                writer.write_image(wall, encode_jpeg(image, o.jpeg_quality), "jpeg", t_ns)
         done += 1
         if progress is not None:
             progress(done, total)

@@ -21,8 +21,20 @@ from typer.testing import CliRunner
 from agvviz import scenario_registry
 from agvviz.cli import app
 from agvviz import cluster
-from agvviz.compare import CompareError, diff, load_run, parse_grid, sweep
+from agvviz.compare import (
+    COMPACT_METRICS,
+    CompareError,
+    diff,
+    diff_table,
+    diff_table_title,
+    diff_verdict,
+    format_p,
+    load_run,
+    parse_grid,
+    sweep,
+)
 from agvviz.errors import InputError
+from agvviz.evaluation.comparison import DIRECT, RunSeries, compare_runs
 from agvviz.evaluation.expression import ExpressionError
 from agvviz.runner import run_recording
 from agvviz.settings import RunSettings
@@ -154,6 +166,26 @@ def test_diff_overlay_contents(swept, tmp_path):
     np.testing.assert_array_equal(frames, common)
     expected = [abs(eb[list(fb).index(f)]) - abs(ea[list(fa).index(f)]) for f in common]
     np.testing.assert_allclose(delta, expected, rtol=1e-9, atol=1e-12)
+    # The Δ plot's zero line spans it, and its title gives the sign convention.
+    zero_frames, zero = scalar_series(contents, "delta/position_mm/zero")
+    assert zero_frames.tolist() == [common[0], common[-1]] and zero.tolist() == [0.0, 0.0]
+    assert overlay.delta_view_name("position_mm") == "Δ |position error| = B − A [mm]: positive = B worse"
+    # Each run's position error, magnified by the stated factor, drawn from the truth position
+    # (both runs solved every matched frame here: B's frames are A's).
+    run_a, run_b = load_run(a_path), load_run(b_path)
+    factors = []
+    for key, run in (("a", run_a), ("b", run_b)):
+        frames, origins, vectors, labels = _arrows(contents, f"world/error/{key}")
+        assert len(labels) == 1 and labels[0].startswith(f"{key.upper()} error ×"), labels
+        factor = float(labels[0].split("×")[1])
+        factors.append(factor)
+        rows = np.searchsorted(run.frames, frames)
+        np.testing.assert_array_equal(run.frames[rows], frames)
+        # float32 storage of the poses (≈1 µm at 10 m, then × factor) and of the arrows.
+        np.testing.assert_allclose(origins, run.T_truth[rows, :3, 3], atol=1e-5)
+        np.testing.assert_allclose(vectors, (run.T_est[rows, :3, 3] - run.T_truth[rows, :3, 3]) * factor,
+                                   atol=1e-5 * factor)
+    assert factors[0] == factors[1] > 1  # one factor, so the arrows compare; sub-mm errors are magnified
     # A's images, byte for byte, on the same frames; the report is the diff table.
     images = encoded_images(contents, f"image/{CAM}")
     assert images == encoded_images(a, paths.image(CAM))
@@ -303,3 +335,111 @@ def test_same_recording_and_settings_give_equal_rrd(tmp_path):
     same = compare("first.rrd", "second.rrd")
     assert same.returncode == 0, same.stdout + same.stderr
     assert compare("first.rrd", "other.rrd").returncode != 0
+
+
+# -- the verdict and the table of `diff` ------------------------------------------------------
+def _series(name: str, position_mm: np.ndarray) -> RunSeries:
+    """A run of len(position_mm) frames at 10 Hz, all solved, with these position errors (the
+    other quantities zero, no poses: only the direct error series are compared)."""
+    n = len(position_mm)
+    errors = {q.key: np.zeros(n) for q in DIRECT}
+    errors["position"] = np.asarray(position_mm, dtype=float)
+    return RunSeries(
+        name=name, frames=np.arange(n), time_ns=np.arange(n) * 100_000_000, solved=np.ones(n, bool),
+        errors=errors, T_truth=np.full((n, 4, 4), np.nan), T_est=np.full((n, 4, 4), np.nan),
+    )
+
+
+def _verdict_of(a_mm: np.ndarray, b_mm: np.ndarray):
+    comparison = compare_runs(_series("a", a_mm), _series("b", b_mm), seed=0)
+    return comparison, diff_verdict(comparison)
+
+
+A_MM = np.abs(np.random.default_rng(7).normal(0.0, 0.3, 200))  # seeded: the same on every machine
+
+
+def test_verdict_names_a_worse_b_with_metric_interval_and_p():
+    comparison, verdict = _verdict_of(A_MM, 2.0 * A_MM)  # B's error twice A's on every frame
+    row = comparison.row("position_rmse_mm")
+    assert verdict.outcome == "worse" and verdict.metric == "position_rmse_mm"
+    assert row.ci_low <= row.diff <= row.ci_high and row.ci_low > 0  # the interval holds what was seen
+    # 200 frames all worse: Wilcoxon's p is far below 0.001.
+    assert verdict.headline == (
+        f"B worse in position RMSE by {row.diff:.2f} mm [{row.ci_low:.2f}, {row.ci_high:.2f}] "
+        f"(A {row.a:.2f} → B {row.b:.2f} mm), p < 0.001"
+    ), verdict.headline
+    assert verdict.lines[1].startswith("position RMSE decides (the estimated AGV position against truth, over the 200")
+    # The other way round B is better, by the same amount, its interval given as a size.
+    _, better = _verdict_of(2.0 * A_MM, A_MM)
+    assert better.outcome == "better"
+    assert better.headline.startswith(
+        f"B better in position RMSE by {row.diff:.2f} mm [{row.ci_low:.2f}, {row.ci_high:.2f}]"
+    ), better.headline
+
+
+def test_verdict_of_identical_and_of_indistinguishable_runs():
+    _, same = _verdict_of(A_MM, A_MM.copy())
+    assert same.outcome == "identical"
+    assert same.headline.startswith("no difference in position RMSE: the two runs' errors are identical on the 200")
+    # ±1 µm alternating on every frame: as many frames better as worse, no significant difference.
+    wiggle = A_MM + np.where(np.arange(200) % 2 == 0, 0.001, -0.001)
+    comparison, verdict = _verdict_of(A_MM, wiggle)
+    assert verdict.outcome == "no significant difference"
+    assert comparison.row("position_rmse_mm").p_value > 0.05
+    assert verdict.headline.startswith("no significant difference in position RMSE: B − A = ")
+
+
+def test_verdict_says_when_the_runs_solved_different_frames():
+    a, b = _series("a", A_MM), _series("b", 2.0 * A_MM)
+    b.solved[:10] = False
+    b.errors["position"][:10] = np.nan
+    verdict = diff_verdict(compare_runs(a, b))
+    assert verdict.lines[-1].startswith("B solved 10 fewer frames than A (190 vs 200")
+
+
+@pytest.mark.parametrize("p, text", [
+    (None, "—"), (0.0, "<0.001"), (0.00099, "<0.001"), (0.001, "0.001"), (0.0042, "0.004"), (0.03, "0.03"),
+    (0.031, "0.03"), (0.4, "0.4"), (0.449, "0.45"), (1.0, "1"),
+])
+def test_p_values_read_as_a_reader_wants(p, text):
+    assert format_p(p) == text
+
+
+def test_compact_table_and_all_metrics():
+    comparison, _ = _verdict_of(A_MM, 2.0 * A_MM)
+    header, rows = diff_table(comparison)
+    present = {r.name for r in comparison.rows}
+    assert header[-1] == "p" and [r[0] for r in rows] == [m for m in COMPACT_METRICS if m in present]
+    position = next(r for r in rows if r[0] == "position_rmse_mm")
+    assert position[3].startswith("+") and position[-1] == "<0.001"
+    assert len(diff_table(comparison, all_metrics=True)[1]) == len(comparison.rows)
+    assert "more metrics with --all" in diff_table_title(comparison)
+
+
+def test_error_magnification_is_a_1_2_5_step_that_fits_the_target():
+    rng = np.random.default_rng(3)
+    small, large = rng.normal(0, 0.0003, (100, 3)), rng.normal(0, 0.001, (100, 3))  # metres
+    factor = overlay.error_magnification([small, large], target_m=0.5)
+    p95 = float(np.percentile(np.linalg.norm(large, axis=1), 95))
+    steps = [m * 10.0 ** e for e in range(0, 6) for m in (1, 2, 5)]
+    assert factor in steps and p95 * factor <= 0.5 < p95 * steps[steps.index(factor) + 1]
+    assert overlay.error_magnification([np.full((5, 3), 2.0)]) == 1.0  # never shrinks
+    assert overlay.error_magnification([np.zeros((5, 3))]) == 1.0
+
+
+def _arrows(contents, entity: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Frames, origins and vectors (per frame, one arrow each) and the static labels of an
+    Arrows3D entity of an overlay, read back through Rerun's chunk API."""
+    frames, origins, vectors, labels = [], [], [], []
+    for chunk in contents.store.stream().filter(content=f"/{entity}"):
+        if chunk.entity_path.lstrip("/") != entity:
+            continue
+        for row in chunk.to_record_batch().to_pylist():
+            if row.get("Arrows3D:vectors") is not None and row.get(paths.TIMELINE_FRAME) is not None:
+                frames.append(row[paths.TIMELINE_FRAME])
+                origins += row["Arrows3D:origins"]
+                vectors += row["Arrows3D:vectors"]
+            if row.get("Arrows3D:labels") is not None:
+                labels += row["Arrows3D:labels"]
+    order = np.argsort(frames, kind="stable")
+    return np.array(frames)[order], np.array(origins)[order], np.array(vectors)[order], labels

@@ -60,7 +60,7 @@ def test_rrd_holds_frames_corners_errors_and_manifest(run_files):
         paths.reprojected(cam),
         paths.TRAJECTORY_TRUTH,
         paths.TRAJECTORY_CAMERA,
-        paths.ERROR_POSITION_M,
+        paths.ERROR_POSITION_MM,
         paths.ERROR_HEADING_DEG,
         paths.RUN_MANIFEST,
         paths.RUN_SUMMARY,
@@ -77,11 +77,11 @@ def test_rrd_holds_frames_corners_errors_and_manifest(run_files):
         assert d.shape == r.shape
         assert np.max(np.linalg.norm(d - r, axis=1)) < 1.0, frame
 
-    # Position errors are logged in metres, one per solved frame, and match the summary.
-    frames, pos_m = scalar_series(contents, paths.ERROR_POSITION_M)
+    # Position errors are logged in millimetres, one per solved frame, and match the summary.
+    frames, pos_mm = scalar_series(contents, paths.ERROR_POSITION_MM)
     assert outcome.summary["solved"] >= 8  # 10 frames recorded; a run that solves none fails here
     assert len(frames) == outcome.summary["solved"]
-    rmse_mm = float(np.sqrt(np.mean(pos_m**2)) * 1000)
+    rmse_mm = float(np.sqrt(np.mean(pos_mm**2)))
     assert rmse_mm == pytest.approx(outcome.summary["position_error_mm"]["rmse"], rel=1e-6)
 
     manifest = document_json(contents, paths.RUN_MANIFEST)

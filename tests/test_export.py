@@ -89,3 +89,122 @@ def test_export_refuses_bad_requests(run, tmp_path):
     assert [w.path.parent for w in written] == [tmp_path / "missing"] * 2
     with pytest.raises(ExportError, match="unknown trajectory"):
         export_run(path, "tum", tmp_path, which=("odometry",))
+
+
+# -- MCAP (Foxglove) -----------------------------------------------------------------------------
+def _read_mcap(path) -> tuple[dict, dict, list]:
+    """(topic → [(log_time, decoded protobuf)], topic → (schema name, encodings), metadata)
+    read with the mcap reader and decoded with the Foxglove protobuf schemas stored in the file."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    messages, schemas = {}, {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+            messages.setdefault(channel.topic, []).append((message.log_time, decoded))
+            schemas[channel.topic] = (schema.name, schema.encoding, channel.message_encoding)
+        metadata = list(reader.iter_metadata())
+    return messages, schemas, metadata
+
+
+def _xyz(v) -> list[float]:
+    return [v.x, v.y, v.z]
+
+
+def _rotation(q) -> np.ndarray:
+    return Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+
+
+def test_mcap_holds_the_logged_poses_as_foxglove_messages(run, tmp_path):
+    pytest.importorskip("foxglove", reason="foxglove-sdk (the export extra) is not installed")
+    path, truth, estimate = run
+    written = export_run(path, "mcap", tmp_path)
+    assert [(w.which, w.path.name, w.poses) for w in written] == [
+        ("estimate", "synthetic.poses.mcap", N - len(REJECTED)), ("truth", "synthetic.poses.mcap", N)]
+    messages, schemas, metadata = _read_mcap(written[0].path)
+    assert schemas == {
+        "/agvviz/estimate/pose": ("foxglove.PoseInFrame", "protobuf", "protobuf"),
+        "/agvviz/truth/pose": ("foxglove.PoseInFrame", "protobuf", "protobuf"),
+        "/agvviz/tf": ("foxglove.FrameTransforms", "protobuf", "protobuf"),
+    }
+    assert metadata[0].name == "agvviz" and metadata[0].metadata["run"] == "synthetic-lm"
+    transforms_by_child = {}
+    for log_time, message in messages["/agvviz/tf"]:
+        (tf,) = message.transforms
+        assert tf.parent_frame_id == "world"
+        assert tf.timestamp.seconds * 1_000_000_000 + tf.timestamp.nanos == log_time
+        transforms_by_child.setdefault(tf.child_frame_id, []).append(tf)
+    assert sorted(transforms_by_child) == ["agv_estimate", "agv_truth"]  # body frame "agv" (no manifest entry)
+    for which, poses, frames in (
+        ("truth", truth, range(N)),
+        ("estimate", estimate, [i for i in range(N) if i not in REJECTED]),
+    ):
+        got = messages[f"/agvviz/{which}/pose"]
+        want_ns = [T0_NS + i * 33_333_333 for i in frames]
+        assert [t for t, _ in got] == want_ns  # log time = the frame's recording time, exact
+        assert [m.timestamp.seconds * 1_000_000_000 + m.timestamp.nanos for _, m in got] == want_ns
+        assert {m.frame_id for _, m in got} == {"world"}
+        want = np.array([poses[i] for i in frames])
+        # Rerun stores poses as float32 (≈2e-6 m at 20 m, ≈1e-7 in R); protobuf keeps float64.
+        np.testing.assert_allclose([_xyz(m.pose.position) for _, m in got], want[:, :3, 3], atol=1e-5)
+        np.testing.assert_allclose([_rotation(m.pose.orientation) for _, m in got], want[:, :3, :3], atol=1e-6)
+        tfs = transforms_by_child[f"agv_{which}"]
+        np.testing.assert_allclose([_xyz(tf.translation) for tf in tfs], want[:, :3, 3], atol=1e-5)
+        np.testing.assert_allclose([_rotation(tf.rotation) for tf in tfs], want[:, :3, :3], atol=1e-6)
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_mcap_without_the_sdk_names_the_extra(run, tmp_path, monkeypatch):
+    path, _, _ = run
+    monkeypatch.setitem(__import__("sys").modules, "foxglove", None)  # `import foxglove` fails
+    with pytest.raises(ExportError, match=r"pip install 'agvviz\[export\]'"):
+        export_run(path, "mcap", tmp_path)
+    assert not list(tmp_path.iterdir())
+
+
+# -- TUM checked against evo ---------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def qr_floor_run(tmp_path_factory):
+    from agvviz import scenario_registry
+    from agvviz.runner import run_recording
+    from agvviz.settings import RunSettings
+
+    tmp = tmp_path_factory.mktemp("evo")
+    recording = tmp / "qr.mcap"
+    scenario_registry.record("qr_floor", recording, seed=3, overrides=["duration_s=3", "rate_hz=5", "track_length_m=1"])
+    return run_recording(recording, RunSettings(solver="ippe"), tmp / "qr-ippe.rrd").out_path
+
+
+@pytest.mark.parametrize("align", ["none", "se3"])
+def test_tum_export_gives_evo_ape_equal_to_agvviz(qr_floor_run, tmp_path, align):
+    """``evo_ape tum truth.tum estimate.tum [--align]`` through evo's library equals agvviz's own
+    APE (diff/compare's ape_trans_rmse_mm) of the same run."""
+    pytest.importorskip("evo", reason="evo (the test extra) is not installed")
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    from agvviz.compare import load_run
+    from agvviz.evaluation.comparison import run_metrics
+
+    written = {w.which: w.path for w in export_run(qr_floor_run, "tum", tmp_path)}
+    traj_ref = file_interface.read_tum_trajectory_file(str(written["truth"]))
+    traj_est = file_interface.read_tum_trajectory_file(str(written["estimate"]))
+    # Stamps are the same frames' times: associate exactly (max_diff far below the 0.1 s frame gap).
+    traj_ref, traj_est = sync.associate_trajectories(traj_ref, traj_est, max_diff=1e-4)
+    if align == "se3":
+        traj_est.align(traj_ref, correct_scale=False)  # Umeyama, as evo_ape --align
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((traj_ref, traj_est))
+    evo_rmse_mm = ape.get_statistic(metrics.StatisticsType.rmse) * 1000.0
+
+    run = load_run(qr_floor_run)
+    ours = run_metrics(run, align=align)
+    assert traj_est.num_poses == ours["solved"] > 5
+    # The TUM text writes positions with 9 significant digits: each coordinate of either pose is
+    # off by at most 5e-9 of its magnitude, so each frame's error (and hence the RMSE, by the
+    # triangle inequality of the RMS norm) by at most 2·√3·5e-9·max|coordinate|; the alignment of
+    # se3 moves it by the same order. Twice that bound is allowed.
+    max_coord_m = max(np.abs(traj_ref.positions_xyz).max(), np.abs(traj_est.positions_xyz).max())
+    tolerance_mm = 2 * (2 * np.sqrt(3) * 5e-9 * max_coord_m) * 1000.0
+    assert abs(evo_rmse_mm - ours["ape_trans_rmse_mm"]) <= tolerance_mm, (evo_rmse_mm, ours["ape_trans_rmse_mm"])

@@ -172,6 +172,27 @@ def test_export_creates_a_missing_out_dir(runs, tmp_path):
     assert sorted(p.name for p in out_dir.iterdir()) == ["a.estimate.tum", "a.truth.tum"]
 
 
+def test_export_mcap_creates_its_folder(runs, tmp_path):
+    pytest.importorskip("foxglove", reason="foxglove-sdk (the export extra) is not installed")
+    _, a, _ = runs
+    out_dir = tmp_path / "new" / "deeper"
+    result = _invoke("export", a, "--format", "mcap", "--out-dir", out_dir)
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out_dir.iterdir()) == ["a.poses.mcap"]
+    assert f"estimate: 2 poses → {out_dir / 'a.poses.mcap'}" in result.output
+
+
+def test_export_error_is_one_line_and_writes_nothing(runs, tmp_path):
+    """An output that cannot be written is found before any is: one error line, exit 3, and
+    not the estimate written while the truth fails."""
+    _, a, _ = runs
+    (tmp_path / "a.truth.tum").mkdir()
+    result = _invoke("export", a, "--format", "tum", "--out-dir", tmp_path)
+    assert result.exit_code == 3, result.output
+    assert _one_error_line(result).startswith(f"error: cannot write {tmp_path / 'a.truth.tum'}: it is an existing folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.truth.tum"]
+
+
 def test_read_only_folder_is_one_line_exit_3(runs, read_only):
     recording, a, b = runs
     for args in (("diff", a, b, "--out", read_only / "x.rrd"),

@@ -157,3 +157,36 @@ def test_bounds_are_shown_in_listings_and_help():
     help_text = runner.invoke(app, ["run", "--help"], terminal_width=400)
     assert help_text.exit_code == 0, help_text.output
     assert "1..1000" in help_text.output  # lm_max_iterations
+
+
+# -- settings that do not apply (issue 13) ------------------------------------------------------
+def test_settings_without_their_data_do_not_apply():
+    from agvviz.settings import inapplicable, without
+
+    s = apply_overrides(RunSettings(), ["fusion=kalman", "kalman_gate_chi2=4", "uwb=centroid", "correction=cnoem",
+                                        "cycle_distance_m=2", "camera_select=combine", "refine=subpix"])
+    # No UWB, no odometry, one camera (qr_floor): all but refine are ignored, in field order.
+    ignored = inapplicable(s, has_uwb=False, has_odometry=False, n_cameras=1)
+    assert list(ignored) == ["camera_select", "uwb", "fusion", "kalman_gate_chi2", "correction", "cycle_distance_m"]
+    assert ignored["fusion"] == "the recording has no UWB ranges (no uwb.range topic)"
+    assert "no odometry" in ignored["correction"] and "1 camera image topic;" in ignored["camera_select"]
+    assert without(s, ignored) == RunSettings(refine="subpix")
+    assert without(s, ignored).label() == "lm-refine=subpix"
+    # With every kind of data, everything applies.
+    assert inapplicable(s, has_uwb=True, has_odometry=True, n_cameras=4) == {}
+
+
+def test_settings_switched_off_by_other_settings_do_not_apply():
+    from agvviz.settings import inapplicable
+
+    everything = {"has_uwb": True, "has_odometry": True, "n_cameras": 4}
+    s = apply_overrides(RunSettings(), ["kalman_gate_chi2=4", "camera_sigma_m=0.01", "cycle_distance_m=2"])
+    assert inapplicable(s, **everything) == {
+        "kalman_gate_chi2": "fusion is mean_compensation, not kalman",
+        "camera_sigma_m": "fusion is mean_compensation, not kalman",
+        "cycle_distance_m": "correction is none",
+    }
+    bundle = apply_overrides(RunSettings(), ["correction=bundle", "cnoem_update=paper"])
+    assert inapplicable(bundle, **everything) == {"cnoem_update": "correction is bundle, not cnoem"}
+    # Defaults are never reported, even where they would not apply.
+    assert inapplicable(RunSettings(), has_uwb=False, has_odometry=False, n_cameras=0) == {}

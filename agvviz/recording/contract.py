@@ -150,7 +150,19 @@ def frame_problem(
 
 
 def _span(first_ns: int, last_ns: int) -> str:
-    return f"{first_ns / 1e9:.3f}..{last_ns / 1e9:.3f} s"
+    """``start 2023-11-14 22:13:20.000 UTC, duration 1 min 12.4 s`` (a stamp before 2001 is
+    taken as time since the start of a simulation or bag clock: ``start 0.000 s``)."""
+    seconds = (last_ns - first_ns) / 1e9
+    minutes, rest_s = divmod(abs(seconds), 60.0)
+    hours, minutes = divmod(int(minutes), 60)
+    sign = "-" if seconds < 0 else ""
+    if hours:
+        duration = f"{sign}{hours} h {minutes:02d} min {rest_s:04.1f} s"
+    elif minutes:
+        duration = f"{sign}{minutes} min {rest_s:.1f} s"
+    else:
+        duration = f"{seconds:.3f} s"
+    return f"start {_format_ns(first_ns)}, duration {duration}"
 
 
 class TimeChecks:
@@ -567,8 +579,21 @@ def _channel_violations(topic: str, schema_name: str, encoding: str) -> list[str
     return []
 
 
-def _format_ns(t_ns: int | None) -> str:
-    return "-" if t_ns is None else f"{t_ns / 1e9:.6f} s"
+def _format_ns(t_ns: int | None, start_ns: int | None = None) -> str:
+    """A time stamp for people: ``+72.400 s`` after ``start_ns`` when given; else a UTC date and
+    time (``2023-11-14 22:13:20.000 UTC``) for stamps from 2001 on, seconds (``3.900 s``) for
+    earlier ones (a simulation or bag clock from zero); ``-`` for none."""
+    import datetime
+
+    if t_ns is None:
+        return "-"
+    if start_ns is not None:
+        return f"{'+' if t_ns >= start_ns else '-'}{abs(t_ns - start_ns) / 1e9:.3f} s"
+    if t_ns < 978_307_200 * 10**9:  # 2001-01-01 UTC
+        return f"{t_ns / 1e9:.3f} s"
+    seconds, nanos = divmod(t_ns, 10**9)
+    when = datetime.datetime.fromtimestamp(seconds, tz=datetime.timezone.utc)
+    return f"{when:%Y-%m-%d %H:%M:%S}.{nanos // 10**6:03d} UTC"
 
 
 def format_report(report: InspectReport) -> str:
@@ -578,11 +603,7 @@ def format_report(report: InspectReport) -> str:
     )]
     if report.bag_message_count is not None:
         lines.append(f"metadata.yaml: {report.bag_message_count} messages in {len(report.bag_topic_counts)} topic(s)")
-    span = (
-        f"{_format_ns(report.start_ns)} .. {_format_ns(report.end_ns)}"
-        if report.start_ns is not None
-        else "no messages"
-    )
+    span = _span(report.start_ns, report.end_ns) if report.start_ns is not None else "no messages"
     lines.append(f"time span: {span}")
     lines.append("")
     header = ("topic", "schema", "count", "first", "last")
@@ -591,8 +612,8 @@ def format_report(report: InspectReport) -> str:
             s.topic,
             f"{s.schema_name or '(none)'} [{s.encoding}]",
             str(s.count),
-            _format_ns(s.first_ns),
-            _format_ns(s.last_ns),
+            _format_ns(s.first_ns, report.start_ns),
+            _format_ns(s.last_ns, report.start_ns),
         )
         for s in report.topics
     ]

@@ -16,6 +16,9 @@ import sys
 
 #: Name of the MCAP metadata record describing the scenario that produced a recording.
 SCENARIO_METADATA = "agvviz.scenario"
+#: Name of the MCAP metadata record holding a simulated recording's error-source draws
+#: (one value, ``draws``: JSON, see :mod:`agvviz.sim.realism`).
+REALISM_METADATA = "agvviz.realism"
 
 _DRAFT = "https://json-schema.org/draft/2020-12/schema"
 

@@ -295,6 +295,18 @@ class RecordingWriter:
         channel_id = self._channel(topic, schema_name, "json", schema_id)
         self._add(topic, channel_id, text.encode(), log_time_ns)
 
+    def write_metadata(self, name: str, values: dict[str, str]) -> None:
+        """An MCAP metadata record ``name`` (string keys and values), e.g.
+        :data:`agvviz.recording.schemas.REALISM_METADATA`; not ``agvviz.scenario`` (written
+        by the constructor)."""
+        if self._writer is None:
+            raise RuntimeError("RecordingWriter must be used as a context manager (with ... as w)")
+        if not name or name == SCENARIO_METADATA:
+            raise ValueError(f"metadata name {name!r} is empty or reserved")
+        if not all(isinstance(k, str) and isinstance(v, str) for k, v in values.items()):
+            raise ValueError(f"metadata {name}: keys and values must be strings")
+        self._writer.add_metadata(name, dict(values))
+
     def write_marker_map(self, marker_map: dict, log_time_ns: int) -> None:
         """``/markers/map`` (agvviz.MarkerMap, see :data:`agvviz.recording.schemas.MARKER_MAP`)."""
         self.write_json(topics.MARKER_MAP_TOPIC, "agvviz.MarkerMap", marker_map, log_time_ns)

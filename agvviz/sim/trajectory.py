@@ -133,6 +133,13 @@ def sample_track(
     return Trajectory(log_time_ns=log_time_ns, T_world_agv=T, heading_rad=heading, curvature_per_m=curvature)
 
 
+def track_pose(track: RoundedRectangleTrack, speed_mps: float, t_s: float) -> np.ndarray:
+    """Flat ``T_world_agv`` at ``t_s`` seconds after the start (as :func:`sample_track`, at any
+    time)."""
+    xy, direction, _ = track.at(np.array([speed_mps * t_s]))
+    return se3.make(euler.Rz(float(direction[0]) - np.pi / 2.0), [xy[0, 0], xy[0, 1], 0.0])
+
+
 def dead_reckoning(
     trajectory: Trajectory,
     rng: np.random.Generator,
@@ -140,13 +147,16 @@ def dead_reckoning(
     heading_bias_rad_per_s: float,
     step_noise_m: float,
     heading_noise_rad: float,
+    slip_fraction: np.ndarray | None = None,
 ) -> np.ndarray:
     """Odometry poses ``T_odom_agv`` (N, 4, 4) integrated from the true motion with drift.
 
     Each true body-frame step (Δx, Δy, Δψ) is measured as ``(1 + scale_error)·(Δx, Δy) +
     N(0, step_noise_m²)`` per axis and ``Δψ + heading_bias_rad_per_s·Δt + N(0,
     heading_noise_rad²)``, then composed. The odom frame equals the world frame at the first
-    sample. Draws 3 normals per step from ``rng``.
+    sample. Draws 3 normals per step from ``rng``. ``slip_fraction`` (N − 1,), when given,
+    adds wheel slip: step k's distance factor becomes ``(1 + scale_error) + slip_fraction[k]``
+    (:mod:`agvviz.sim.realism`); it draws nothing from ``rng``.
     """
     T_true = trajectory.T_world_agv
     n = T_true.shape[0]
@@ -156,7 +166,10 @@ def dead_reckoning(
     T_odom_agv[0] = T_true[0]
     for k in range(1, n):
         step = se3.inverse(T_true[k - 1]) @ T_true[k]
-        dxy = (1.0 + scale_error) * step[:2, 3] + step_noise_m * noise[k - 1, :2]
+        factor = 1.0 + scale_error
+        if slip_fraction is not None:
+            factor += float(slip_fraction[k - 1])
+        dxy = factor * step[:2, 3] + step_noise_m * noise[k - 1, :2]
         dpsi = (
             np.arctan2(step[1, 0], step[0, 0])
             + heading_bias_rad_per_s * dt_s[k - 1]

@@ -10,21 +10,30 @@ frame index (the callers map the other runs' frames onto it). Entity tree::
     world/trajectory/<key>                  LineStrips3D, whole estimated trajectory of a run
     world/agv/truth                         Transform3D per frame + axes + body
     world/agv/<key>                         Transform3D per solved frame of a run + axes
+    world/error/<key>                       Arrows3D per frame: the run's position error
+                                            (estimate − truth) × magnification, drawn from
+                                            the truth position (runs given with their truth)
+    world/error_path/<key>                  LineStrips3D (static): truth + that error, the
+                                            run's path with its errors magnified
     image/<cam>                             EncodedImage of the first run (copied, not re-encoded)
     image/<cam>/detected                    the first run's detected corners (copied)
     image/<cam>/<key>                       each run's reprojected corners (Points2D)
     errors/<quantity>/<key>                 Scalars per frame: position_mm, heading_deg, ...
     delta/<quantity>                        Scalars per frame, B − A of |error| (diff only)
+    delta/<quantity>/zero                   Scalars: the zero line (no difference) across it
     compare/report                          TextDocument: the comparison table (static)
 
-Written like a run: explicit recording stream with a pinned id, no wall-clock timelines,
-size-only chunking, streamed to a temporary file beside the target and renamed into place.
+Timelines: ``frame`` (what the viewer opens on), ``elapsed`` (seconds since the source run's
+recording start, or since the first frame drawn when that is unknown) and ``time`` (the
+absolute stamps, as in the runs). Written like a run: explicit recording stream with a pinned
+id, size-only chunking, streamed to a temporary file beside the target and renamed into place.
 """
 
 from __future__ import annotations
 
 from agvviz.errors import InputError
 
+import math
 import os
 import uuid
 from dataclasses import dataclass, field
@@ -47,6 +56,8 @@ from agvviz.viz.run_logger import (
 IMAGE_ROOT = "image"
 ERRORS_ROOT = "errors"
 DELTA_ROOT = "delta"
+ERROR_VECTOR_ROOT = "world/error"
+ERROR_PATH_ROOT = "world/error_path"
 REPORT = "compare/report"
 TRUTH_POSE = "world/agv/truth"
 TRUTH_TRAJECTORY = "world/trajectory/truth"
@@ -59,14 +70,21 @@ ERROR_LABELS = {
     "roll_deg": "roll error [deg]",
     "reproj_px": "reprojection RMS [px]",
 }
-#: Run colours in order, with their names for view titles.
+#: Run colours in order, with their names for view titles. The first two (a diff's A and B)
+#: stand out from the truth green, the blue markers and the white codes of the images.
 PALETTE = (
-    (255, 140, 0), (30, 144, 255), (255, 0, 200), (240, 220, 60),
+    (255, 140, 0), (255, 0, 200), (30, 144, 255), (240, 220, 60),
     (170, 110, 255), (0, 200, 180), (230, 60, 60), (160, 230, 120),
 )
-PALETTE_NAMES = ("orange", "blue", "magenta", "yellow", "violet", "teal", "red", "light green")
+PALETTE_NAMES = ("orange", "magenta", "blue", "yellow", "violet", "teal", "red", "light green")
+#: The per-frame Δ series and its zero line.
+COLOR_DELTA = (235, 235, 235)
+COLOR_ZERO = (130, 130, 130)
 AXIS_LENGTH_M = 0.4
 TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
+#: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about
+#: the AGV body's size, visible in a view of the whole trajectory.
+ERROR_VECTOR_TARGET_M = 0.5
 
 
 class OverlayError(InputError):
@@ -91,6 +109,11 @@ class OverlayRun:
         Key of :data:`ERROR_LABELS` → (N,) float, NaN where unknown.
     reprojected : dict
         Camera name → {overlay frame → (K, 2) reprojected corners in image pixels}.
+    T_truth : (N, 4, 4) float, optional
+        The run's own truth ``T_world_agv`` on its frames (NaN where unknown); given, the 3D
+        view draws the run's position error on each frame as a magnified arrow.
+    short_label : str, optional
+        Name on the run's error arrows (e.g. ``A``); ``label`` when not given.
     """
 
     key: str
@@ -100,6 +123,8 @@ class OverlayRun:
     T_est: np.ndarray
     errors: dict[str, np.ndarray] = field(default_factory=dict)
     reprojected: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    T_truth: np.ndarray | None = None
+    short_label: str | None = None
 
 
 @dataclass
@@ -115,36 +140,48 @@ def color_of(index: int) -> tuple[int, int, int]:
     return PALETTE[index % len(PALETTE)]
 
 
-def _indexes(frames: np.ndarray, time_ns: np.ndarray) -> list[rr.TimeColumn]:
-    return [
-        rr.TimeColumn(paths.TIMELINE_FRAME, sequence=np.asarray(frames, dtype=np.int64)),
-        rr.TimeColumn(paths.TIMELINE_TIME, timestamp=np.asarray(time_ns, dtype=np.int64).astype("datetime64[ns]")),
-    ]
+def color_name(index: int) -> str:
+    return PALETTE_NAMES[index % len(PALETTE_NAMES)]
 
 
-def _send_transforms(rec: rr.RecordingStream, entity: str, frames, time_ns, T: np.ndarray) -> None:
+@dataclass(frozen=True)
+class _Clock:
+    """The overlay's timelines: ``frame``, ``time`` and ``elapsed`` (since ``origin_ns``)."""
+
+    origin_ns: int
+
+    def indexes(self, frames: np.ndarray, time_ns: np.ndarray) -> list[rr.TimeColumn]:
+        time_ns = np.asarray(time_ns, dtype=np.int64)
+        return [
+            rr.TimeColumn(paths.TIMELINE_FRAME, sequence=np.asarray(frames, dtype=np.int64)),
+            rr.TimeColumn(paths.TIMELINE_TIME, timestamp=time_ns.astype("datetime64[ns]")),
+            rr.TimeColumn(paths.TIMELINE_ELAPSED, duration=(time_ns - self.origin_ns).astype("timedelta64[ns]")),
+        ]
+
+
+def _send_transforms(rec: rr.RecordingStream, clock: _Clock, entity: str, frames, time_ns, T: np.ndarray) -> None:
     if len(T) == 0:
         return
     rec.send_columns(
         entity,
-        indexes=_indexes(frames, time_ns),
+        indexes=clock.indexes(frames, time_ns),
         columns=rr.Transform3D.columns(translation=T[:, :3, 3], mat3x3=T[:, :3, :3]),
     )
 
 
-def _send_scalars(rec: rr.RecordingStream, entity: str, frames, time_ns, values: np.ndarray) -> None:
+def _send_scalars(rec: rr.RecordingStream, clock: _Clock, entity: str, frames, time_ns, values: np.ndarray) -> None:
     ok = np.isfinite(values)
     if not np.any(ok):
         return
     rec.send_columns(
         entity,
-        indexes=_indexes(np.asarray(frames)[ok], np.asarray(time_ns)[ok]),
+        indexes=clock.indexes(np.asarray(frames)[ok], np.asarray(time_ns)[ok]),
         columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=float)[ok]),
     )
 
 
 def _send_corners(
-    rec: rr.RecordingStream, entity: str, frames, time_ns, corners: dict[int, np.ndarray], color
+    rec: rr.RecordingStream, clock: _Clock, entity: str, frames, time_ns, corners: dict[int, np.ndarray], color
 ) -> None:
     """Reprojected corners on every frame of the run (an empty batch where there are none)."""
     per_frame = [np.asarray(corners.get(int(f), np.zeros((0, 2))), dtype=float).reshape(-1, 2) for f in frames]
@@ -153,10 +190,85 @@ def _send_corners(
     positions = np.concatenate(per_frame)
     rec.send_columns(
         entity,
-        indexes=_indexes(frames, time_ns),
+        indexes=clock.indexes(frames, time_ns),
         columns=rr.Points2D.columns(positions=positions).partition([len(p) for p in per_frame]),
     )
     rec.log(entity, rr.Points2D.from_fields(colors=color, radii=REPROJECTED_RADIUS, draw_order=11.0), static=True)
+
+
+def position_errors_m(run: OverlayRun) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``run`` with both an estimate and a truth, and the position error vectors
+    ``p_est − p_truth`` [m] in world coordinates on them: (rows (M,), (M, 3)). Empty without
+    ``run.T_truth``."""
+    if run.T_truth is None:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    n = len(run.frames)
+    known = np.all(np.isfinite(run.T_est.reshape(n, 16)), axis=1)
+    known &= np.all(np.isfinite(run.T_truth.reshape(n, 16)), axis=1)
+    rows = np.flatnonzero(known)
+    return rows, run.T_est[rows, :3, 3] - run.T_truth[rows, :3, 3]
+
+
+def error_magnification(error_vectors_m: list[np.ndarray], target_m: float = ERROR_VECTOR_TARGET_M) -> float:
+    """The factor the 3D view magnifies position errors by: the largest 1-2-5 step (1, 2, 5,
+    10, 20, ...) that keeps the larger run's 95th-percentile error at most ``target_m`` long;
+    never below 1 (errors are never shrunk). One factor for all runs, so lengths compare."""
+    lengths = [np.linalg.norm(v, axis=1) for v in error_vectors_m if len(v)]
+    p95_m = max((float(np.percentile(length, 95)) for length in lengths), default=0.0)
+    if not p95_m > 0.0 or target_m / p95_m <= 1.0:
+        return 1.0
+    ratio = target_m / p95_m
+    decade = 10.0 ** math.floor(math.log10(ratio))
+    step = max(m for m in (1.0, 2.0, 5.0) if m * decade <= ratio * (1.0 + 1e-12))
+    return step * decade
+
+
+def format_magnification(factor: float) -> str:
+    """``200.0`` → ``"×200"``."""
+    return f"×{factor:g}"
+
+
+def _send_error_vectors(
+    rec: rr.RecordingStream, clock: _Clock, run: OverlayRun, index: int, magnification: float
+) -> None:
+    """The run's position error on each frame it and its truth know, (estimate − truth) ×
+    ``magnification``, as an arrow from the truth position."""
+    rows, errors_m = position_errors_m(run)
+    if len(rows) == 0:
+        return
+    entity = f"{ERROR_VECTOR_ROOT}/{run.key}"
+    rec.send_columns(
+        entity,
+        indexes=clock.indexes(run.frames[rows], run.time_ns[rows]),
+        columns=rr.Arrows3D.columns(origins=run.T_truth[rows, :3, 3], vectors=errors_m * magnification),
+    )
+    name = f"{run.short_label or run.label} error {format_magnification(magnification)}"
+    rec.log(
+        entity,
+        rr.Arrows3D.from_fields(
+            colors=color_of(index), radii=rr.Radius.ui_points(4.0), labels=[name], show_labels=False
+        ),
+        static=True,
+    )
+    # The name at the arrow's tip: the runs' arrows share their origin, their tips differ.
+    rec.send_columns(
+        f"{entity}/tip",
+        indexes=clock.indexes(run.frames[rows], run.time_ns[rows]),
+        columns=rr.Points3D.columns(positions=run.T_truth[rows, :3, 3] + errors_m * magnification),
+    )
+    rec.log(
+        f"{entity}/tip",
+        rr.Points3D.from_fields(
+            colors=color_of(index), radii=rr.Radius.ui_points(1.0), labels=[name], show_labels=True
+        ),
+        static=True,
+    )
+    rec.log(
+        f"{ERROR_PATH_ROOT}/{run.key}",
+        rr.LineStrips3D([run.T_truth[rows, :3, 3] + errors_m * magnification], colors=color_of(index),
+                        radii=rr.Radius.ui_points(1.0), labels=[name], show_labels=False),
+        static=True,
+    )
 
 
 def _check(runs: list[OverlayRun]) -> None:
@@ -170,11 +282,24 @@ def _check(runs: list[OverlayRun]) -> None:
             raise OverlayError(f"run key {run.key!r} must be letters, digits, '_' or '-'")
         n = len(run.frames)
         lengths = [len(run.time_ns), len(run.T_est)] + [len(v) for v in run.errors.values()]
+        lengths += [len(run.T_truth)] if run.T_truth is not None else []
         if any(length != n for length in lengths):
             raise OverlayError(f"run {run.key}: arrays must all have {n} entries (one per frame)")
         unknown = set(run.errors) - set(ERROR_LABELS)
         if unknown:
             raise OverlayError(f"run {run.key}: unknown error series {sorted(unknown)}; known: {sorted(ERROR_LABELS)}")
+
+
+def delta_view_name(key: str) -> str:
+    """Title of a Δ plot, with its sign convention: ``Δ |position error| = B − A [mm];
+    positive = B worse``."""
+    quantity, unit = ERROR_LABELS[key].split(" [")
+    return f"Δ |{quantity}| = B − A [{unit}: positive = B worse"
+
+
+#: Eye of the close-up, in the truth AGV's body frame (the view's origin, so it moves and turns
+#: with the AGV): about 2 m away, behind-left and above.
+FOLLOW_EYE_POSITION_M = (-0.9, -1.3, 1.1)
 
 
 def _eye(truth: OverlayTruth | None) -> rrb.EyeControls3D | None:
@@ -197,55 +322,68 @@ def overlay_blueprint(
     cam_names: list[str],
     deltas: list[str],
     truth: OverlayTruth | None = None,
+    magnification: float | None = None,
 ) -> rrb.Blueprint:
-    """Default layout: 3D trajectories and the image with every run's corners on top; error
-    plots of all runs (and the per-frame differences) with the comparison report below.
-    Opens paused, on the ``frame`` timeline."""
+    """Default layout: 3D trajectories (with each run's magnified error arrows when
+    ``magnification`` is given, and a close-up that follows the truth AGV) and the image with
+    every run's corners on top; error plots of all runs (and the per-frame differences, with a
+    zero line) with the comparison report below. Opens paused, on the ``frame`` timeline."""
     if len(runs) <= 2:
-        colors = ", ".join(f"{r.label} {PALETTE_NAMES[i % len(PALETTE_NAMES)]}" for i, r in enumerate(runs))
+        colors = ", ".join(f"{r.label} {color_name(i)}" for i, r in enumerate(runs))
     else:
         colors = "each run in its colour of the plot legends"
-    world = rrb.Spatial3DView(origin="world", name=f"world: truth green, {colors}", eye_controls=_eye(truth))
+    views = [rrb.Spatial3DView(origin="world", name=f"world: truth green, {colors}", eye_controls=_eye(truth))]
+    if magnification is not None:
+        factor = format_magnification(magnification)
+        arrows = ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
+        views = [
+            rrb.Spatial3DView(
+                origin="world", name=f"whole run, errors {factor}: truth green, {arrows}", eye_controls=_eye(truth),
+                # The runs' own paths lie on the truth; their paths with errors magnified show the difference.
+                contents=[
+                    "+ $origin/**", *[f"- /world/trajectory/{r.key}" for r in runs], f"- /{ERROR_VECTOR_ROOT}/**"
+                ],
+            ),
+            # Origin on the truth AGV: the view follows it (the world moves around it).
+            rrb.Spatial3DView(
+                origin=TRUTH_POSE, name=f"at the AGV: error {factor} = (estimate − truth) {factor}, {arrows}",
+                eye_controls=rrb.EyeControls3D(
+                    position=FOLLOW_EYE_POSITION_M, look_target=(0.0, 0.0, 0.0), eye_up=(0.0, 0.0, 1.0)
+                ),
+                contents=[f"+ /{paths.WORLD}/**", *[f"- /world/agv/{r.key}/marker" for r in runs]],
+            ),
+        ]
     if cam_names:
         images = [
             rrb.Spatial2DView(
                 origin=f"{IMAGE_ROOT}/{cam}",
-                name=f"camera {cam} (first run's image): detected cyan; reprojected {colors}",
+                name=f"camera {cam}: detected cyan, reprojected " + (
+                    ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
+                    if len(runs) <= 2 else "in each run's colour"),
             )
             for cam in cam_names
         ]
-        image_panel = images[0] if len(images) == 1 else rrb.Tabs(*images)
-        top = rrb.Horizontal(world, image_panel, column_shares=[0.5, 0.5])
-    else:
-        top = world
+        views.append(images[0] if len(images) == 1 else rrb.Tabs(*images))
+    shares = {1: [1.0], 2: [0.5, 0.5], 3: [0.4, 0.3, 0.3]}[len(views)]
+    top = views[0] if len(views) == 1 else rrb.Horizontal(*views, column_shares=shares)
     legend = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.RightTop)
-    plots = [
-        rrb.TimeSeriesView(origin=f"{ERRORS_ROOT}/position_mm", name=ERROR_LABELS["position_mm"], plot_legend=legend),
-        rrb.Tabs(
-            *[
-                rrb.TimeSeriesView(origin=f"{ERRORS_ROOT}/{key}", name=ERROR_LABELS[key], plot_legend=legend)
-                for key in ("heading_deg", "pitch_deg", "roll_deg", "reproj_px")
-            ]
-        ),
+    error_views = [
+        rrb.TimeSeriesView(origin=f"{ERRORS_ROOT}/{key}", name=label, plot_legend=legend)
+        for key, label in ERROR_LABELS.items()
     ]
-    if deltas:
-        plots.append(
-            rrb.Tabs(
-                *[
-                    rrb.TimeSeriesView(
-                        origin=f"{DELTA_ROOT}/{key}",
-                        name=f"Δ |{ERROR_LABELS[key].split(' [')[0]}| B − A [{key.rsplit('_', 1)[1]}]",
-                        plot_legend=rrb.PlotLegend(visible=False),
-                    )
-                    for key in deltas
-                ]
-            )
-        )
-    bottom = rrb.Horizontal(
-        *plots,
-        rrb.TextDocumentView(origin=REPORT, name="comparison"),
-        column_shares=[0.22] * len(plots) + [1.0 - 0.22 * len(plots)],
-    )
+    if deltas:  # a diff: each run's errors, and their difference B − A
+        plots = [
+            rrb.Tabs(*error_views),
+            rrb.Tabs(*[
+                rrb.TimeSeriesView(origin=f"{DELTA_ROOT}/{key}", name=delta_view_name(key), plot_legend=legend)
+                for key in deltas
+            ]),
+        ]
+        shares = [0.3, 0.3, 0.4]
+    else:
+        plots = [error_views[0], rrb.Tabs(*error_views[1:])]
+        shares = [0.22, 0.22, 0.56]
+    bottom = rrb.Horizontal(*plots, rrb.TextDocumentView(origin=REPORT, name="comparison"), column_shares=shares)
     return rrb.Blueprint(
         rrb.Vertical(top, bottom, row_shares=[0.58, 0.42]),
         rrb.BlueprintPanel(state="collapsed"),
@@ -299,33 +437,71 @@ def write_overlay(
         raise OverlayError(f"the overlay must be a .rrd file, got {out_path}")
     recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-overlay:{recording_name}"))
     sources = tuple(inputs) + ((source,) if source is not None else ())
+    # Error arrows only when some run has frames with both an estimate and a truth.
+    error_vectors_m = [position_errors_m(run)[1] for run in runs]
+    magnification = error_magnification(error_vectors_m) if any(len(v) for v in error_vectors_m) else None
+    store = read_rrd(source).store if source is not None else None
+    clock = _Clock(_elapsed_origin_ns(store, runs, truth))
     with AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=sources) as rrd:
         rec = rrd.rec
-        _log_static(rec, runs, truth, report_markdown)
-        if source is not None:
-            _copy_from_source(rec, Path(source), cam_names)
+        _log_static(rec, runs, truth, report_markdown, list(deltas))
+        if store is not None:
+            _copy_from_source(rec, store, cam_names)
             rrd.check()
         if truth is not None:
-            _send_transforms(rec, TRUTH_POSE, truth.frames, truth.time_ns, truth.T_world_agv)
+            _send_transforms(rec, clock, TRUTH_POSE, truth.frames, truth.time_ns, truth.T_world_agv)
         for index, run in enumerate(runs):
             solved = np.all(np.isfinite(run.T_est.reshape(len(run.T_est), 16)), axis=1)
-            _send_transforms(rec, f"world/agv/{run.key}", run.frames[solved], run.time_ns[solved], run.T_est[solved])
+            _send_transforms(
+                rec, clock, f"world/agv/{run.key}", run.frames[solved], run.time_ns[solved], run.T_est[solved]
+            )
+            if magnification is not None:
+                _send_error_vectors(rec, clock, run, index, magnification)
             for key, values in run.errors.items():
-                _send_scalars(rec, f"{ERRORS_ROOT}/{key}/{run.key}", run.frames, run.time_ns, values)
-            if source is not None:
+                _send_scalars(rec, clock, f"{ERRORS_ROOT}/{key}/{run.key}", run.frames, run.time_ns, values)
+            if store is not None:
                 for cam in cam_names:
                     _send_corners(
-                        rec, f"{IMAGE_ROOT}/{cam}/{run.key}", run.frames, run.time_ns,
+                        rec, clock, f"{IMAGE_ROOT}/{cam}/{run.key}", run.frames, run.time_ns,
                         run.reprojected.get(cam, {}), color_of(index),
                     )
         for key, (frames, time_ns, values) in deltas.items():
-            _send_scalars(rec, f"{DELTA_ROOT}/{key}", frames, time_ns, values)
-        rrd.commit(overlay_blueprint(runs, cam_names if source is not None else [], list(deltas), truth))
+            _send_scalars(rec, clock, f"{DELTA_ROOT}/{key}", frames, time_ns, values)
+            _send_zero_line(rec, clock, key, frames, time_ns)
+        rrd.commit(overlay_blueprint(runs, cam_names if store is not None else [], list(deltas), truth, magnification))
     return out_path
 
 
+def _send_zero_line(rec: rr.RecordingStream, clock: _Clock, key: str, frames, time_ns) -> None:
+    """The zero line of a Δ plot: 0 on its first and last frame (a straight line between)."""
+    if len(frames) == 0:
+        return
+    ends = [0, len(frames) - 1]
+    _send_scalars(rec, clock, f"{DELTA_ROOT}/{key}/zero", np.asarray(frames)[ends], np.asarray(time_ns)[ends],
+                  np.zeros(2))
+
+
+def _elapsed_origin_ns(store, runs: list[OverlayRun], truth: OverlayTruth | None) -> int:
+    """Origin of the ``elapsed`` timeline: the source run's own (``time − elapsed`` of its
+    first per-frame row, so copied images and drawn series agree), else the first stamp drawn."""
+    if store is not None:
+        for chunk in store.stream().filter(is_static=False):
+            names = chunk.timeline_names
+            if paths.TIMELINE_TIME in names and paths.TIMELINE_ELAPSED in names and chunk.num_rows:
+                batch = chunk.to_record_batch()
+                time_ns = batch.column(paths.TIMELINE_TIME).cast("int64")[0].as_py()
+                elapsed_ns = batch.column(paths.TIMELINE_ELAPSED).cast("int64")[0].as_py()
+                return int(time_ns) - int(elapsed_ns)
+            break  # the run logs every per-frame row on the same timelines: one chunk tells
+    firsts = [int(np.min(run.time_ns)) for run in runs if len(run.time_ns)]
+    if truth is not None and len(truth.time_ns):
+        firsts.append(int(np.min(truth.time_ns)))
+    return min(firsts, default=0)
+
+
 def _log_static(
-    rec: rr.RecordingStream, runs: list[OverlayRun], truth: OverlayTruth | None, report_markdown: str
+    rec: rr.RecordingStream, runs: list[OverlayRun], truth: OverlayTruth | None, report_markdown: str,
+    deltas: list[str],
 ) -> None:
     rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     rec.log(REPORT, rr.TextDocument(report_markdown, media_type=rr.MediaType.MARKDOWN), static=True)
@@ -341,7 +517,7 @@ def _log_static(
         rec.log(
             f"{TRUTH_POSE}/body",
             rr.Boxes3D(half_sizes=[TRUTH_BODY_HALF_SIZES_M], centers=[(0.0, 0.0, 0.1)], colors=COLOR_TRUTH,
-                       radii=rr.Radius.ui_points(1.0)),
+                       radii=rr.Radius.ui_points(1.0), fill_mode="majorwireframe"),  # arrows show inside
             static=True,
         )
     for index, run in enumerate(runs):
@@ -367,18 +543,22 @@ def _log_static(
                 rr.SeriesLines(names=run.label, colors=color, widths=1.5),
                 static=True,
             )
-    for key, label in ERROR_LABELS.items():
+    for key in deltas:
         rec.log(
             f"{DELTA_ROOT}/{key}",
-            rr.SeriesLines(names=f"Δ {label} (B − A)", colors=(220, 220, 220), widths=1.5),
+            rr.SeriesLines(names="Δ = B − A (positive: B worse)", colors=COLOR_DELTA, widths=1.5),
+            static=True,
+        )
+        rec.log(
+            f"{DELTA_ROOT}/{key}/zero",
+            rr.SeriesLines(names="0 = no difference", colors=COLOR_ZERO, widths=1.0),
             static=True,
         )
 
 
-def _copy_from_source(rec: rr.RecordingStream, source: Path, cam_names: list[str]) -> None:
-    """Copy the marker map, each camera's images and detected corners of a run, chunk by chunk
-    (the JPEG bytes are never decoded or re-encoded)."""
-    store = read_rrd(source).store
+def _copy_from_source(rec: rr.RecordingStream, store, cam_names: list[str]) -> None:
+    """Copy the marker map, each camera's images and detected corners of a run (its store),
+    chunk by chunk (the JPEG bytes are never decoded or re-encoded)."""
     rec.send_chunks(store.stream().filter(content=[f"/{paths.MARKERS}", f"/{paths.MARKERS_FILL}"]))
     for cam in cam_names:
         rec.send_chunks(
