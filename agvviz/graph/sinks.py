@@ -19,6 +19,13 @@ from agvviz.viz.uwb_blueprint import uwb_blueprint
 from agvviz.viz.uwb_logger import FusionLogger
 
 
+#: Every this many frames the ``.rrd`` stream is flushed (waiting until Rerun has written what
+#: was logged). Without it Rerun's file sink queues data faster than it writes, and a run's
+#: peak memory grows with its length (measured: 2000 frames of images alone 274 MiB against
+#: 203 MiB for 200; flushed every 20 frames, 206 against 211).
+FLUSH_EVERY_FRAMES = 25
+
+
 class RunSinks:
     """Everything a run writes and counts, fed by :class:`agvviz.graph.ReplayGraph`.
 
@@ -86,6 +93,8 @@ class RunSinks:
 
     def _score(self, frame: FrameResult) -> None:
         self.scores.append(FrameScore.of(frame))
+        if len(self.scores) % FLUSH_EVERY_FRAMES == 0:
+            self.logger.stream.flush()  # bounded memory: see FLUSH_EVERY_FRAMES
         if frame.rejected is not None:
             self.rejections.setdefault(frame.rejected, [0, frame.reject_detail or ""])[0] += 1
         if self.progress is not None:
