@@ -7,12 +7,19 @@ centres; pixel (u, v) covers [u - 0.5, u + 0.5) × [v - 0.5, v + 0.5). Ground-tr
 Image formation, in order:
 
 1. area integration — every pixel that can see a code is supersampled with s × s samples at
-   ``u + (i + 0.5)/s - 0.5``; each sample is back-projected through the lens distortion,
+   ``u + a·((i + 0.5)/s - 0.5)`` (pixel aperture a, 1 by default); each sample is back-projected through the lens distortion,
    intersected with the floor and looked up in the code's module grid (nearest module, so module
    edges are exact); the samples are averaged;
+   (a code's ``texture_dn``, when given, replaces its module grid: a finer printed texture,
+   e.g. with the print effects of :mod:`agvviz.sim.imaging`);
 2. optical blur — Gaussian, ``blur_sigma_px``;
 3. sensor noise — Gaussian, ``noise_sigma_dn``, from the caller's ``rng``;
 4. quantisation to uint8 (JPEG encoding is :func:`encode_jpeg`).
+
+The other error sources of a real camera (defocus, motion blur, rolling shutter, vignetting,
+uneven light, shot noise, print effects) are in :mod:`agvviz.sim.imaging`, which builds on
+:func:`render_irradiance` (its ``row_range`` renders a band of rows, e.g. at one pose of a
+rolling shutter).
 
 Back-projection: the exact inverse distortion is computed once per camera at every pixel centre
 (Gauss–Newton of :meth:`PinholeCamera.undistort_normalized`), together with its Jacobian; a
@@ -57,6 +64,11 @@ class FloorCode:
         Feature points in the marker frame: TL, TR, BR, BL (+ midpoints top, right, bottom, left).
     quiet_zone_modules : int
         Width of the white margin printed around the symbol, in modules.
+    texture_dn : (m, m) float array or None
+        The label as printed (symbol + quiet zone), reflectance in digital numbers, with
+        m = (n + 2·quiet_zone_modules)·r for an integer r ≥ 1 texels per module; row 0 is the
+        printed top. None (default): the ideal print, dark modules ``FloorScene.black_dn`` and
+        light ones ``white_dn``.
     """
 
     marker_id: str
@@ -66,6 +78,7 @@ class FloorCode:
     modules: np.ndarray
     points_marker_m: np.ndarray
     quiet_zone_modules: int = 4
+    texture_dn: np.ndarray | None = None
 
     @property
     def module_m(self) -> float:
@@ -152,6 +165,17 @@ def _ray_map(camera: PinholeCamera) -> _RayMap:
     return ray_map
 
 
+def undistorted_rays(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """Undistorted normalised coordinates (x, y) of every pixel centre, two (height, width)
+    float64 arrays (read-only, cached with the camera's back-projection map)."""
+    _check_camera(camera)
+    ray_map = _ray_map(camera)
+    x, y = ray_map.x.view(), ray_map.y.view()
+    x.flags.writeable = False
+    y.flags.writeable = False
+    return x, y
+
+
 def _check_camera(camera: PinholeCamera) -> None:
     if camera.width_px <= 0 or camera.height_px <= 0:
         raise RenderError(
@@ -217,6 +241,19 @@ def _label_bbox_px(
     return v0, v1, u0, u1
 
 
+def codes_in_view(scene: FloorScene, camera: PinholeCamera, T_world_cam: np.ndarray) -> tuple[int, ...]:
+    """Indexes of the scene's codes of which some part of the label (quiet zone included) may
+    be seen by the camera at ``T_world_cam``: the codes :func:`render_irradiance` draws."""
+    _check_camera(camera)
+    ray_map = _ray_map(camera)
+    T_cam_world = se3.inverse(np.asarray(T_world_cam, dtype=float))
+    return tuple(
+        index
+        for index, code in enumerate(scene.codes)
+        if _label_bbox_px(code, camera, ray_map, T_cam_world @ code.T_world_marker) is not None
+    )
+
+
 def _subsample_offsets_px(supersample: int) -> np.ndarray:
     """Offsets (s, ) of the sub-samples from the pixel centre: (i + 0.5)/s − 0.5."""
     return (np.arange(supersample) + 0.5) / supersample - 0.5
@@ -224,7 +261,13 @@ def _subsample_offsets_px(supersample: int) -> np.ndarray:
 
 # -- rendering -------------------------------------------------------------------------------------
 def render_irradiance(
-    scene: FloorScene, camera: PinholeCamera, T_world_cam: np.ndarray, supersample: int = 4
+    scene: FloorScene,
+    camera: PinholeCamera,
+    T_world_cam: np.ndarray,
+    supersample: int = 4,
+    *,
+    row_range: tuple[int, int] | None = None,
+    pixel_aperture: float = 1.0,
 ) -> np.ndarray:
     """Area-integrated reflectance image (height, width) float32 in DN: no blur, no noise.
 
@@ -237,10 +280,27 @@ def render_irradiance(
         Camera pose in the world.
     supersample : int
         s: each pixel is integrated with s × s samples.
+    row_range : (start, stop) or None
+        Render only the rows ``start ≤ v < stop`` (the other rows hold the floor's value);
+        None renders every row. Each row's values do not depend on the range.
+    pixel_aperture : float
+        Side of the square each pixel integrates over, as a fraction of the pixel pitch
+        (0 < a ≤ 1): 1 is the whole pixel; a small value point-samples the pixel centre, as a
+        sensor read out in a decimation (line-skipping) mode or an image downscaled by
+        dropping pixels does — edges then alias.
     """
     _check_camera(camera)
     if supersample < 1:
         raise RenderError(f"supersample must be ≥ 1, got {supersample}")
+    if not 0 < pixel_aperture <= 1:
+        raise RenderError(f"pixel_aperture must lie in (0, 1], got {pixel_aperture}")
+    row_start, row_stop = (0, camera.height_px) if row_range is None else row_range
+    if not 0 <= row_start < row_stop <= camera.height_px:
+        raise RenderError(
+            f"row_range {row_range} must satisfy 0 ≤ start < stop ≤ height_px ({camera.height_px})"
+        )
+    for code in scene.codes:
+        _check_texture(code)
     image = np.full((camera.height_px, camera.width_px), scene.floor_dn, dtype=np.float32)
     ray_map = _ray_map(camera)
     T_cam_world = se3.inverse(np.asarray(T_world_cam, dtype=float))
@@ -254,18 +314,48 @@ def render_irradiance(
         if bbox is None:
             continue
         v0, v1, u0, u1 = bbox
+        v0, v1 = max(v0, row_start), min(v1, row_stop)
+        if v0 >= v1:
+            continue
         image[v0:v1, u0:u1] += _integrate_label(
-            code, scene, ray_map, M, (v0, v1, u0, u1), supersample
+            code, scene, ray_map, M, (v0, v1, u0, u1), supersample, pixel_aperture
         )
     return image
 
 
-def _label_texture_dn(code: FloorCode, scene: FloorScene) -> np.ndarray:
-    """Label reflectance minus the floor's, (n + 2q + 2)² float32.
+def _texels_per_module(code: FloorCode) -> int:
+    """r: texels per module of the code's texture (1 for the ideal print)."""
+    if code.texture_dn is None:
+        return 1
+    return code.texture_dn.shape[0] // (code.modules.shape[0] + 2 * code.quiet_zone_modules)
 
-    The symbol's modules inside a white quiet zone of q modules, inside a one-texel ring of
-    floor (value 0) that stands for the whole floor beyond the label.
+
+def _check_texture(code: FloorCode) -> None:
+    """RenderError unless ``code.texture_dn`` is None or (m, m) finite with m = (n + 2q)·r."""
+    if code.texture_dn is None:
+        return
+    texture = np.asarray(code.texture_dn)
+    modules = code.modules.shape[0] + 2 * code.quiet_zone_modules
+    m = texture.shape[0] if texture.ndim == 2 else 0
+    if texture.ndim != 2 or texture.shape[1] != m or m < modules or m % modules:
+        raise RenderError(
+            f"code {code.marker_id}: texture_dn has shape {texture.shape}; it must be square with a "
+            f"side that is a multiple of the label's {modules} modules"
+        )
+    if not np.all(np.isfinite(texture)):
+        raise RenderError(f"code {code.marker_id}: texture_dn holds non-finite values")
+
+
+def _label_texture_dn(code: FloorCode, scene: FloorScene) -> np.ndarray:
+    """Label reflectance minus the floor's, (m + 2)² float32, m = (n + 2q)·r texels.
+
+    The printed label — the symbol's modules inside a white quiet zone of q modules, or the
+    code's ``texture_dn`` — inside a one-texel ring of floor (value 0) that stands for the
+    whole floor beyond the label.
     """
+    if code.texture_dn is not None:
+        label = np.asarray(code.texture_dn, dtype=float) - scene.floor_dn
+        return np.pad(label, 1, constant_values=0.0).astype(np.float32)
     q = code.quiet_zone_modules
     dark = np.pad(code.modules, q, constant_values=False)
     label = np.where(dark, scene.black_dn, scene.white_dn) - scene.floor_dn
@@ -279,6 +369,7 @@ def _integrate_label(
     M: np.ndarray,
     bbox: tuple[int, int, int, int],
     supersample: int,
+    pixel_aperture: float = 1.0,
 ) -> np.ndarray:
     """Area-integrated (label − floor) reflectance over the pixel box ``bbox`` (float32).
 
@@ -294,7 +385,7 @@ def _integrate_label(
     # Homography from undistorted normalised (x, y, 1) to padded-texture (column, row, 1):
     # texel k covers [k, k + 1); row 0 of the label (printed top) is texel row 1.
     half = code.label_side_m / 2.0
-    m = code.module_m
+    m = code.module_m / _texels_per_module(code)  # texel side (the module's for r = 1)
     T_tex_marker = np.array([[1.0 / m, 0.0, half / m + 1.0], [0.0, -1.0 / m, half / m + 1.0], [0.0, 0.0, 1.0]])
     H = T_tex_marker @ np.linalg.inv(M)
     # The homogeneous w of H @ (x, y, 1) is 1/z_cam: > 0 for floor points in front.
@@ -319,7 +410,7 @@ def _integrate_label(
         row = np.clip(np.floor(h[1] * inv_w), 0, n_padded - 1).astype(np.intp)
         return row, col, in_front
 
-    offsets = _subsample_offsets_px(supersample).astype(np.float32)
+    offsets = (_subsample_offsets_px(supersample) * pixel_aperture).astype(np.float32)
     lo, hi = offsets[0], offsets[-1]
     extreme = [texel(a, b_u, b_v, du, dv) for du, dv in ((lo, lo), (hi, lo), (lo, hi), (hi, hi))]
     rows = np.stack([e[0] for e in extreme])
