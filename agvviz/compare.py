@@ -839,6 +839,7 @@ def _write_sweep_overlay(
         runs.append(OverlayRun(
             _entity_key(rank, entry.label), f"#{entry.rank} {entry.label}",
             first.frames[ia], first.time_ns[ia], s.T_est[ib], _overlay_errors(s, ib), reprojected,
+            T_truth=None if s.T_truth is None else s.T_truth[ib], short_label=f"#{entry.rank}",
         ))
     header, rows = ranking_rows(ok, rank_by)
     report = "\n".join([
