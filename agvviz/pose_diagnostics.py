@@ -96,14 +96,17 @@ class PoseDiagnostics:
         T_alt = pair.T_other_cam_marker if near_best else pair.T_best_cam_marker
         alt = SolveResult(T_alt, "", [], reprojection_rms_px(T_alt, points_marker_m, pixels_px, K))
         if self.solver == "lm":
+            path: list[np.ndarray] = []
             T_ref, reason, iterations = refine_lm(
                 T_alt, points_marker_m, pixels_px, K,
                 objective=self.options.objective, max_iterations=self.options.max_iterations,
                 initial_damping=self.options.initial_damping, step_tol=self.options.step_tol,
-                cost_rel_tol=self.options.cost_rel_tol,
+                cost_rel_tol=self.options.cost_rel_tol, path_out=path,
             )
             if T_ref is not None and ambiguity.rotation_distance_rad(T_ref, T0) > COLLAPSED_RAD:
-                alt = SolveResult(T_ref, "", iterations, reprojection_rms_px(T_ref, points_marker_m, pixels_px, K))
+                alt = SolveResult(
+                    T_ref, "", iterations, reprojection_rms_px(T_ref, points_marker_m, pixels_px, K), path
+                )
         if ambiguity.rotation_distance_rad(alt.T_cam_marker, T0) < SAME_POSE_RAD:
             result.ambiguity_rule = "one pose (both IPPE branches agree)"
             return solved

@@ -90,6 +90,9 @@ class FrameResult:
     hpr_rad: np.ndarray | None = None  # heading, pitch, roll of T_world_agv (eq 57)
     reproj_rms_px: float | None = None
     lm_iterations: tuple[LmIteration, ...] = ()
+    #: Per LM record, the used code's feature points (N, 2) reprojected at the pose kept after
+    #: it, in the recorded image's pixels: how the fit moved. Empty for closed-form solvers.
+    lm_iteration_px: tuple[np.ndarray, ...] = ()
     T_world_agv_truth: np.ndarray | None = None
     hpr_truth_rad: np.ndarray | None = None
     position_error_m: float | None = None
@@ -140,4 +143,5 @@ def freeze(draft) -> FrameResult:
     values = {f.name: getattr(draft, f.name) for f in fields(FrameResult)}
     values["observations"] = tuple(values["observations"])
     values["lm_iterations"] = tuple(values["lm_iterations"])
+    values["lm_iteration_px"] = tuple(values["lm_iteration_px"])
     return FrameResult(**values)

@@ -360,6 +360,16 @@ def _run_trials(
     )
 
 
+def recording_start_ns(prepared: Prepared) -> int | None:
+    """The first stamp of the messages a run replays — the origin of its ``elapsed`` timeline —
+    when the run uses log times; ``None`` (the first frame's stamp) with header stamps, which
+    the scan does not see."""
+    if prepared.time_source != "log":
+        return None
+    firsts = [prepared.scan.first_ns[t] for t in prepared.roles.role_of() if t in prepared.scan.first_ns]
+    return min(firsts) if firsts else None
+
+
 def run_recording(
     recording_path: Path,
     settings: RunSettings,
@@ -465,7 +475,8 @@ def run_recording(
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     detection = _detection_feed(prepared, recording_sha256, side, jobs, cache_dir)
     with RunLogger(
-        out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs
+        out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs,
+        recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px,
     ) as logger:
         logger.log_manifest(manifest)
         if replay.ctx.marker_map is not None:

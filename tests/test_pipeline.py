@@ -84,6 +84,18 @@ def test_solved_frame_matches_truth():
     assert np.max(np.linalg.norm(obs.reprojected_px - obs.corners_px, axis=1)) < 0.5
 
 
+def test_lm_iterations_carry_their_reprojected_corners():
+    """One (N, 2) array per LM record: the first is the start pose's reprojection, the last the
+    solved pose's, which is what the frame reports as the used code's reprojected corners."""
+    (r,) = replay(_static_messages() + _frame(1_000, _render(GOOD_CODE)), RunSettings(solver="lm"))
+    assert r.rejected is None and len(r.lm_iterations) >= 2
+    assert len(r.lm_iteration_px) == len(r.lm_iterations)
+    used = next(o for o in r.observations if o.marker_id == r.used_marker_id)
+    np.testing.assert_allclose(r.lm_iteration_px[-1][: len(used.reprojected_px)], used.reprojected_px, atol=1e-9)
+    (closed,) = replay(_static_messages() + _frame(1_000, _render(GOOD_CODE)), RunSettings(solver="p4p"))
+    assert closed.lm_iteration_px == ()
+
+
 def test_frame_before_calibration_is_rejected():
     results = list(replay(_frame(1_000, _render(GOOD_CODE)), RunSettings()))
     assert results[0].rejected == REJECT_NO_CALIBRATION

@@ -146,7 +146,7 @@ def test_entity_tree_and_timelines(run):
         paths.WORLD, paths.MARKERS, paths.MARKERS_FILL, paths.AGV_TRUTH, paths.AGV_TRUTH_BODY,
         paths.AGV_CAMERA, paths.AGV_CAMERA_BODY, paths.camera(CAM), paths.image(CAM),
         paths.detected(CAM), paths.reprojected(CAM), paths.TRAJECTORY_TRUTH, paths.TRAJECTORY_CAMERA,
-        paths.LM_COST_PER_ITERATION, paths.LM_COST, paths.LM_REPROJ_RMS_PX, paths.LM_DAMPING,
+        paths.LM_LOG10_COST_PER_ITERATION, paths.LM_THIS_FRAME, paths.LM_COST, paths.LM_REPROJ_RMS_PX, paths.LM_DAMPING,
         paths.LM_STEP_NORM, paths.ERROR_POSITION_MM, paths.ERROR_HEADING_DEG, paths.ERROR_REPROJ_RMS_PX,
         paths.ERROR_REJECTED, paths.EVENTS_REJECTIONS, paths.RUN_MANIFEST, paths.RUN_SUMMARY,
     }
@@ -154,10 +154,10 @@ def test_entity_tree_and_timelines(run):
     reader = RrdReader(path)
     # Data timestamps only: no wall-clock log_time / log_tick timelines.
     timelines = {c.name for c in contents.store.schema().index_columns()}
-    assert timelines == {paths.TIMELINE_TIME, paths.TIMELINE_FRAME, paths.TIMELINE_LM_ITER}
+    assert timelines == {paths.TIMELINE_TIME, paths.TIMELINE_FRAME, paths.TIMELINE_ELAPSED, paths.TIMELINE_LM_ITER}
     # The lm_iter timeline must not leak beyond the columns sent for it.
     leaked = {c.entity_path for c in reader.store().stream().filter(has_timeline=paths.TIMELINE_LM_ITER)}
-    lm_columns = (paths.LM_COST, paths.LM_REPROJ_RMS_PX, paths.LM_DAMPING, paths.LM_STEP_NORM)
+    lm_columns = (paths.LM_COST, paths.LM_LOG10_COST, paths.LM_REPROJ_RMS_PX, paths.LM_DAMPING, paths.LM_STEP_NORM)
     assert leaked == {"/" + p for p in lm_columns}
     assert [r.recording_id for r in reader.recordings()] == [RECORDING_ID]
     assert len(reader.blueprints()) == 1  # the default blueprint travels in the file

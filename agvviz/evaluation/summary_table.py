@@ -71,6 +71,8 @@ def _frame_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
         ("heading RMSE / median / p95 (deg)", f"{_fmt(hdg['rmse'], 3)} / {_fmt(hdg['median'], 3)} / {_fmt(hdg['p95'], 3)}")
     )
     rows.append(("reprojection RMS median (px)", _fmt(summary["reproj_rms_px"]["median"], 3)))
+    if "time_per_frame_ms" not in timing:  # a stored summary carries no wall-clock figures
+        return rows
     rows.append((
         "time per frame (ms): total / detect / solve",
         f"{_fmt(timing.get('time_per_frame_ms'), 1)} / {_fmt(timing.get('detect_ms'), 1)} / {_fmt(timing.get('solve_ms'), 2)}",
@@ -169,3 +171,13 @@ def _cnoem_study_rows(c: dict, timing: dict) -> list[tuple[str, str]]:
 
 def _percent(fraction):
     return None if fraction is None else 100.0 * fraction
+
+
+def markdown_table(rows: list[tuple[str, str]]) -> str:
+    """The terminal table's ``rows`` as a markdown table (metric | value, values right-aligned)."""
+    lines = ["| metric | value |", "| :--- | ---: |"]
+    for metric, value in rows:
+        cells = [text.replace("|", "\\|").strip() for text in (metric, value)]
+        indent = "· " if metric.startswith("  ") else ""  # a sub-row (per solver, per method)
+        lines.append(f"| {indent}{cells[0]} | {cells[1]} |")
+    return "\n".join(lines)

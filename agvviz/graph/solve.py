@@ -121,6 +121,19 @@ def _polygon_area_px2(corners_px: np.ndarray) -> float:
     return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
+def _path_px(camera: PinholeCamera, path: list, points_marker_m: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The marker points (N, 3) reprojected (image pixels, distortion applied) at each pose
+    (4, 4) ``T_cam_marker`` of an LM path; a pose with a point behind the camera gives NaNs."""
+    projected = []
+    for T_cam_marker in path:
+        points_cam = se3.transform_points(T_cam_marker, points_marker_m)
+        if np.all(points_cam[:, 2] > 0):
+            projected.append(camera.project(points_cam))
+        else:
+            projected.append(np.full((len(points_marker_m), 2), np.nan))
+    return tuple(projected)
+
+
 def _ideal_to_image_px(camera: PinholeCamera, ideal_px: np.ndarray) -> np.ndarray:
     """Pixels of the undistorted (ideal) image → pixels of the recorded (distorted) image."""
     if not camera.has_distortion:
@@ -519,6 +532,7 @@ class Replay:
         result.solve_s = time.perf_counter() - t1
         if not solved.success:
             result.lm_iterations = list(solved.iterations)
+            result.lm_iteration_px = _path_px(camera, solved.path, points_marker_m)
             return self._reject(
                 result, REJECT_SOLVER, f"{self.settings.solver} on code {observation.marker_id}: {solved.reason}"
             )
@@ -528,6 +542,7 @@ class Replay:
             result,
         )
         result.lm_iterations = list(solved.iterations)
+        result.lm_iteration_px = _path_px(camera, solved.path, points_marker_m)
         result.reproj_rms_px = solved.reproj_rms_px
         if solved.reproj_rms_px is None or solved.reproj_rms_px > self.settings.max_reproj_px:
             # The pose is not kept: a rejected frame never shows or scores a pose.

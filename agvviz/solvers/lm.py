@@ -127,6 +127,7 @@ def refine_lm(
     initial_damping: float,
     step_tol: float,
     cost_rel_tol: float,
+    path_out: list | None = None,
 ) -> tuple[np.ndarray | None, str, list[LmIteration]]:
     """Refine a pose by Levenberg–Marquardt on SE(3) with the left perturbation.
 
@@ -144,6 +145,8 @@ def refine_lm(
     budget runs out) and "", else ``None`` and why the start was unusable. ``iterations[0]`` is the start
     (its cost, ``step_norm`` 0, accepted); then one entry per trial step, accepted or not,
     with the cost and RMS of the pose kept after it and the λ the step was solved with.
+    ``path_out``, when given, receives the pose kept after each record (``path_out[k]`` after
+    ``iterations[k]``): what the viewer draws as each iteration's reprojected corners.
     """
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}; valid: {OBJECTIVES}")
@@ -158,6 +161,8 @@ def refine_lm(
         reproj_rms_px=lambda T: reprojection_rms_px(T, points_marker_m, pixels_px, K),
         options=lm_core.LmOptions(max_iterations, initial_damping, step_tol, cost_rel_tol),
     )
+    if path_out is not None:
+        path_out.extend(result.path)
     if result.failed:
         return None, FAILURE_REASONS[result.stop_reason], result.iterations
     return result.x, "", result.iterations

@@ -57,12 +57,14 @@ class SolveResult:
     iterations : LM only (empty otherwise); ``iterations[0]`` is the start (P4P) cost.
     reproj_rms_px : RMS over all given points of the Euclidean pixel distance between the
         returned pose's projection and the given pixels; ``None`` on failure.
+    path : LM only: the pose (4, 4) kept after each record of ``iterations``.
     """
 
     T_cam_marker: np.ndarray | None
     reason: str
     iterations: list[LmIteration] = field(default_factory=list)
     reproj_rms_px: float | None = None
+    path: list[np.ndarray] = field(default_factory=list)
 
     @property
     def success(self) -> bool:
@@ -156,6 +158,7 @@ def solve(
         return SolveResult(None, problem)
 
     iterations: list[LmIteration] = []
+    path: list[np.ndarray] = []
     if name == "planar":
         if prior is None:
             return SolveResult(
@@ -188,17 +191,18 @@ def solve(
                 initial_damping=options.initial_damping,
                 step_tol=options.step_tol,
                 cost_rel_tol=options.cost_rel_tol,
+                path_out=path,
             )
     else:
         T, reason = solve_opencv(name, points_marker_m, pixels_px, K)
 
     if T is None:
-        return SolveResult(None, reason, iterations)
+        return SolveResult(None, reason, iterations, path=path)
     if not se3.is_rigid(T):
-        return SolveResult(None, "non-finite or non-rigid result", iterations)
+        return SolveResult(None, "non-finite or non-rigid result", iterations, path=path)
     if not _all_in_front(T, points_marker_m):
-        return SolveResult(None, "point behind camera", iterations)
-    return SolveResult(T, "", iterations, reprojection_rms_px(T, points_marker_m, pixels_px, K))
+        return SolveResult(None, "point behind camera", iterations, path=path)
+    return SolveResult(T, "", iterations, reprojection_rms_px(T, points_marker_m, pixels_px, K), path)
 
 
 def _all_in_front(T_cam_marker: np.ndarray, points_marker_m: np.ndarray) -> bool:

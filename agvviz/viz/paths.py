@@ -19,10 +19,19 @@ the camera is).
     world/agv/camera/cam_<name>/image       EncodedImage (recorded bytes)
     world/agv/camera/cam_<name>/image/detected      Points2D detected corners
     world/agv/camera/cam_<name>/image/reprojected   Points2D reprojected corners
+    world/agv/camera/cam_<name>/image/marker_ids    Points2D: each code's id at its centre
+    world/agv/camera/cam_<name>/image/lm_iteration  Points2D per LM iteration (lm_iter columns)
+    world/agv/camera/cam_<name>/image/lm_path       LineStrips2D: each point's LM start → final
+    world/markers_seen                      LineStrips3D: outlines + ids of this frame's codes
+    zoom/cam_<name>/image[/detected|/reprojected]   crop around a small code (≈15 px) + corners
     world/trajectory/truth|camera           LineStrips3D, growing over time
-    solver/lm/cost_per_iteration            BarChart: cost of each LM iteration of the frame
-    solver/lm/cost|reproj_rms_px|damping|step_norm   Scalars on timelines lm_iter + frame + time
-    errors/position_mm|heading_deg|pitch_deg|roll_deg|reproj_rms_px   Scalars per frame (when known)
+    solver/lm/log10_cost|log10_damping|log10_step_norm_per_iteration   BarChart of the frame's LM
+    solver/lm/this_frame                    TextDocument: the frame's solve (or "closed-form")
+    solver/lm/iterations                    Scalars per frame: LM trial steps
+    solver/lm/cost|log10_cost|reproj_rms_px|damping|step_norm   Scalars on lm_iter + frame + time
+    errors/position_mm|heading_deg|pitch_deg|roll_deg|reproj_rms_px   Scalars per frame (when known;
+                                            a Clear on rejected frames breaks the line)
+    errors/reproj_threshold_px              Scalars per frame: the max_reproj_px setting
     errors/rejected                         Scalars 0.0 on rejected frames (a marker in plots)
     events/rejections                       TextLog (WARN) with reason and detail
     run/manifest, run/summary               TextDocument (static, markdown + JSON block)
@@ -55,8 +64,15 @@ TRAJECTORY_TRUTH = "world/trajectory/truth"
 TRAJECTORY_CAMERA = "world/trajectory/camera"
 
 # -- solver, errors, events, run ------------------------------------------------------------
-LM_COST_PER_ITERATION = "solver/lm/cost_per_iteration"
+#: BarCharts of the current frame's LM iterations (log10 values; the x axis is the iteration).
+LM_LOG10_COST_PER_ITERATION = "solver/lm/log10_cost_per_iteration"
+LM_LOG10_DAMPING_PER_ITERATION = "solver/lm/log10_damping_per_iteration"
+LM_LOG10_STEP_NORM_PER_ITERATION = "solver/lm/log10_step_norm_per_iteration"
+#: TextDocument per frame: what the solver did (iterations, cost start → final; or closed-form).
+LM_THIS_FRAME = "solver/lm/this_frame"
+LM_ITERATIONS = "solver/lm/iterations"  # Scalars per frame: LM trial steps
 LM_COST = "solver/lm/cost"
+LM_LOG10_COST = "solver/lm/log10_cost"  # lm_iter columns: log10 of the cost
 LM_REPROJ_RMS_PX = "solver/lm/reproj_rms_px"
 LM_DAMPING = "solver/lm/damping"
 LM_STEP_NORM = "solver/lm/step_norm"
@@ -66,6 +82,9 @@ ERROR_PITCH_DEG = "errors/pitch_deg"
 ERROR_ROLL_DEG = "errors/roll_deg"
 ERROR_REPROJ_RMS_PX = "errors/reproj_rms_px"
 ERROR_REJECTED = "errors/rejected"
+ERROR_REPROJ_THRESHOLD_PX = "errors/reproj_threshold_px"  # the max_reproj_px setting per frame
+MARKERS_SEEN = "world/markers_seen"  # LineStrips3D: outlines and ids of this frame's codes
+ZOOM = "zoom"
 EVENTS_REJECTIONS = "events/rejections"
 RUN_MANIFEST = "run/manifest"
 RUN_SUMMARY = "run/summary"
@@ -90,6 +109,34 @@ def detected(cam_name: str, fixed: bool = False) -> str:
 def reprojected(cam_name: str, fixed: bool = False) -> str:
     """Entity of the reprojected corners (Points2D, image pixels) of camera ``cam_name``."""
     return f"{image(cam_name, fixed)}/reprojected"
+
+
+def marker_ids(cam_name: str, fixed: bool = False) -> str:
+    """Entity of the code ids drawn at each detected code's centre (Points2D with labels)."""
+    return f"{image(cam_name, fixed)}/marker_ids"
+
+
+def lm_iteration(cam_name: str, fixed: bool = False) -> str:
+    """Entity of the reprojected points at each LM iteration (Points2D columns on ``lm_iter``)."""
+    return f"{image(cam_name, fixed)}/lm_iteration"
+
+
+def lm_path(cam_name: str, fixed: bool = False) -> str:
+    """Entity of each point's path over the frame's LM iterations (LineStrips2D, start → final)."""
+    return f"{image(cam_name, fixed)}/lm_path"
+
+
+def image_overlays(cam_name: str, fixed: bool = False) -> list[str]:
+    """The 2D entities drawn over the image of ``cam_name`` (kept out of 3D views)."""
+    return [
+        f(cam_name, fixed) for f in (detected, reprojected, marker_ids, lm_iteration, lm_path)
+    ]
+
+
+def zoom(cam_name: str) -> str:
+    """Root of the zoomed view of ``cam_name``: ``<root>/image`` is a crop around a small code
+    (an EncodedImage), ``<root>/image/detected|reprojected`` its corners in crop pixels."""
+    return f"{ZOOM}/{camera_frame(cam_name)}"
 
 
 # -- UWB and camera–UWB fusion (paper 003) ----------------------------------------------------
@@ -122,7 +169,8 @@ def uwb_gate(anchor_id: str) -> str:
 
 # -- pose uncertainty and planar ambiguity ----------------------------------------------------
 #: Ellipsoids3D under the estimated AGV pose (AGV frame): the 3σ position covariance
-#: magnified by ``run_logger.POSITION_COV_SCALE`` (sub-millimetre otherwise); cleared when none.
+#: magnified by a power of ten chosen per run (``run_logger.COV_DRAWN_HALF_AXIS_M``; the label
+#: gives it), drawn above the body; cleared when none.
 AGV_CAMERA_POSITION_COV = "world/agv/camera/position_cov"
 #: Transform3D T_world_agv of the rejected ambiguity candidate (the ghost) + its body box.
 AGV_GHOST = "world/agv/ghost"

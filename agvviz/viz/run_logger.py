@@ -8,6 +8,13 @@ renames it into place. Wall-clock ``log_time``/``log_tick`` timelines and the wa
 start-time property are disabled and chunks are cut by size only (no wall-clock batcher
 tick), so the file depends only on the data: two identical runs compare equal with
 ``rerun rrd compare --unordered`` (row ids and file bytes still differ).
+
+Logging cost (issue 12): every per-frame scalar series (errors, reprojection, uncertainty,
+LM iterations) is held in memory and sent as columns every :data:`FLUSH_EVERY_FRAMES` frames
+and at :meth:`RunLogger.close`; the styling of every per-frame entity (colours, radii, draw
+order) is logged once as static data, so a frame's log calls carry only what changes.
+Every per-frame log is stamped on ``frame``, ``time`` and ``elapsed``
+(:func:`agvviz.viz.timelines.set_stamp`).
 """
 
 from __future__ import annotations
@@ -19,9 +26,11 @@ import math
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 import rerun as rr
 
+from agvviz.evaluation.summary_table import markdown_table, summary_rows
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.results import FrameResult, LmIteration
@@ -35,40 +44,176 @@ from agvviz.viz.style import (
     COLOR_HEADING,
     COLOR_MARKER,
     COLOR_MARKER_FILL,
+    COLOR_OBSERVED,
     COLOR_PITCH,
     COLOR_REJECTED,
     COLOR_REPROJECTED,
     COLOR_ROLL,
     COLOR_STALE,
+    COLOR_THRESHOLD,
     COLOR_TRUTH,
 )
+from agvviz.viz.timelines import elapsed_s, set_stamp
 
 
 #: Media type of each ``FrameResult.image_format``.
 MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 
-#: The covariance ellipsoid is magnified by this factor (positions are sub-millimetre).
-POSITION_COV_SCALE = 100.0
+#: The 3σ covariance ellipsoid is magnified by a power of ten chosen once per run, from its
+#: first covariance, so that its largest 3σ half-axis is drawn about this long (m): comparable
+#: with the body, whether σ is 0.1 mm or 5 mm. Its label and the 3D view's title give the factor.
+COV_DRAWN_HALF_AXIS_M = 0.25
 #: Ambiguity ratios above this are plotted at this value (exact fits give inf).
 AMBIGUITY_RATIO_CAP = 100.0
+#: The rejected IPPE mirror pose (the ghost) is drawn only when the ambiguity ratio
+#: rms(mirror) / rms(chosen) is below this. With a code's 4 corners each pose leaves 2 residual
+#: degrees of freedom; were both poses equally right, the cost ratio (ratio²) would follow
+#: F(2, 2), P(F ≥ f) = 1 / (1 + f): a ratio of 4 (cost ratio 16) still happens by noise alone
+#: in 1/17 ≈ 6 % of frames. Below it the data cannot reject the mirror pose at about the 5 %
+#: level — a real contender; above it the mirror pose is no contender and is not drawn.
+GHOST_MAX_AMBIGUITY_RATIO = 4.0
 
 #: Nominal AGV body drawn around the body frame (half sizes x, y, z in m; centre on the
 #: floor-origin's vertical). A visual marker only: the recording does not carry a body size.
 AGV_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 AGV_BODY_CENTER_M = (0.0, 0.0, 0.10)
 AGV_AXIS_LENGTH_M = 0.5
+#: The covariance ellipsoid is drawn this far above the body's top (m), so the opaque-looking
+#: body never hides it.
+COV_ABOVE_BODY_M = 0.05
 #: Distance of the image plane drawn in the camera frustum (m).
 FRUSTUM_IMAGE_PLANE_M = 0.4
 #: Point radii in the image view (UI points, so they keep their size when zooming).
 DETECTED_RADIUS = rr.Radius.ui_points(5.0)
 REPROJECTED_RADIUS = rr.Radius.ui_points(2.5)
+LM_ITERATION_RADIUS = rr.Radius.ui_points(2.0)
 #: A trajectory is redrawn every frame from at most this many of its points (evenly spread,
 #: first and newest always kept), so logging cost per frame stays bounded on long runs.
 MAX_TRAJECTORY_POINTS = 400
+#: Per-frame scalar series are sent as columns every this many frames (and at close).
+FLUSH_EVERY_FRAMES = 64
+#: A code whose longest detected edge is shorter than this fraction of the image width (a code a
+#: few UI points wide in an image panel) also gets a zoomed view: a crop of the recorded image
+#: around it, ZOOM_CROP_CODE_SIDES code sides wide (at least ZOOM_MIN_CROP_PX), so a ≈15 px
+#: code fills its own panel.
+ZOOM_CODE_BELOW_FRACTION = 0.05
+#: Every crop is resized to this side (nearest neighbour: pixels stay visible as blocks), so
+#: the zoomed image keeps one size (the viewer refuses a stream of images changing size).
+ZOOM_SIDE_PX = 256
+ZOOM_CROP_CODE_SIDES = 3.0
+ZOOM_MIN_CROP_PX = 32
+
+#: (frame index, log_time_ns, elapsed seconds) of one log.
+Stamp = tuple[int, int, float]
+
+#: Per-frame scalar series: (entity, legend name, colour).
+_FRAME_SERIES = (
+    (paths.ERROR_POSITION_MM, "position error [mm] (camera estimate)", COLOR_CAMERA),
+    (paths.ERROR_HEADING_DEG, "heading error [deg]", COLOR_HEADING),
+    (paths.ERROR_PITCH_DEG, "pitch error [deg]", COLOR_PITCH),
+    (paths.ERROR_ROLL_DEG, "roll error [deg]", COLOR_ROLL),
+    (paths.ERROR_REPROJ_RMS_PX, "reprojection RMS [px]", COLOR_REPROJECTED),
+    (paths.ERROR_NEES, "NEES (expected: dof)", COLOR_CAMERA),
+    (paths.ERROR_POSITION_OVER_CRLB, "position error ÷ CRLB", COLOR_REPROJECTED),
+    (paths.ERROR_CRLB_POSITION_M, "CRLB position [m]", COLOR_TRUTH),
+    (paths.ERROR_POSITION_SIGMA_M, "covariance position σ [m]", COLOR_CAMERA),
+    (paths.SOLVER_AMBIGUITY_RATIO, f"IPPE ambiguity ratio (capped at {AMBIGUITY_RATIO_CAP:g})", COLOR_GHOST),
+    (paths.LM_ITERATIONS, "LM trial steps per frame", COLOR_CAMERA),
+)
+#: LM series per iteration (``lm_iter`` columns): (entity, legend name, colour).
+_ITERATION_SERIES = (
+    (paths.LM_COST, "LM cost", COLOR_CAMERA),
+    (paths.LM_LOG10_COST, "log10 LM cost", COLOR_CAMERA),
+    (paths.LM_REPROJ_RMS_PX, "LM reprojection RMS [px]", COLOR_REPROJECTED),
+    (paths.LM_DAMPING, "LM damping λ", COLOR_OBSERVED),
+    (paths.LM_STEP_NORM, "LM step norm", COLOR_OBSERVED),
+)
 
 
 class RunLogError(RunError):
     """Input the run logger cannot log (wrong shape, unknown image format, used after save)."""
+
+
+class _Columns:
+    """Per-frame data held until :meth:`flush`, then sent as one column chunk per entity:
+    scalars, the Clears that break a series' line at rejected frames, LM iteration scalars and
+    LM iteration points (these two also on the ``lm_iter`` timeline)."""
+
+    def __init__(self):
+        self._scalars: dict[str, list[tuple[Stamp, float]]] = {}
+        self._gaps: dict[str, list[Stamp]] = {}
+        self._iterations: dict[str, list[tuple[Stamp, np.ndarray]]] = {}
+        self._points: dict[str, list[tuple[Stamp, list[np.ndarray]]]] = {}
+        self._transforms: dict[str, list[tuple[Stamp, np.ndarray]]] = {}
+
+    def scalar(self, entity: str, stamp: Stamp, value: float) -> None:
+        self._scalars.setdefault(entity, []).append((stamp, float(value)))
+
+    def gap(self, entity: str, stamp: Stamp) -> None:
+        self._gaps.setdefault(entity, []).append(stamp)
+
+    def iterations(self, entity: str, stamp: Stamp, values) -> None:
+        self._iterations.setdefault(entity, []).append((stamp, np.asarray(values, dtype=float)))
+
+    def iteration_points(self, entity: str, stamp: Stamp, points_px: list[np.ndarray]) -> None:
+        self._points.setdefault(entity, []).append((stamp, points_px))
+
+    def transform(self, entity: str, stamp: Stamp, T_parent_child: np.ndarray) -> None:
+        self._transforms.setdefault(entity, []).append((stamp, T_parent_child))
+
+    def flush(self, rec: rr.RecordingStream) -> None:
+        for entity, rows in self._transforms.items():
+            T = np.array([T for _, T in rows])
+            rec.send_columns(
+                entity,
+                indexes=_time_columns([stamp for stamp, _ in rows]),
+                columns=rr.Transform3D.columns(translation=T[:, :3, 3], mat3x3=T[:, :3, :3]),
+            )
+        for entity, rows in self._scalars.items():
+            rec.send_columns(
+                entity,
+                indexes=_time_columns([stamp for stamp, _ in rows]),
+                columns=rr.Scalars.columns(scalars=np.array([value for _, value in rows])),
+            )
+        for entity, stamps in self._gaps.items():
+            rec.send_columns(
+                entity,
+                indexes=_time_columns(stamps),
+                columns=rr.Clear.columns(is_recursive=np.zeros(len(stamps), dtype=bool)),
+            )
+        for entity, rows in self._iterations.items():
+            counts = [len(values) for _, values in rows]
+            rec.send_columns(
+                entity,
+                indexes=_iteration_time_columns([stamp for stamp, _ in rows], counts),
+                columns=rr.Scalars.columns(scalars=np.concatenate([values for _, values in rows])),
+            )
+        for entity, rows in self._points.items():
+            counts = [len(per_iteration) for _, per_iteration in rows]
+            arrays = [points for _, per_iteration in rows for points in per_iteration]
+            rec.send_columns(
+                entity,
+                indexes=_iteration_time_columns([stamp for stamp, _ in rows], counts),
+                columns=rr.Points2D.columns(positions=np.concatenate(arrays)).partition([len(a) for a in arrays]),
+            )
+        self._scalars, self._gaps, self._iterations, self._points, self._transforms = {}, {}, {}, {}, {}
+
+
+def _time_columns(stamps: list[Stamp]) -> list[rr.TimeColumn]:
+    """``frame``, ``time`` and ``elapsed`` index columns of ``stamps``."""
+    frames, times_ns, elapsed = zip(*stamps)
+    return [
+        rr.TimeColumn(paths.TIMELINE_FRAME, sequence=np.asarray(frames, dtype=np.int64)),
+        rr.TimeColumn(paths.TIMELINE_TIME, timestamp=np.asarray(times_ns, dtype=np.int64).astype("datetime64[ns]")),
+        rr.TimeColumn(paths.TIMELINE_ELAPSED, duration=np.asarray(elapsed, dtype=float)),
+    ]
+
+
+def _iteration_time_columns(stamps: list[Stamp], counts: list[int]) -> list[rr.TimeColumn]:
+    """``lm_iter`` (0..n-1 per frame) plus each frame's stamp repeated over its iterations."""
+    repeated = [stamp for stamp, n in zip(stamps, counts) for _ in range(n)]
+    lm_iter = np.concatenate([np.arange(n) for n in counts]) if counts else np.zeros(0, dtype=np.int64)
+    return [rr.TimeColumn(paths.TIMELINE_LM_ITER, sequence=lm_iter), *_time_columns(repeated)]
 
 
 class RunLogger:
@@ -88,6 +233,12 @@ class RunLogger:
         Shown in the viewer (scenario + setting).
     recording_id : str
         Rerun recording id; pin it so repeated runs produce comparable files.
+    recording_start_ns : int, optional
+        The recording's first stamp: ``elapsed`` counts from it. None: the first logged
+        frame's ``log_time_ns``.
+    max_reproj_px : float, optional
+        The run's ``max_reproj_px`` setting, drawn as a threshold line on the reprojection
+        plot; None: no line.
     """
 
     def __init__(
@@ -97,11 +248,17 @@ class RunLogger:
         recording_name: str,
         recording_id: str,
         inputs: tuple[str | os.PathLike, ...] = (),
+        recording_start_ns: int | None = None,
+        max_reproj_px: float | None = None,
     ):
         # OutputError (from agvviz.errors) when out_path is an input or cannot be written.
         self._file = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=inputs)
         self._rec = self._file.rec
+        #: ``elapsed`` = log time − this (ns); set from the first frame when not given.
+        self.recording_start_ns = None if recording_start_ns is None else int(recording_start_ns)
+        self.max_reproj_px = None if max_reproj_px is None else float(max_reproj_px)
         self._cam_names: list[str] = []
+        self._image_width_px: dict[str, int] = {}
         self._fixed_cams: set[str] = set()
         #: Layout shipped at :meth:`close`; None: :func:`default_blueprint` of the cameras.
         self.blueprint = None
@@ -109,6 +266,20 @@ class RunLogger:
         self._saved = False
         self._trajectory_truth_m: list[np.ndarray] = []
         self._trajectory_camera_m: list[np.ndarray] = []
+        self._columns = _Columns()
+        self._frames_buffered = 0
+        # What the previous frame left drawn, so a state is logged only when it changes.
+        self._camera_body_label: str | None = None  # None: not drawn yet; "": solved
+        self._ghost_drawn = False
+        self._lm_bars_drawn = False
+        self._lm_points_drawn: set[str] = set()  # cameras whose LM points/path show now
+        self._zoomed: set[str] = set()  # cameras whose zoom shows a crop now
+        # What the run held, for the layout.
+        self._zoom_cams: set[str] = set()
+        self._lm_iterated = False
+        self._rejected_frames = 0
+        self._first_pose: np.ndarray | None = None
+        self._cov_scale: float | None = None  # the ellipsoid's magnification (set once)
         try:
             self._log_static_styles()
         except BaseException:  # no `with` block owns the file yet: discard it here
@@ -119,33 +290,73 @@ class RunLogger:
     def _log_static_styles(self) -> None:
         rec = self._rec
         rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        series = (
-            (paths.ERROR_POSITION_MM, "position error [mm]", COLOR_CAMERA),
-            (paths.ERROR_HEADING_DEG, "heading error [deg]", COLOR_HEADING),
-            (paths.ERROR_PITCH_DEG, "pitch error [deg]", COLOR_PITCH),
-            (paths.ERROR_ROLL_DEG, "roll error [deg]", COLOR_ROLL),
-            (paths.ERROR_REPROJ_RMS_PX, "reprojection RMS [px]", COLOR_REPROJECTED),
-            (paths.LM_COST, "LM cost", COLOR_CAMERA),
-            (paths.LM_REPROJ_RMS_PX, "LM reprojection RMS [px]", COLOR_REPROJECTED),
-            (paths.LM_DAMPING, "LM damping", COLOR_HEADING),
-            (paths.LM_STEP_NORM, "LM step norm", COLOR_TRUTH),
-        )
-        for entity, name, color in series:
+        for entity, name, color in _FRAME_SERIES + _ITERATION_SERIES:
             rec.log(entity, rr.SeriesLines(names=name, colors=color, widths=1.5), static=True)
+        if self.max_reproj_px is not None:
+            rec.log(
+                paths.ERROR_REPROJ_THRESHOLD_PX,
+                rr.SeriesLines(
+                    names=f"max_reproj_px = {self.max_reproj_px:g} px (above: frame rejected)",
+                    colors=COLOR_THRESHOLD,
+                    widths=1.0,
+                ),
+                static=True,
+            )
         rec.log(
             paths.ERROR_REJECTED,
             rr.SeriesPoints(
-                names="rejected frame",
+                names="rejected frame (reasons: rejections log)",
                 colors=COLOR_REJECTED,
                 markers=rr.components.MarkerShape.Cross,
                 marker_sizes=4.0,
             ),
             static=True,
         )
+        for entity, color in (
+            (paths.LM_LOG10_COST_PER_ITERATION, COLOR_CAMERA),
+            (paths.LM_LOG10_DAMPING_PER_ITERATION, COLOR_OBSERVED),
+            (paths.LM_LOG10_STEP_NORM_PER_ITERATION, COLOR_OBSERVED),
+        ):  # a colour per BarChart call would cost more than its values
+            rec.log(entity, [rr.components.ColorBatch([color]).described(rr.BarChart.descriptor_color())], static=True)
         for entity in (paths.AGV_TRUTH, paths.AGV_CAMERA):
             rec.log(entity, rr.TransformAxes3D(AGV_AXIS_LENGTH_M), static=True)
-        rec.log(paths.AGV_TRUTH_BODY, self._body(COLOR_TRUTH), static=True)
-        self._log_uncertainty_styles()
+        rec.log(paths.AGV_TRUTH_BODY, self._body(COLOR_TRUTH, "truth"), static=True)
+        rec.log(paths.TRAJECTORY_TRUTH, rr.LineStrips3D.from_fields(colors=COLOR_TRUTH, radii=rr.Radius.ui_points(2.0)), static=True)
+        rec.log(paths.TRAJECTORY_CAMERA, rr.LineStrips3D.from_fields(colors=COLOR_CAMERA, radii=rr.Radius.ui_points(2.0)), static=True)
+        rec.log(
+            paths.AGV_CAMERA_POSITION_COV,
+            rr.Ellipsoids3D.from_fields(
+                colors=COLOR_CAMERA, fill_mode=rr.components.FillMode.MajorWireframe, show_labels=True
+            ),
+            static=True,
+        )
+        rec.log(
+            paths.MARKERS_SEEN,
+            rr.LineStrips3D.from_fields(colors=COLOR_DETECTED, radii=rr.Radius.ui_points(3.0), show_labels=True),
+            static=True,
+        )
+
+    def _log_camera_styles(self, cam_name: str, fixed: bool) -> None:
+        """Static colours, sizes and draw order of the per-frame 2D entities of ``cam_name``."""
+        rec = self._rec
+        for entity, color, radius, order, labels in (
+            (paths.detected(cam_name, fixed), COLOR_DETECTED, DETECTED_RADIUS, 10.0, False),
+            (paths.reprojected(cam_name, fixed), COLOR_REPROJECTED, REPROJECTED_RADIUS, 11.0, False),
+            (paths.lm_iteration(cam_name, fixed), COLOR_OBSERVED, LM_ITERATION_RADIUS, 12.0, False),
+            (paths.marker_ids(cam_name, fixed), COLOR_DETECTED, rr.Radius.ui_points(1.0), 13.0, True),
+            (f"{paths.zoom(cam_name)}/image/detected", COLOR_DETECTED, DETECTED_RADIUS, 10.0, False),
+            (f"{paths.zoom(cam_name)}/image/reprojected", COLOR_REPROJECTED, REPROJECTED_RADIUS, 11.0, False),
+        ):
+            rec.log(
+                entity,
+                rr.Points2D.from_fields(colors=color, radii=radius, draw_order=order, show_labels=labels),
+                static=True,
+            )
+        rec.log(
+            paths.lm_path(cam_name, fixed),
+            rr.LineStrips2D.from_fields(colors=COLOR_OBSERVED, radii=rr.Radius.ui_points(1.0), draw_order=9.0),
+            static=True,
+        )
 
     def log_world_static(self, markers: list[tuple[str, np.ndarray]]) -> None:
         """Log the marker map: outlines with an id label and faint faces (static).
@@ -207,6 +418,8 @@ class RunLogger:
         entity = paths.camera(cam_name)
         self._rec.log(entity, _transform3d(T_agv_cam), static=True)
         self._rec.log(entity, _pinhole(camera), static=True)
+        self._log_camera_styles(cam_name, fixed=False)
+        self._image_width_px[cam_name] = int(camera.width_px)
         if cam_name not in self._cam_names:
             self._cam_names.append(cam_name)
 
@@ -218,6 +431,8 @@ class RunLogger:
         entity = paths.camera(cam_name, fixed=True)
         self._rec.log(entity, _transform3d(T_world_cam), static=True)
         self._rec.log(entity, _pinhole(camera), static=True)
+        self._log_camera_styles(cam_name, fixed=True)
+        self._image_width_px[cam_name] = int(camera.width_px)
         self._fixed_cams.add(cam_name)
         if cam_name not in self._cam_names:
             self._cam_names.append(cam_name)
@@ -231,14 +446,25 @@ class RunLogger:
     def cam_names(self) -> list[str]:
         return list(self._cam_names)
 
+    @property
+    def zoom_cams(self) -> list[str]:
+        """Cameras that had a small code at least once (they have a zoomed view)."""
+        return sorted(self._zoom_cams)
+
     # -- per frame -------------------------------------------------------------------------
+    def _stamp(self, frame: FrameResult) -> Stamp:
+        """Set ``frame``, ``time`` and ``elapsed`` for ``frame``'s logs; return them."""
+        if self.recording_start_ns is None:
+            self.recording_start_ns = int(frame.log_time_ns)
+        set_stamp(self._rec, frame.index, frame.log_time_ns, self.recording_start_ns)
+        return int(frame.index), int(frame.log_time_ns), elapsed_s(frame.log_time_ns, self.recording_start_ns)
+
     def log_camera_view(self, frame: FrameResult) -> None:
         """Log only the image and corners of ``frame`` — another camera's view of a time
         stamp whose pose and errors :meth:`log_frame` logged from the chosen camera."""
         self._check_open()
         _check_frame(frame)
-        self._rec.set_time(paths.TIMELINE_FRAME, sequence=int(frame.index))
-        self._rec.set_time(paths.TIMELINE_TIME, timestamp=np.datetime64(int(frame.log_time_ns), "ns"))
+        self._stamp(frame)
         self._log_image(frame)
         self._log_corners(frame)
 
@@ -246,24 +472,31 @@ class RunLogger:
         """Log everything one frame produced at ``time = log_time_ns`` and ``frame = index``.
 
         The estimated pose is shown for solved frames only; on a rejected frame the estimate
-        keeps its last pose and its body turns grey with the reason as label. The frame is
-        checked completely before anything is logged, so a bad frame logs nothing.
+        keeps its last pose and its body turns grey with the reason as label, and the error
+        lines break. The frame is checked completely before anything is logged, so a bad
+        frame logs nothing.
         """
         self._check_open()
         self._file.check()  # stop at once when the disk is full, not after the whole run
         _check_frame(frame)
-        rec = self._rec
+        stamp = self._stamp(frame)
         if not self._start_time_sent:
-            rec.send_recording_start_time_nanos(int(frame.log_time_ns))
+            self._rec.send_recording_start_time_nanos(int(self.recording_start_ns))
             self._start_time_sent = True
-        rec.set_time(paths.TIMELINE_FRAME, sequence=int(frame.index))
-        rec.set_time(paths.TIMELINE_TIME, timestamp=np.datetime64(int(frame.log_time_ns), "ns"))
         self._log_image(frame)
         self._log_corners(frame)
-        self._log_poses(frame)
-        self._log_errors(frame)
-        self._log_lm(frame)
-        self._log_uncertainty(frame)
+        self._log_markers_seen(frame)
+        self._log_poses(frame, stamp)
+        self._log_errors(frame, stamp)
+        self._log_lm(frame, stamp)
+        self._log_uncertainty(frame, stamp)
+        self._frames_buffered += 1
+        if self._frames_buffered >= FLUSH_EVERY_FRAMES:
+            self._flush()
+
+    def _flush(self) -> None:
+        self._columns.flush(self._rec)
+        self._frames_buffered = 0
 
     def _log_image(self, frame: FrameResult) -> None:
         if not frame.image_bytes:
@@ -274,62 +507,112 @@ class RunLogger:
         )
 
     def _log_corners(self, frame: FrameResult) -> None:
-        detected, detected_ids, reprojected, reprojected_ids = [], [], [], []
+        """Detected and reprojected corners, each code's id at its centre, and the zoomed view
+        of a small code. Empty batches on frames without corners, so the previous frame's
+        points vanish."""
+        detected, detected_ids, reprojected, reprojected_ids, centres = [], [], [], [], []
         for obs in frame.observations:
             corners = np.asarray(obs.corners_px, dtype=float)
             detected.append(corners)
             detected_ids += [obs.marker_id] * len(corners)
+            centres.append(corners[:4].mean(axis=0))
             if obs.reprojected_px is not None:
                 reproj = np.asarray(obs.reprojected_px, dtype=float)
                 reprojected.append(reproj)
                 reprojected_ids += [obs.marker_id] * len(reproj)
-        # Empty batches on frames without corners, so the previous frame's points vanish.
         fixed = frame.cam_name in self._fixed_cams
-        self._rec.log(
+        rec = self._rec
+        rec.log(
             paths.detected(frame.cam_name, fixed),
-            rr.Points2D(
-                np.concatenate(detected) if detected else np.zeros((0, 2)),
-                labels=detected_ids,
-                colors=COLOR_DETECTED,
-                radii=DETECTED_RADIUS,
-                show_labels=False,
-                draw_order=10.0,
-            ),
+            rr.Points2D(np.concatenate(detected) if detected else np.zeros((0, 2)), labels=detected_ids),
         )
-        self._rec.log(
+        rec.log(
             paths.reprojected(frame.cam_name, fixed),
+            rr.Points2D(np.concatenate(reprojected) if reprojected else np.zeros((0, 2)), labels=reprojected_ids),
+        )
+        rec.log(
+            paths.marker_ids(frame.cam_name, fixed),
             rr.Points2D(
-                np.concatenate(reprojected) if reprojected else np.zeros((0, 2)),
-                labels=reprojected_ids,
-                colors=COLOR_REPROJECTED,
-                radii=REPROJECTED_RADIUS,
-                show_labels=False,
-                draw_order=11.0,
+                np.array(centres) if centres else np.zeros((0, 2)),
+                labels=[f"id {obs.marker_id}" for obs in frame.observations],
             ),
         )
+        self._log_zoom(frame)
 
-    def _log_poses(self, frame: FrameResult) -> None:
+    def _log_zoom(self, frame: FrameResult) -> None:
+        """A crop of the image around the smallest code when it is under ZOOM_CODE_BELOW_FRACTION
+        of the image width (a camera logged without its size is never zoomed)."""
+        cam = frame.cam_name
+        below_px = ZOOM_CODE_BELOW_FRACTION * self._image_width_px.get(cam, 0)
+        small = [
+            obs for obs in frame.observations if _longest_edge_px(np.asarray(obs.corners_px, float)[:4]) < below_px
+        ]
+        crop = None
+        if small and frame.image_bytes:
+            obs = min(small, key=lambda o: _longest_edge_px(np.asarray(o.corners_px, float)[:4]))
+            crop = _crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
+        root = paths.zoom(cam)
+        if crop is None:
+            if cam in self._zoomed:
+                self._rec.log(root, rr.Clear(recursive=True))
+                self._zoomed.discard(cam)
+            return
+        png, origin_px, px_per_image_px = crop
+        obs_points = [(np.asarray(o.corners_px, float), o.reprojected_px) for o in frame.observations]
+        detected = (np.concatenate([c for c, _ in obs_points]) - origin_px) * px_per_image_px
+        reprojected = [np.asarray(r, float) for _, r in obs_points if r is not None]
+        rec = self._rec
+        rec.log(f"{root}/image", rr.EncodedImage(contents=png, media_type="image/png"))
+        rec.log(f"{root}/image/detected", rr.Points2D(detected))
+        rec.log(
+            f"{root}/image/reprojected",
+            rr.Points2D(
+                (np.concatenate(reprojected) - origin_px) * px_per_image_px if reprojected else np.zeros((0, 2))
+            ),
+        )
+        self._zoomed.add(cam)
+        self._zoom_cams.add(cam)
+
+    def _log_markers_seen(self, frame: FrameResult) -> None:
+        """The outline and id of every code of this frame in 3D (world-fixed codes only)."""
+        outlines, labels = [], []
+        for obs in frame.observations:
+            if obs.points_frame != "world":
+                continue
+            corners = np.asarray(obs.points_world_m, dtype=float)[:4]
+            outlines.append(np.vstack([corners, corners[:1]]))
+            used = " (used)" if obs.marker_id == frame.used_marker_id else ""
+            labels.append(f"id {obs.marker_id}{used}")
+        self._rec.log(paths.MARKERS_SEEN, rr.LineStrips3D(outlines, labels=labels))
+
+    def _log_poses(self, frame: FrameResult, stamp: Stamp) -> None:
         rec = self._rec
         if frame.T_world_agv_truth is not None:
             T_truth = np.asarray(frame.T_world_agv_truth, dtype=float)
-            rec.log(paths.AGV_TRUTH, _transform3d(T_truth))
+            self._columns.transform(paths.AGV_TRUTH, stamp, T_truth)
             self._trajectory_truth_m.append(T_truth[:3, 3])
-            rec.log(paths.TRAJECTORY_TRUTH, _trajectory(self._trajectory_truth_m, COLOR_TRUTH))
+            rec.log(paths.TRAJECTORY_TRUTH, _trajectory_strip(self._trajectory_truth_m))
         if frame.solved:
             T_est = np.asarray(frame.T_world_agv, dtype=float)
-            rec.log(paths.AGV_CAMERA, _transform3d(T_est))
-            rec.log(paths.AGV_CAMERA_BODY, self._body(COLOR_CAMERA))
+            if self._first_pose is None:
+                self._first_pose = T_est
+            self._columns.transform(paths.AGV_CAMERA, stamp, T_est)
+            if self._camera_body_label != "":
+                rec.log(paths.AGV_CAMERA_BODY, self._body(COLOR_CAMERA))
+                self._camera_body_label = ""
             self._trajectory_camera_m.append(T_est[:3, 3])
-            rec.log(paths.TRAJECTORY_CAMERA, _trajectory(self._trajectory_camera_m, COLOR_CAMERA))
+            rec.log(paths.TRAJECTORY_CAMERA, _trajectory_strip(self._trajectory_camera_m))
         else:
             # The estimate entity keeps its last pose; grey it so a stale pose is not mistaken
             # for this frame's answer.
             stale = "no estimate yet" if not self._trajectory_camera_m else "last estimate"
             label = f"rejected: {frame.rejected} ({stale})"
-            rec.log(paths.AGV_CAMERA_BODY, self._body(COLOR_STALE, label))
+            if label != self._camera_body_label:
+                rec.log(paths.AGV_CAMERA_BODY, self._body(COLOR_STALE, label))
+                self._camera_body_label = label
 
-    def _log_errors(self, frame: FrameResult) -> None:
-        rec = self._rec
+    def _log_errors(self, frame: FrameResult, stamp: Stamp) -> None:
+        columns = self._columns
         for entity, value in (
             (paths.ERROR_POSITION_MM, None if frame.position_error_m is None else 1000.0 * frame.position_error_m),
             (paths.ERROR_HEADING_DEG, frame.heading_error_deg),
@@ -338,11 +621,16 @@ class RunLogger:
             (paths.ERROR_REPROJ_RMS_PX, frame.reproj_rms_px),
         ):
             if value is not None:
-                rec.log(entity, rr.Scalars(float(value)))
+                columns.scalar(entity, stamp, value)
+            elif not frame.solved:
+                columns.gap(entity, stamp)  # the line breaks at a rejected frame
+        if self.max_reproj_px is not None:
+            columns.scalar(paths.ERROR_REPROJ_THRESHOLD_PX, stamp, self.max_reproj_px)
         if not frame.solved:
-            rec.log(paths.ERROR_REJECTED, rr.Scalars(0.0))
+            self._rejected_frames += 1
+            columns.scalar(paths.ERROR_REJECTED, stamp, 0.0)
             detail = f" — {frame.reject_detail}" if frame.reject_detail else ""
-            rec.log(
+            self._rec.log(
                 paths.EVENTS_REJECTIONS,
                 rr.TextLog(
                     f"frame {frame.index} ({frame.cam_name}): {frame.rejected}{detail}",
@@ -350,21 +638,10 @@ class RunLogger:
                 ),
             )
 
-    def _log_uncertainty_styles(self) -> None:
-        rec = self._rec
-        for entity, name, color in (
-            (paths.ERROR_NEES, "NEES (expected: dof)", COLOR_CAMERA),
-            (paths.ERROR_POSITION_OVER_CRLB, "position error ÷ CRLB", COLOR_REPROJECTED),
-            (paths.ERROR_CRLB_POSITION_M, "CRLB position [m]", COLOR_TRUTH),
-            (paths.ERROR_POSITION_SIGMA_M, "covariance position σ [m]", COLOR_CAMERA),
-            (paths.SOLVER_AMBIGUITY_RATIO, f"IPPE ambiguity ratio (capped at {AMBIGUITY_RATIO_CAP:g})", COLOR_GHOST),
-        ):
-            rec.log(entity, rr.SeriesLines(names=name, colors=color, widths=1.5), static=True)
-        rec.log(paths.AGV_GHOST, rr.TransformAxes3D(0.5 * AGV_AXIS_LENGTH_M), static=True)
-
-    def _log_uncertainty(self, frame: FrameResult) -> None:
+    def _log_uncertainty(self, frame: FrameResult, stamp: Stamp) -> None:
         """NEES, error ÷ CRLB, ambiguity ratio, flips, the covariance ellipsoid and the ghost."""
         rec = self._rec
+        columns = self._columns
         for entity, value in (
             (paths.ERROR_NEES, frame.nees),
             (paths.ERROR_POSITION_OVER_CRLB, frame.position_over_crlb),
@@ -372,9 +649,13 @@ class RunLogger:
             (paths.ERROR_POSITION_SIGMA_M, frame.position_sigma_m),
         ):
             if value is not None and math.isfinite(value):
-                rec.log(entity, rr.Scalars(float(value)))
+                columns.scalar(entity, stamp, value)
+            elif not frame.solved:
+                columns.gap(entity, stamp)
         if frame.ambiguity_ratio is not None:
-            rec.log(paths.SOLVER_AMBIGUITY_RATIO, rr.Scalars(min(float(frame.ambiguity_ratio), AMBIGUITY_RATIO_CAP)))
+            columns.scalar(paths.SOLVER_AMBIGUITY_RATIO, stamp, min(float(frame.ambiguity_ratio), AMBIGUITY_RATIO_CAP))
+        elif not frame.solved:
+            columns.gap(paths.SOLVER_AMBIGUITY_RATIO, stamp)
         if frame.flipped and frame.solved:
             rec.log(
                 paths.EVENTS_FLIPS,
@@ -385,58 +666,84 @@ class RunLogger:
                 ),
             )
         if frame.solved and frame.position_cov_world_m2 is not None:
-            R_world_agv = np.asarray(frame.T_world_agv, dtype=float)[:3, :3]
-            cov_agv = R_world_agv.T @ np.asarray(frame.position_cov_world_m2, dtype=float) @ R_world_agv
-            eigenvalues, axes = np.linalg.eigh(0.5 * (cov_agv + cov_agv.T))
-            if np.linalg.det(axes) < 0:
-                axes[:, 0] = -axes[:, 0]
-            sigma_mm = 1000.0 * math.sqrt(max(float(np.sum(eigenvalues)), 0.0))
-            rec.log(
-                paths.AGV_CAMERA_POSITION_COV,
-                rr.Ellipsoids3D(
-                    half_sizes=[3.0 * POSITION_COV_SCALE * np.sqrt(np.clip(eigenvalues, 0.0, None))],
-                    quaternions=[rr.Quaternion(xyzw=se3.to_quaternion_xyzw(axes))],
-                    colors=COLOR_CAMERA,
-                    fill_mode=rr.components.FillMode.MajorWireframe,
-                    labels=[f"3σ position ×{POSITION_COV_SCALE:g} (σ = {sigma_mm:.2f} mm)"],
-                    show_labels=False,
-                ),
-            )
+            if self._cov_scale is None:
+                self._cov_scale = _cov_scale(np.asarray(frame.position_cov_world_m2, dtype=float))
+            rec.log(paths.AGV_CAMERA_POSITION_COV, _covariance_ellipsoid(frame, self._cov_scale))
         else:
             rec.log(paths.AGV_CAMERA_POSITION_COV, rr.Clear(recursive=False))
-        if frame.solved and frame.T_world_agv_ghost is not None:
+        ratio = frame.ambiguity_ratio
+        if frame.solved and frame.T_world_agv_ghost is not None and ratio is not None and ratio < GHOST_MAX_AMBIGUITY_RATIO:
             rec.log(paths.AGV_GHOST, _transform3d(np.asarray(frame.T_world_agv_ghost, dtype=float)))
-            rec.log(paths.AGV_GHOST_BODY, self._body(COLOR_GHOST))
-        else:
+            label = f"IPPE mirror pose: ambiguity ratio {ratio:.2f} < {GHOST_MAX_AMBIGUITY_RATIO:g}"
+            rec.log(paths.AGV_GHOST_BODY, self._body(COLOR_GHOST, label))
+            self._ghost_drawn = True
+        elif self._ghost_drawn:
             rec.log(paths.AGV_GHOST_BODY, rr.Clear(recursive=False))
+            self._ghost_drawn = False
 
-    def _log_lm(self, frame: FrameResult) -> None:
+    def _log_lm(self, frame: FrameResult, stamp: Stamp) -> None:
+        """The frame's solve: LM iterations as bar charts (log10) and lm_iter columns, the
+        reprojected points of each iteration, and a line of text; or "closed-form"."""
         rec = self._rec
-        iterations: list[LmIteration] = frame.lm_iterations
+        iterations: tuple[LmIteration, ...] = tuple(frame.lm_iterations)
+        rec.log(paths.LM_THIS_FRAME, _markdown(_lm_text(frame)))
         if not iterations:
-            rec.log(paths.LM_COST_PER_ITERATION, rr.Clear(recursive=False))
+            self._log_lm_points(frame, stamp, ())
+            if self._lm_bars_drawn:
+                for entity in (
+                    paths.LM_LOG10_COST_PER_ITERATION,
+                    paths.LM_LOG10_DAMPING_PER_ITERATION,
+                    paths.LM_LOG10_STEP_NORM_PER_ITERATION,
+                ):
+                    rec.log(entity, rr.Clear(recursive=False))
+                self._lm_bars_drawn = False
             return
-        costs = np.array([it.cost for it in iterations], dtype=float)
-        rec.log(paths.LM_COST_PER_ITERATION, rr.BarChart(costs, color=COLOR_CAMERA))
-        n = len(iterations)
-        # Columns, not set_time("lm_iter") + log: the iteration timeline must not leak onto
-        # later log calls (DESIGN §8).
-        indexes = [
-            rr.TimeColumn(paths.TIMELINE_LM_ITER, sequence=np.arange(n)),
-            rr.TimeColumn(paths.TIMELINE_FRAME, sequence=np.full(n, int(frame.index))),
-            rr.TimeColumn(
-                paths.TIMELINE_TIME,
-                timestamp=np.full(n, int(frame.log_time_ns), dtype=np.int64).astype("datetime64[ns]"),
-            ),
-        ]
+        self._lm_iterated = True
+        self._lm_bars_drawn = True
+        cost = np.array([it.cost for it in iterations], dtype=float)
+        damping = np.array([it.damping for it in iterations], dtype=float)
+        step = np.array([it.step_norm for it in iterations], dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log10_cost = np.log10(cost)
         for entity, values in (
-            (paths.LM_COST, costs),
-            (paths.LM_REPROJ_RMS_PX, [it.reproj_rms_px for it in iterations]),
-            (paths.LM_DAMPING, [it.damping for it in iterations]),
-            (paths.LM_STEP_NORM, [it.step_norm for it in iterations]),
+            (paths.LM_LOG10_COST_PER_ITERATION, log10_cost),
+            (paths.LM_LOG10_DAMPING_PER_ITERATION, damping),
+            (paths.LM_LOG10_STEP_NORM_PER_ITERATION, step),
         ):
-            columns = rr.Scalars.columns(scalars=np.asarray(values, dtype=float))
-            rec.send_columns(entity, indexes=indexes, columns=columns)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                logged = values if entity == paths.LM_LOG10_COST_PER_ITERATION else np.log10(values)
+            # Bar i is record i (the step norm: trial step i + 1; record 0, the start, has no
+            # step). No abscissa: it would triple the logging cost of a bar chart.
+            logged = logged[1:] if entity == paths.LM_LOG10_STEP_NORM_PER_ITERATION else logged
+            rec.log(entity, rr.BarChart(np.where(np.isfinite(logged), logged, np.nan)))
+        columns = self._columns
+        columns.scalar(paths.LM_ITERATIONS, stamp, len(iterations) - 1)
+        for entity, values in (
+            (paths.LM_COST, cost),
+            (paths.LM_LOG10_COST, np.where(np.isfinite(log10_cost), log10_cost, np.nan)),
+            (paths.LM_REPROJ_RMS_PX, [it.reproj_rms_px for it in iterations]),
+            (paths.LM_DAMPING, damping),
+            (paths.LM_STEP_NORM, step),
+        ):
+            columns.iterations(entity, stamp, values)
+        # One (N, 2) array in image pixels per LM record (the solve stage's lm_iteration_px).
+        self._log_lm_points(frame, stamp, frame.lm_iteration_px)
+
+    def _log_lm_points(self, frame: FrameResult, stamp: Stamp, per_iteration_px) -> None:
+        """Each LM iteration's reprojected points (``lm_iter`` columns) and each point's path
+        start → final (this frame); both cleared on a frame without them."""
+        fixed = frame.cam_name in self._fixed_cams
+        points_entity, path_entity = paths.lm_iteration(frame.cam_name, fixed), paths.lm_path(frame.cam_name, fixed)
+        if len(per_iteration_px) and len(per_iteration_px) == len(frame.lm_iterations):
+            arrays = [np.asarray(p, dtype=float).reshape(-1, 2) for p in per_iteration_px]
+            self._columns.iteration_points(points_entity, stamp, arrays)
+            tracks = np.stack(arrays, axis=1)  # (N points, iterations, 2): each point's path
+            self._rec.log(path_entity, rr.LineStrips2D(list(tracks)))
+            self._lm_points_drawn.add(frame.cam_name)
+        elif frame.cam_name in self._lm_points_drawn:
+            self._columns.gap(points_entity, stamp)  # frame/time/elapsed only: lm_iter untouched
+            self._rec.log(path_entity, rr.Clear(recursive=False))
+            self._lm_points_drawn.discard(frame.cam_name)
 
     # -- run documents ---------------------------------------------------------------------
     def log_manifest(self, manifest: dict) -> None:
@@ -446,17 +753,33 @@ class RunLogger:
         self._rec.log(paths.RUN_MANIFEST, _markdown(text), static=True)
 
     def log_summary(self, summary: dict) -> None:
-        """Log the run summary (RMSE, median, p95, frames solved/rejected) as static markdown."""
+        """Log the run summary as static markdown: the terminal's table
+        (:func:`agvviz.evaluation.summary_table.summary_rows`, without the wall-clock rows),
+        recording damage and warnings, then the whole summary as a JSON block."""
         self._check_open()
-        text = _markdown_document("Run summary", summary)
-        self._rec.log(paths.RUN_SUMMARY, _markdown(text), static=True)
+        self._rec.log(paths.RUN_SUMMARY, _markdown(_summary_markdown(summary)), static=True)
 
     # -- output ----------------------------------------------------------------------------
     def close(self) -> None:
-        """Finish the file: ship the default blueprint, write the footer, move it into place."""
+        """Finish the file: send the buffered columns, ship the default blueprint, write the
+        footer, move it into place."""
         self._check_open()
+        self._flush()
         self._saved = True
-        self._file.commit(self.blueprint if self.blueprint is not None else default_blueprint(self._cam_names))
+        blueprint = self.blueprint
+        if blueprint is None:
+            blueprint = default_blueprint(
+                self._cam_names,
+                fixed_cams=self._fixed_cams,
+                zoom_cams=self.zoom_cams,
+                lm_iterates=self._lm_iterated,
+                has_rejections=self._rejected_frames > 0,
+                has_threshold=self.max_reproj_px is not None,
+                ghost_max_ratio=GHOST_MAX_AMBIGUITY_RATIO,
+                cov_scale=self._cov_scale,
+                start_m=None if self._first_pose is None else tuple(self._first_pose[:3, 3]),
+            )
+        self._file.commit(blueprint)
 
     def discard(self) -> None:
         """Stop logging and delete the unfinished file; ``out_path`` is left untouched."""
@@ -487,6 +810,109 @@ class RunLogger:
             labels=[label] if label else [],  # empty clears a previous stale label
             radii=rr.Radius.ui_points(1.5),
         )
+
+
+def _cov_scale(position_cov_m2: np.ndarray) -> float:
+    """The power of ten (≥ 1) that draws the largest 3σ half-axis about COV_DRAWN_HALF_AXIS_M."""
+    largest_3sigma_m = 3.0 * math.sqrt(max(float(np.max(np.linalg.eigvalsh(position_cov_m2))), 0.0))
+    if largest_3sigma_m <= 0.0 or not math.isfinite(largest_3sigma_m):
+        return 1.0
+    return float(10.0 ** max(0, round(math.log10(COV_DRAWN_HALF_AXIS_M / largest_3sigma_m))))
+
+
+def _covariance_ellipsoid(frame: FrameResult, scale: float) -> rr.Ellipsoids3D:
+    """The 3σ position ellipsoid magnified ×``scale`` in the AGV frame, centred
+    COV_ABOVE_BODY_M above the body's top (its colour and fill are static)."""
+    R_world_agv = np.asarray(frame.T_world_agv, dtype=float)[:3, :3]
+    cov_agv = R_world_agv.T @ np.asarray(frame.position_cov_world_m2, dtype=float) @ R_world_agv
+    cov_agv = 0.5 * (cov_agv + cov_agv.T)
+    eigenvalues, axes = np.linalg.eigh(cov_agv)
+    if np.linalg.det(axes) < 0:
+        axes[:, 0] = -axes[:, 0]
+    sigma_mm = 1000.0 * math.sqrt(max(float(np.sum(eigenvalues)), 0.0))
+    half_z_m = 3.0 * scale * math.sqrt(max(float(cov_agv[2, 2]), 0.0))
+    top_m = AGV_BODY_CENTER_M[2] + AGV_BODY_HALF_SIZES_M[2]
+    return rr.Ellipsoids3D(
+        half_sizes=[3.0 * scale * np.sqrt(np.clip(eigenvalues, 0.0, None))],
+        centers=[(0.0, 0.0, top_m + COV_ABOVE_BODY_M + half_z_m)],
+        quaternions=[rr.Quaternion(xyzw=se3.to_quaternion_xyzw(axes))],
+        labels=[f"position 3σ ×{scale:g} (σ = {sigma_mm:.2f} mm), drawn above the body"],
+    )
+
+
+def _lm_text(frame: FrameResult) -> str:
+    """One line on what the solver did in ``frame``."""
+    iterations = frame.lm_iterations
+    outcome = "solved" if frame.solved else f"rejected: {frame.rejected}"
+    if not iterations:
+        if frame.solved:
+            rms = "" if frame.reproj_rms_px is None else f"; reprojection RMS {frame.reproj_rms_px:.3g} px"
+            return f"**closed-form solver: no iterations** (frame {frame.index}, {outcome}{rms})"
+        return f"**no solve** (frame {frame.index}, {outcome})"
+    first, last = iterations[0], iterations[-1]
+    steps = len(iterations) - 1
+    accepted = sum(it.accepted for it in iterations[1:])
+    return (
+        f"**LM, frame {frame.index}** ({outcome}): {steps} trial steps, {accepted} accepted; "
+        f"cost (½ sum of squared residuals) {first.cost:.3g} → {last.cost:.3g}; reprojection RMS "
+        f"{first.reproj_rms_px:.3g} → {last.reproj_rms_px:.3g} px"
+    )
+
+
+def _longest_edge_px(corners_px: np.ndarray) -> float:
+    """Longest edge of a code's outline (TL, TR, BR, BL) in pixels."""
+    return float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
+
+
+def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float] | None:
+    """PNG of a square crop of the image centred on the code, resized to ZOOM_SIDE_PX; the
+    crop's top-left pixel and the zoom's pixels per image pixel. None when the image does not
+    decode."""
+    image = cv2.imdecode(np.frombuffer(image_bytes, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return None
+    height, width = image.shape[:2]
+    side = int(max(ZOOM_MIN_CROP_PX, math.ceil(ZOOM_CROP_CODE_SIDES * _longest_edge_px(corners_px))))
+    centre = corners_px.mean(axis=0)
+    x0 = int(np.clip(round(centre[0] - side / 2), 0, max(width - side, 0)))
+    y0 = int(np.clip(round(centre[1] - side / 2), 0, max(height - side, 0)))
+    crop = image[y0 : y0 + side, x0 : x0 + side]
+    if crop.shape[0] != crop.shape[1]:  # an image smaller than the crop: pad it square
+        side = max(crop.shape[:2])
+        crop = cv2.copyMakeBorder(crop, 0, side - crop.shape[0], 0, side - crop.shape[1], cv2.BORDER_CONSTANT)
+    zoomed = cv2.resize(crop, (ZOOM_SIDE_PX, ZOOM_SIDE_PX), interpolation=cv2.INTER_NEAREST)
+    ok, png = cv2.imencode(".png", zoomed)
+    if not ok:
+        return None
+    return png.tobytes(), np.array([x0, y0], dtype=float), ZOOM_SIDE_PX / side
+
+
+def _summary_markdown(summary: dict) -> str:
+    """The run summary panel: the terminal table when the summary has its sections (any other
+    dict: key/value rows), damage and warnings, then the JSON block."""
+    rows = summary_rows(summary, {})
+    if not rows:
+        return _markdown_document("Run summary", summary)
+    notes = [f"- recording damage: {p}" for p in summary.get("recording_damage", [])]
+    notes += [f"- warning: {w}" for w in summary.get("warnings", [])]
+    block = _json_block("run summary", summary)
+    parts = ["### Run summary", markdown_table(rows)]
+    if notes:
+        parts.append("\n".join(notes))
+    parts.append(f"#### Full summary (JSON)\n\n```json\n{block}\n```\n")
+    return "\n\n".join(parts)
+
+
+def _trajectory_strip(positions_m: list[np.ndarray]) -> rr.LineStrips3D:
+    """The trajectory so far (thinned like :func:`_trajectory`); colour and radius are static."""
+    return rr.LineStrips3D([_thinned(positions_m)])
+
+
+def _thinned(positions_m: list[np.ndarray]) -> np.ndarray:
+    """At most MAX_TRAJECTORY_POINTS of ``positions_m``, evenly spread, first and last kept."""
+    n = len(positions_m)
+    keep = np.unique(np.linspace(0, n - 1, min(n, MAX_TRAJECTORY_POINTS)).round().astype(int))
+    return np.array([positions_m[i] for i in keep])
 
 
 def _pinhole(camera: PinholeCamera) -> rr.Pinhole:
@@ -547,10 +973,7 @@ def _transform3d(T_parent_child: np.ndarray) -> rr.Transform3D:
 
 def _trajectory(positions_m: list[np.ndarray], color: tuple[int, int, int]) -> rr.LineStrips3D:
     """The trajectory so far, thinned to at most MAX_TRAJECTORY_POINTS (first and last kept)."""
-    n = len(positions_m)
-    keep = np.unique(np.linspace(0, n - 1, min(n, MAX_TRAJECTORY_POINTS)).round().astype(int))
-    strip = np.array([positions_m[i] for i in keep])
-    return rr.LineStrips3D([strip], colors=color, radii=rr.Radius.ui_points(2.0))
+    return rr.LineStrips3D([_thinned(positions_m)], colors=color, radii=rr.Radius.ui_points(2.0))
 
 
 def _markdown(text: str) -> rr.TextDocument:
@@ -567,12 +990,17 @@ def _json_default(value):
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
+def _json_block(what: str, content: dict) -> str:
+    """``content`` as indented JSON (RunLogError when it is not serialisable)."""
+    try:
+        return json.dumps(content, indent=2, sort_keys=True, default=_json_default, allow_nan=True)
+    except TypeError as exc:
+        raise RunLogError(f"{what} is not JSON serialisable: {exc}") from exc
+
+
 def _markdown_document(title: str, content: dict) -> str:
     """Markdown: a key/value table (nested dicts flattened with dots) and a JSON block."""
-    try:
-        block = json.dumps(content, indent=2, sort_keys=True, default=_json_default, allow_nan=True)
-    except TypeError as exc:
-        raise RunLogError(f"{title.lower()} is not JSON serialisable: {exc}") from exc
+    block = _json_block(title.lower(), content)
     rows = []
     for key, value in _flatten(json.loads(block)):
         if isinstance(value, float):
