@@ -18,6 +18,7 @@ import itertools
 import math
 import os
 import re
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -690,13 +691,21 @@ def sweep(
     all_entries = [e for entries in per_recording for e in entries]
     tasks = [cluster.RunTask(e.recording, e.settings, e.out_path) for e in all_entries]
     workers = min(jobs or os.cpu_count() or 1, len(tasks))
+    # Frames for the progress bar are counted while the cluster starts (a read of each file).
+    frames: dict[Path, int] = {}
+    counter = None
+    if progress is not None or on_total is not None:
+        counter = threading.Thread(
+            target=lambda: frames.update({path: _count_frames(path) for path in recordings}),
+            name="agvviz count frames", daemon=True,
+        )
+        counter.start()
     # The cluster first: an unreachable scheduler leaves nothing behind.
     with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs]) as client:
         for folder in out_dirs:
             outputs.prepare_dir(folder, option="--out-dir")
-        frames = {}
-        if progress is not None or on_total is not None:
-            frames = {path: _count_frames(path) for path in recordings}
+        if counter is not None:
+            counter.join()
             if on_total is not None:
                 on_total(cluster.progress_total(tasks, frames))
         results = cluster.run_sweep_tasks(
