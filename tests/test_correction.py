@@ -148,7 +148,7 @@ def test_agvviz_run_with_correction_writes_the_window_and_events(route_recording
     iters, costs = scalar_series(contents, cl.COST, timeline=cl.TIMELINE_CNOEM_ITER)
     assert iters.min() == 0 and np.all(np.isfinite(costs))
     # The iteration timeline must not leak onto per-frame data.
-    assert all(row.get(cl.TIMELINE_CNOEM_ITER) is None for row in _rows(contents, cl.ERROR_CORRECTED_M, "Scalars:scalars"))
+    assert all(row.get(cl.TIMELINE_CNOEM_ITER) is None for row in _rows(contents, cl.ERROR_CORRECTED_MM, "Scalars:scalars"))
     # Theoretical corners: one batch per iteration on cnoem_iter, the last on the observed ones.
     rows = _rows(contents, cl.image_theoretical("left"), "Points2D:positions")
     assert rows and all(row.get(cl.TIMELINE_CNOEM_ITER) is not None for row in rows)

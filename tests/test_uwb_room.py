@@ -15,7 +15,8 @@ from agvviz.runner import run_recording
 from agvviz.settings import RunSettings
 from agvviz.solvers.multi_camera import RigView, refine_rig_pose
 from agvviz.viz import paths
-from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_logs
+from agvviz.viz.readback import _rows, document_json, read_rrd, scalar_series, text_logs
+from agvviz.viz.uwb_logger import NO_CAMERA
 
 # 3 s at 5 Hz (15 time stamps × 4 cameras), cameras blocked from 1.0 s to 2.0 s.
 SMALL = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s=2.0"]
@@ -58,7 +59,7 @@ def test_rrd_holds_ranges_gates_trajectories_and_switch_events(room_run):
     contents = read_rrd(outcome.out_path)
     for entity in (
         paths.UWB_ANCHORS, paths.TRAJECTORY_UWB, paths.TRAJECTORY_FUSED, paths.TRAJECTORY_TRUTH,
-        paths.FUSION_CAMERA_USED, paths.ERROR_UWB_POSITION_M, paths.ERROR_FUSED_POSITION_M, paths.UWB_GDOP,
+        paths.FUSION_CAMERA_USED, paths.ERROR_UWB_POSITION_MM, paths.ERROR_FUSED_POSITION_MM, paths.UWB_GDOP,
         paths.image("south", fixed=True), paths.detected("north", fixed=True),
     ):
         assert entity in contents.entity_paths, entity
@@ -74,8 +75,9 @@ def test_rrd_holds_ranges_gates_trajectories_and_switch_events(room_run):
     assert len(events) == 2
     assert events[0][2].startswith("camera → uwb: offset (δx, δy) = (") and " jump " in events[0][2]
     assert events[1][2].startswith("uwb → camera:")
-    frames, used = scalar_series(contents, paths.FUSION_CAMERA_USED)
-    assert len(frames) == 15 and np.sum(used == -1) == 5  # blocked time stamps: no camera
+    # The camera used is a category logged when it changes: a camera, none while blocked, a camera.
+    used = [row["StateChange:state"][0] for row in _rows(contents, paths.FUSION_CAMERA_USED, "StateChange:state")]
+    assert len(used) == 3 and used[1] == NO_CAMERA and NO_CAMERA not in (used[0], used[2])
     assert document_json(contents, paths.RUN_SUMMARY)["fusion"]["fusion"] == "mean_compensation"
 
 

@@ -9,7 +9,7 @@ from typing import Callable
 
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.evaluation.summary import FrameScore, summarize
-from agvviz.graph.correct import CorrectionStats, CorrectionStep
+from agvviz.graph.correct import CorrectionSettings, CorrectionStats, CorrectionStep
 from agvviz.graph.fuse import FrameSetResult
 from agvviz.results import FrameResult
 from agvviz.settings import RunSettings
@@ -47,9 +47,15 @@ class RunSinks:
         self.progress = progress
         self.scores: list[FrameScore] = []
         self.rejections: dict[str, list] = {}  # reason -> [count, first detail]
-        self.fusion_logger = FusionLogger(logger.stream)
+        self.fusion_logger = FusionLogger(logger.stream, recording_start_ns=logger.recording_start_ns)
         self.fusion_stats = FusionStats()
-        self.correction_logger = CorrectionLogger(logger.stream) if settings.correction != "none" else None
+        self.correction_logger = (
+            CorrectionLogger(
+                logger.stream, recording_start_ns=logger.recording_start_ns, cameras=cameras,
+                max_reproj_px=settings.max_reproj_px, max_position_sigma_m=CorrectionSettings.max_position_sigma_m,
+            )
+            if settings.correction != "none" else None
+        )
         self.correction_stats = CorrectionStats()
         self._cameras_logged: set[str] = set()
 
@@ -110,7 +116,10 @@ class RunSinks:
         if has_uwb:
             summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **self.fusion_stats.summary()}
             fixed = {name for name, cam in self.cameras.items() if cam.T_agv_cam is None}
-            self.logger.blueprint = uwb_blueprint(self.logger.cam_names, fixed, self.fusion_logger.anchor_ids)
+            self.logger.blueprint = uwb_blueprint(
+                self.logger.cam_names, fixed, self.fusion_logger.anchor_ids,
+                zoom_cams=self.logger.zoom_cams, error_range_mm=self.fusion_logger.error_range_mm(),
+            )
         if self.correction_logger is not None:
             summary["correction"] = {"solver": settings.correction, **self.correction_stats.summary()}
             self.logger.blueprint = correction_blueprint(sorted(self.cameras))

@@ -19,6 +19,11 @@ timing         per camera and frame: delay ``d = latency_s + jitter_sigma_s·n``
 bumps          floor unevenness: the AGV's true pitch θ and roll γ are smooth random fields
                of its floor position (correlation length in m), ``R_true = Rz(ψ)·Rx(θ)·Ry(γ)``.
 slip           wheel slip: each odometry step's distance is scaled by ``1 + fraction + σ·n``.
+imaging        image formation and print (:mod:`agvviz.sim.imaging`, :class:`ImagingErrors`):
+               defocus, motion blur, rolling shutter, vignetting, illumination, shot and read
+               noise, JPEG; ink spread, paper warp and texture, glare, dirt, occlusion. Each
+               effect of :data:`IMAGING_EFFECTS` can be switched off on its own
+               (``realism_off=imaging.defocus``); off means the ``ideal`` profile's value.
 =============  ==========================================================================
 
 Every source draws from its own generator :func:`source_rng` (seed, source name), and every
@@ -43,10 +48,32 @@ from agvviz.geometry import se3, so3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.geometry.euler import Rx, Ry, Rz
 from agvviz.recording.schemas import REALISM_METADATA
+from agvviz.sim import imaging as im
 from agvviz.sim.render import FloorCode  # "agvviz.realism", key "draws"
 
-#: Error sources, each switchable on its own (``realism_off``) and each with its own generator.
-SOURCES = ("calibration", "map", "timing", "bumps", "slip")
+#: Error sources, each switchable on its own (``realism_off``) and each with its own generator
+#: (``imaging``: the per-effect streams of :func:`agvviz.sim.imaging.source_rngs`).
+SOURCES = ("calibration", "map", "timing", "bumps", "slip", "imaging")
+#: Image-formation effects switchable on their own (``realism_off=imaging.<effect>``): the
+#: :class:`~agvviz.sim.imaging.ImagingErrors` fields each resets to the ``ideal`` profile's value.
+IMAGING_EFFECTS = {
+    "ink_spread": ("ink_spread_modules",),
+    "paper_warp": ("paper_warp_m",),
+    "paper_texture": ("paper_texture_sigma",),
+    "glare": ("glare_peak_dn",),
+    "dirt": ("dirt_spots_per_label",),
+    "occlusion": ("occlusion_probability",),
+    "motion_blur": ("exposure_s",),
+    "rolling_shutter": ("line_delay_s",),
+    "pixel_aperture": ("pixel_aperture",),
+    "illumination": ("illumination_sigma",),
+    "vignetting": ("vignetting_strength",),
+    "defocus": ("defocus_radius_px",),
+    "lens_blur": ("blur_sigma_px",),
+    "shot_noise": ("shot_gain_e_per_dn",),
+    "read_noise": ("read_noise_dn",),
+    "jpeg": ("jpeg_quality",),
+}
 #: Components of the random-Fourier-feature field of a bump angle.
 BUMP_COMPONENTS = 64
 
@@ -114,6 +141,11 @@ class Realism:
     timing: TimingErrors = field(default_factory=TimingErrors)
     bumps: BumpErrors = field(default_factory=BumpErrors)
     slip: SlipErrors = field(default_factory=SlipErrors)
+    #: ``ideal``: :data:`agvviz.sim.imaging.IDEAL_IMAGING` — Gaussian blur 0.8 px, read noise
+    #: 2 DN, ``jpeg_quality`` 0 = the scenario's own ``jpeg_quality`` option (see
+    #: :func:`scenario_imaging` for how a scenario's ``blur_sigma_px``/``noise_sigma_dn``/
+    #: ``jpeg_quality`` options combine with the profile).
+    imaging: im.ImagingErrors = im.IDEAL_IMAGING
 
     @property
     def is_ideal(self) -> bool:
@@ -141,6 +173,10 @@ PROFILES: dict[str, Realism] = {
         TimingErrors(latency_s=0.0003, jitter_sigma_s=0.0002, drop_probability=0.01),
         BumpErrors(pitch_sigma_deg=0.1, roll_sigma_deg=0.1, correlation_m=0.3),
         SlipErrors(fraction=0.002, sigma=0.005),
+        # The photo-calibrated camera and print with whole-pixel apertures: TYPICAL_IMAGING's
+        # 0.25 stands for the phone photos' decimation to 640×480; an AGV camera read out at
+        # its native resolution integrates over (nearly) the whole pixel.
+        dataclasses.replace(im.TYPICAL_IMAGING, pixel_aperture=1.0),
     ),
     "harsh": Realism(
         "harsh",
@@ -154,6 +190,7 @@ PROFILES: dict[str, Realism] = {
         TimingErrors(latency_s=0.003, jitter_sigma_s=0.001, drop_probability=0.05),
         BumpErrors(pitch_sigma_deg=0.5, roll_sigma_deg=0.5, correlation_m=0.2),
         SlipErrors(fraction=0.01, sigma=0.02),
+        dataclasses.replace(im.HARSH_IMAGING, pixel_aperture=1.0),  # native read-out, as typical
     ),
 }
 PROFILE_NAMES = tuple(PROFILES)
@@ -161,13 +198,15 @@ PROFILE_NAMES = tuple(PROFILES)
 #: Help lines of the three scenario options every scenario declares (``realism``,
 #: ``realism_off``, ``realism_set``), passed to :func:`make_realism`.
 HELP_PROFILE = "error sources' profile (agvviz/sim/realism.py): ideal, typical or harsh"
-HELP_OFF = "error sources switched off, comma-separated: calibration,map,timing,bumps,slip"
+HELP_OFF = ("error sources switched off, comma-separated: calibration,map,timing,bumps,slip,imaging "
+            "or one imaging effect, e.g. imaging.defocus (names in agvviz/sim/realism.py IMAGING_EFFECTS)")
 HELP_SET = ("profile parameters overridden, comma-separated, e.g. "
-            "calibration.fx_sigma_px=0.5,timing.latency_s=0.002 (names in agvviz/sim/realism.py)")
+            "calibration.fx_sigma_px=0.5,timing.latency_s=0.002,imaging.defocus_radius_px=1 "
+            "(names in agvviz/sim/realism.py and agvviz/sim/imaging.py ImagingErrors)")
 
 _CLASSES = {
     "calibration": CalibrationErrors, "map": MapErrors, "timing": TimingErrors,
-    "bumps": BumpErrors, "slip": SlipErrors,
+    "bumps": BumpErrors, "slip": SlipErrors, "imaging": im.ImagingErrors,
 }
 #: Allowed range of each parameter (inclusive unless noted in :func:`_check`).
 _BOUNDS = {
@@ -185,6 +224,15 @@ def parameter_names() -> tuple[str, ...]:
 
 
 def _check(name: str, value: float) -> None:
+    if name.startswith("imaging."):  # the imaging module's own ranges, one field at a time
+        field_name = name.split(".", 1)[1]
+        if field_name == "jpeg_quality" and value != int(value):
+            raise ValueError(f"realism parameter {name} must be an integer 0..100 (0: the scenario's jpeg_quality), got {value:g}")
+        try:
+            im.check_imaging_errors(dataclasses.replace(im.ImagingErrors(), **{field_name: value}))
+        except ValueError as exc:
+            raise ValueError(f"realism parameter {name}: {exc}") from None
+        return
     if not math.isfinite(value):
         raise ValueError(f"realism parameter {name} must be a finite number, got {value}")
     lo, hi = _BOUNDS.get(name, (0.0, next((v for k, v in _SIGMA_MAX.items() if name.endswith(k)), 0.5)))
@@ -194,8 +242,10 @@ def _check(name: str, value: float) -> None:
 
 def make_realism(profile: str, off: str = "", overrides: str = "") -> Realism:
     """The profile ``profile`` with the sources in ``off`` (comma-separated names of
-    :data:`SOURCES`) switched off and ``overrides`` applied (``"calibration.fx_sigma_px=0.5,
-    timing.latency_s=0.002"``; names from :func:`parameter_names`).
+    :data:`SOURCES`, or ``imaging.<effect>`` of :data:`IMAGING_EFFECTS`) switched off — set to
+    the ``ideal`` profile's values — and ``overrides`` applied (``"calibration.fx_sigma_px=0.5,
+    timing.latency_s=0.002,imaging.defocus_radius_px=1"``; names from :func:`parameter_names`).
+    ``off`` wins over ``overrides``.
 
     Raises ``ValueError`` with a one-line message for an unknown profile, source or parameter
     and for a value out of its range.
@@ -217,11 +267,20 @@ def make_realism(profile: str, off: str = "", overrides: str = "") -> Realism:
             raise ValueError(f"realism_set: {key}={text!r} is not a number") from None
         _check(key, value)
         source, name = key.split(".")
-        groups[source][name] = value
+        groups[source][name] = int(value) if name == "jpeg_quality" else value
+    ideal = PROFILES["ideal"]
     for source in (s.strip() for s in off.split(",") if s.strip()):
-        if source not in SOURCES:
-            raise ValueError(f"realism_off: {source!r} is not one of: {', '.join(SOURCES)}")
-        groups[source] = dataclasses.asdict(_CLASSES[source]())
+        group, _, effect = source.partition(".")
+        if group == "imaging" and effect in IMAGING_EFFECTS:
+            for name in IMAGING_EFFECTS[effect]:
+                groups["imaging"][name] = getattr(ideal.imaging, name)
+        elif source not in SOURCES:
+            raise ValueError(
+                f"realism_off: {source!r} is not one of: {', '.join(SOURCES)}, "
+                f"{', '.join('imaging.' + e for e in IMAGING_EFFECTS)}"
+            )
+        else:
+            groups[source] = dataclasses.asdict(getattr(ideal, source))
     name = profile if (not off.strip() and not overrides.strip()) else f"{profile}*"
     return Realism(name, **{s: _CLASSES[s](**groups[s]) for s in SOURCES})
 
@@ -235,6 +294,57 @@ def check_timing(timing: TimingErrors, frame_period_s: float) -> None:
             f"realism timing: |latency_s| + 5·jitter_sigma_s = {reach_s:g} s must be < half the frame "
             f"period ({frame_period_s / 2.0:g} s); lower them or the frame rate"
         )
+
+
+# -- imaging ------------------------------------------------------------------------------------
+#: Scenario options that set an imaging parameter (option → :class:`ImagingErrors` field).
+IMAGING_OPTIONS = {"blur_sigma_px": "blur_sigma_px", "noise_sigma_dn": "read_noise_dn", "jpeg_quality": "jpeg_quality"}
+#: Key of :func:`agvviz.sim.imaging.source_rngs` of the print (then the code index) and of the
+#: frames (then the frame index, and the camera index where a scenario has several cameras).
+PRINT_KEY, FRAME_KEY = 0, 1
+
+
+def scenario_imaging(realism: Realism, options) -> tuple[im.ImagingErrors, int]:
+    """The image-formation errors a scenario renders with (``jpeg_quality`` 0: the scenario
+    encodes the frame itself) and the JPEG quality it encodes at.
+
+    The profile's :attr:`Realism.imaging`, except that a scenario option of
+    :data:`IMAGING_OPTIONS` set to other than its default overrides it (so under ``ideal`` —
+    whose blur 0.8 px and read noise 2 DN are those options' defaults — they keep their meaning
+    exactly); a profile ``jpeg_quality`` of 0 stands for the option's value.
+    """
+    defaults = type(options)()
+    values = {
+        name: getattr(options, option)
+        for option, name in IMAGING_OPTIONS.items()
+        if hasattr(options, option) and getattr(options, option) != getattr(defaults, option)
+    }
+    errors = dataclasses.replace(realism.imaging, **values)
+    quality = int(errors.jpeg_quality or options.jpeg_quality)
+    return dataclasses.replace(errors, jpeg_quality=0), quality
+
+
+def exposure_start_s(errors: im.ImagingErrors, height_px: int, t_capture_s: float) -> float:
+    """When row 0 starts its exposure in a frame captured at ``t_capture_s`` (its stamp minus
+    the timing delay): the capture instant is the middle of the middle row's exposure — what a
+    driver stamping the frame's centre reports, and where the truth is recorded — so neither
+    exposure nor rolling shutter adds a latency, only blur and skew. ``t_capture_s`` itself
+    without exposure and line delay."""
+    if errors.exposure_s == 0 and errors.line_delay_s == 0:
+        return t_capture_s
+    return t_capture_s - 0.5 * (height_px - 1) * errors.line_delay_s - 0.5 * errors.exposure_s
+
+
+def imaging_record(errors: im.ImagingErrors, jpeg_quality: int, time_samples: int, rows_per_band: int) -> dict:
+    """The ``imaging`` entry of :class:`Draws`: the parameters rendered with and where every
+    draw comes from (the draws themselves are images: they are re-drawn from the streams)."""
+    return {
+        "errors": {**dataclasses.asdict(errors), "jpeg_quality": int(jpeg_quality)},
+        "time_samples": int(time_samples), "rows_per_band": int(rows_per_band),
+        "streams": (f"print: imaging.source_rngs(seed, {PRINT_KEY}, code index); frame k: "
+                    f"imaging.source_rngs(seed, {FRAME_KEY}, k[, camera index]) but read_noise: the scenario's generator"),
+        "capture_instant": "middle of the middle row's exposure",
+    }
 
 
 def source_rng(seed: int, source: str) -> np.random.Generator:

@@ -148,11 +148,12 @@ AGV_FUSED = "world/agv/fused"  # Transform3D: the latest fused position
 TRAJECTORY_UWB = "world/trajectory/uwb"
 TRAJECTORY_FUSED = "world/trajectory/fused"
 UWB_GDOP = "uwb/gdop"  # Scalars per UWB fix
-ERROR_UWB_POSITION_M = "errors/uwb_position_m"  # 2-D error of each UWB fix
-ERROR_FUSED_POSITION_M = "errors/fused_position_m"  # 2-D error of each fused output
+ERROR_UWB_POSITION_MM = "errors/uwb_position_mm"  # 2-D error of each UWB fix (mm)
+ERROR_FUSED_POSITION_MM = "errors/fused_position_mm"  # 2-D error of each fused output (mm)
+FUSION_SOURCE = "fusion/source"  # StateChange: what the fused estimate comes from
 EVENTS_FUSION = "events/fusion"  # TextLog: every switch, with its offset and jump
 EVENTS_UWB_GATE = "events/uwb_gate"  # TextLog: every range a gate removed
-FUSION_CAMERA_USED = "fusion/camera_used"  # Scalars: index of the camera used (−1: none)
+FUSION_CAMERA_USED = "fusion/camera_used"  # StateChange: camera used ('none': none), logged on change
 UWB_RANGE_KINDS = ("measured", "predicted_truth", "predicted_estimate", "gated")
 
 

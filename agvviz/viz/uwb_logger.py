@@ -1,8 +1,16 @@
 """Log UWB ranging, UWB fixes, the camera choice and camera–UWB fusion into a run ``.rrd``.
 
-Entities are in :mod:`agvviz.viz.paths` (the "UWB and camera–UWB fusion" section); items come
-from :class:`agvviz.graph.fuse.FusionReplay`. Everything is logged on the ``time``
-timeline and on ``frame`` (the latest camera frame index), never with wall-clock values.
+Entities are in :mod:`agvviz.viz.paths` (the "UWB and camera–UWB fusion" section) and below;
+items come from :class:`agvviz.graph.fuse.FusionReplay`. Everything is stamped with
+:func:`agvviz.viz.timelines.set_stamp`: ``frame`` (the latest camera frame index), ``time`` and
+``elapsed`` (seconds since the recording's first stamp).
+
+``fusion/camera_used``            StateChange: the camera whose fix was used ("none": no camera
+                                  solved), logged when it changes (a category lane, not a line)
+``fusion/source``                 StateChange: what the fused estimate comes from (camera, UWB
+                                  compensated, Kalman), logged when it changes
+``errors/uwb_position_mm``        Scalars: 2-D error of each UWB fix (mm)
+``errors/fused_position_mm``      Scalars: 2-D error of each fused output (mm)
 """
 
 from __future__ import annotations
@@ -13,27 +21,65 @@ import rerun as rr
 from agvviz.graph.fuse import FrameSetResult, RangeResult, UwbFixResult
 from agvviz.viz import paths
 from agvviz.viz.run_logger import _trajectory
-from agvviz.viz.style import COLOR_ANCHOR, COLOR_CAMERA, COLOR_FUSED, COLOR_REJECTED, COLOR_TRUTH, COLOR_UWB
+from agvviz.viz.style import (
+    COLOR_ANCHOR,
+    COLOR_CAMERA,
+    COLOR_FUSED,
+    COLOR_REJECTED,
+    COLOR_STALE,
+    COLOR_TRUTH,
+    COLOR_UWB,
+    LEGEND,
+)
+from agvviz.viz.timelines import set_stamp
 
-#: Colours of the three range series of each anchor.
+#: State of ``fusion/camera_used`` when no camera solved.
+NO_CAMERA = "none"
+#: Labels and colours of the ``fusion/source`` states (FusedFix.source).
+SOURCE_STATES = {
+    "camera": ("camera fix", COLOR_CAMERA),
+    "uwb": ("UWB (compensated)", COLOR_UWB),
+    "kalman": ("Kalman (camera + UWB)", COLOR_FUSED),
+}
+
+#: Colours and legend names of the three range series of each anchor.
 RANGE_COLORS = {"measured": COLOR_UWB, "predicted_truth": COLOR_TRUTH, "predicted_estimate": COLOR_FUSED}
+RANGE_NAMES = {"measured": "measured", "predicted_truth": "expected from truth", "predicted_estimate": "expected from fused"}
 POSITION_MARKER_RADIUS = rr.Radius.ui_points(6.0)
+#: The UWB/fused error plot's y axis ends at this quantile of their errors × ERROR_AXIS_MARGIN,
+#: so a few metre-size UWB outliers (NLOS) do not flatten everything else.
+ERROR_AXIS_QUANTILE = 0.95
+ERROR_AXIS_MARGIN = 1.5
 
 
 class FusionLogger:
     """Logs :class:`FusionReplay` items into ``stream`` (the run logger's recording stream)."""
 
-    def __init__(self, stream: rr.RecordingStream):
+    def __init__(self, stream: rr.RecordingStream, recording_start_ns: int | None = None):
+        """``recording_start_ns``: the recording's first stamp (``elapsed`` counts from it);
+        None: the first logged item's stamp."""
         self._rec = stream
+        self.recording_start_ns = None if recording_start_ns is None else int(recording_start_ns)
         self._frame_index = 0
+        self._camera_used: str | None = None
+        self._source: str | None = None
+        self._errors_mm: list[float] = []
         self._uwb_xyz: list[np.ndarray] = []
         self._fused_xyz: list[np.ndarray] = []
         self._cam_names: list[str] = []
         self.anchor_ids: list[str] = []
 
     def _set_time(self, log_time_ns: int) -> None:
-        self._rec.set_time(paths.TIMELINE_FRAME, sequence=int(self._frame_index))
-        self._rec.set_time(paths.TIMELINE_TIME, timestamp=np.datetime64(int(log_time_ns), "ns"))
+        if self.recording_start_ns is None:
+            self.recording_start_ns = int(log_time_ns)
+        set_stamp(self._rec, self._frame_index, log_time_ns, self.recording_start_ns)
+
+    def error_range_mm(self) -> float | None:
+        """Top of the UWB/fused error plot's y axis (see ERROR_AXIS_QUANTILE); None before any
+        error was logged."""
+        if not self._errors_mm:
+            return None
+        return float(ERROR_AXIS_MARGIN * np.quantile(self._errors_mm, ERROR_AXIS_QUANTILE))
 
     # -- static ---------------------------------------------------------------------------------
     def log_anchors(self, anchors_m: dict[str, np.ndarray], tag_z_m: float, cam_names: list[str]) -> None:
@@ -51,8 +97,7 @@ class FusionLogger:
         )
         for anchor in self.anchor_ids:
             for kind, color in RANGE_COLORS.items():
-                name = {"measured": "measured", "predicted_truth": "from truth", "predicted_estimate": "from estimate"}[kind]
-                rec.log(paths.uwb_range(anchor, kind), rr.SeriesLines(names=f"{anchor} {name} [m]", colors=color, widths=1.5), static=True)
+                rec.log(paths.uwb_range(anchor, kind), rr.SeriesLines(names=RANGE_NAMES[kind], colors=color, widths=1.5), static=True)
             rec.log(
                 paths.uwb_gate(anchor),
                 rr.SeriesPoints(names=f"{anchor} used (1) / gated (0)", colors=COLOR_REJECTED, marker_sizes=2.0),
@@ -61,19 +106,39 @@ class FusionLogger:
             rec.log(
                 paths.uwb_range(anchor, "gated"),
                 rr.SeriesPoints(
-                    names=f"{anchor} range removed by a gate [m]", colors=COLOR_REJECTED,
+                    names="removed by a gate", colors=COLOR_REJECTED,
                     markers=rr.components.MarkerShape.Cross, marker_sizes=5.0,
                 ),
                 static=True,
             )
         for entity, name, color in (
-            (paths.ERROR_UWB_POSITION_M, "UWB fix error [m] (2-D)", COLOR_UWB),
-            (paths.ERROR_FUSED_POSITION_M, "fused error [m] (2-D)", COLOR_FUSED),
+            (paths.ERROR_FUSED_POSITION_MM, LEGEND[COLOR_FUSED] + " [mm]", COLOR_FUSED),
             (paths.UWB_GDOP, "GDOP", COLOR_ANCHOR),
         ):
             rec.log(entity, rr.SeriesLines(names=name, colors=color, widths=1.5), static=True)
-        used_name = "camera used: " + ", ".join(f"{i} {c}" for i, c in enumerate(self._cam_names)) + ", -1 none"
-        rec.log(paths.FUSION_CAMERA_USED, rr.SeriesPoints(names=used_name, colors=COLOR_CAMERA, marker_sizes=2.0), static=True)
+        rec.log(
+            paths.ERROR_UWB_POSITION_MM,
+            rr.SeriesPoints(names=LEGEND[COLOR_UWB] + " fix [mm]", colors=COLOR_UWB, marker_sizes=2.0),
+            static=True,
+        )
+        rec.log(
+            paths.FUSION_CAMERA_USED,
+            rr.StateConfiguration(
+                values=[*self._cam_names, NO_CAMERA],
+                labels=[*(f"camera {c}" for c in self._cam_names), "no camera (code hidden)"],
+                colors=[*(COLOR_CAMERA for _ in self._cam_names), COLOR_STALE],
+            ),
+            static=True,
+        )
+        rec.log(
+            paths.FUSION_SOURCE,
+            rr.StateConfiguration(
+                values=list(SOURCE_STATES),
+                labels=[label for label, _ in SOURCE_STATES.values()],
+                colors=[color for _, color in SOURCE_STATES.values()],
+            ),
+            static=True,
+        )
         for entity, color in ((paths.AGV_UWB, COLOR_UWB), (paths.AGV_FUSED, COLOR_FUSED)):
             rec.log(entity, rr.Points3D([[0.0, 0.0, tag_z_m]], colors=color, radii=POSITION_MARKER_RADIUS), static=True)
 
@@ -82,9 +147,10 @@ class FusionLogger:
         if isinstance(item, FrameSetResult):
             self._frame_index = item.scored.index
             self._set_time(item.scored.log_time_ns)
-            used = item.selection.primary.cam_name if item.selection.primary is not None else None
-            index = self._cam_names.index(used) if used in self._cam_names else -1
-            self._rec.log(paths.FUSION_CAMERA_USED, rr.Scalars(float(index)))
+            used = item.selection.primary.cam_name if item.selection.primary is not None else NO_CAMERA
+            if used != self._camera_used:
+                self._rec.log(paths.FUSION_CAMERA_USED, rr.StateChange(state=used))
+                self._camera_used = used
         elif isinstance(item, RangeResult):
             self._set_time(item.log_time_ns)
             for kind, value in (
@@ -116,7 +182,8 @@ class FusionLogger:
         if np.isfinite(fix.gdop):
             rec.log(paths.UWB_GDOP, rr.Scalars(float(fix.gdop)))
         if item.error_m is not None:
-            rec.log(paths.ERROR_UWB_POSITION_M, rr.Scalars(item.error_m))
+            rec.log(paths.ERROR_UWB_POSITION_MM, rr.Scalars(1000.0 * item.error_m))
+            self._errors_mm.append(1000.0 * item.error_m)
         removed = []
         for anchor, gated, residual, range_m in zip(fix.anchor_ids, fix.gated, fix.residuals_m, fix.ranges_m):
             rec.log(paths.uwb_gate(anchor), rr.Scalars(0.0 if gated else 1.0))
@@ -140,5 +207,9 @@ class FusionLogger:
         rec.log(paths.AGV_FUSED, rr.Transform3D(translation=[xy[0], xy[1], 0.0]))
         self._fused_xyz.append(np.array([xy[0], xy[1], 0.0]))
         rec.log(paths.TRAJECTORY_FUSED, _trajectory(self._fused_xyz, COLOR_FUSED))
+        if step.fused.source != self._source:
+            rec.log(paths.FUSION_SOURCE, rr.StateChange(state=step.fused.source))
+            self._source = step.fused.source
         if item.fused_error_m is not None:
-            rec.log(paths.ERROR_FUSED_POSITION_M, rr.Scalars(item.fused_error_m))
+            rec.log(paths.ERROR_FUSED_POSITION_MM, rr.Scalars(1000.0 * item.fused_error_m))
+            self._errors_mm.append(1000.0 * item.fused_error_m)
