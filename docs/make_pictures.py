@@ -90,10 +90,6 @@ class HeadlessViewer:
         """Open ``rrd`` and save one screenshot per time in ``at``."""
         import cv2
 
-        try:
-            self.client.close("all")  # the previous run's; raises when nothing is open
-        except Exception:  # noqa: BLE001
-            pass
         self.client.open(str(rrd.resolve()))
         for value, out in zip(at, out_paths):
             self.client.set_time(timeline, sequence=int(value), play_state="paused")
@@ -144,27 +140,29 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     at_override = [int(v) for v in args.at.split(",")] if args.at else None
 
-    with HeadlessViewer(rerun_exe) as viewer:
-        if args.rrd is not None:
-            at = at_override or [0]
-            outs = [args.out_dir / f"{args.rrd.stem}-{v}.png" for v in at]
-            viewer.screenshots(args.rrd, args.timeline or "frame", at, outs)
-            return
-        wanted = set(args.only.split(",")) if args.only else None
-        for picture in PICTURES:
-            if wanted is not None and picture.scenario not in wanted:
-                continue
-            print(picture.scenario)
-            recording = work / f"{picture.scenario}.mcap"
-            if not recording.exists():
-                _agvviz("record", picture.scenario, "--out", str(recording),
-                        *[a for s in picture.record_sets for a in ("--set", s)])
-            run = work / f"{picture.scenario}.rrd"
-            _agvviz("run", str(recording), "--out", str(run), *[a for s in picture.run_sets for a in ("--set", s)])
-            at = at_override or (list(picture.at) if args.all_times else [picture.at[0]])
-            names = [picture.scenario] if len(at) == 1 and at_override is None else [
-                f"{picture.scenario}-{v}" for v in at
-            ]
+    # A fresh viewer per run: a viewer keeps the layout it showed for the application id, so a
+    # second run would be drawn in the first one's layout instead of its own.
+    if args.rrd is not None:
+        at = at_override or [0]
+        with HeadlessViewer(rerun_exe) as viewer:
+            viewer.screenshots(args.rrd, args.timeline or "frame", at, [args.out_dir / f"{args.rrd.stem}-{v}.png" for v in at])
+        return
+    wanted = set(args.only.split(",")) if args.only else None
+    for picture in PICTURES:
+        if wanted is not None and picture.scenario not in wanted:
+            continue
+        print(picture.scenario)
+        recording = work / f"{picture.scenario}.mcap"
+        if not recording.exists():
+            _agvviz("record", picture.scenario, "--out", str(recording),
+                    *[a for s in picture.record_sets for a in ("--set", s)])
+        run = work / f"{picture.scenario}.rrd"
+        _agvviz("run", str(recording), "--out", str(run), *[a for s in picture.run_sets for a in ("--set", s)])
+        at = at_override or (list(picture.at) if args.all_times else [picture.at[0]])
+        names = [picture.scenario] if len(at) == 1 and at_override is None else [
+            f"{picture.scenario}-{v}" for v in at
+        ]
+        with HeadlessViewer(rerun_exe) as viewer:
             viewer.screenshots(run, args.timeline or picture.timeline, at, [args.out_dir / f"{n}.png" for n in names])
 
 
