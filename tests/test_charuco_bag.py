@@ -136,7 +136,8 @@ def detected_corners(contents) -> dict[int, dict[int, np.ndarray]]:
     """{frame: {marker id: (4, 2) detected corners, image px}} from ``.../image/detected``."""
     from agvviz.viz import readback
 
-    (entity,) = [p for p in contents.entity_paths if p.endswith(f"cam_{CAM}/image/detected")]
+    # The full image's corners (not the zoomed view's, zoom/cam_<name>/image/detected).
+    (entity,) = [p for p in contents.entity_paths if p.endswith(f"cam_{CAM}/image/detected") and p.startswith("world/")]
     rows = readback._rows(contents, entity, "Points2D:positions")  # labels sit on the same rows
     labels = {row[readback._ROW_ID]: row.get("Points2D:labels") for row in readback._rows(contents, entity, "Points2D:labels")}
     out: dict[int, dict[int, np.ndarray]] = {}
