@@ -715,6 +715,57 @@ def sweep(
 
 @app.command(cls=_Command)
 @handle_errors
+def budget(
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="an agvviz .mcap recorded under a non-ideal realism profile"),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="run setting (repeatable), as for `agvviz run`"),
+    out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-budget.rrd)"),
+    work_dir: Optional[Path] = typer.Option(None, "--work-dir", help="keep the re-recorded worlds and their runs "
+                                            "here (default: a temporary folder, removed afterwards)"),
+) -> None:
+    """Error budget: the share of the position error each error source causes.
+
+    Each error source that is on in RECORDING is switched off in turn: the scenario is recorded
+    again with the same seed and options plus realism_off=<source> (every source draws from its
+    own random stream, so only that source changes), replayed with the same run settings and
+    compared. share = (RMSE_all² − RMSE_off²) / RMSE_all²; the shares need not sum to 100 %
+    (interaction/other is the rest); the floor is every source off.
+
+    Example: agvviz budget recordings/qr_floor_typical.mcap --out runs/budget.rrd
+    """
+    from agvviz.evaluation.error_budget import error_budget
+    from agvviz.viz.budget_logger import write_budget_rrd
+
+    settings = apply_overrides(RunSettings(), list(set_))
+    out = out or Path("runs") / f"{recording.stem}-budget.rrd"
+    if out.suffix != ".rrd":
+        _fail(f"--out must end in .rrd, got {out}")
+    outputs.prepare_output(out, inputs=[recording])  # fail before the work, not after
+    with _progress() as progress:
+        task = progress.add_task(f"budget of {recording.name}", total=None, rate="")
+
+        def on_step(done: int, total: int, what: str) -> None:
+            progress.update(task, completed=done, total=total, **({"rate": what} if what else {}))
+
+        result = error_budget(recording, settings, work_dir=work_dir, progress=on_step)
+        progress.update(task, rate="done")
+    written = write_budget_rrd(out, result)
+    table = Table(title=f"error budget of {recording.name} ({result.scenario}, seed {result.seed}, "
+                  f"realism {result.profile}): position RMSE {result.rmse_all_mm:.3f} mm", title_justify="left")
+    table.add_column("source")
+    table.add_column("RMSE with it off (mm)", justify="right")
+    table.add_column("share %", justify="right")
+    for row in result.rows():
+        table.add_row(*row)
+    console.print(table)
+    for warning in result.warnings:
+        err_console.print(f"[yellow]warning:[/] {escape(warning)}")
+    if work_dir is not None:
+        console.print(f"re-recorded worlds and runs in [bold]{escape(str(work_dir))}[/]")
+    console.print(f"budget written: [bold]{escape(str(written))}[/]  (agvviz view {escape(str(written))})")
+
+
+@app.command(cls=_Command)
+@handle_errors
 def export(
     run_file: Path = typer.Argument(..., metavar="RUN", help="run .rrd"),
     format_: str = typer.Option("tum", "--format", help="output format: tum (evo, TUM tools) or mcap (Foxglove)"),

@@ -40,8 +40,14 @@ mounts are perturbed, the map holds the markers where they were meant to hang wh
 corners come from their true placement and print size; each camera's frame stamped t shows the
 world at its capture time t − delay (``/agv/ground_truth`` then also gets a sample at each
 capture time); dropped frames write neither image nor corners. Bumps and slip do not apply
-under water (the route already pitches and rolls). Draws in the ``agvviz.realism`` metadata
-(not under ``ideal``).
+under water (the route already pitches and rolls). With ``images=true`` the imaging effects of
+the profile (:mod:`agvviz.sim.imaging`) apply too: printed markers, exposure while the vehicle
+moves (capture instant: the middle of the middle row's exposure; ``time_samples``,
+``rows_per_band``), the under-ice brightness on the exposure, then optics, shot and read noise
+(``noise_sigma_dn`` set to other than its default overrides the profile's read noise) and JPEG
+(the profile's quality unless ``jpeg_quality`` is set); with the ``ideal`` profile's imaging the
+frames are exactly those made before the imaging effects existed. Draws in the
+``agvviz.realism`` metadata (not under ``ideal``).
 """
 
 from __future__ import annotations
@@ -60,6 +66,7 @@ from agvviz.markers.aruco import aruco_modules
 from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim import auv
+from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
 from agvviz.sim.room import placed, roof_code
@@ -94,6 +101,8 @@ class Options:
     noise_sigma_dn: float = setting(2.0, "images: sensor noise (digital numbers)", min=0.0, max=100.0)
     supersample: int = setting(2, "images: area-integration samples per pixel side", min=1, max=16)
     jpeg_quality: int = setting(92, "images: JPEG quality", min=1, max=100)
+    time_samples: int = setting(2, "images: renders averaged over each row's exposure (motion blur accuracy)", min=1, max=64)
+    rows_per_band: int = setting(32, "images: rows rendered at one time under a rolling shutter (smaller: more exact, slower)", min=1, max=8192)
     grid_distance_m: float = setting(10.0, "grid mode: marker distance L from F (m)", min=0.1, max=1000.0)
     grid_lateral_fraction: float = setting(0.2, "grid mode: lateral offset as a fraction of L", min=0.0, max=10.0)
     grid_vertical_fraction: float = setting(0.1, "grid mode: vertical offset as a fraction of L", min=0.0, max=10.0)
@@ -206,12 +215,19 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: 
     n = int(o.duration_s * o.frame_rate_hz) + 1
     stamps_ns = np.array([t0 + int(round(k * dt * 1e9)) for k in range(n)], dtype=np.int64)
     timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), n, list(mounts))
+    imaging, jpeg_quality = rl.scenario_imaging(realism, o)
+    # The ideal profile's imaging renders as before the imaging effects existed (render_frame,
+    # quantised, then brightness and noise); any other renders through agvviz.sim.imaging.
+    ideal_imaging = realism.imaging == rl.PROFILES["ideal"].imaging
+    image_seed = int(seed) % 2**64
     draws = rl.new_draws(realism, seed)
     draws.sources.update(
         calibration={name: d.to_json() for name, d in calib.items()},
         map=[d.to_json() for d in marker_draws],
         timing={"stamp_ns": stamps_ns, "cameras": {name: t.to_json() for name, t in timing.items()}},
     )
+    if o.images and not ideal_imaging:
+        draws.sources["imaging"] = rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band)
     if not realism.is_ideal:  # an ideal recording stays message for message what it was
         writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
     for name in mounts:
@@ -227,6 +243,8 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: 
     truth = [route_pose(o, o.speed_mps * k * dt) for k in range(n)]
     nav = navigation(o, truth, dt, rng)
     scene = FloorScene(codes=tuple(true_codes), floor_dn=150.0, black_dn=20.0, white_dn=215.0)
+    if o.images and not ideal_imaging:
+        scene = im.print_scene(scene, imaging, image_seed, key=rl.PRINT_KEY)
     phase = rng.uniform(0, 2 * math.pi)
     for k in range(n):
         t_ns = int(stamps_ns[k])
@@ -241,9 +259,27 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: 
         for t_capture_ns, name in [e for e in extra if e[0] > t_ns]:
             writer.write_pose(topics.GROUND_TRUTH_TOPIC, captured[name], WORLD_FRAME, t_capture_ns)
         writer.write_pose(topics.ODOMETRY_TOPIC, nav[k], WORLD_FRAME, t_ns)
-        for name, T_agv_cam in mounts.items():
+        for c, (name, T_agv_cam) in enumerate(mounts.items()):
             T_world_cam = captured[name] @ T_agv_cam
             dropped = bool(timing[name].dropped[k])  # still rendered / drawn: other frames stay the same
+            if o.images and not ideal_imaging:
+                t_capture_s = (t_ns - int(timing[name].delay_ns[k]) - t0) * 1e-9
+
+                def pose_at_time(t_s: float, t_capture_s=t_capture_s, T_capture=T_world_cam, T_agv_cam=T_agv_cam):
+                    return T_capture if t_s == t_capture_s else route_pose(o, o.speed_mps * t_s) @ T_agv_cam
+
+                rngs = im.source_rngs(image_seed, rl.FRAME_KEY, k, c)
+                rngs["read_noise"] = rng
+                irradiance = im.render_exposure(
+                    scene, cam, pose_at_time, rl.exposure_start_s(imaging, cam.height_px, t_capture_s),
+                    exposure_s=imaging.exposure_s, line_delay_s=imaging.line_delay_s, time_samples=o.time_samples,
+                    rows_per_band=o.rows_per_band, supersample=o.supersample, pixel_aperture=imaging.pixel_aperture,
+                )
+                lit = irradiance * _brightness(o, k * dt, irradiance.shape, phase)  # the light under the ice
+                frame = im.camera_frame(lit, cam, imaging, rngs)
+                if not dropped:
+                    writer.write_image(name, encode_jpeg(frame, jpeg_quality), "jpeg", t_ns)
+                continue
             if o.images:
                 image = render_frame(scene, cam, T_world_cam, rng, supersample=o.supersample, noise_sigma_dn=0.0)
                 lit = image.astype(np.float32) * _brightness(o, k * dt, image.shape, phase)

@@ -18,8 +18,16 @@ payloads the mapped (nominal) code placement, while rendering and truth use the 
 mount and code placement; a frame stamped t shows the world at its capture time t − delay
 (then ``/agv/ground_truth`` gets a sample at the capture time too, before or after the one at
 t); a dropped frame has no image (it is still rendered, so the other frames do not change);
-floor bumps pitch and roll the true AGV; wheel slip scales the odometry steps. The draws are in
-the ``agvviz.realism`` metadata record, written before the first message (not under ``ideal``).
+floor bumps pitch and roll the true AGV; wheel slip scales the odometry steps. Image formation
+and print (``imaging``, :mod:`agvviz.sim.imaging`) follow the same profile: the codes are printed
+once (ink spread, paper warp and texture, glare, dirt, occlusion), each frame is exposed while
+the AGV moves (motion blur over ``exposure_s``, rolling shutter; ``time_samples`` and
+``rows_per_band`` trade speed for accuracy) and goes through illumination, vignetting, defocus,
+blur, shot and read noise and JPEG. A frame's capture instant is the middle of its middle row's
+exposure (:func:`agvviz.sim.realism.exposure_start_s`). ``blur_sigma_px``, ``noise_sigma_dn``
+and ``jpeg_quality`` set to other than their defaults override the profile's lens blur, read
+noise and JPEG quality (:func:`agvviz.sim.realism.scenario_imaging`). The draws are in the
+``agvviz.realism`` metadata record, written before the first message (not under ``ideal``).
 """
 
 from __future__ import annotations
@@ -37,7 +45,8 @@ from agvviz.geometry.camera import PinholeCamera
 from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim.qr_texture import PAYLOAD_RESOLUTION_M, QUIET_ZONE_MODULES, make_floor_code
-from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
+from agvviz.sim.render import FloorScene, encode_jpeg
+from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
 from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track, track_pose
 
@@ -78,6 +87,8 @@ class Options:
     noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers", min=0.0, max=100.0)
     jpeg_quality: int = setting(95, "JPEG quality 1..100", min=1, max=100)
     supersample: int = setting(4, "s x s samples per pixel for area integration", min=1, max=16)
+    time_samples: int = setting(2, "imaging: renders averaged over each row's exposure (motion blur accuracy)", min=1, max=64)
+    rows_per_band: int = setting(32, "imaging: rows rendered at one time under a rolling shutter (smaller: more exact, slower)", min=1, max=8192)
     odom_scale_error: float = setting(0.01, "odometry distance scale error (0.01 = +1 %)", min=-0.5, max=0.5)
     odom_heading_bias_deg_per_s: float = setting(0.1, "odometry heading drift in deg/s", min=-10.0, max=10.0)
     odom_step_noise_m: float = setting(0.002, "odometry position noise per step and axis (sigma, m)", min=0.0, max=1.0)
@@ -122,6 +133,8 @@ def validate(options: Options) -> None:
         raise ValueError(f"jpeg_quality must lie in 1..100, got {o.jpeg_quality}")
     if not 1 <= o.supersample <= 16:
         raise ValueError(f"supersample must lie in 1..16, got {o.supersample}")
+    if o.time_samples < 1 or o.rows_per_band < 1:
+        raise ValueError(f"time_samples and rows_per_band must be ≥ 1, got {o.time_samples}, {o.rows_per_band}")
     if abs(o.odom_scale_error) >= 0.5:
         raise ValueError(f"odom_scale_error must lie in (-0.5, 0.5), got {o.odom_scale_error}")
     for name, value, step in (("code_size_m", o.code_size_m / 2.0, "0.2 mm"), ("grid_spacing_m", o.grid_spacing_m, "0.1 mm")):
@@ -214,8 +227,10 @@ def record(
     """Write the whole recording to ``writer`` (an open :class:`RecordingWriter`).
 
     Random draws from ``np.random.default_rng(seed)`` in this order: scene, odometry, then the
-    sensor noise of each frame — the same seed and options give identical messages. The error
-    sources draw from their own generators (:func:`agvviz.sim.realism.source_rng`).
+    sensor (read) noise of each frame — the same seed and options give identical messages. The
+    error sources draw from their own generators (:func:`agvviz.sim.realism.source_rng`; the
+    imaging effects from :func:`agvviz.sim.imaging.source_rngs` (seed, 0, code index) for the
+    print and (seed, 1, frame index) per frame).
     """
     validate(options)
     o = options
@@ -247,6 +262,9 @@ def record(
     )
     timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), total, [CAM_NAME])[CAM_NAME]
     bumps = rl.draw_bumps(realism.bumps, rl.source_rng(seed, "bumps"))
+    imaging, jpeg_quality = rl.scenario_imaging(realism, o)
+    image_seed = int(seed) % 2**64
+    printed_scene = im.print_scene(true_scene, imaging, image_seed, key=rl.PRINT_KEY)
 
     def true_pose(t_ns: int, k: int) -> tuple[np.ndarray, float, float]:
         """True ``T_world_agv`` (bumps included) at ``t_ns``, near frame k's stamp."""
@@ -268,6 +286,7 @@ def record(
             "capture_roll_deg": {CAM_NAME: np.degrees([r for _, _, r in captured])},
         },
         slip={"fraction": slip},
+        imaging=rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band),
     )
     if not realism.is_ideal:  # an ideal recording stays message for message what it was
         writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
@@ -285,16 +304,22 @@ def record(
         if t_capture_ns > t_ns:
             writer.write_pose(topics.GROUND_TRUTH_TOPIC, T_world_agv_capture, WORLD_FRAME, t_capture_ns)
         writer.write_pose(topics.ODOMETRY_TOPIC, T_odom_agv[k], "odom", t_ns)
-        image = render_frame(
-            true_scene,
-            camera,
-            T_world_agv_capture @ T_agv_cam,
-            rng,
-            supersample=options.supersample,
-            blur_sigma_px=options.blur_sigma_px,
-            noise_sigma_dn=options.noise_sigma_dn,
+        t_capture_s = (t_capture_ns - t0_ns) * 1e-9
+        T_world_cam_capture = T_world_agv_capture @ T_agv_cam
+
+        def pose_at_time(t_s: float, t_capture_s=t_capture_s, T_capture=T_world_cam_capture) -> np.ndarray:
+            """True T_world_cam at t_s (s from the first stamp) during the exposure."""
+            if t_s == t_capture_s:
+                return T_capture
+            return bumps.apply(track_pose(track, o.speed_mps, t_s))[0] @ T_agv_cam
+
+        rngs = im.source_rngs(image_seed, rl.FRAME_KEY, k)
+        rngs["read_noise"] = rng  # the scenario's own stream: ideal frames are what they were
+        image = im.render_camera_frame(
+            printed_scene, camera, pose_at_time, rl.exposure_start_s(imaging, camera.height_px, t_capture_s),
+            imaging, rngs, time_samples=o.time_samples, rows_per_band=o.rows_per_band, supersample=o.supersample,
         )
         if not timing.dropped[k]:  # a dropped frame is rendered all the same: later frames' noise stays
-            writer.write_image(CAM_NAME, encode_jpeg(image, options.jpeg_quality), "jpeg", t_ns)
+            writer.write_image(CAM_NAME, encode_jpeg(image, jpeg_quality), "jpeg", t_ns)
         if progress is not None:
             progress(k + 1, total)

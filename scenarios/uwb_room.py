@@ -35,12 +35,18 @@ the code's true place and print size on the roof; each camera's frame stamped t 
 its own capture time t − delay (``/agv/ground_truth`` then also gets a sample at every capture
 time); a dropped frame of a camera has no image (still rendered, so nothing else changes);
 floor bumps pitch and roll the true AGV (truth, roof code and tag). No odometry, so no slip.
-The draws are in the ``agvviz.realism`` metadata record, written before the first message
+Image formation and print (``imaging``, :mod:`agvviz.sim.imaging`) follow the same profile: the
+roof code is printed once, each camera's frame is exposed while the AGV moves (motion blur,
+rolling shutter; ``time_samples``, ``rows_per_band``), then illumination, vignetting, defocus,
+blur, shot and read noise and JPEG; the capture instant is the middle of the middle row's
+exposure. ``blur_sigma_px``, ``noise_sigma_dn`` and ``jpeg_quality`` set to other than their
+defaults override the profile's (:func:`agvviz.sim.realism.scenario_imaging`). The draws are in the ``agvviz.realism`` metadata record, written before the first message
 (not under ``ideal``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -53,8 +59,9 @@ from agvviz.geometry.camera import PinholeCamera
 from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, MAX_UWB_ROUNDS, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.markers.aruco import aruco_dictionary, aruco_modules, is_aruco_dictionary
+from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
-from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
+from agvviz.sim.render import FloorScene, encode_jpeg
 from agvviz.sim.room import WALLS, agv_pose, grid_points, horizontal_fov_focal_px, look_at, placed, roof_code, wall_points
 from agvviz.sim.trajectory import SIM_START_TIME_NS, RoundedRectangleTrack
 from agvviz.sim.uwb import DeviceClock, simulate_twr
@@ -108,6 +115,8 @@ class Options:
     noise_sigma_dn: float = setting(2.0, "Gaussian sensor noise sigma in digital numbers", min=0.0, max=100.0)
     jpeg_quality: int = setting(95, "JPEG quality 1..100", min=1, max=100)
     supersample: int = setting(4, "s x s samples per pixel for area integration", min=1, max=16)
+    time_samples: int = setting(2, "imaging: renders averaged over each row's exposure (motion blur accuracy)", min=1, max=64)
+    rows_per_band: int = setting(32, "imaging: rows rendered at one time under a rolling shutter (smaller: more exact, slower)", min=1, max=8192)
     realism: str = setting("ideal", rl.HELP_PROFILE, rl.PROFILE_NAMES)
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
@@ -141,6 +150,8 @@ def validate(options: Options) -> None:
         raise ValueError(f"hfov_deg must lie in [1, 150], got {o.hfov_deg}")
     if not 1 <= o.jpeg_quality <= 100 or not 1 <= o.supersample <= 16:
         raise ValueError("jpeg_quality must lie in 1..100 and supersample in 1..16")
+    if o.time_samples < 1 or o.rows_per_band < 1:
+        raise ValueError(f"time_samples and rows_per_band must be ≥ 1, got {o.time_samples}, {o.rows_per_band}")
     check_total("samples per image = width_px × height_px × supersample²",
                 o.width_px * o.height_px * o.supersample**2, MAX_IMAGE_SAMPLES,
                 "use a smaller image or a lower supersample")
@@ -243,13 +254,21 @@ def _schedule(o: Options, n_anchors: int, rng: np.random.Generator) -> _Schedule
     return _Schedule(frames, ranges, lambda t: False, grid_pose)
 
 
+def _standing(true_pose, *times_s: float) -> bool:
+    """The true AGV pose is the same at every time of ``times_s`` (piecewise-constant poses of
+    the static grid: the same at the start, the capture and the end of an exposure)."""
+    first = true_pose(times_s[0])[0]
+    return all(np.array_equal(true_pose(t)[0], first) for t in times_s[1:])
+
+
 def record(writer, options: Options, seed: int, progress: Callable[[int, int], None] | None = None) -> None:
     """Write the whole recording to ``writer`` (an open :class:`RecordingWriter`).
 
     Random draws from ``np.random.default_rng(seed)`` in this order: static-grid headings,
     device clocks, scene grey levels, then per event in time order the NLOS draw and TWR noise
-    of each range and the sensor noise of each frame. The error sources draw from their own
-    generators (:func:`agvviz.sim.realism.source_rng`).
+    of each range and the sensor (read) noise of each frame. The error sources draw from their
+    own generators (:func:`agvviz.sim.realism.source_rng`; imaging: :func:`agvviz.sim.imaging.source_rngs`
+    (seed, 0, 0) for the roof code's print, (seed, 1, frame index, camera index) per frame).
     """
     validate(options)
     o = options
@@ -277,6 +296,12 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
     stamps_ns = np.array([t0_ns + int(round(float(t) * 1e9)) for t in schedule.frame_times_s], dtype=np.int64)
     timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), len(stamps_ns), WALLS)
     bumps = rl.draw_bumps(realism.bumps, rl.source_rng(seed, "bumps"))
+    imaging, jpeg_quality = rl.scenario_imaging(realism, o)
+    image_seed = int(seed) % 2**64
+    (printed_code,) = im.print_scene(
+        FloorScene(codes=(true_code,), floor_dn=float(roof_dn), black_dn=float(black_dn), white_dn=float(white_dn)),
+        imaging, image_seed, key=rl.PRINT_KEY,
+    ).codes
 
     def true_pose(t_s: float) -> tuple[np.ndarray, float, float]:
         return bumps.apply(schedule.pose(t_s))
@@ -300,6 +325,7 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
             "capture_pitch_deg": {wall: np.degrees([a[0] for a in angles[wall]]) for wall in WALLS},
             "capture_roll_deg": {wall: np.degrees([a[1] for a in angles[wall]]) for wall in WALLS},
         },
+        imaging=rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band),
     )
     if not realism.is_ideal:  # an ideal recording stays message for message what it was
         writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
@@ -360,17 +386,38 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
             )
             continue
         k = detail
-        for wall in WALLS:
+        for c, wall in enumerate(WALLS):
             t_capture_s = captures[wall][k]
             T_world_agv_capture = T_world_agv if t_capture_s == t_s else true_pose(t_capture_s)[0]
-            codes = () if schedule.blocked(t_capture_s) else (placed(true_code, T_world_agv_capture @ T_agv_marker_true),)
+            T_world_marker_capture = T_world_agv_capture @ T_agv_marker_true
+            codes = () if schedule.blocked(t_capture_s) else (placed(printed_code, T_world_marker_capture),)
             scene = FloorScene(codes=codes, floor_dn=float(roof_dn), black_dn=float(black_dn), white_dn=float(white_dn))
-            image = render_frame(
-                scene, calib[wall].true_camera, cams[wall], rng, supersample=o.supersample,
-                blur_sigma_px=o.blur_sigma_px, noise_sigma_dn=o.noise_sigma_dn,
+
+            def pose_at_time(t_exposure_s: float, t_capture_s=t_capture_s, M0=T_world_marker_capture, C=cams[wall]):
+                """The wall camera as seen from the code held at its capture pose M0: the code
+                at M(t) seen from C is the code at M0 seen from M0·M(t)⁻¹·C (the roof around
+                it is uniform)."""
+                if t_exposure_s == t_capture_s:
+                    return C
+                M = true_pose(t_exposure_s)[0] @ T_agv_marker_true
+                return M0 @ se3.inverse(M) @ C
+
+            rngs = im.source_rngs(image_seed, rl.FRAME_KEY, k, c)
+            rngs["read_noise"] = rng  # the scenario's own stream: ideal frames are what they were
+            t_start_s = rl.exposure_start_s(imaging, o.height_px, t_capture_s)
+            t_end_s = t_start_s + (o.height_px - 1) * imaging.line_delay_s + imaging.exposure_s
+            errors = imaging
+            if t_start_s != t_capture_s and _standing(true_pose, t_start_s, t_capture_s, t_end_s):
+                # The AGV stands still over the exposure (static grid): every exposure sample is
+                # the capture pose, so a single render is the same image (to the float rounding of
+                # the average over time samples: exact for 1, 2, 4 …), faster.
+                errors, t_start_s = dataclasses.replace(imaging, exposure_s=0.0, line_delay_s=0.0), t_capture_s
+            image = im.render_camera_frame(
+                scene, calib[wall].true_camera, pose_at_time, t_start_s,
+                errors, rngs, time_samples=o.time_samples, rows_per_band=o.rows_per_band, supersample=o.supersample,
             )
             if not timing[wall].dropped[k]:  # a dropped frame is rendered all the same: nothing else changes
-                writer.write_image(wall, encode_jpeg(image, o.jpeg_quality), "jpeg", t_ns)
+                writer.write_image(wall, encode_jpeg(image, jpeg_quality), "jpeg", t_ns)
         done += 1
         if progress is not None:
             progress(done, total)

@@ -27,7 +27,7 @@ def _typical_as_overrides() -> str:
 # -- profiles and options -------------------------------------------------------------------------
 def test_profiles_carry_the_imaging_profiles_with_whole_pixel_apertures():
     assert rl.PROFILES["ideal"].imaging == im.IDEAL_IMAGING
-    assert rl.PROFILES["typical"].imaging == dataclasses.replace(im.TYPICAL_IMAGING, pixel_aperture=1.0)
+    assert rl.PROFILES["typical"].imaging == dataclasses.replace(im.TYPICAL_IMAGING, pixel_aperture=1.0, line_delay_s=0.0)
     assert rl.PROFILES["harsh"].imaging == dataclasses.replace(im.HARSH_IMAGING, pixel_aperture=1.0)
     assert "imaging.defocus_radius_px" in rl.parameter_names()
 
@@ -37,7 +37,7 @@ def test_imaging_overrides_and_switches():
     assert r.imaging.defocus_radius_px == 1.0
     assert r.imaging.jpeg_quality == 80 and isinstance(r.imaging.jpeg_quality, int)
     assert r.imaging.glare_peak_dn == 0.0 and r.imaging.exposure_s == 0.0
-    assert r.imaging.line_delay_s == im.TYPICAL_IMAGING.line_delay_s  # the others stay
+    assert r.imaging.vignetting_strength == im.TYPICAL_IMAGING.vignetting_strength  # the others stay
     assert r.calibration == rl.PROFILES["typical"].calibration
     # Off = the ideal world's camera, not a camera without blur or noise.
     assert rl.make_realism("typical", "imaging").imaging == im.IDEAL_IMAGING
@@ -155,3 +155,21 @@ def test_uwb_room_renders_typical_images_of_the_moving_roof_code(tmp_path):
     for topic in (topics.GROUND_TRUTH_TOPIC, topics.UWB_RANGE_TOPIC):
         assert _raw(typical, topic) == _raw(ideal, topic)
     assert rl.realism_draws(typical)["sources"]["imaging"]["errors"]["exposure_s"] == im.TYPICAL_IMAGING.exposure_s
+
+
+def test_a_standing_camera_exposes_the_static_frame_bit_for_bit():
+    """What lets uwb_room's static grid render each frame once: with the pose constant over
+    the exposure, motion blur and rolling shutter bands give the static irradiance exactly."""
+    from scenarios import qr_floor
+    from agvviz.sim.trajectory import forward_camera_mount
+
+    options = scenario_registry.build_options("qr_floor", QR_SMALL)
+    scene = qr_floor.build_scene(options, np.random.default_rng(0))
+    camera = qr_floor.make_camera(options)
+    T = forward_camera_mount(options.cam_height_m, options.cam_lookahead_m)
+    T[:2, 3] = [-3.0, -1.5]
+    static = im.render_exposure(scene, camera, lambda t: T, 0.0, supersample=2)
+    exposed = im.render_exposure(scene, camera, lambda t: T, 0.0, exposure_s=0.002, line_delay_s=1.5e-5,
+                                 time_samples=2, rows_per_band=7, supersample=2)
+    assert static.max() > static.min()  # a code is in view
+    np.testing.assert_array_equal(static, exposed)

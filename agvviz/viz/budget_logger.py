@@ -1,0 +1,108 @@
+"""Write an error budget (:mod:`agvviz.evaluation.error_budget`) into an ``.rrd`` of its own.
+
+Entity tree (timelines: ``frame`` = the run's frame index; ``time`` = the frame's stamp)::
+
+    budget/table                           TextDocument: the budget as a markdown table (static)
+    budget/shares_pct                      BarChart: share of the position error (%), one bar
+                                           per source in table order, then interaction/other
+                                           (static; abscissa 0, 1, …; the table names them)
+    budget/all_on/position_error_mm        Scalars per frame: the recording's position error
+    budget/all_off/position_error_mm       Scalars: the floor (every source off) — its RMSE,
+                                           a flat line over the recording's frames
+    budget/<source>/position_error_mm      Scalars per frame: position error with <source> off
+    budget/<source>/delta_mm               Scalars per frame: error all on − error <source> off
+
+Written atomically with an explicit recording stream (:class:`agvviz.viz.rrd_file.AtomicRrd`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from agvviz.evaluation.error_budget import INTERACTION, ErrorBudget
+from agvviz.viz import paths
+from agvviz.viz.rrd_file import AtomicRrd
+
+ROOT = "budget"
+TABLE = f"{ROOT}/table"
+SHARES = f"{ROOT}/shares_pct"
+ALL_ON = "all_on"
+ALL_OFF = "all_off"
+
+
+def series(source: str, what: str = "position_error_mm") -> str:
+    """The entity of ``source``'s per-frame ``what`` (``position_error_mm`` or ``delta_mm``)."""
+    return f"{ROOT}/{source.replace('/', '_')}/{what}"
+
+
+def _send(rec: rr.RecordingStream, entity: str, time_ns: np.ndarray, values: np.ndarray,
+          frame_of: dict[int, int]) -> None:
+    ok = [k for k, v in enumerate(values) if np.isfinite(v) and int(time_ns[k]) in frame_of]
+    if not ok:
+        return
+    rec.send_columns(
+        entity,
+        indexes=[
+            rr.TimeColumn(paths.TIMELINE_FRAME, sequence=[frame_of[int(time_ns[k])] for k in ok]),
+            rr.TimeColumn(paths.TIMELINE_TIME, timestamp=np.asarray([time_ns[k] for k in ok], dtype="datetime64[ns]")),
+        ],
+        columns=rr.Scalars.columns(scalars=np.asarray([values[k] for k in ok], dtype=float)),
+    )
+
+
+def log_budget(rec: rr.RecordingStream, budget: ErrorBudget) -> None:
+    """Log the table, the bar chart of shares and the per-frame series into ``rec``."""
+    rec.log(TABLE, rr.TextDocument(budget.markdown(), media_type=rr.MediaType.MARKDOWN), static=True)
+    shares = [s.share for s in budget.sources] + [budget.interaction]
+    values = np.array([100.0 * v if np.isfinite(v) else 0.0 for v in shares], dtype=float)
+    rec.log(SHARES, rr.BarChart(values, abscissa=np.arange(len(values), dtype=float)), static=True)
+    # frames are numbered by the recording's run; a counterfactual frame is placed at the
+    # recording's frame with the same stamp (a dropped frame has none and is left out).
+    frame_of = {int(t): int(f) for t, f in zip(budget.time_ns, budget.frames)}
+    _send(rec, series(ALL_ON), budget.time_ns, budget.position_error_all_mm, frame_of)
+    if budget.floor_rmse_mm is not None and len(budget.time_ns):
+        ends = np.array([budget.time_ns[0], budget.time_ns[-1]])
+        _send(rec, series(ALL_OFF), ends, np.full(2, budget.floor_rmse_mm), frame_of)
+    for s in budget.sources:
+        _send(rec, series(s.source), s.time_ns, s.position_error_off_mm, frame_of)
+        _send(rec, series(s.source, "delta_mm"), budget.time_ns, s.delta_mm, frame_of)
+
+
+def budget_blueprint(budget: ErrorBudget) -> rrb.Blueprint:
+    """Table and bar chart beside the per-frame errors (all on, each source off) and deltas."""
+    names = [ALL_ON, ALL_OFF] + [s.source for s in budget.sources]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.TextDocumentView(origin=TABLE, name="budget"),
+                rrb.BarChartView(origin=SHARES, name=f"share of the position error (%): {', '.join([s.source for s in budget.sources] + [INTERACTION])}"),
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=ROOT, contents=[f"$origin/{n.replace('/', '_')}/position_error_mm" for n in names],
+                                   name="position error (mm): all on, all off, each source off"),
+                rrb.TimeSeriesView(origin=ROOT, contents=[f"$origin/{s.source.replace('/', '_')}/delta_mm" for s in budget.sources],
+                                   name="error all on − error source off (mm)"),
+            ),
+        ),
+        collapse_panels=True,
+    )
+
+
+def write_budget_rrd(out_path: str | os.PathLike, budget: ErrorBudget) -> Path:
+    """Write ``budget`` to ``out_path`` (temporary file beside it, renamed when complete)."""
+    key = hashlib.sha256(f"{budget.recording.name}:{budget.seed}:{sorted(budget.settings.items())}".encode()).hexdigest()
+    with AtomicRrd(
+        out_path,
+        recording_id=str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-budget:{key}")),
+        recording_name=f"{budget.scenario} error budget",
+        inputs=[budget.recording],
+    ) as rrd:
+        log_budget(rrd.rec, budget)
+        return rrd.commit(budget_blueprint(budget))

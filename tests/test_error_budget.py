@@ -1,0 +1,126 @@
+"""The error budget (agvviz.evaluation.error_budget, `agvviz budget`): shares against independent
+re-runs, a source without effect, the .rrd, and the errors on bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mcap.writer import Writer
+from typer.testing import CliRunner
+
+from agvviz import scenario_registry
+from agvviz.cli import app
+from agvviz.errors import InputError
+from agvviz.evaluation.error_budget import INTERACTION, error_budget, sources_on
+from agvviz.recording.writer import RecordingWriter
+from agvviz.runner import run_recording
+from agvviz.settings import RunSettings
+from agvviz.viz import budget_logger
+from agvviz.viz.readback import read_rrd, scalar_series, text_document
+
+#: A tiny qr_floor: 5 frames, small images every one of which is solved under typical.
+TINY = ["duration_s=0.5", "width_px=480", "height_px=384", "focal_px=375.0"]
+SEED = 1
+#: Without tracking the odometry does not steer detection, so slip changes nothing a camera
+#: fix sees (with tracking on, odometry predicts the corners the tracker refines).
+SETTINGS = RunSettings(tracking=False)
+
+@pytest.fixture(scope="module")
+def typical(tmp_path_factory):
+    path = tmp_path_factory.mktemp("budget") / "typical.mcap"
+    scenario_registry.record("qr_floor", path, seed=SEED, overrides=TINY + ["realism=typical"])
+    return path
+
+@pytest.fixture(scope="module")
+def budget(typical, tmp_path_factory):
+    return error_budget(typical, SETTINGS, work_dir=tmp_path_factory.mktemp("work"))
+
+def _independent(tmp_path, off: str) -> dict:
+    """Record and replay the counterfactual with ``off`` switched off, without the budget's code."""
+    path = tmp_path / f"off_{off}.mcap"
+    scenario_registry.record("qr_floor", path, seed=SEED, overrides=TINY + ["realism=typical", f"realism_off={off}"])
+    return run_recording(path, SETTINGS, tmp_path / f"off_{off}.rrd", jobs=1, cache_dir=False).summary
+
+def test_sources_on():
+    assert sources_on({"realism": "ideal"}) == []
+    assert sources_on({"realism": "typical", "realism_off": "slip,imaging"}) == ["calibration", "map", "timing", "bumps"]
+
+def test_shares_match_independent_reruns(budget, typical, tmp_path):
+    assert [s.source for s in budget.sources] == sources_on({"realism": "typical"})
+    assert not budget.warnings  # this version re-records the recording byte for byte
+    all_on = run_recording(typical, SETTINGS, tmp_path / "all.rrd", jobs=1, cache_dir=False).summary
+    rmse_all = all_on["position_error_mm"]["rmse"]
+    assert budget.rmse_all_mm == rmse_all
+    assert budget.solved_all == all_on["solved"] == 5
+    for off in ("calibration", "bumps"):
+        rmse_off = _independent(tmp_path, off)["position_error_mm"]["rmse"]
+        entry = next(s for s in budget.sources if s.source == off)
+        assert entry.rmse_off_mm == rmse_off
+        assert entry.share == pytest.approx((rmse_all**2 - rmse_off**2) / rmse_all**2, abs=1e-12)
+    floor = _independent(tmp_path, ",".join(sources_on({"realism": "typical"})))
+    assert budget.floor_rmse_mm == floor["position_error_mm"]["rmse"]
+    assert budget.interaction == pytest.approx(1.0 - sum(s.share for s in budget.sources), abs=1e-12)
+    # calibration is this world's largest single source (typical: a few tenths of a pixel)
+    assert max(budget.sources, key=lambda s: s.share).source == "calibration"
+
+def test_per_frame_differences(budget):
+    calibration = next(s for s in budget.sources if s.source == "calibration")
+    assert calibration.delta_mm.shape == budget.time_ns.shape
+    both = np.isfinite(calibration.delta_mm)
+    assert both.sum() >= 4
+    # the same frames' errors: all on − calibration off, matched by stamp
+    where = {int(t): k for k, t in enumerate(calibration.time_ns)}
+    for k in np.flatnonzero(both):
+        j = where[int(budget.time_ns[k])]
+        assert calibration.delta_mm[k] == budget.position_error_all_mm[k] - calibration.position_error_off_mm[j]
+
+def test_source_without_effect_has_no_share(budget):
+    slip = next(s for s in budget.sources if s.source == "slip")
+    assert slip.rmse_off_mm == budget.rmse_all_mm  # same images ⇒ identical errors
+    assert slip.share == 0.0
+    assert np.all(np.nan_to_num(slip.delta_mm) == 0.0)
+
+def test_budget_rrd(budget, tmp_path):
+    out = budget_logger.write_budget_rrd(tmp_path / "budget.rrd", budget)
+    contents = read_rrd(out)
+    md = text_document(contents, budget_logger.TABLE)
+    assert "| calibration |" in md and INTERACTION in md
+    frames, values = scalar_series(contents, budget_logger.series("calibration"))
+    calibration = next(s for s in budget.sources if s.source == "calibration")
+    assert np.allclose(np.sort(values), np.sort(calibration.position_error_off_mm[np.isfinite(calibration.position_error_off_mm)]))
+    _, on = scalar_series(contents, budget_logger.series("all_on"))
+    assert len(on) == budget.solved_all
+    assert budget_logger.SHARES in contents.entity_paths
+
+def test_cli_budget(typical, tmp_path):
+    out = tmp_path / "b.rrd"
+    result = CliRunner().invoke(app, ["budget", str(typical), "--set", "tracking=false", "--out", str(out),
+                                      "--work-dir", str(tmp_path / "w")])
+    assert result.exit_code == 0, result.output
+    assert "calibration" in result.output and INTERACTION in result.output and out.exists()
+    assert sorted(p.name for p in (tmp_path / "w").glob("*.mcap"))[:2] == ["all_off.mcap", "off_bumps.mcap"]
+
+def _plain_mcap(path):
+    with open(path, "wb") as f:
+        writer = Writer(f)
+        writer.start(profile="", library="not agvviz")
+        writer.finish()
+    return path
+
+def test_errors_on_bad_input(tmp_path):
+    with pytest.raises(InputError, match="not an agvviz recording"):
+        error_budget(_plain_mcap(tmp_path / "plain.mcap"), SETTINGS)
+    unknown = tmp_path / "unknown.mcap"
+    with RecordingWriter(unknown, scenario={"name": "no_such", "seed": 0, "options": {"realism": "typical"}}):
+        pass
+    with pytest.raises(InputError, match="unknown scenario 'no_such'"):
+        error_budget(unknown, SETTINGS)
+    ideal = tmp_path / "ideal.mcap"
+    scenario_registry.record("qr_floor", ideal, seed=0, overrides=["duration_s=0.1", "width_px=64", "height_px=64", "focal_px=50.0"])
+    with pytest.raises(InputError, match="nothing to budget"):
+        error_budget(ideal, SETTINGS)
+    with pytest.raises(InputError, match="no such file"):
+        error_budget(tmp_path / "missing.mcap", SETTINGS)
+    result = CliRunner().invoke(app, ["budget", str(ideal), "--out", str(tmp_path / "b.rrd")])
+    assert result.exit_code == 2
+    assert "nothing to budget" in result.output and not (tmp_path / "b.rrd").exists()
