@@ -740,14 +740,22 @@ def budget(
     if out.suffix != ".rrd":
         _fail(f"--out must end in .rrd, got {out}")
     outputs.prepare_output(out, inputs=[recording])  # fail before the work, not after
-    with _progress() as progress:
-        task = progress.add_task(f"budget of {recording.name}", total=None, rate="")
+    # The bar appears with the first step, so an input refused at once prints only its error.
+    progress, task = _progress(), None
 
-        def on_step(done: int, total: int, what: str) -> None:
-            progress.update(task, completed=done, total=total, **({"rate": what} if what else {}))
+    def on_step(done: int, total: int, what: str) -> None:
+        nonlocal task
+        if task is None:
+            progress.start()
+            task = progress.add_task(f"budget of {recording.name}", total=None, rate="")
+        progress.update(task, completed=done, total=total, **({"rate": what} if what else {}))
 
+    try:
         result = error_budget(recording, settings, work_dir=work_dir, progress=on_step)
-        progress.update(task, rate="done")
+        if task is not None:
+            progress.update(task, rate="done")
+    finally:
+        progress.stop()
     written = write_budget_rrd(out, result)
     table = Table(title=f"error budget of {recording.name} ({result.scenario}, seed {result.seed}, "
                   f"realism {result.profile}): position RMSE {result.rmse_all_mm:.3f} mm", title_justify="left")

@@ -237,7 +237,9 @@ def error_budget(
     module = scenario_registry.get(name)  # ScenarioError (an InputError): unknown scenario
     if "realism" not in options:
         raise InputError(
-            f"{recording_path.name}: scenario {name} has no error sources (no realism option); nothing to budget"
+            f"{recording_path.name}: scenario {name} was recorded without realism options (by an agvviz "
+            "before them, or a scenario without error sources); nothing to budget — record it again with "
+            "--set realism=typical"
         )
     on = sources_on(options)
     if not on:
