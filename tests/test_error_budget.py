@@ -31,9 +31,12 @@ def typical(tmp_path_factory):
     scenario_registry.record("qr_floor", path, seed=SEED, overrides=TINY + ["realism=typical"])
     return path
 
+#: The sources the shares are checked for (the others cost time and check nothing more).
+CHECKED = ["calibration", "bumps", "slip"]
+
 @pytest.fixture(scope="module")
 def budget(typical, tmp_path_factory):
-    return error_budget(typical, SETTINGS, work_dir=tmp_path_factory.mktemp("work"))
+    return error_budget(typical, SETTINGS, work_dir=tmp_path_factory.mktemp("work"), sources=CHECKED)
 
 def _independent(tmp_path, off: str) -> dict:
     """Record and replay the counterfactual with ``off`` switched off, without the budget's code."""
@@ -46,7 +49,7 @@ def test_sources_on():
     assert sources_on({"realism": "typical", "realism_off": "slip,imaging"}) == ["calibration", "map", "timing", "bumps"]
 
 def test_shares_match_independent_reruns(budget, typical, tmp_path):
-    assert [s.source for s in budget.sources] == sources_on({"realism": "typical"})
+    assert [s.source for s in budget.sources] == CHECKED
     assert not budget.warnings  # this version re-records the recording byte for byte
     all_on = run_recording(typical, SETTINGS, tmp_path / "all.rrd", jobs=1, cache_dir=False).summary
     rmse_all = all_on["position_error_mm"]["rmse"]
@@ -60,8 +63,6 @@ def test_shares_match_independent_reruns(budget, typical, tmp_path):
     floor = _independent(tmp_path, ",".join(sources_on({"realism": "typical"})))
     assert budget.floor_rmse_mm == floor["position_error_mm"]["rmse"]
     assert budget.interaction == pytest.approx(1.0 - sum(s.share for s in budget.sources), abs=1e-12)
-    # calibration is this world's largest single source (typical: a few tenths of a pixel)
-    assert max(budget.sources, key=lambda s: s.share).source == "calibration"
 
 def test_per_frame_differences(budget):
     calibration = next(s for s in budget.sources if s.source == "calibration")
@@ -92,13 +93,17 @@ def test_budget_rrd(budget, tmp_path):
     assert len(on) == budget.solved_all
     assert budget_logger.SHARES in contents.entity_paths
 
-def test_cli_budget(typical, tmp_path):
+def test_cli_budget(tmp_path):
+    # One source on (calibration): the command re-records the world three times, not eight.
+    one = tmp_path / "one.mcap"
+    scenario_registry.record("qr_floor", one, seed=SEED, overrides=TINY + [
+        "realism=typical", "realism_off=map,timing,bumps,slip,imaging"])
     out = tmp_path / "b.rrd"
-    result = CliRunner().invoke(app, ["budget", str(typical), "--set", "tracking=false", "--out", str(out),
+    result = CliRunner().invoke(app, ["budget", str(one), "--set", "tracking=false", "--out", str(out),
                                       "--work-dir", str(tmp_path / "w")])
     assert result.exit_code == 0, result.output
     assert "calibration" in result.output and INTERACTION in result.output and out.exists()
-    assert sorted(p.name for p in (tmp_path / "w").glob("*.mcap"))[:2] == ["all_off.mcap", "off_bumps.mcap"]
+    assert "all_off.mcap" in {p.name for p in (tmp_path / "w").glob("*.mcap")}
 
 def _plain_mcap(path):
     with open(path, "wb") as f:
