@@ -41,7 +41,6 @@ CLOSED_FORM = {20, 21}
 SMALL_CODE_FRAME = 30  # a ≈15 px code: the zoomed view shows it
 
 
-_FrameWithLmPoints = FrameResult  # carries each LM record's reprojected points (lm_iteration_px)
 
 
 def _pose(x: float, y: float, heading_rad: float) -> np.ndarray:
@@ -84,7 +83,7 @@ def _frames(rng: np.random.Generator) -> list[FrameResult]:
         lm_px = tuple(corners + 0.5 * (n_records - k) for k in range(n_records))
         truth = _pose(0.05 * i, 0.02 * i, 0.01 * i)
         solved = rejected is None
-        frames.append(_FrameWithLmPoints(
+        frames.append(FrameResult(
             index=i,
             log_time_ns=T0_NS + i * 100_000_000,
             cam_name=CAM,

@@ -23,7 +23,7 @@ from agvviz.viz.uwb_logger import FusionLogger
 #: was logged). Without it Rerun's file sink queues data faster than it writes, and a run's
 #: peak memory grows with its length (measured: 2000 frames of images alone 274 MiB against
 #: 203 MiB for 200; flushed every 20 frames, 206 against 211).
-FLUSH_EVERY_FRAMES = 25
+RRD_FLUSH_EVERY_FRAMES = 25  # not RunLogger.FLUSH_EVERY_FRAMES: that batches columns, this waits for the file
 
 
 class RunSinks:
@@ -99,8 +99,8 @@ class RunSinks:
 
     def _score(self, frame: FrameResult) -> None:
         self.scores.append(FrameScore.of(frame))
-        if len(self.scores) % FLUSH_EVERY_FRAMES == 0:
-            self.logger.stream.flush()  # bounded memory: see FLUSH_EVERY_FRAMES
+        if len(self.scores) % RRD_FLUSH_EVERY_FRAMES == 0:
+            self.logger.stream.flush()  # bounded memory: see RRD_FLUSH_EVERY_FRAMES
         if frame.rejected is not None:
             self.rejections.setdefault(frame.rejected, [0, frame.reject_detail or ""])[0] += 1
         if self.progress is not None:
