@@ -4,9 +4,10 @@
 on this machine, one thread each) or of an existing cluster given by its scheduler's address;
 :func:`run_sweep_tasks` runs a sweep's runs (recording, settings, output ``.rrd``) on it. It
 groups them by recording and detection settings (:func:`agvviz.graph.detect.detection_settings`)
-and runs one detection task per group first (:func:`agvviz.runner.detect_recording`, which
-fills the detection cache); the group's runs start when it is done (a failed detection fails
-them, with its message) and only solve. A task's failure — an error of agvviz, a worker process
+and detects each group once first (:func:`agvviz.runner.detect_recording`, which fills the
+detection cache): on a local cluster in the sweep process itself while the cluster starts
+(:class:`LocalDetections`), on an existing cluster as a task; the group's runs start when it is
+done (a failed detection fails them, with its message) and only solve. A task's failure — an error of agvviz, a worker process
 that died — comes back as that run's one-line message; the other runs go on.
 
 Progress: workers report frames done through Dask's event log (``Worker.log_event``, at most
@@ -153,6 +154,63 @@ def _detect_jobs(share: int) -> int:
     return max(1, min(share, os.cpu_count() or 1))
 
 
+class LocalDetections:
+    """A local sweep's detections, run in the sweep process itself while its cluster starts.
+
+    With a local cluster every process is on this machine, so nothing is gained by sending a
+    detection to a worker — and much is lost: the cluster must first start and the worker then
+    starts its own detection pool. Here the detections start at once, in a thread, on the
+    detect stage's own pool of ``jobs`` processes (as ``agvviz run`` detects), one group after
+    the other (:func:`detection_groups`, each from its first task); :func:`run_sweep_tasks`
+    submits a group's runs when its detection is done. ``results[g]`` is None until group g is
+    done, then a :class:`TaskResult` (``error``: the detection failed, its runs fail with it);
+    ``frames[g]`` counts its frames detected. :meth:`close` stops the thread at its next frame.
+    """
+
+    def __init__(self, tasks: list[RunTask], cache_dir: Path | None, jobs: int):
+        self.first_tasks = [tasks[members[0]] for members in detection_groups(tasks).values()]
+        self.cache_dir, self.jobs = cache_dir, max(1, jobs)
+        self.results: list[TaskResult | None] = [None] * len(self.first_tasks)
+        self.frames = [0] * len(self.first_tasks)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._detect_all, name="agvviz sweep detection", daemon=True)
+
+    def start(self) -> "LocalDetections":
+        # Imported here, in the calling thread: two threads importing one module at once can
+        # deadlock on its import lock (the sweep counts frames in another thread meanwhile).
+        import agvviz.runner  # noqa: F401
+
+        _start_method()  # the fork server (signals ignored) that the detection pool and the workers share
+        self._thread.start()
+        return self
+
+    def _detect_all(self) -> None:
+        from agvviz.runner import detect_recording  # imported by start()
+
+        extra = {"cache_dir": self.cache_dir} if self.cache_dir is not None else {}
+        for g, task in enumerate(self.first_tasks):
+
+            def progress(frames_done: int, g: int = g) -> None:
+                self.frames[g] = frames_done
+                if self._stop.is_set():
+                    raise SweepStopped("the sweep was interrupted")
+
+            try:
+                detect_recording(task.recording, task.settings, jobs=self.jobs, progress=progress, **extra)
+            except SweepStopped:
+                return
+            except Exception as exc:  # noqa: BLE001 — reported as every dependent run's failure
+                self.results[g] = TaskResult(error=one_line(exc))
+            else:
+                self.results[g] = TaskResult()
+
+    def close(self) -> None:
+        """Stop (at the next frame) and wait for the detection thread."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+
 def detect_task(
     recording: str, settings: "RunSettings", cache_dir: str | None, share: int, topic: str, stop_name: str, unit: int,
 ) -> TaskResult:
@@ -219,7 +277,7 @@ def _start_method() -> str:
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return "spawn"
-    multiprocessing.forkserver.set_forkserver_preload(["distributed"])  # no effect once it runs
+    multiprocessing.forkserver.set_forkserver_preload(["distributed", "agvviz.runner"])  # no effect once it runs
     with _signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"
@@ -349,9 +407,12 @@ def run_sweep_tasks(
     cache_dir: Path | None = None,
     frames: dict[Path, int] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    local: LocalDetections | None = None,
 ) -> list[TaskResult]:
     """Run ``tasks`` on the Dask ``client``'s cluster (see :func:`open_client`), one detection
     per :func:`detection_groups` group first; the results in the order of ``tasks``.
+    ``local``: the detections run in this process (:class:`LocalDetections`, already started
+    for these ``tasks``) instead of as tasks on the cluster.
 
     ``frames``: frames per recording, for ``progress(frames_done, runs_finished)``, where the
     frames of a detection and of every run count (see :func:`progress_total`). Interrupted
@@ -389,8 +450,11 @@ def run_sweep_tasks(
     cache = str(Path(cache_dir).resolve()) if cache_dir is not None else None
     share = max(1, sum(client.nthreads().values()) // len(groups))
     pending: dict[object, int] = {}  # future -> its progress unit
+    local_waiting = set(range(len(groups))) if local is not None else set()
     try:
         for g, members in enumerate(groups.values()):
+            if local is not None:
+                continue
             first = tasks[members[0]]
             future = client.submit(
                 detect_task, str(first.recording.resolve()), first.settings, cache, share, topic, stop_name, g,
@@ -398,13 +462,22 @@ def run_sweep_tasks(
             )
             pending[future] = g
         members_of = list(groups.values())
-        while pending:
+        while pending or local_waiting:
+            ended = []
             for future in [f for f in pending if f.done()]:
                 unit = pending.pop(future)
                 try:
                     result = future.result()
                 except Exception as exc:  # noqa: BLE001 — a worker that died, a cancelled task
                     result = TaskResult(error=one_line(exc))
+                ended.append((unit, result))
+            for g in sorted(local_waiting):
+                with lock:
+                    done_frames[g] = max(done_frames[g], min(local.frames[g], expected[g]))
+                if local.results[g] is not None:
+                    local_waiting.discard(g)
+                    ended.append((g, local.results[g]))
+            for unit, result in ended:
                 finish(unit, result)
                 if unit >= len(groups):
                     continue
@@ -425,9 +498,11 @@ def run_sweep_tasks(
                 with lock:
                     total_done = sum(done_frames)
                 progress(total_done, sum(r is not None for r in results))
-            if pending:
+            if pending or local_waiting:
                 time.sleep(0.1)
     except BaseException:  # interrupted: stop the running tasks, drop the others
+        if local is not None:
+            local.close()
         try:
             Event(stop_name, client=client).set()
             client.cancel(list(pending))

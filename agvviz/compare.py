@@ -691,6 +691,10 @@ def sweep(
     all_entries = [e for entries in per_recording for e in entries]
     tasks = [cluster.RunTask(e.recording, e.settings, e.out_path) for e in all_entries]
     workers = min(jobs or os.cpu_count() or 1, len(tasks))
+    cache = Path(cache_dir) if cache_dir is not None else None
+    # On a local cluster the detections start at once, here, while the cluster starts
+    # (cluster.LocalDetections); on an existing cluster they are its tasks.
+    local = cluster.LocalDetections(tasks, cache, workers).start() if scheduler is None else None
     # Frames for the progress bar are counted while the cluster starts (a read of each file).
     frames: dict[Path, int] = {}
     counter = None
@@ -700,18 +704,21 @@ def sweep(
             name="agvviz count frames", daemon=True,
         )
         counter.start()
-    # The cluster first: an unreachable scheduler leaves nothing behind.
-    with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs]) as client:
-        for folder in out_dirs:
-            outputs.prepare_dir(folder, option="--out-dir")
-        if counter is not None:
-            counter.join()
-            if on_total is not None:
-                on_total(cluster.progress_total(tasks, frames))
-        results = cluster.run_sweep_tasks(
-            client, tasks, cache_dir=Path(cache_dir) if cache_dir is not None else None, frames=frames,
-            progress=progress,
-        )
+    try:
+        # The cluster first: an unreachable scheduler leaves nothing behind.
+        with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs]) as client:
+            for folder in out_dirs:
+                outputs.prepare_dir(folder, option="--out-dir")
+            if counter is not None:
+                counter.join()
+                if on_total is not None:
+                    on_total(cluster.progress_total(tasks, frames))
+            results = cluster.run_sweep_tasks(
+                client, tasks, cache_dir=cache, frames=frames, progress=progress, local=local,
+            )
+    finally:
+        if local is not None:
+            local.close()
     for entry, result in zip(all_entries, results):
         entry.timing, entry.error = result.timing, result.error
 
