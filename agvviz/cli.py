@@ -774,6 +774,91 @@ def budget(
 
 @app.command(cls=_Command)
 @handle_errors
+def audit(
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file or a rosbag2 directory"),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="audit setting (agvviz/audit/problem.py AuditSettings: "
+                                   "k_sigma, min_position_m, sigma_px, map_sigma_m, …) or run setting (repeatable)"),
+    out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-audit.rrd); the corrected "
+                                       "map <out>-markers.yaml and extrinsic <out>-extrinsic.txt are written beside it"),
+    markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
+    calibration: List[str] = typer.Option([], "--calibration", metavar="CAM=FILE", help=CALIBRATION_HELP),
+    extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=EXTRINSIC_HELP),
+    correct: str = typer.Option("flagged", "--correct", help="markers moved in the corrected map: flagged or all (estimated)"),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help=JOBS_HELP),
+) -> None:
+    """Audit a map and a calibration: which markers are misplaced, is the camera where the calibration says.
+
+    A bundle adjustment over every frame (vehicle poses, camera extrinsic corrections, marker
+    placement corrections, odometry scale and drift) from every detected corner, the odometry and
+    the floor, with the recorded map and calibration as priors. A marker is flagged when its error
+    exceeds k_sigma·σ and the minimum size (min_position_m, min_angle_deg, min_scale); markers seen
+    too little are listed, never flagged. Writes a table, an .rrd, a corrected marker map
+    (agvviz run --markers) and the extrinsic option (agvviz run --extrinsic "$(cat FILE)").
+
+    Example: agvviz audit recordings/qr_floor.mcap --set k_sigma=3 --out runs/audit.rrd
+    """
+    from agvviz import audit as audit_lib
+    from agvviz.audit import report
+    from agvviz.audit.problem import AuditSettings
+
+    if correct not in ("flagged", "all"):
+        _fail(f"--correct must be flagged or all, got {correct!r}")
+    if jobs is not None and not 1 <= jobs <= 256:
+        _fail(f"--jobs must lie in 1..256 (or be left out for one per CPU), got {jobs}")
+    audit_pairs, run_pairs = audit_lib.split_settings(list(set_))
+    from agvviz.settings import field_types
+
+    for pair in run_pairs:
+        key = pair.partition("=")[0].strip()
+        if key and key not in field_types(RunSettings):
+            _fail(f"unknown setting {key!r}; audit settings: {', '.join(sorted(audit_lib.audit_setting_names()))}; "
+                  f"run settings: {', '.join(sorted(field_types(RunSettings)))}")
+    settings = apply_overrides(AuditSettings(), audit_pairs)
+    run_settings = apply_overrides(RunSettings(), run_pairs)
+    if out is not None and out.suffix != ".rrd":
+        _fail(f"--out must end in .rrd, got {out}")
+    paths = audit_lib.default_paths(recording, out)
+    inputs = [recording] + ([markers] if markers else [])
+    for path in paths.values():  # fail before the work, not after
+        outputs.prepare_output(path, inputs=inputs)
+    side = _side_inputs(markers, list(calibration), list(extrinsic), run_settings.body_frame)
+    with _progress() as progress:
+        task = progress.add_task(f"auditing {recording.name}", total=None, rate="")
+        result = audit_lib.audit_recording(recording, run_settings, settings, side=side, jobs=jobs,
+                                           progress=lambda done: progress.update(task, completed=done))
+        progress.update(task, rate="solved")
+    written = audit_lib.write_outputs(result, paths, correct)
+    est = result.estimate
+    cams = Table(title=f"{result.title}: cameras (correction recorded → estimated, AGV frame)", title_justify="left")
+    for column in report.CAMERA_COLUMNS:
+        cams.add_column(column, justify="left" if column in ("camera", "status", "why") else "right")
+    for row in report.camera_rows(est):
+        cams.add_row(*row, style="bold red" if row[1] == "flagged" else None)
+    table = Table(title=f"{result.title}: markers (placement error, true − mapped)", title_justify="left")
+    for column in report.MARKER_COLUMNS:
+        table.add_column(column, justify="left" if column in ("marker", "status", "other", "why") else "right")
+    for row in report.marker_rows(est):
+        table.add_row(*row, style="bold red" if row[1] == "flagged" else ("dim" if row[1] == "seen too little" else None))
+    wide = Console(width=max(console.width, 160))
+    wide.print(cams)
+    wide.print(table)
+    for line in report.summary_lines(est):
+        console.print(escape(line))
+    for warning in result.collected.warnings:
+        err_console.print(f"[yellow]warning:[/] {escape(warning)}")
+    console.print(f"audit written: [bold]{escape(str(written['rrd']))}[/]  (agvviz view {escape(str(written['rrd']))})")
+    if "markers" in written:
+        console.print(f"corrected marker map: [bold]{escape(str(written['markers']))}[/]  (agvviz run --markers)")
+    console.print(f"extrinsic: [bold]{escape(str(written['extrinsic']))}[/]  "
+                  f"(agvviz run --extrinsic \"$(cat {escape(str(written['extrinsic']))})\")")
+    for key, path in written.items():
+        if key.startswith("calibration "):
+            console.print(f"{key}: [bold]{escape(str(path))}[/]  (agvviz run --calibration {key.split(' ', 1)[1]}={escape(str(path))})")
+    console.print(f"audit took {result.total_s:.1f} s (collect {result.collect_s:.1f} s, solve {est.solve_s:.1f} s)")
+
+
+@app.command(cls=_Command)
+@handle_errors
 def export(
     run_file: Path = typer.Argument(..., metavar="RUN", help="run .rrd"),
     format_: str = typer.Option("tum", "--format", help="output format: tum (evo, TUM tools) or mcap (Foxglove)"),

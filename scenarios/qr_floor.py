@@ -48,6 +48,7 @@ from agvviz.sim.qr_texture import PAYLOAD_RESOLUTION_M, QUIET_ZONE_MODULES, make
 from agvviz.sim.render import FloorScene, encode_jpeg
 from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
+from agvviz.sim import inject as inj
 from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track, track_pose
 
 NAME = "qr_floor"
@@ -96,6 +97,7 @@ class Options:
     realism: str = setting("ideal", rl.HELP_PROFILE, rl.PROFILE_NAMES)
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
+    inject: str = setting("", inj.HELP)
 
 
 def validate(options: Options) -> None:
@@ -149,6 +151,9 @@ def validate(options: Options) -> None:
             "increase grid_spacing_m or decrease code_size_m"
         )
     rl.check_timing(rl.make_realism(o.realism, o.realism_off, o.realism_set).timing, 1.0 / o.rate_hz)
+    for camera in inj.parse_inject(o.inject).cameras():  # syntax; marker ids are checked in record()
+        if camera != CAM_NAME:
+            raise ValueError(f"inject: the scenario has no camera {camera!r}; its camera: {CAM_NAME}")
     # The lens model must be one-to-one over the image: d(r·(1 + k1 r² + k2 r⁴))/dr > 0 up to
     # beyond the image corner's normalised radius.
     corner_r = math.hypot(o.width_px / 2.0, o.height_px / 2.0) / o.focal_px
@@ -257,6 +262,11 @@ def record(
     marker_draws = rl.draw_map(
         realism.map, rl.source_rng(seed, "map"), [(c.marker_id, c.T_world_marker, c.side_m) for c in scene.codes]
     )
+    # Errors injected on purpose (option inject, agvviz.sim.inject), on top of the draws.
+    injected = inj.parse_inject(o.inject)
+    inj.check_targets(injected, [c.marker_id for c in scene.codes], [CAM_NAME])
+    marker_draws = [inj.apply_to_marker(d, injected.markers().get(d.marker_id)) for d in marker_draws]
+    calib = {name: inj.apply_to_camera(d, injected.cameras().get(name)) for name, d in calib.items()}
     true_scene = dataclasses.replace(
         scene, codes=tuple(rl.placed_as_drawn(c, d) for c, d in zip(scene.codes, marker_draws))
     )
@@ -288,7 +298,9 @@ def record(
         slip={"fraction": slip},
         imaging=rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band),
     )
-    if not realism.is_ideal:  # an ideal recording stays message for message what it was
+    if injected:
+        draws.sources["inject"] = injected.to_json()
+    if not realism.is_ideal or injected:  # an ideal recording stays message for message what it was
         writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
 
     t0_ns = int(stamps_ns[0])

@@ -182,3 +182,32 @@ ERROR_CRLB_POSITION_M = "errors/crlb_position_m"  # Scalars: CRLB sqrt(trace) at
 ERROR_POSITION_SIGMA_M = "errors/position_sigma_m"  # Scalars: sqrt(trace) of the covariance
 SOLVER_AMBIGUITY_RATIO = "solver/ambiguity_ratio"  # Scalars: IPPE rms(other)/rms(best), capped
 EVENTS_FLIPS = "events/flips"  # TextLog (WARN): frames whose pose flipped branch
+
+
+# -- agvviz audit (agvviz/viz/audit_logger.py) ------------------------------------------------------
+#: ``agvviz audit``'s .rrd: the report, the map as recorded and as estimated, the solved vehicle
+#: path and camera mounting, and per-marker corner residuals (timelines ``frame`` and ``time``).
+AUDIT_REPORT = "audit/report"  # TextDocument (static): the audit table as markdown
+AUDIT_MARKERS_RECORDED = "world/audit/markers/recorded"  # LineStrips3D (static): outlines as mapped
+AUDIT_MARKERS_ESTIMATED = "world/audit/markers/estimated"  # LineStrips3D (static): outlines as estimated
+AUDIT_MARKERS_FLAGGED = "world/audit/markers/flagged"  # Points3D + labels (static): flagged markers
+AUDIT_MARKERS_SHIFT = "world/audit/markers/shift"  # Arrows3D (static): mapped → estimated centre, flagged
+AUDIT_TRAJECTORY_ESTIMATED = "world/audit/trajectory/estimated"  # LineStrips3D (static): solved vehicle path
+AUDIT_TRAJECTORY_START = "world/audit/trajectory/start"  # LineStrips3D (static): the solve's start
+AUDIT_TRAJECTORY_TRUTH = "world/audit/trajectory/truth"  # LineStrips3D (static): ground truth, when recorded
+AUDIT_AGV = "world/audit/agv"  # Transform3D per frame: the solved vehicle pose
+AUDIT_RESIDUALS = "audit/residuals"  # parent of the per-marker corner residual series
+AUDIT_ODOMETRY_XY_MM = "audit/odometry/xy_mm"  # Scalars per frame: odometry step residual (mm)
+AUDIT_ODOMETRY_HEADING_DEG = "audit/odometry/heading_deg"  # Scalars per frame: heading step residual (deg)
+
+
+def audit_camera(cam_name: str, which: str) -> str:
+    """``world/audit/agv/cam_<name>/<which>``: Transform3D (static) of the camera as
+    ``recorded`` or ``estimated`` under the solved vehicle, with its axes."""
+    return f"{AUDIT_AGV}/{camera_frame(cam_name)}/{which}"
+
+
+def audit_marker_residual(marker_id: str) -> str:
+    """``audit/residuals/<marker>``: Scalars per frame, RMS corner residual (px) of the marker."""
+    safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in str(marker_id))
+    return f"{AUDIT_RESIDUALS}/{safe}"

@@ -1,0 +1,166 @@
+"""Write an audit (:mod:`agvviz.audit`) into an ``.rrd`` of its own.
+
+Entity tree (:mod:`agvviz.viz.paths`, block "agvviz audit"; timelines ``frame`` and ``time``)::
+
+    world                                   ViewCoordinates RIGHT_HAND_Z_UP (static)
+    world/audit/markers/recorded            outlines as mapped (marker blue), labelled by id
+    world/audit/markers/estimated           outlines as estimated: flagged red and thick,
+                                            ok "corrected" magenta, seen too little grey
+    world/audit/markers/flagged             a large point + label on every flagged marker
+    world/audit/markers/shift               arrow mapped → estimated centre of each flagged marker
+    world/audit/trajectory/estimated|start|truth   the solved vehicle path, the start, truth
+    world/audit/agv                         Transform3D per frame: the solved vehicle pose
+    world/audit/agv/cam_<name>/recorded|estimated  the camera's mounting as recorded / estimated
+    audit/report                            TextDocument: the audit table (markdown)
+    audit/residuals/<marker>                Scalars per frame: RMS corner residual (px)
+    audit/odometry/xy_mm|heading_deg        Scalars per frame: odometry step residuals
+
+Written atomically with an explicit recording stream (:class:`agvviz.viz.rrd_file.AtomicRrd`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from agvviz.viz import paths, style
+from agvviz.viz.rrd_file import AtomicRrd
+
+#: Width of flagged outlines vs the others (m).
+FLAGGED_RADIUS_M = 0.012
+OUTLINE_RADIUS_M = 0.004
+
+
+def _outline(corners: np.ndarray) -> np.ndarray:
+    return np.vstack([corners, corners[:1]])
+
+
+def _send_scalars(rec: rr.RecordingStream, entity: str, frames: np.ndarray, stamps_ns: np.ndarray, values: np.ndarray) -> None:
+    ok = np.isfinite(values)
+    if not np.any(ok):
+        return
+    rec.send_columns(
+        entity,
+        indexes=[
+            rr.TimeColumn(paths.TIMELINE_FRAME, sequence=np.asarray(frames[ok], dtype=np.int64)),
+            rr.TimeColumn(paths.TIMELINE_TIME, timestamp=np.asarray(stamps_ns[ok], dtype="datetime64[ns]")),
+        ],
+        columns=rr.Scalars.columns(scalars=np.asarray(values[ok], dtype=float)),
+    )
+
+
+def log_audit(rec: rr.RecordingStream, result) -> None:
+    """Log ``result`` (:class:`agvviz.audit.AuditResult`) into ``rec``."""
+    from agvviz.audit import report
+
+    est, col = result.estimate, result.collected
+    data = col.data
+    rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    rec.log(paths.AUDIT_REPORT, rr.TextDocument(report.markdown(est, result.title), media_type=rr.MediaType.MARKDOWN),
+            static=True)
+    markers = est.markers
+    rec.log(paths.AUDIT_MARKERS_RECORDED, rr.LineStrips3D(
+        [_outline(f.corners_world_mapped) for f in markers], colors=style.COLOR_MARKER, radii=OUTLINE_RADIUS_M,
+        labels=[f.marker_id for f in markers], show_labels=False), static=True)
+    colors = [style.COLOR_REJECTED if f.flagged else (style.COLOR_STALE if f.status == "seen too little" else style.COLOR_CORRECTED)
+              for f in markers]
+    radii = [FLAGGED_RADIUS_M if f.flagged else OUTLINE_RADIUS_M for f in markers]
+    rec.log(paths.AUDIT_MARKERS_ESTIMATED, rr.LineStrips3D(
+        [_outline(f.corners_world_estimated) for f in markers], colors=colors, radii=radii,
+        labels=[f"{f.marker_id}: {f.status}" for f in markers], show_labels=False), static=True)
+    flagged = [f for f in markers if f.flagged]
+    if flagged:
+        centres = np.array([f.corners_world_estimated.mean(axis=0) for f in flagged])
+        mapped = np.array([f.corners_world_mapped.mean(axis=0) for f in flagged])
+        labels = [f"{f.marker_id}: {', '.join(f.reasons)}" for f in flagged]
+        rec.log(paths.AUDIT_MARKERS_FLAGGED, rr.Points3D(centres + [0, 0, 0.02], colors=style.COLOR_REJECTED, radii=0.05,
+                                                         labels=labels, show_labels=True), static=True)
+        rec.log(paths.AUDIT_MARKERS_SHIFT, rr.Arrows3D(origins=mapped + [0, 0, 0.01], vectors=centres - mapped,
+                                                       colors=style.COLOR_REJECTED, radii=0.006), static=True)
+    T = est.T_world_agv
+    rec.log(paths.AUDIT_TRAJECTORY_ESTIMATED, rr.LineStrips3D([T[:, :3, 3]], colors=style.COLOR_CORRECTED, radii=0.01,
+                                                              labels=["audit: solved vehicle path"]), static=True)
+    rec.log(paths.AUDIT_TRAJECTORY_START, rr.LineStrips3D([est.T_world_agv_start[:, :3, 3]], colors=style.COLOR_CAMERA,
+                                                          radii=0.004, labels=["start (per-frame solve)"]), static=True)
+    truth_ok = np.isfinite(col.truth[:, 0, 0])
+    if np.any(truth_ok):
+        rec.log(paths.AUDIT_TRAJECTORY_TRUTH, rr.LineStrips3D([col.truth[truth_ok, :3, 3]], colors=style.COLOR_TRUTH,
+                                                              radii=0.004, labels=["truth"]), static=True)
+    for c in est.cameras:
+        for which, T_agv_cam, color in (("recorded", c.T_agv_cam_recorded, style.COLOR_MARKER),
+                                        ("estimated", c.T_agv_cam_estimated,
+                                         style.COLOR_REJECTED if c.flagged else style.COLOR_CORRECTED)):
+            entity = paths.audit_camera(c.cam_name, which)
+            rec.log(entity, rr.Transform3D(translation=T_agv_cam[:3, 3], mat3x3=T_agv_cam[:3, :3]), static=True)
+            rec.log(entity, rr.TransformAxes3D(0.3), static=True)
+            rec.log(f"{entity}/label", rr.Points3D([[0, 0, 0]], colors=color, radii=0.03, labels=[f"{c.cam_name} {which}"],
+                                                   show_labels=False), static=True)
+    frames = col.frame_index
+    stamps = data.stamps_ns
+    for k in range(len(frames)):
+        rec.set_time(paths.TIMELINE_FRAME, sequence=int(frames[k]))
+        rec.set_time(paths.TIMELINE_TIME, timestamp=np.datetime64(int(stamps[k]), "ns"))
+        rec.log(paths.AUDIT_AGV, rr.Transform3D(translation=T[k, :3, 3], mat3x3=T[k, :3, :3]))
+    # per-marker RMS corner residual per frame
+    r = est.corner_residuals_px
+    rms = np.sqrt(np.mean(np.sum(r**2, axis=-1), axis=-1)) if len(r) else np.zeros(0)
+    for m, f in enumerate(markers):
+        sel = np.flatnonzero(data.obs_marker == m)
+        if not len(sel):
+            continue
+        i = data.obs_frame[sel]
+        order = np.argsort(i, kind="stable")
+        _send_scalars(rec, paths.audit_marker_residual(f.marker_id), frames[i[order]], stamps[i[order]], rms[sel][order])
+    # odometry step residuals, from consecutive solved poses
+    if data.has_odom.any() and len(T) > 1:
+        from agvviz.audit.problem import planar, se3_inverse_batch
+
+        pairs = np.flatnonzero(data.has_odom[:-1] & data.has_odom[1:])
+        if len(pairs):
+            step = se3_inverse_batch(T[pairs]) @ T[pairs + 1]
+            odo = se3_inverse_batch(data.T_odom_agv[pairs]) @ data.T_odom_agv[pairs + 1]
+            xy, psi = planar(step)
+            oxy, opsi = planar(odo)
+            scale = 1.0 + (est.odometry or {}).get("scale", 0.0)
+            bias = math.radians((est.odometry or {}).get("bias_deg_per_s", 0.0))
+            dt = (stamps[pairs + 1] - stamps[pairs]) * 1e-9
+            r_xy = np.linalg.norm(oxy - scale * xy, axis=1) * 1e3
+            r_psi = np.degrees(np.angle(np.exp(1j * (opsi - psi - bias * dt))))
+            _send_scalars(rec, paths.AUDIT_ODOMETRY_XY_MM, frames[pairs + 1], stamps[pairs + 1], r_xy)
+            _send_scalars(rec, paths.AUDIT_ODOMETRY_HEADING_DEG, frames[pairs + 1], stamps[pairs + 1], r_psi)
+
+
+def audit_blueprint(result) -> rrb.Blueprint:
+    """The 3D map (recorded vs estimated) beside the report and the residual plots."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin=paths.WORLD, name="map: mapped (blue) vs estimated (red: flagged)"),
+            rrb.Vertical(
+                rrb.TextDocumentView(origin=paths.AUDIT_REPORT, name="audit"),
+                rrb.TimeSeriesView(origin=paths.AUDIT_RESIDUALS, name="corner residual per marker (px RMS)"),
+                rrb.TimeSeriesView(origin="audit/odometry", name="odometry step residuals (mm, deg)"),
+            ),
+        ),
+        collapse_panels=True,
+    )
+
+
+def write_audit_rrd(out_path: str | os.PathLike, result) -> Path:
+    """Write ``result`` to ``out_path`` (temporary file beside it, renamed when complete)."""
+    from agvviz.audit import recording_key
+
+    inputs = [result.recording] + (sorted(result.recording.iterdir()) if result.recording.is_dir() else [])
+    with AtomicRrd(
+        out_path,
+        recording_id=str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-audit:{recording_key(result)}")),
+        recording_name=f"{result.collected.recording_name} audit",
+        inputs=inputs,
+    ) as rrd:
+        log_audit(rrd.rec, result)
+        return rrd.commit(audit_blueprint(result))
