@@ -257,6 +257,12 @@ CACHE_HELP = (
 CACHE_DIR_HELP = "detection cache folder (default: $AGVVIZ_CACHE_DIR, else ~/.cache/agvviz/detections)"
 
 
+def _check_detect_jobs(jobs: Optional[int]) -> None:
+    """Refuse a detection ``--jobs`` outside 1..256 (None: one per CPU)."""
+    if jobs is not None and not 1 <= jobs <= 256:
+        _fail(f"--jobs must lie in 1..256 (or be left out for one per CPU), got {jobs}")
+
+
 def _run(
     recording: Path, solver: Optional[str], sets: list[str], out: Optional[Path],
     topics: list[str] = (), roles: Optional[Path] = None, markers: Optional[Path] = None,
@@ -266,8 +272,7 @@ def _run(
     from agvviz.recording.roles import parse_topic_options
     from agvviz.runner import NoUsableFrameError, run_recording
 
-    if jobs is not None and not 1 <= jobs <= 256:
-        _fail(f"--jobs must lie in 1..256 (or be left out for one per CPU), got {jobs}")
+    _check_detect_jobs(jobs)
     settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
     topic_map = parse_topic_options(list(topics))
     side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
@@ -803,8 +808,7 @@ def audit(
 
     if correct not in ("flagged", "all"):
         _fail(f"--correct must be flagged or all, got {correct!r}")
-    if jobs is not None and not 1 <= jobs <= 256:
-        _fail(f"--jobs must lie in 1..256 (or be left out for one per CPU), got {jobs}")
+    _check_detect_jobs(jobs)
     audit_pairs, run_pairs = audit_lib.split_settings(list(set_))
     from agvviz.settings import field_types
 

@@ -185,9 +185,6 @@ class LocalDetections:
         return self
 
     def _detect_all(self) -> None:
-        from agvviz.runner import detect_recording  # imported by start()
-
-        extra = {"cache_dir": self.cache_dir} if self.cache_dir is not None else {}
         for g, task in enumerate(self.first_tasks):
 
             def progress(frames_done: int, g: int = g) -> None:
@@ -195,14 +192,10 @@ class LocalDetections:
                 if self._stop.is_set():
                     raise SweepStopped("the sweep was interrupted")
 
-            try:
-                detect_recording(task.recording, task.settings, jobs=self.jobs, progress=progress, **extra)
-            except SweepStopped:
+            result = _detect_group(task.recording, task.settings, self.jobs, progress, self.cache_dir)
+            if self._stop.is_set():  # interrupted: nobody waits for the result
                 return
-            except Exception as exc:  # noqa: BLE001 — reported as every dependent run's failure
-                self.results[g] = TaskResult(error=one_line(exc))
-            else:
-                self.results[g] = TaskResult()
+            self.results[g] = result
 
     def close(self) -> None:
         """Stop (at the next frame) and wait for the detection thread."""
@@ -211,19 +204,29 @@ class LocalDetections:
             self._thread.join()
 
 
-def detect_task(
-    recording: str, settings: "RunSettings", cache_dir: str | None, share: int, topic: str, stop_name: str, unit: int,
+def _detect_group(
+    recording: Path, settings: "RunSettings", jobs: int, progress: Callable[[int], None], cache_dir: Path | None,
 ) -> TaskResult:
-    """Worker: detect ``recording`` once for a group of runs (fills the detection cache)."""
+    """Detect ``recording`` once for a group of runs (fills the detection cache); a failure,
+    an interruption (:class:`SweepStopped` from ``progress``) included, is the result's error."""
     from agvviz.runner import detect_recording
 
-    reporter = _Reporter(topic, stop_name, unit)
-    extra = {"cache_dir": Path(cache_dir)} if cache_dir is not None else {}
+    extra = {"cache_dir": cache_dir} if cache_dir is not None else {}
     try:
-        detect_recording(Path(recording), settings, jobs=_detect_jobs(share), progress=reporter, **extra)
+        detect_recording(recording, settings, jobs=jobs, progress=progress, **extra)
     except Exception as exc:  # noqa: BLE001 — reported as every dependent run's failure
         return TaskResult(error=one_line(exc))
     return TaskResult()
+
+
+def detect_task(
+    recording: str, settings: "RunSettings", cache_dir: str | None, share: int, topic: str, stop_name: str, unit: int,
+) -> TaskResult:
+    """Worker: :func:`_detect_group` on the cluster."""
+    reporter = _Reporter(topic, stop_name, unit)
+    return _detect_group(
+        Path(recording), settings, _detect_jobs(share), reporter, Path(cache_dir) if cache_dir is not None else None,
+    )
 
 
 def run_task(

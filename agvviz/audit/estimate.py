@@ -313,8 +313,3 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
         corner_residuals_px=r_px, gauge=gauge_text, gauge_markers=gauge_ids, cost=float(res.cost),
         iterations=iterations, solve_s=solve_s, n_params=n_par, n_residuals=m_res, messages=messages,
     )
-
-
-def _rz(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

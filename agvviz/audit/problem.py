@@ -468,7 +468,7 @@ class Problem:
         xi, _, eta, odom = self.layout.unpack(x)
         T = self.poses(xi, eta)
         i = self.odom_pairs
-        step = se3_inverse_batch(T[i]) @ T[i + 1]
+        step = se3.inverse_batch(T[i]) @ T[i + 1]
         xy, psi = planar(step)
         r_xy = self.odom_dxy - (1.0 + odom[0]) * xy
         r_psi = euler.wrap_angle_rad(self.odom_dpsi - psi - odom[1] * self.odom_dt_s)
@@ -512,15 +512,6 @@ class Problem:
             # are too inexact and the solve crawls (>300 iterations instead of ~8)
             tr_solver="lsmr", tr_options={"atol": lsmr_tol, "btol": lsmr_tol, "maxiter": 20 * self.layout.size},
         )
-
-
-def se3_inverse_batch(T: np.ndarray) -> np.ndarray:
-    R = np.swapaxes(T[:, :3, :3], 1, 2)
-    out = np.zeros_like(T)
-    out[:, :3, :3] = R
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", R, T[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
 
 
 # -- initialisation ------------------------------------------------------------------------------------

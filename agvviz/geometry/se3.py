@@ -27,6 +27,16 @@ def inverse(T: np.ndarray) -> np.ndarray:
     return make(R.T, -R.T @ t)
 
 
+def inverse_batch(T: np.ndarray) -> np.ndarray:
+    """:func:`inverse` of a stack of rigid transforms (N, 4, 4)."""
+    R = np.swapaxes(T[:, :3, :3], 1, 2)
+    out = np.zeros_like(T)
+    out[:, :3, :3] = R
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", R, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
 def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Map points (N, 3) from frame b into frame a."""
     points_b = np.asarray(points_b, dtype=float).reshape(-1, 3)

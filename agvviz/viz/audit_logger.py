@@ -119,12 +119,13 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
         _send_scalars(rec, paths.audit_marker_residual(f.marker_id), frames[i[order]], stamps[i[order]], rms[sel][order])
     # odometry step residuals, from consecutive solved poses
     if data.has_odom.any() and len(T) > 1:
-        from agvviz.audit.problem import planar, se3_inverse_batch
+        from agvviz.audit.problem import planar
+        from agvviz.geometry import se3
 
         pairs = np.flatnonzero(data.has_odom[:-1] & data.has_odom[1:])
         if len(pairs):
-            step = se3_inverse_batch(T[pairs]) @ T[pairs + 1]
-            odo = se3_inverse_batch(data.T_odom_agv[pairs]) @ data.T_odom_agv[pairs + 1]
+            step = se3.inverse_batch(T[pairs]) @ T[pairs + 1]
+            odo = se3.inverse_batch(data.T_odom_agv[pairs]) @ data.T_odom_agv[pairs + 1]
             xy, psi = planar(step)
             oxy, opsi = planar(odo)
             scale = 1.0 + (est.odometry or {}).get("scale", 0.0)
