@@ -254,6 +254,11 @@ CACHE_HELP = (
     "reuse and store detections (corners, ids, payloads) per recording and detection settings, so a "
     "run that only changes solve/fusion/correction settings skips detection"
 )
+BUDGET_HELP = (
+    "add the error budget (an agvviz recording under a non-ideal realism profile): the share of the "
+    "position error each error source causes, found by re-recording the scenario with that source off "
+    "(minutes: once per source); in the summary and the .rrd (same as `agvviz budget`)"
+)
 CACHE_DIR_HELP = "detection cache folder (default: $AGVVIZ_CACHE_DIR, else ~/.cache/agvviz/detections)"
 
 
@@ -267,15 +272,23 @@ def _run(
     recording: Path, solver: Optional[str], sets: list[str], out: Optional[Path],
     topics: list[str] = (), roles: Optional[Path] = None, markers: Optional[Path] = None,
     calibration: list[str] = (), extrinsic: list[str] = (), jobs: Optional[int] = None,
-    cache_dir=None,
+    cache_dir=None, budget: bool = False,
 ) -> Path:
     from agvviz.recording.roles import parse_topic_options
     from agvviz.runner import NoUsableFrameError, run_recording
 
     _check_detect_jobs(jobs)
     settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
+    if budget and (topics or roles or markers or calibration or extrinsic):
+        _fail("--budget re-records the scenario of an agvviz recording with each error source off; "
+              "--topic, --roles, --markers, --calibration and --extrinsic do not apply to it")
     topic_map = parse_topic_options(list(topics))
     side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
+    error_budget = None
+    if budget:
+        if out is not None:
+            outputs.prepare_output(out, inputs=[recording])  # fail before minutes of work, not after
+        error_budget = _error_budget_with_progress(recording, settings, None, jobs, cache_dir)
     with _progress() as progress:
         task = progress.add_task(f"replaying {recording.name}", total=None, rate="")
 
@@ -290,7 +303,7 @@ def _run(
         try:
             outcome = run_recording(
                 recording, settings, out, progress=on_frame, topics=topic_map, roles_file=roles,
-                side=side, on_total=on_total, jobs=jobs, cache_dir=cache_dir,
+                side=side, on_total=on_total, jobs=jobs, cache_dir=cache_dir, error_budget=error_budget,
             )
         except NoUsableFrameError as exc:
             progress.stop()
@@ -306,9 +319,53 @@ def _run(
         text = f" {name}={item['value']} does not apply: {item['reason']}; ignored (not in the run name)"
         err_console.print(Text.assemble(("warning:", "yellow"), text), soft_wrap=True, highlight=False)
     _print_summary(outcome.summary, outcome.timing, f"run {outcome.manifest['recording_name']}")
+    if error_budget is None:
+        _budget_hint(outcome.manifest.get("scenario"))
     console.print(f"run written: [bold]{outcome.out_path}[/]")
     console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]")
     return outcome.out_path
+
+
+def _budget_hint(scenario: Optional[dict]) -> None:
+    """Say that ``run --budget`` can share this run's error out, when the recording has error
+    sources on (an agvviz recording under a non-ideal realism profile)."""
+    from agvviz.evaluation.error_budget import sources_on
+
+    options = (scenario or {}).get("options") or {}
+    try:
+        on = sources_on(options) if "realism" in options else []
+    except ValueError:  # options this agvviz cannot rebuild: no hint
+        on = []
+    if on:
+        console.print(f"error sources on in this recording ({options['realism']}): {', '.join(on)} — "
+                      "[bold]--budget[/] adds the share of the position error each one causes (re-records once per source)")
+
+
+def _error_budget_with_progress(recording: Path, settings: RunSettings, work_dir: Optional[Path],
+                                jobs: Optional[int], cache_dir):
+    """:func:`agvviz.evaluation.error_budget.error_budget` under a progress bar."""
+    from agvviz.evaluation.error_budget import error_budget
+
+    # The bar appears with the first step, so an input refused at once prints only its error.
+    progress, task = _progress(), None
+
+    def on_step(done: int, total: int, what: str) -> None:
+        nonlocal task
+        if task is None:
+            progress.start()
+            task = progress.add_task(f"error budget of {recording.name}", total=None, rate="")
+        progress.update(task, completed=done, total=total, **({"rate": what} if what else {}))
+
+    try:
+        result = error_budget(recording, settings, work_dir=work_dir, progress=on_step, jobs=jobs,
+                              cache_dir=False if cache_dir is False else cache_dir)
+        if task is not None:
+            progress.update(task, rate="done")
+    finally:
+        progress.stop()
+    for warning in result.warnings:
+        err_console.print(f"[yellow]warning:[/] {escape(warning)}")
+    return result
 
 
 @app.command(help=_run_help(), cls=_Command)
@@ -326,9 +383,10 @@ def run(
     jobs: Optional[int] = typer.Option(None, "--jobs", help=JOBS_HELP),
     cache: bool = typer.Option(True, "--cache/--no-cache", help=CACHE_HELP),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
+    budget: bool = typer.Option(False, "--budget", help=BUDGET_HELP),
 ) -> None:
     _run(recording, solver, set_, out, topic, roles, markers, calibration, extrinsic,
-         jobs=jobs, cache_dir=(cache_dir if cache else False))
+         jobs=jobs, cache_dir=(cache_dir if cache else False), budget=budget)
 
 
 # -- inspect / view / demo ---------------------------------------------------------------
@@ -736,8 +794,9 @@ def budget(
     (interaction/other is the rest); the floor is every source off.
 
     Example: agvviz budget recordings/qr_floor_typical.mcap --out runs/budget.rrd
+
+    `agvviz run RECORDING --budget` puts the same budget into the run's summary and .rrd.
     """
-    from agvviz.evaluation.error_budget import error_budget
     from agvviz.viz.budget_logger import write_budget_rrd
 
     settings = apply_overrides(RunSettings(), list(set_))
@@ -745,22 +804,7 @@ def budget(
     if out.suffix != ".rrd":
         _fail(f"--out must end in .rrd, got {out}")
     outputs.prepare_output(out, inputs=[recording])  # fail before the work, not after
-    # The bar appears with the first step, so an input refused at once prints only its error.
-    progress, task = _progress(), None
-
-    def on_step(done: int, total: int, what: str) -> None:
-        nonlocal task
-        if task is None:
-            progress.start()
-            task = progress.add_task(f"budget of {recording.name}", total=None, rate="")
-        progress.update(task, completed=done, total=total, **({"rate": what} if what else {}))
-
-    try:
-        result = error_budget(recording, settings, work_dir=work_dir, progress=on_step)
-        if task is not None:
-            progress.update(task, rate="done")
-    finally:
-        progress.stop()
+    result = _error_budget_with_progress(recording, settings, work_dir, jobs=1, cache_dir=False)
     written = write_budget_rrd(out, result)
     table = Table(title=f"error budget of {recording.name} ({result.scenario}, seed {result.seed}, "
                   f"realism {result.profile}): position RMSE {result.rmse_all_mm:.3f} mm", title_justify="left")
@@ -770,8 +814,6 @@ def budget(
     for row in result.rows():
         table.add_row(*row)
     console.print(table)
-    for warning in result.warnings:
-        err_console.print(f"[yellow]warning:[/] {escape(warning)}")
     if work_dir is not None:
         console.print(f"re-recorded worlds and runs in [bold]{escape(str(work_dir))}[/]")
     console.print(f"budget written: [bold]{escape(str(written))}[/]  (agvviz view {escape(str(written))})")

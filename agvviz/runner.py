@@ -382,6 +382,7 @@ def run_recording(
     on_total: Callable[[int], None] | None = None,
     jobs: int | None = None,
     cache_dir: Path | None | bool = None,
+    error_budget=None,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -396,6 +397,11 @@ def run_recording(
     ``jobs`` detection worker processes (default: one per CPU; 1 = detect in this process);
     ``cache_dir`` the detection cache folder (None: :func:`agvviz.graph.detect_cache.default_cache_dir`,
     False: no cache). Neither changes the run's results.
+
+    ``error_budget`` (an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this recording
+    under these settings, from :func:`agvviz.evaluation.error_budget.error_budget`) goes into
+    the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
+    in the ``.rrd`` (:mod:`agvviz.viz.budget_logger`), with a layout that shows them.
     """
     recording_path = Path(recording_path)
     if not recording_path.exists():
@@ -501,6 +507,9 @@ def run_recording(
         detection.store(read_report)
         summary["detection"] = detection.summary()
         summary["warnings"] = run_warnings(replay.warnings() + prepared.causes + detection.warnings(), read_report)
+        if error_budget is not None:
+            summary["error_budget"] = error_budget.summary()
+            logger.log_error_budget(error_budget)
         logger.log_summary(summary)
     return RunOutcome(
         out_path=out_path,

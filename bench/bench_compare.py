@@ -3,12 +3,12 @@ time to sweep 6 settings over the default recording.
 
 Usage:  python bench/bench_compare.py [--frames 1000] [--jobs 2] [--keep DIR] [--skip-sweep]
 
-1. Records qr_floor (default options, 10 Hz) long enough for ``--frames`` frames, replays it
+1. Records qr_floor (default options in the ideal world, 10 Hz) long enough for ``--frames`` frames, replays it
    with lm and p4p (as a 2-setting sweep, in parallel), then times ``agvviz diff`` on the two
    runs: in-process per step (read back, compare with 2000 bootstrap resamples, write overlay)
    and end to end through the CLI (a fresh process, imports included); prints the overlay
    sizes with and without images.
-2. Records the default qr_floor (20 s at 10 Hz = 200 frames) and times
+2. Records the default qr_floor in the ideal world (20 s at 10 Hz = 200 frames) and times
    ``agvviz sweep --set solver=p4p,lm,ippe --set lm.max_iters=3,10`` (6 settings).
 
 The machine's other load changes every timing here: read them with ``uptime`` next to them.
@@ -39,7 +39,7 @@ def _load() -> str:
 def bench_diff(tmp: Path, frames: int, jobs: int) -> None:
     recording = tmp / "qr_floor_long.mcap"
     t0 = time.perf_counter()
-    scenario_registry.record("qr_floor", recording, seed=0, overrides=[f"duration_s={frames / 10}", "rate_hz=10"])
+    scenario_registry.record("qr_floor", recording, seed=0, overrides=[f"duration_s={frames / 10}", "rate_hz=10", "realism=ideal"])
     print(f"recorded {frames} frames in {time.perf_counter() - t0:.0f} s ({_mb(recording)})")
     t0 = time.perf_counter()
     runs = sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp / "long", jobs=jobs, images=False)
@@ -67,7 +67,7 @@ def bench_diff(tmp: Path, frames: int, jobs: int) -> None:
 
 def bench_sweep(tmp: Path, jobs: int) -> None:
     recording = tmp / "qr_floor.mcap"
-    scenario_registry.record("qr_floor", recording, seed=0)
+    scenario_registry.record("qr_floor", recording, seed=0, overrides=["realism=ideal"])
     t0 = time.perf_counter()
     outcome = sweep(recording, parse_grid(["solver=p4p,lm,ippe", "lm.max_iters=3,10"]), out_dir=tmp / "sweep",
                     jobs=jobs)

@@ -3,7 +3,8 @@
 
 Usage:  python bench/bench_planar.py [--seed 0] [--duration 10] [--set key=value ...]
 
-For each mount: record qr_floor, replay it with ``lm`` (depth and pixel objectives) and
+For each mount: record qr_floor in the ideal world (a solver study against the CRLB; ``--set
+realism=typical`` for the realistic one), replay it with ``lm`` (depth and pixel objectives) and
 ``planar``; print AGV position and heading RMSE over the frames all of them solved, the mean
 CRLB of each model at the true pose, the mean NEES, and the error reduction planar / lm.
 """
@@ -43,7 +44,7 @@ def main() -> None:
             recording = Path(tmp) / f"qr_floor_{lookahead:g}.mcap"
             scenario_registry.record(
                 "qr_floor", recording, seed=args.seed,
-                overrides=[f"duration_s={args.duration}", f"cam_lookahead_m={lookahead}", *args.overrides],
+                overrides=[f"duration_s={args.duration}", f"cam_lookahead_m={lookahead}", "realism=ideal", *args.overrides],
             )
             frames = {name: {f.index: f for f in replay(iter_messages(recording), s)} for name, s in runs.items()}
             common = sorted(set.intersection(*({i for i, f in d.items() if f.solved and f.position_error_m is not None} for d in frames.values())))

@@ -32,7 +32,7 @@ def write_files(out: Path) -> list[Path]:
     from agvviz.scenario_registry import record
 
     native = out / "native.mcap"
-    record("qr_floor", native, seed=1, overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500"])
+    record("qr_floor", native, seed=1, overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500", "realism=ideal"])
     content = t.content.__wrapped__(native)
     m = foxglove.messages
     with foxglove.open_mcap(out / "foxglove_raw.mcap", allow_overwrite=True):

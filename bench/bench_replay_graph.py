@@ -161,6 +161,7 @@ class Tree:
     python: str
     has_tracking: bool
     has_jobs: bool
+    has_realism: bool = False  # scenarios take `realism` (default typical since issue 14)
 
     @property
     def agvviz(self) -> list[str]:
@@ -230,6 +231,8 @@ class Bench:
         if not path.exists():
             partial = self.workdir / "tmp" / path.name
             sets = ["--set", f"duration_s={duration_s:g}"] if duration_s is not None else []
+            # The baseline was measured in the ideal world (the only one before issue 14).
+            sets += ["--set", "realism=ideal"] if self.tree.has_realism else []
             self.child(self.tree.agvviz + ["record", "qr_floor", "--seed", "0", *sets, "--out", str(partial)],
                        f"record-{name}")
             os.replace(partial, path)
@@ -488,7 +491,10 @@ def inspect_tree(python: str) -> Tree:
     if helped.returncode != 0:
         raise SystemExit(f"error: `{python} -m agvviz run --help` exited {helped.returncode}")
     text = helped.stdout
-    return Tree(python=python, has_tracking="tracking (bool" in text, has_jobs="--jobs" in text)
+    scenarios = subprocess.run([python, "-m", "agvviz", "scenarios"], capture_output=True, text=True,
+                               env=dict(os.environ, COLUMNS="200")).stdout
+    return Tree(python=python, has_tracking="tracking (bool" in text, has_jobs="--jobs" in text,
+                has_realism="realism" in scenarios)
 
 
 def main() -> None:

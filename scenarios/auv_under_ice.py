@@ -34,8 +34,8 @@ cycles, each a straight approach from a random start frame F towards one marker 
 (attitude σ 1°, position σ 10 m) and then follows the true motion. Each /markers/corners message
 carries its cell and trial. bench/bench_cnoem.py runs the full grid from the same generator.
 
-Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``ideal``; route mode only —
-grid mode is the paper's cell and takes ``ideal`` only): the recorded calibrations and camera
+Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``typical``; route mode only —
+grid mode is the paper's cell and takes ``ideal`` only: ``--set realism=ideal``): the recorded calibrations and camera
 mounts are perturbed, the map holds the markers where they were meant to hang while images and
 corners come from their true placement and print size; each camera's frame stamped t shows the
 world at its capture time t − delay (``/agv/ground_truth`` then also gets a sample at each
@@ -107,7 +107,7 @@ class Options:
     grid_lateral_fraction: float = setting(0.2, "grid mode: lateral offset as a fraction of L", min=0.0, max=10.0)
     grid_vertical_fraction: float = setting(0.1, "grid mode: vertical offset as a fraction of L", min=0.0, max=10.0)
     trials: int = setting(100, "grid mode: number of cycles (the paper: 1000 per cell)", min=1, max=100000)
-    realism: str = setting("ideal", rl.HELP_PROFILE + " (route mode)", rl.PROFILE_NAMES)
+    realism: str = setting("typical", rl.HELP_PROFILE + " (route mode; grid mode: ideal)", rl.PROFILE_NAMES)
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
 
@@ -133,7 +133,7 @@ def validate(options: Options) -> None:
     realism = rl.make_realism(o.realism, o.realism_off, o.realism_set)
     rl.check_timing(realism.timing, 1.0 / o.frame_rate_hz)
     if o.mode == "grid" and realism.parameters() != rl.PROFILES["ideal"].parameters():
-        raise ValueError("grid mode is the paper's simulation cell: set realism=ideal (error sources apply to route mode)")
+        raise ValueError("grid mode is the paper's simulation cell without error sources: add --set realism=ideal (the default profile, typical, applies to route mode)")
     if o.mode == "route":
         check_total("frames = duration_s × frame_rate_hz", round(o.duration_s * o.frame_rate_hz), MAX_FRAMES,
                     "shorten duration_s or lower frame_rate_hz")

@@ -12,7 +12,7 @@ Recorded: calibration, ``/tf_static`` (agv → cam_front) and the marker map onc
 time stamp; then per frame ``/agv/ground_truth`` (world), ``/agv/odometry`` (odom) and the
 JPEG frame, all at the frame's log time, in that order.
 
-Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``ideal``: none): the
+Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``typical``; ``ideal``: none): the
 calibration and ``/tf_static`` written are the recorded (perturbed) ones, the map and the
 payloads the mapped (nominal) code placement, while rendering and truth use the true camera,
 mount and code placement; a frame stamped t shows the world at its capture time t − delay
@@ -94,7 +94,7 @@ class Options:
     odom_heading_bias_deg_per_s: float = setting(0.1, "odometry heading drift in deg/s", min=-10.0, max=10.0)
     odom_step_noise_m: float = setting(0.002, "odometry position noise per step and axis (sigma, m)", min=0.0, max=1.0)
     odom_heading_noise_deg: float = setting(0.05, "odometry heading noise per step (sigma, deg)", min=0.0, max=10.0)
-    realism: str = setting("ideal", rl.HELP_PROFILE, rl.PROFILE_NAMES)
+    realism: str = setting("typical", rl.HELP_PROFILE, rl.PROFILE_NAMES)
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
     inject: str = setting("", inj.HELP)

@@ -28,7 +28,7 @@ marker_<id>, agv → uwb_tag), ``/markers/map`` (frame ``agv``) and ``/uwb/ancho
 time order: per camera frame ``/agv/ground_truth`` and the four JPEG frames; per range
 ``/agv/ground_truth`` and ``/uwb/range``.
 
-Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``ideal``: none): each wall
+Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``typical``; ``ideal``: none): each wall
 camera's calibration and ``/tf_static`` extrinsic are the recorded (perturbed) ones and the
 map's roof code is where it was meant to be, while rendering and truth use the true cameras and
 the code's true place and print size on the roof; each camera's frame stamped t shows the AGV at
@@ -117,7 +117,7 @@ class Options:
     supersample: int = setting(4, "s x s samples per pixel for area integration", min=1, max=16)
     time_samples: int = setting(2, "imaging: renders averaged over each row's exposure (motion blur accuracy)", min=1, max=64)
     rows_per_band: int = setting(32, "imaging: rows rendered at one time under a rolling shutter (smaller: more exact, slower)", min=1, max=8192)
-    realism: str = setting("ideal", rl.HELP_PROFILE, rl.PROFILE_NAMES)
+    realism: str = setting("typical", rl.HELP_PROFILE, rl.PROFILE_NAMES)
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
 

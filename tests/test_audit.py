@@ -36,9 +36,11 @@ INJECT = "marker:Q034:dx_m=0.05;marker:Q015:yaw_deg=90;marker:Q025:scale=0.02;ca
 #: marker → (group that must be flagged, δ component checked, injected value)
 INJECTED = {"Q034": ("position", 0, 0.05), "Q015": ("yaw", 3, math.radians(90.0)), "Q025": ("scale", 6, 0.02)}
 CAMERA_INJECTED = np.array([0.0, 0.0, 0.02, math.radians(1.0), 0.0, 0.0])
-SHORT = dict(duration_s=5.0)
+#: The ideal world: the injected errors are then the only map and calibration errors, exactly
+#: (bench/bench_audit.py measures typical and harsh).
+SHORT = dict(duration_s=5.0, realism="ideal")
 #: A small rendered recording: half-size images (same field of view), 6 s.
-SMALL = ["duration_s=6", "width_px=640", "height_px=512", "focal_px=500.0", "supersample=2"]
+SMALL = ["duration_s=6", "width_px=640", "height_px=512", "focal_px=500.0", "supersample=2", "realism=ideal"]
 
 
 def _options(**changes):

@@ -64,7 +64,7 @@ def _truth_by_time(path):
 
 def test_corner_only_route_recording_matches_truth_within_its_noise(tmp_path):
     path = tmp_path / "route.mcap"
-    scenario_registry.record("auv_under_ice", path, seed=3, overrides=["duration_s=6", "sigma_px=0.5"])
+    scenario_registry.record("auv_under_ice", path, seed=3, overrides=["duration_s=6", "sigma_px=0.5", "realism=ideal"])
     report = inspect_recording(path)
     assert report.ok, report.violations
     truth = _truth_by_time(path)
@@ -88,7 +88,7 @@ def test_grid_recording_carries_the_cells_truth(tmp_path):
     path = tmp_path / "grid.mcap"
     scenario_registry.record(
         "auv_under_ice", path, seed=5,
-        overrides=["mode=grid", "trials=3", "grid_distance_m=5", "grid_lateral_fraction=0.4", "speed_mps=1.5", "sigma_px=0.0"],
+        overrides=["mode=grid", "realism=ideal", "trials=3", "grid_distance_m=5", "grid_lateral_fraction=0.4", "speed_mps=1.5", "sigma_px=0.0"],
     )
     assert inspect_recording(path).ok
     cam = auv.camera()
@@ -114,7 +114,7 @@ def test_images_show_the_markers_under_fluctuating_light(tmp_path):
     assert np.ptp(b[0]) > 0.5  # and across the image (caustic amplitude 0.3)
     path = tmp_path / "images.mcap"
     scenario_registry.record(
-        "auv_under_ice", path, seed=6, overrides=["images=true", "duration_s=0.2", "frame_rate_hz=5", "marker_spacing_m=6"]
+        "auv_under_ice", path, seed=6, overrides=["images=true", "duration_s=0.2", "frame_rate_hz=5", "marker_spacing_m=6", "realism=ideal"]
     )
     truth = _truth_by_time(path)
     replay = Replay(RunSettings())
@@ -139,7 +139,7 @@ def test_grid_recording_replays_to_the_same_cycles_as_the_generator(tmp_path):
     from agvviz.solvers.cnoem import CornerWindow, solve_cnoem
 
     path = tmp_path / "grid.mcap"
-    scenario_registry.record("auv_under_ice", path, seed=8, overrides=["mode=grid", "trials=4", "sigma_px=1.0"])
+    scenario_registry.record("auv_under_ice", path, seed=8, overrides=["mode=grid", "realism=ideal", "trials=4", "sigma_px=1.0"])
     cells = trials_from_recording(iter_messages(path))
     (cell_id, trials), = cells.items()
     assert cell_id == "L10_X0.2L_Y0.1L_v1_s1" and len(trials) == 4

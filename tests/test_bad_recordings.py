@@ -65,7 +65,7 @@ HOUR_NS = 3600 * 10**9
 def base(tmp_path_factory) -> Path:
     """A 3-frame qr_floor recording (1280x1024, distortion, truth, odometry, QR map)."""
     path = tmp_path_factory.mktemp("base") / "base.mcap"
-    scenario_registry.record("qr_floor", path, seed=1, overrides=["duration_s=0.6", "rate_hz=5"])
+    scenario_registry.record("qr_floor", path, seed=1, overrides=["duration_s=0.6", "rate_hz=5", "realism=ideal"])
     return path
 
 

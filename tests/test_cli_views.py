@@ -26,7 +26,7 @@ from agvviz.settings import RunSettings
 from agvviz.viz.readback import document_json, read_rrd
 from agvviz.viz import paths
 
-TINY = ["duration_s=0.4", "rate_hz=5"]  # 2 frames
+TINY = ["duration_s=0.4", "rate_hz=5", "realism=ideal"]  # 2 frames
 AGVVIZ = [sys.executable, "-m", "agvviz"]  # = the console script agvviz.__main__:main
 RERUN = str(Path(sys.executable).with_name("rerun"))
 COMMANDS = ["scenarios", "record", "run", "inspect", "view", "demo", "version", "diff", "sweep", "export"]

@@ -47,7 +47,7 @@ def _messages(path):
 def grid(tmp_path_factory):
     """(recording path, its role-tagged messages) of a seeded TRIALS-trial grid recording."""
     out = tmp_path_factory.mktemp("cnoem") / "grid.mcap"
-    scenario_registry.record("auv_under_ice", out, seed=4, overrides=["mode=grid", f"trials={TRIALS}"])
+    scenario_registry.record("auv_under_ice", out, seed=4, overrides=["mode=grid", "realism=ideal", f"trials={TRIALS}"])
     return out, _messages(out)
 
 
@@ -56,7 +56,7 @@ def grid_2(tmp_path_factory):
     out = tmp_path_factory.mktemp("cnoem") / "grid2.mcap"
     scenario_registry.record(
         "auv_under_ice", out, seed=6,
-        overrides=["mode=grid", f"trials={TRIALS_2}", "grid_distance_m=5", "grid_lateral_fraction=0.4",
+        overrides=["mode=grid", "realism=ideal", f"trials={TRIALS_2}", "grid_distance_m=5", "grid_lateral_fraction=0.4",
                    "grid_vertical_fraction=0.2", "speed_mps=1.5", "sigma_px=0.5"],
     )
     return out, _messages(out)
@@ -134,7 +134,7 @@ def test_lost_corner_message_is_a_warning(grid):
 def test_noise_free_cell_has_no_bound(tmp_path):
     # σ = 0: no CRLB (the information is infinite); the study says so instead of failing.
     path = tmp_path / "grid0.mcap"
-    scenario_registry.record("auv_under_ice", path, seed=1, overrides=["mode=grid", "trials=1", "sigma_px=0"])
+    scenario_registry.record("auv_under_ice", path, seed=1, overrides=["mode=grid", "realism=ideal", "trials=1", "sigma_px=0"])
     noise_free = replay_cnoem_trials(_messages(path), RunSettings())
     c = noise_free.summary["cnoem_study"]
     json.dumps(noise_free.summary, allow_nan=False)

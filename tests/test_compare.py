@@ -49,9 +49,9 @@ from agvviz.viz.readback import (
 )
 
 # 2 s at 10 Hz = 20 frames of the default paper 000 geometry.
-SMALL = ["duration_s=2", "rate_hz=10"]
+SMALL = ["duration_s=2", "rate_hz=10", "realism=ideal"]
 # 1 s at 5 Hz = 5 frames: the sweeps of several recordings and on an existing cluster.
-TINY = ["duration_s=1", "rate_hz=5"]
+TINY = ["duration_s=1", "rate_hz=5", "realism=ideal"]
 CAM = "front"
 
 
@@ -320,7 +320,7 @@ def test_same_recording_and_settings_give_equal_rrd(tmp_path):
     setting is not."""
     cli = _rerun_cli()
     recording = tmp_path / "qr_floor.mcap"
-    scenario_registry.record("qr_floor", recording, seed=5, overrides=["duration_s=1", "rate_hz=5"])
+    scenario_registry.record("qr_floor", recording, seed=5, overrides=TINY)
     elsewhere = tmp_path / "copy" / "qr_floor.mcap"
     elsewhere.parent.mkdir()
     shutil.copy(recording, elsewhere)

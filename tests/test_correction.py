@@ -101,7 +101,7 @@ def route_recording(tmp_path_factory):
     from agvviz import scenario_registry
 
     path = tmp_path_factory.mktemp("auv") / "auv.mcap"
-    scenario_registry.record("auv_under_ice", path, seed=4, overrides=["duration_s=24"])
+    scenario_registry.record("auv_under_ice", path, seed=4, overrides=["duration_s=24", "realism=ideal"])
     return path
 
 

@@ -26,7 +26,7 @@ from agvviz.runner import detect_recording, prepare, run_recording
 from agvviz.settings import RunSettings
 
 # 4 s at 10 Hz = 40 frames: several segments of the default keyframe interval (10).
-SMALL = ["duration_s=4", "rate_hz=10"]
+SMALL = ["duration_s=4", "rate_hz=10", "realism=ideal"]
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from agvviz.viz.readback import document_json, points2d, read_rrd, scalar_series
 
 # Small and fast: 2 s at 5 Hz = 10 frames of the default paper 000 geometry (1280x1024,
 # camera 1.5 m high looking ~1 m ahead at 0.5 m codes).
-SMALL = ["duration_s=2", "rate_hz=5"]
+SMALL = ["duration_s=2", "rate_hz=5", "realism=ideal"]
 
 
 @pytest.fixture(scope="module")

@@ -15,8 +15,8 @@ from agvviz.evaluation.error_budget import INTERACTION, error_budget, sources_on
 from agvviz.recording.writer import RecordingWriter
 from agvviz.runner import run_recording
 from agvviz.settings import RunSettings
-from agvviz.viz import budget_logger
-from agvviz.viz.readback import read_rrd, scalar_series, text_document
+from agvviz.viz import budget_logger, paths
+from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document
 
 #: A tiny qr_floor: 5 frames, small images every one of which is solved under typical.
 TINY = ["duration_s=0.5", "width_px=480", "height_px=384", "focal_px=375.0"]
@@ -93,17 +93,52 @@ def test_budget_rrd(budget, tmp_path):
     assert len(on) == budget.solved_all
     assert budget_logger.SHARES in contents.entity_paths
 
-def test_cli_budget(tmp_path):
-    # One source on (calibration): the command re-records the world three times, not eight.
-    one = tmp_path / "one.mcap"
-    scenario_registry.record("qr_floor", one, seed=SEED, overrides=TINY + [
+@pytest.fixture(scope="module")
+def one_source(tmp_path_factory):
+    """One source on (calibration): a budget re-records the world three times, not eight."""
+    path = tmp_path_factory.mktemp("one") / "one.mcap"
+    scenario_registry.record("qr_floor", path, seed=SEED, overrides=TINY + [
         "realism=typical", "realism_off=map,timing,bumps,slip,imaging"])
+    return path
+
+def test_cli_budget(one_source, tmp_path):
     out = tmp_path / "b.rrd"
-    result = CliRunner().invoke(app, ["budget", str(one), "--set", "tracking=false", "--out", str(out),
+    result = CliRunner().invoke(app, ["budget", str(one_source), "--set", "tracking=false", "--out", str(out),
                                       "--work-dir", str(tmp_path / "w")])
     assert result.exit_code == 0, result.output
     assert "calibration" in result.output and INTERACTION in result.output and out.exists()
     assert "all_off.mcap" in {p.name for p in (tmp_path / "w").glob("*.mcap")}
+
+def test_run_with_budget(one_source, tmp_path):
+    """`agvviz run --budget`: the budget in the run's summary, its table and series in the run's .rrd."""
+    out = tmp_path / "run.rrd"
+    result = CliRunner().invoke(app, ["run", str(one_source), "--set", "tracking=false", "--out", str(out),
+                                      "--budget", "--jobs", "1", "--no-cache"])
+    assert result.exit_code == 0, result.output
+    assert "error budget (typical)" in result.output
+    contents = read_rrd(out)
+    summary = document_json(contents, paths.RUN_SUMMARY)
+    budget = summary["error_budget"]
+    rmse_all = summary["position_error_mm"]["rmse"]
+    assert budget["rmse_all_mm"] == rmse_all  # the budget's run is this run
+    (calibration,) = budget["sources"]
+    assert calibration["source"] == "calibration"
+    # The only source on: switching it off is the all-off world, so its RMSE off is the floor.
+    assert calibration["rmse_off_mm"] == budget["floor_rmse_mm"]
+    assert calibration["share"] == pytest.approx((rmse_all**2 - calibration["rmse_off_mm"]**2) / rmse_all**2, abs=1e-12)
+    assert "| calibration |" in text_document(contents, budget_logger.TABLE)
+    frames, on = scalar_series(contents, budget_logger.series("all_on"))
+    run_frames, run_errors = scalar_series(contents, paths.ERROR_POSITION_MM)
+    assert list(frames) == list(run_frames) and np.allclose(on, run_errors)
+    assert budget_logger.SHARES in contents.entity_paths
+
+def test_run_budget_refusals(one_source, tmp_path):
+    ideal = tmp_path / "ideal.mcap"
+    scenario_registry.record("qr_floor", ideal, seed=SEED, overrides=TINY + ["realism=ideal"])
+    result = CliRunner().invoke(app, ["run", str(ideal), "--budget", "--out", str(tmp_path / "i.rrd")])
+    assert result.exit_code != 0 and "nothing to budget" in result.output and not (tmp_path / "i.rrd").exists()
+    result = CliRunner().invoke(app, ["run", str(one_source), "--budget", "--markers", str(ideal)])
+    assert result.exit_code != 0 and "--budget re-records" in result.output
 
 def _plain_mcap(path):
     with open(path, "wb") as f:
@@ -121,7 +156,7 @@ def test_errors_on_bad_input(tmp_path):
     with pytest.raises(InputError, match="unknown scenario 'no_such'"):
         error_budget(unknown, SETTINGS)
     ideal = tmp_path / "ideal.mcap"
-    scenario_registry.record("qr_floor", ideal, seed=0, overrides=["duration_s=0.1", "width_px=64", "height_px=64", "focal_px=50.0"])
+    scenario_registry.record("qr_floor", ideal, seed=0, overrides=["duration_s=0.1", "width_px=64", "height_px=64", "focal_px=50.0", "realism=ideal"])
     with pytest.raises(InputError, match="nothing to budget"):
         error_budget(ideal, SETTINGS)
     with pytest.raises(InputError, match="no such file"):

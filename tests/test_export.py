@@ -172,7 +172,7 @@ def qr_floor_run(tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("evo")
     recording = tmp / "qr.mcap"
-    scenario_registry.record("qr_floor", recording, seed=3, overrides=["duration_s=3", "rate_hz=5", "track_length_m=1"])
+    scenario_registry.record("qr_floor", recording, seed=3, overrides=["duration_s=3", "rate_hz=5", "track_length_m=1", "realism=ideal"])
     return run_recording(recording, RunSettings(solver="ippe"), tmp / "qr-ippe.rrd").out_path
 
 

@@ -21,7 +21,7 @@ from agvviz.viz.uwb_blueprint import uwb_blueprint
 def correction_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("auv_views")
     recording = tmp / "auv.mcap"
-    scenario_registry.record("auv_under_ice", recording, seed=4, overrides=["duration_s=7"])
+    scenario_registry.record("auv_under_ice", recording, seed=4, overrides=["duration_s=7", "realism=ideal"])
     run_recording(recording, RunSettings(correction="cnoem", cycle_distance_m=3.0), tmp / "run.rrd")
     return read_rrd(tmp / "run.rrd")
 
@@ -30,7 +30,7 @@ def correction_run(tmp_path_factory):
 def uwb_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("uwb_views")
     recording = tmp / "uwb_room.mcap"
-    overrides = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s=2.0"]
+    overrides = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s=2.0", "realism=ideal"]
     scenario_registry.record("uwb_room", recording, seed=4, overrides=overrides)
     outcome = run_recording(recording, RunSettings(fusion="mean_compensation"), tmp / "run.rrd")
     return read_rrd(outcome.out_path)

@@ -33,7 +33,7 @@ from agvviz.settings import RunSettings
 from agvviz.viz.readback import RrdReadError, read_rrd
 from agvviz.viz.rrd_file import AtomicRrd, looks_complete
 
-TINY = ["duration_s=0.4", "rate_hz=5"]  # 2 frames
+TINY = ["duration_s=0.4", "rate_hz=5", "realism=ideal"]  # 2 frames
 AGVVIZ = [sys.executable, "-m", "agvviz"]  # = the console script agvviz.__main__:main
 
 
@@ -294,7 +294,7 @@ def _wait_for_temp(folder: Path, proc: subprocess.Popen, timeout: float = 120.0)
 @pytest.fixture(scope="module")
 def longer_recording(tmp_path_factory):
     path = tmp_path_factory.mktemp("long") / "long.mcap"
-    scenario_registry.record("qr_floor", path, seed=1, overrides=["duration_s=4", "rate_hz=5"])
+    scenario_registry.record("qr_floor", path, seed=1, overrides=["duration_s=4", "rate_hz=5", "realism=ideal"])
     return path
 
 

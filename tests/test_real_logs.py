@@ -68,7 +68,7 @@ def native(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("native") / "qr.mcap"
     record(
         "qr_floor", path, seed=1,
-        overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500"],
+        overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500", "realism=ideal"],
     )
     return path
 

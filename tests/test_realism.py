@@ -25,9 +25,9 @@ UWB_GRID = ["variant=static_grid", "static_point_m=2.4,2.4", "fixes_per_point=2"
 #: sha256 over (topic, log time, bytes) of every message, of recordings made with the code
 #: before the error sources existed (seed 0): ``ideal`` must reproduce them exactly.
 GOLDEN = {
-    "qr_floor": (QR_SMALL, "24d3f12b1d513e68fe540ca21097f88b8c11bf6bda4c574ef30c9edf8d2e16e6", 12),
-    "uwb_room": (UWB_SMALL, "1ade08cfb0d5c5478633e4ba93b707e3390d00bbdedc0cd017657a30394b1058", 33),
-    "uwb_room_grid": (UWB_GRID, "0b37dfb431fac6587e34619303f63695cedc631b51c4a2b8895f16d6f5b15345", 33),
+    "qr_floor": (QR_SMALL + ["realism=ideal"], "24d3f12b1d513e68fe540ca21097f88b8c11bf6bda4c574ef30c9edf8d2e16e6", 12),
+    "uwb_room": (UWB_SMALL + ["realism=ideal"], "1ade08cfb0d5c5478633e4ba93b707e3390d00bbdedc0cd017657a30394b1058", 33),
+    "uwb_room_grid": (UWB_GRID + ["realism=ideal"], "0b37dfb431fac6587e34619303f63695cedc631b51c4a2b8895f16d6f5b15345", 33),
 }
 ONLY = {s: ",".join(x for x in rl.SOURCES if x != s) for s in rl.SOURCES}  # realism_off leaving s on
 
@@ -68,6 +68,17 @@ def test_ideal_profile_draws_nothing_and_every_parameter_is_settable():
     assert custom.map == rl.MapErrors() and custom.slip == rl.SlipErrors()
     assert custom.timing.jitter_sigma_s == rl.PROFILES["typical"].timing.jitter_sigma_s
     assert custom.name == "typical*"
+
+
+def test_scenarios_default_to_typical_and_studies_to_ideal():
+    """Issue 14: a recording is as imperfect as a real one unless asked otherwise; the solver
+    studies keep the ideal world (their noise is the study's own)."""
+    for name in ("qr_floor", "uwb_room", "auv_under_ice"):
+        assert scenario_registry.build_options(name, []).realism == "typical", name
+    assert scenario_registry.build_options("p4p_monte_carlo", []).realism == "ideal"
+    assert scenario_registry.build_options("auv_under_ice", ["mode=grid", "realism=ideal"]).mode == "grid"
+    with pytest.raises(scenario_registry.ScenarioError, match="add --set realism=ideal"):
+        scenario_registry.build_options("auv_under_ice", ["mode=grid"])
 
 
 @pytest.mark.parametrize(
@@ -133,7 +144,7 @@ def qr_sources(tmp_path_factory):
             "duration_s=1", "realism=typical", f"realism_off={ONLY['timing']}", f"realism_set={strong_timing}"]),
         "all": _record(tmp, "all", "qr_floor", QR_SMALL + ["realism=typical"]),
         "no_calibration": _record(tmp, "no_calibration", "qr_floor", QR_SMALL + ["realism=typical", "realism_off=calibration"]),
-        "ideal": _record(tmp, "ideal", "qr_floor", QR_SMALL),
+        "ideal": _record(tmp, "ideal", "qr_floor", QR_SMALL + ["realism=ideal"]),
     }
 
 

@@ -88,10 +88,10 @@ def test_capture_instant_is_the_middle_of_the_middle_rows_exposure():
 def qr(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("qr_imaging")
     return {
-        "ideal": _record(tmp, "ideal", "qr_floor", QR_SMALL),
+        "ideal": _record(tmp, "ideal", "qr_floor", QR_SMALL + ["realism=ideal"]),
         "imaging_only": _record(tmp, "imaging_only", "qr_floor", QR_SMALL + ["realism=typical", f"realism_off={NON_IMAGING}"]),
         "typical_no_imaging": _record(tmp, "typical_no_imaging", "qr_floor", QR_SMALL + ["realism=typical", "realism_off=imaging"]),
-        "ideal_plus_others": _record(tmp, "ideal_plus_others", "qr_floor", QR_SMALL + [f"realism_set={_typical_as_overrides()}"]),
+        "ideal_plus_others": _record(tmp, "ideal_plus_others", "qr_floor", QR_SMALL + ["realism=ideal", f"realism_set={_typical_as_overrides()}"]),
         "typical": _record(tmp, "typical", "qr_floor", QR_SMALL + ["realism=typical"]),
     }
 
@@ -149,7 +149,7 @@ def test_ideal_with_imaging_switched_off_is_still_todays_world(tmp_path, key):
 
 def test_uwb_room_renders_typical_images_of_the_moving_roof_code(tmp_path):
     typical = _record(tmp_path, "room", "uwb_room", UWB_SMALL + ["realism=typical", f"realism_off={NON_IMAGING}"])
-    ideal = _record(tmp_path, "room_ideal", "uwb_room", UWB_SMALL)
+    ideal = _record(tmp_path, "room_ideal", "uwb_room", UWB_SMALL + ["realism=ideal"])
     for wall in ("south", "east", "north", "west"):
         assert _raw(typical, f"/cam/{wall}/image") != _raw(ideal, f"/cam/{wall}/image")
     for topic in (topics.GROUND_TRUTH_TOPIC, topics.UWB_RANGE_TOPIC):

@@ -226,8 +226,11 @@ class _CapturingWriter:
 
 
 def _record(seed: int, **overrides) -> list:
+    """The writer calls of a tiny ideal qr_floor (the typical world adds a realism record and
+    capture-time truth samples)."""
     options = dataclasses.replace(
-        qr_floor.Options(), duration_s=0.3, width_px=200, height_px=160, focal_px=160.0, **overrides
+        qr_floor.Options(), duration_s=0.3, width_px=200, height_px=160, focal_px=160.0,
+        **{"realism": "ideal", **overrides},
     )
     writer = _CapturingWriter()
     progress = []

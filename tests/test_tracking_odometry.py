@@ -28,7 +28,7 @@ from agvviz.settings import RunSettings
 from agvviz.sim.trajectory import forward_camera_mount
 
 FRAMES = 32
-OVERRIDES = ["duration_s=3.2", "width_px=640", "height_px=512", "focal_px=500", "supersample=2"]
+OVERRIDES = ["duration_s=3.2", "width_px=640", "height_px=512", "focal_px=500", "supersample=2", "realism=ideal"]
 #: Tracked corners against full detection's on the same frame: both are ECC runs to the same
 #: optimum from different starts (zxing's corners, the prediction), stopped when the
 #: correlation changes by < 1e-5 in an iteration (tests/test_tracking.py). On these frames

@@ -19,7 +19,7 @@ from agvviz.viz.readback import _rows, document_json, read_rrd, scalar_series, t
 from agvviz.viz.uwb_logger import NO_CAMERA
 
 # 3 s at 5 Hz (15 time stamps × 4 cameras), cameras blocked from 1.0 s to 2.0 s.
-SMALL = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s=2.0"]
+SMALL = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s=2.0", "realism=ideal"]
 
 
 @pytest.fixture(scope="module")

@@ -83,6 +83,22 @@ class ErrorBudget:
         """``1 − Σ shares``: what the sources cause only together (and the floor's part)."""
         return 1.0 - float(sum(s.share for s in self.sources if math.isfinite(s.share)))
 
+    def summary(self) -> dict:
+        """Plain data for a run summary (``summary["error_budget"]``): the profile, the RMSE
+        with every source on and off, and per source its RMSE when off and its share."""
+        return {
+            "profile": self.profile,
+            "realism_off": self.realism_off,
+            "rmse_all_mm": self.rmse_all_mm,
+            "floor_rmse_mm": self.floor_rmse_mm,
+            "sources": [
+                {"source": s.source, "rmse_off_mm": s.rmse_off_mm, "share": _finite_or_none(s.share)}
+                for s in self.sources
+            ],
+            "interaction": _finite_or_none(self.interaction),
+            "warnings": list(self.warnings),
+        }
+
     def rows(self) -> list[tuple[str, str, str]]:
         """(source, RMSE with it off, share %) rows, then the remainder, all on and the floor."""
         rows = [(s.source, _mm(s.rmse_off_mm), _pct(s.share)) for s in self.sources]
@@ -112,6 +128,10 @@ class ErrorBudget:
         ]
         lines += [f"\n*warning:* {w}" for w in self.warnings]
         return "\n".join(lines) + "\n"
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
 
 
 def _mm(value: float | None) -> str:

@@ -12,7 +12,9 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
 - Monte-Carlo trials: ``trials`` (:mod:`agvviz.graph.trials`): cells × trials × solvers and
   each solver's RMSE ÷ CRLB;
 - CNOEM grid trials: ``cnoem_study`` (:mod:`agvviz.graph.cnoem_trials`): cells × trials ×
-  methods, each method's mean and RMS error and RMS ÷ CRLB, CNOEM ÷ IPPE against the paper.
+  methods, each method's mean and RMS error and RMS ÷ CRLB, CNOEM ÷ IPPE against the paper;
+- an error budget: ``error_budget`` (``run --budget``,
+  :meth:`agvviz.evaluation.error_budget.ErrorBudget.summary`): each source's share.
 
 ``timing`` holds the wall-clock figures (:func:`agvviz.evaluation.summary.timing`,
 :func:`agvviz.graph.trials.trials_timing`), printed but never stored.
@@ -56,6 +58,8 @@ def summary_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
         rows += _fusion_rows(summary["fusion"])
     if "correction" in summary:
         rows += _correction_rows(summary["correction"])
+    if summary.get("error_budget"):
+        rows += _budget_rows(summary["error_budget"])
     if not frames and not any(kind in summary for kind in STUDY_KINDS) and timing.get("wall_time_s") is not None:
         rows.append(("wall time (s)", _fmt(timing["wall_time_s"], 1)))
     return rows
@@ -108,6 +112,17 @@ def _correction_rows(c: dict) -> list[tuple[str, str]]:
         ),
         ("mean correction jump (mm)", _fmt(_mm(c["mean_jump_m"]))),
     ]
+
+
+def _budget_rows(b: dict) -> list[tuple[str, str]]:
+    """The error budget (``run --budget``): each source's share of the position error's mean
+    square, with the RMSE the run has without it."""
+    rows = [(f"error budget ({b['profile']}): share of position MSE", "% (RMSE with it off, mm)")]
+    for s in b["sources"]:
+        rows.append((f"  {s['source']}", f"{_fmt(_percent(s['share']), 1)} ({_fmt(s['rmse_off_mm'])})"))
+    rows.append(("  interaction/other", _fmt(_percent(b["interaction"]), 1)))
+    rows.append(("  floor: every source off (mm)", _fmt(b["floor_rmse_mm"])))
+    return rows
 
 
 def _trials_rows(t: dict, timing: dict) -> list[tuple[str, str]]:

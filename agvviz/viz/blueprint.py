@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import rerun.blueprint as rrb
 
-from agvviz.viz import paths
+from agvviz.viz import budget_logger, paths
 
 _LEGEND = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.LeftTop)
 
@@ -122,6 +122,7 @@ def default_blueprint(
     ghost_max_ratio: float | None = None,
     cov_scale: float | None = None,
     start_m: tuple[float, float, float] | None = None,
+    budget_sources: list[str] | None = None,
 ) -> rrb.Blueprint:
     """Build the default layout for a run with cameras ``cam_names`` (fits 1600×1000).
 
@@ -130,6 +131,8 @@ def default_blueprint(
     puts the rejection log under the summary; ``has_threshold``: the reprojection plot has
     its ``max_reproj_px`` line; ``ghost_max_ratio`` and ``cov_scale`` are named in the 3D
     view's title; the 3D view follows the estimated AGV from its first position ``start_m``.
+    ``budget_sources``: the run holds an error budget of these sources (``run --budget``): its
+    table is the active document and its chart and series are tabs beside the position error.
     """
     image_views = []
     for cam_name in cam_names:
@@ -153,7 +156,8 @@ def default_blueprint(
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
         rrb.TextLogView(origin=paths.EVENTS_FLIPS, name="flips"),
-        active_tab=0,
+        *([budget_logger.table_view()] if budget_sources is not None else []),
+        active_tab=0 if budget_sources is None else 3,
     )
     if has_rejections:
         documents = rrb.Vertical(
@@ -166,8 +170,17 @@ def default_blueprint(
         else rrb.Vertical(image_panel, _lm_panel(lm_iterates), row_shares=[0.85, 0.15]),
         column_shares=[0.52, 0.48],
     )
+    position = _error_view([paths.ERROR_POSITION_MM], "position error [mm]")
+    if budget_sources is not None:
+        position = rrb.Tabs(
+            position,
+            budget_logger.shares_view(budget_sources),
+            budget_logger.deltas_view(budget_sources),
+            budget_logger.errors_view(budget_sources),
+            active_tab=0,
+        )
     bottom = rrb.Horizontal(
-        _error_view([paths.ERROR_POSITION_MM], "position error [mm]"),
+        position,
         rrb.Tabs(
             _error_view([paths.ERROR_HEADING_DEG], "heading error [deg]"),
             _error_view([paths.ERROR_PITCH_DEG], "pitch error [deg]"),

@@ -1,6 +1,10 @@
-"""Write an error budget (:mod:`agvviz.evaluation.error_budget`) into an ``.rrd`` of its own.
+"""Log an error budget (:mod:`agvviz.evaluation.error_budget`) into an ``.rrd``.
 
-Entity tree (timelines: ``frame`` = the run's frame index; ``time`` = the frame's stamp)::
+Written into a budget ``.rrd`` of its own (``agvviz budget``) or into the run's ``.rrd``
+(``agvviz run --budget``, :meth:`agvviz.viz.run_logger.RunLogger.log_error_budget`).
+
+Entity tree (timelines: ``frame`` = the run's frame index; ``time`` = the frame's stamp;
+``elapsed`` = seconds since the run's start, or the budget's first frame)::
 
     budget/table                           TextDocument: the budget as a markdown table (static)
     budget/shares_pct                      BarChart: share of the position error (%), one bar
@@ -29,6 +33,7 @@ import rerun.blueprint as rrb
 from agvviz.evaluation.error_budget import INTERACTION, ErrorBudget
 from agvviz.viz import paths
 from agvviz.viz.rrd_file import AtomicRrd
+from agvviz.viz.timelines import elapsed_s
 
 ROOT = "budget"
 TABLE = f"{ROOT}/table"
@@ -43,22 +48,27 @@ def series(source: str, what: str = "position_error_mm") -> str:
 
 
 def _send(rec: rr.RecordingStream, entity: str, time_ns: np.ndarray, values: np.ndarray,
-          frame_of: dict[int, int]) -> None:
+          frame_of: dict[int, int], start_ns: int) -> None:
     ok = [k for k, v in enumerate(values) if np.isfinite(v) and int(time_ns[k]) in frame_of]
     if not ok:
         return
+    stamps = [int(time_ns[k]) for k in ok]
     rec.send_columns(
         entity,
         indexes=[
-            rr.TimeColumn(paths.TIMELINE_FRAME, sequence=[frame_of[int(time_ns[k])] for k in ok]),
-            rr.TimeColumn(paths.TIMELINE_TIME, timestamp=np.asarray([time_ns[k] for k in ok], dtype="datetime64[ns]")),
+            rr.TimeColumn(paths.TIMELINE_FRAME, sequence=[frame_of[t] for t in stamps]),
+            rr.TimeColumn(paths.TIMELINE_TIME, timestamp=np.asarray(stamps, dtype="datetime64[ns]")),
+            rr.TimeColumn(paths.TIMELINE_ELAPSED, duration=[elapsed_s(t, start_ns) for t in stamps]),
         ],
         columns=rr.Scalars.columns(scalars=np.asarray([values[k] for k in ok], dtype=float)),
     )
 
 
-def log_budget(rec: rr.RecordingStream, budget: ErrorBudget) -> None:
-    """Log the table, the bar chart of shares and the per-frame series into ``rec``."""
+def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns: int | None = None) -> None:
+    """Log the table, the bar chart of shares and the per-frame series into ``rec``; the
+    ``elapsed`` timeline counts from ``recording_start_ns`` (a run's own start; None: the
+    budget's first frame)."""
+    start_ns = int(recording_start_ns) if recording_start_ns is not None else int(min(budget.time_ns, default=0))
     rec.log(TABLE, rr.TextDocument(budget.markdown(), media_type=rr.MediaType.MARKDOWN), static=True)
     shares = [s.share for s in budget.sources] + [budget.interaction]
     values = np.array([100.0 * v if np.isfinite(v) else 0.0 for v in shares], dtype=float)
@@ -66,30 +76,45 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget) -> None:
     # frames are numbered by the recording's run; a counterfactual frame is placed at the
     # recording's frame with the same stamp (a dropped frame has none and is left out).
     frame_of = {int(t): int(f) for t, f in zip(budget.time_ns, budget.frames)}
-    _send(rec, series(ALL_ON), budget.time_ns, budget.position_error_all_mm, frame_of)
+    _send(rec, series(ALL_ON), budget.time_ns, budget.position_error_all_mm, frame_of, start_ns)
     if budget.floor_rmse_mm is not None and len(budget.time_ns):
         ends = np.array([budget.time_ns[0], budget.time_ns[-1]])
-        _send(rec, series(ALL_OFF), ends, np.full(2, budget.floor_rmse_mm), frame_of)
+        _send(rec, series(ALL_OFF), ends, np.full(2, budget.floor_rmse_mm), frame_of, start_ns)
     for s in budget.sources:
-        _send(rec, series(s.source), s.time_ns, s.position_error_off_mm, frame_of)
-        _send(rec, series(s.source, "delta_mm"), budget.time_ns, s.delta_mm, frame_of)
+        _send(rec, series(s.source), s.time_ns, s.position_error_off_mm, frame_of, start_ns)
+        _send(rec, series(s.source, "delta_mm"), budget.time_ns, s.delta_mm, frame_of, start_ns)
+
+
+def table_view() -> rrb.TextDocumentView:
+    """The budget's markdown table."""
+    return rrb.TextDocumentView(origin=TABLE, name="error budget")
+
+
+def shares_view(sources: list[str]) -> rrb.BarChartView:
+    """The bar chart of shares, its bars named in the title (the table names them too)."""
+    return rrb.BarChartView(origin=SHARES, name=f"share of the position error (%): {', '.join(list(sources) + [INTERACTION])}")
+
+
+def errors_view(sources: list[str]) -> rrb.TimeSeriesView:
+    """Per-frame position error with every source on, every source off, and each source off."""
+    names = [ALL_ON, ALL_OFF] + list(sources)
+    return rrb.TimeSeriesView(origin=ROOT, contents=[f"$origin/{n.replace('/', '_')}/position_error_mm" for n in names],
+                              name="position error (mm): all on, all off, each source off")
+
+
+def deltas_view(sources: list[str]) -> rrb.TimeSeriesView:
+    """Per-frame error all on − error with each source off: when a source costs what it costs."""
+    return rrb.TimeSeriesView(origin=ROOT, contents=[f"$origin/{s.replace('/', '_')}/delta_mm" for s in sources],
+                              name="error all on − error source off (mm)")
 
 
 def budget_blueprint(budget: ErrorBudget) -> rrb.Blueprint:
     """Table and bar chart beside the per-frame errors (all on, each source off) and deltas."""
-    names = [ALL_ON, ALL_OFF] + [s.source for s in budget.sources]
+    sources = [s.source for s in budget.sources]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(
-                rrb.TextDocumentView(origin=TABLE, name="budget"),
-                rrb.BarChartView(origin=SHARES, name=f"share of the position error (%): {', '.join([s.source for s in budget.sources] + [INTERACTION])}"),
-            ),
-            rrb.Vertical(
-                rrb.TimeSeriesView(origin=ROOT, contents=[f"$origin/{n.replace('/', '_')}/position_error_mm" for n in names],
-                                   name="position error (mm): all on, all off, each source off"),
-                rrb.TimeSeriesView(origin=ROOT, contents=[f"$origin/{s.source.replace('/', '_')}/delta_mm" for s in budget.sources],
-                                   name="error all on − error source off (mm)"),
-            ),
+            rrb.Vertical(table_view(), shares_view(sources)),
+            rrb.Vertical(errors_view(sources), deltas_view(sources)),
         ),
         collapse_panels=True,
     )

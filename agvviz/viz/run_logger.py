@@ -280,6 +280,7 @@ class RunLogger:
         self._rejected_frames = 0
         self._first_pose: np.ndarray | None = None
         self._cov_scale: float | None = None  # the ellipsoid's magnification (set once)
+        self._budget_sources: list[str] | None = None  # an error budget was logged: its sources
         try:
             self._log_static_styles()
         except BaseException:  # no `with` block owns the file yet: discard it here
@@ -752,6 +753,16 @@ class RunLogger:
         text = _markdown_document("Run manifest", manifest)
         self._rec.log(paths.RUN_MANIFEST, _markdown(text), static=True)
 
+    def log_error_budget(self, budget) -> None:
+        """Log an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this run (its table,
+        bar chart of shares and per-frame series, :mod:`agvviz.viz.budget_logger`); the default
+        layout then shows them."""
+        from agvviz.viz import budget_logger
+
+        self._check_open()
+        budget_logger.log_budget(self._rec, budget, self.recording_start_ns)
+        self._budget_sources = [s.source for s in budget.sources]
+
     def log_summary(self, summary: dict) -> None:
         """Log the run summary as static markdown: the terminal's table
         (:func:`agvviz.evaluation.summary_table.summary_rows`, without the wall-clock rows),
@@ -778,6 +789,7 @@ class RunLogger:
                 ghost_max_ratio=GHOST_MAX_AMBIGUITY_RATIO,
                 cov_scale=self._cov_scale,
                 start_m=None if self._first_pose is None else tuple(self._first_pose[:3, 3]),
+                budget_sources=self._budget_sources,
             )
         self._file.commit(blueprint)
 

@@ -45,7 +45,7 @@ from robustness_harness import (
 )
 
 #: The small recording every case starts from: 12 frames of 1280x1024, 3 chunks of ~1.2 MB.
-BASE_RECORD_ARGS = ["record", "qr_floor", "--seed", "1", "--set", "duration_s=1.5", "--set", "rate_hz=8"]
+BASE_RECORD_ARGS = ["record", "qr_floor", "--seed", "1", "--set", "duration_s=1.5", "--set", "rate_hz=8", "--set", "realism=ideal"]
 CAMPAIGN_SEED = 10  # issue 10
 DAMAGE_WORDS = (
     "damage", "lost", "truncat", "crc", "corrupt", "duplicate", "repeated", "magic", "footer",
