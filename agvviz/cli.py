@@ -832,6 +832,8 @@ def audit(
     extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=EXTRINSIC_HELP),
     correct: str = typer.Option("flagged", "--correct", help="markers moved in the corrected map: flagged or all (estimated)"),
     jobs: Optional[int] = typer.Option(None, "--jobs", help=JOBS_HELP),
+    cache: bool = typer.Option(True, "--cache/--no-cache", help=CACHE_HELP),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
 ) -> None:
     """Audit a map and a calibration: which markers are misplaced, is the camera where the calibration says.
 
@@ -871,6 +873,7 @@ def audit(
     with _progress() as progress:
         task = progress.add_task(f"auditing {recording.name}", total=None, rate="")
         result = audit_lib.audit_recording(recording, run_settings, settings, side=side, jobs=jobs,
+                                           cache_dir=cache_dir if cache else False,
                                            progress=lambda done: progress.update(task, completed=done))
         progress.update(task, rate="solved")
     written = audit_lib.write_outputs(result, paths, correct)

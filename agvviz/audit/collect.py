@@ -19,7 +19,7 @@ import numpy as np
 from agvviz.audit.problem import AuditData
 from agvviz.conventions import WORLD_FRAME
 from agvviz.errors import InputError, RecordingError
-from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners
+from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners, quad_area_px2
 from agvviz.recording.reader import ReadReport
 from agvviz.recording.source import iter_role_messages
 from agvviz.settings import RunSettings
@@ -39,10 +39,6 @@ class Collected:
     warnings: list[str] = field(default_factory=list)
     detection_source: str = "detected"
     cameras: dict = field(default_factory=dict)  # name -> PinholeCamera (the calibration in use)
-
-
-def _quad_area(p: np.ndarray) -> float:
-    return 0.5 * abs(float(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1))))
 
 
 def collect(
@@ -170,7 +166,7 @@ def collect(
                 marker_ids.append(marker_id)
                 T_world_marker.append(T_wm)
                 points_marker.append(pts[:4])
-            if _quad_area(px) <= 0.0 or not np.all(np.isfinite(px)):
+            if quad_area_px2(px) <= 0.0 or not np.all(np.isfinite(px)):
                 continue
             obs_frame.append(i)
             obs_cam.append(cam_names.index(cam_name))

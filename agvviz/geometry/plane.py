@@ -27,6 +27,13 @@ def square_points_marker(side_m: float, with_midpoints: bool = False) -> np.ndar
     return np.array(pts)
 
 
+def quad_area_px2(corners_px: np.ndarray) -> float:
+    """Area (px²) of the polygon through the first four image points ``corners_px`` (N ≥ 4, 2),
+    in order (shoelace formula; NaN when a point is not finite)."""
+    x, y = corners_px[:4, 0], corners_px[:4, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
 def marker_frame_from_corners(
     corners_world_m: np.ndarray, planarity_tol_m: float = 1e-3
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -24,7 +24,7 @@ import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import PinholeCamera, euler, se3
-from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners
+from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners, quad_area_px2
 from agvviz.graph.detect import (
     CodeDetection,
     DetectParams,
@@ -114,11 +114,6 @@ def _module_to_marker(points_module: np.ndarray, n_modules: int, vertices_marker
     ).astype(float)
     xy = cv2.perspectiveTransform(points_module.reshape(1, -1, 2).astype(float), H).reshape(-1, 2)
     return np.c_[xy, np.zeros(len(xy))]
-
-
-def _polygon_area_px2(corners_px: np.ndarray) -> float:
-    x, y = corners_px[:4, 0], corners_px[:4, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
 def _path_px(camera: PinholeCamera, path: list, points_marker_m: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -519,7 +514,7 @@ class Replay:
         camera = cam.camera
         t1 = time.perf_counter()
         observation, ideal_px, points_marker_m, marker_frame, T_frame_marker = max(
-            candidates, key=lambda c: _polygon_area_px2(c[1])
+            candidates, key=lambda c: quad_area_px2(c[1])
         )
         result.used_marker_id = observation.marker_id
         camera_on_agv = marker_frame == WORLD_FRAME and cam.T_agv_cam is not None
