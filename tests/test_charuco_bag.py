@@ -250,3 +250,34 @@ def test_board_poses_from_different_markers_agree(replay):
         assert d2(T_cam_board_run, T_cam_board, cov) <= D2_BOUND, f"frame {frame}: the run's pose"
     assert compared == 68
     assert mirrors <= compared // 4, f"{mirrors} of {compared} markers took the mirror pose"
+
+
+def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_path):
+    """`agvviz audit` on a real log (issue 15): the same bag and side files. The board is printed
+    to a fraction of a millimetre, so every marker's in-plane placement (dx, dy) must come out
+    within 1.5 mm of the board file (5σ of the audit's ≈0.1–0.3 mm σ would be tighter; 1.5 mm
+    leaves room for the real corners' systematic error, ≈0.3 px at 25 px per 20 mm marker ≈
+    0.25 mm per corner) and no marker may be flagged for position or yaw (minimum 10 mm, 1°).
+    Known limit, not asserted: from 4 photos the tilt and print scale of a 20 mm marker are
+    confounded with that systematic corner error, and a few markers are flagged for tilt/scale
+    at 4–7 "σ" (the README's audit limits)."""
+    from agvviz.audit import audit_recording
+    from agvviz.cli import _side_inputs
+    from agvviz.settings import RunSettings
+
+    bag = tmp_path / "charuco_bag"
+    write_bag(bag)
+    markers = tmp_path / "board.yaml"
+    markers.write_text(yaml.safe_dump({
+        "dictionary": DICTIONARY,
+        "boards": [dict(type="charuco", **BOARD, pose=[0, 0, 0, 0, 0, 0, 1])],
+    }))
+    settings = RunSettings(ambiguity="lowest_error")
+    side = _side_inputs(markers, [f"{CAM}={CALIBRATION}"], [f"{CAM}=0,0,0,0,0,0,1"], settings.body_frame)
+    result = audit_recording(bag, settings, side=side, jobs=1, cache_dir=False)
+    found = {f.marker_id: f for f in result.estimate.markers}
+    assert sorted(found, key=int) == [str(i) for i in range(17)]
+    for f in found.values():
+        assert f.status != "seen too little" and f.frames == 4, (f.marker_id, f.status, f.frames)
+        assert abs(f.delta[0]) < 1.5e-3 and abs(f.delta[1]) < 1.5e-3, (f.marker_id, f.delta[:2])
+        assert not {"position", "yaw"} & set(f.reasons), (f.marker_id, f.reasons)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 
 import numpy as np
 
@@ -47,16 +48,19 @@ def _why(f) -> str:
     return text
 
 
+def _natural(marker_id: str) -> tuple:
+    """Sort key: ids by their numbers (2 before 10, Q9 before Q10), then by text."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", marker_id) if part)
+
+
 def marker_rows(estimate: AuditEstimate) -> list[tuple[str, ...]]:
     """One row per marker: flagged first, then ok, then seen too little; by id within."""
     order = {"flagged": 0, "ok": 1, "seen too little": 2}
     rows = []
-    for f in sorted(estimate.markers, key=lambda f: (order[f.status], f.marker_id)):
+    for f in sorted(estimate.markers, key=lambda f: (order[f.status], _natural(f.marker_id))):
         d, s = f.delta, f.sigma
-        other = ""
-        if not f.floor:
-            other = (f"dz {_pm(d[2], s[2], 1e3, 1)} mm, tilt {_pm(d[4], s[4], 180 / math.pi, 2)}/"
-                     f"{_pm(d[5], s[5], 180 / math.pi, 2)}°")
+        tilt = f"tilt {_pm(d[4], s[4], 180 / math.pi, 2)}/{_pm(d[5], s[5], 180 / math.pi, 2)}°"
+        other = tilt if f.floor else f"dz {_pm(d[2], s[2], 1e3, 1)} mm, {tilt}"
         rows.append((
             f.marker_id, f.status, str(f.frames), _pm(d[0], s[0], 1e3, 1), _pm(d[1], s[1], 1e3, 1),
             _pm(d[3], s[3], 180 / math.pi, 2), _pm(d[6], s[6], 100.0, 2), other, _why(f),
