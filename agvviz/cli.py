@@ -333,8 +333,8 @@ def _budget_hint(scenario: Optional[dict]) -> None:
 
     options = (scenario or {}).get("options") or {}
     try:
-        on = sources_on(options) if "realism" in options else []
-    except ValueError:  # options this agvviz cannot rebuild: no hint
+        on = sources_on(options, scenario.get("name")) if "realism" in options else []
+    except (ValueError, InputError):  # options or a scenario this agvviz does not know: no hint
         on = []
     if on:
         console.print(f"error sources on in this recording ({options['realism']}): {', '.join(on)} — "

@@ -112,6 +112,13 @@ class Options:
     realism_set: str = setting("", rl.HELP_SET)
 
 
+def realism_sources(options: dict) -> tuple[str, ...]:
+    """The error sources (:data:`agvviz.sim.realism.SOURCES`) this scenario applies under the
+    recorded options ``options`` (a dict, as in a recording's metadata): no floor (bumps) and no wheels
+    (slip) under water; image formation only with ``images=true``."""
+    return ("calibration", "map", "timing") + (("imaging",) if options.get("images") else ())
+
+
 def validate(options: Options) -> None:
     """Raise ``ValueError`` naming the first impossible option."""
     check_fields(options)

@@ -100,6 +100,12 @@ class Options:
     inject: str = setting("", inj.HELP)
 
 
+def realism_sources(options: dict) -> tuple[str, ...]:
+    """The error sources (:data:`agvviz.sim.realism.SOURCES`) this scenario applies under the
+    recorded options ``options`` (a dict, as in a recording's metadata): every source: the AGV drives on a bumpy floor with wheel odometry and a camera."""
+    return rl.SOURCES
+
+
 def validate(options: Options) -> None:
     """Raise ``ValueError`` naming the first impossible option and what to do about it."""
     check_fields(options)

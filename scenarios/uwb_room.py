@@ -122,6 +122,12 @@ class Options:
     realism_set: str = setting("", rl.HELP_SET)
 
 
+def realism_sources(options: dict) -> tuple[str, ...]:
+    """The error sources (:data:`agvviz.sim.realism.SOURCES`) this scenario applies under the
+    recorded options ``options`` (a dict, as in a recording's metadata): no odometry, so no wheel slip."""
+    return tuple(s for s in rl.SOURCES if s != "slip")
+
+
 def validate(options: Options) -> None:
     """Raise ``ValueError`` naming the first impossible option and what to do about it."""
     check_fields(options)

@@ -47,6 +47,12 @@ def _independent(tmp_path, off: str) -> dict:
 def test_sources_on():
     assert sources_on({"realism": "ideal"}) == []
     assert sources_on({"realism": "typical", "realism_off": "slip,imaging"}) == ["calibration", "map", "timing", "bumps"]
+    # Only the sources a scenario applies: no slip without odometry, no bumps or slip under water,
+    # no image formation in a corner-only recording.
+    assert sources_on({"realism": "typical"}, "qr_floor") == ["calibration", "map", "timing", "bumps", "slip", "imaging"]
+    assert "slip" not in sources_on({"realism": "typical"}, "uwb_room")
+    assert sources_on({"realism": "typical", "images": False}, "auv_under_ice") == ["calibration", "map", "timing"]
+    assert sources_on({"realism": "typical", "images": True}, "auv_under_ice")[-1] == "imaging"
 
 def test_shares_match_independent_reruns(budget, typical, tmp_path):
     assert [s.source for s in budget.sources] == CHECKED

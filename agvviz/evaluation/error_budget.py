@@ -171,15 +171,22 @@ def _scenario_of(recording_path: Path) -> dict:
     return scenario
 
 
-def sources_on(options: dict) -> list[str]:
+def sources_on(options: dict, scenario: str | None = None) -> list[str]:
     """The error sources of :data:`agvviz.sim.realism.SOURCES` whose parameters differ from the
     ``ideal`` profile's under the scenario options ``options`` (``realism``, ``realism_off``,
-    ``realism_set``)."""
+    ``realism_set``) — of those the scenario ``scenario`` applies (its module's
+    ``realism_sources(options)``; e.g. no slip without odometry), when given."""
+    from agvviz import scenario_registry
     from agvviz.sim import realism as rl
 
     realism = rl.make_realism(options["realism"], options.get("realism_off", ""), options.get("realism_set", ""))
     ideal = rl.PROFILES["ideal"].parameters()
     params = realism.parameters()
+    if scenario is not None:
+        applies = getattr(scenario_registry.get(scenario), "realism_sources", None)
+        if applies is not None:
+            used = set(applies(options))
+            return [s for s in rl.SOURCES if params[s] != ideal[s] and s in used]
     return [s for s in rl.SOURCES if params[s] != ideal[s]]
 
 
@@ -261,7 +268,7 @@ def error_budget(
             "before them, or a scenario without error sources); nothing to budget — record it again with "
             "--set realism=typical"
         )
-    on = sources_on(options)
+    on = sources_on(options, name)
     if not on:
         raise InputError(
             f"{recording_path.name} was recorded under the ideal world (realism={options['realism']}"
