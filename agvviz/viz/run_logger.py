@@ -9,10 +9,15 @@ start-time property are disabled and chunks are cut by size only (no wall-clock 
 tick), so the file depends only on the data: two identical runs compare equal with
 ``rerun rrd compare --unordered`` (row ids and file bytes still differ).
 
-Logging cost (issue 12): every per-frame scalar series (errors, reprojection, uncertainty,
-LM iterations) is held in memory and sent as columns every :data:`FLUSH_EVERY_FRAMES` frames
-and at :meth:`RunLogger.close`; the styling of every per-frame entity (colours, radii, draw
-order) is logged once as static data, so a frame's log calls carry only what changes.
+Logging cost (issue 12): every per-frame value except the image — scalar series (errors,
+reprojection, uncertainty, LM iterations), poses, corners, codes seen, trajectories, the
+covariance ellipsoid, the LM bar charts, paths and text, and the Clears that end them — is held
+in memory and sent as columns (one ``send_columns`` per entity) every
+:data:`FLUSH_EVERY_FRAMES` frames and at :meth:`RunLogger.close`, instead of building a Rerun
+archetype per frame. The image is logged per frame (it is large) from its bytes without an
+archetype. The styling of every per-frame entity (colours, radii, draw order) is logged once as
+static data, so a frame carries only what changes. The data are those the per-frame archetypes
+carried (same entities, components, values and timelines; only the chunking differs).
 Every per-frame log is stamped on ``frame``, ``time`` and ``elapsed``
 (:func:`agvviz.viz.timelines.set_stamp`).
 """
@@ -28,6 +33,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 
 from agvviz.evaluation.summary_table import markdown_table, summary_rows
@@ -145,6 +151,12 @@ class _Columns:
         self._iterations: dict[str, list[tuple[Stamp, np.ndarray]]] = {}
         self._points: dict[str, list[tuple[Stamp, list[np.ndarray]]]] = {}
         self._transforms: dict[str, list[tuple[Stamp, np.ndarray]]] = {}
+        #: (entity, kind) -> rows of one per-frame archetype (see :data:`_ROW_COLUMNS`).
+        self._rows: dict[tuple[str, str], list[tuple[Stamp, tuple]]] = {}
+
+    def row(self, entity: str, kind: str, stamp: Stamp, *payload) -> None:
+        """One frame's value of ``entity`` as an archetype of ``kind`` (a key of _ROW_COLUMNS)."""
+        self._rows.setdefault((entity, kind), []).append((stamp, payload))
 
     def scalar(self, entity: str, stamp: Stamp, value: float) -> None:
         self._scalars.setdefault(entity, []).append((stamp, float(value)))
@@ -168,6 +180,12 @@ class _Columns:
                 entity,
                 indexes=_time_columns([stamp for stamp, _ in rows]),
                 columns=rr.Transform3D.columns(translation=T[:, :3, 3], mat3x3=T[:, :3, :3]),
+            )
+        for (entity, kind), rows in self._rows.items():
+            rec.send_columns(
+                entity,
+                indexes=_time_columns([stamp for stamp, _ in rows]),
+                columns=_ROW_COLUMNS[kind]([payload for _, payload in rows]),
             )
         for entity, rows in self._scalars.items():
             rec.send_columns(
@@ -197,6 +215,143 @@ class _Columns:
                 columns=rr.Points2D.columns(positions=np.concatenate(arrays)).partition([len(a) for a in arrays]),
             )
         self._scalars, self._gaps, self._iterations, self._points, self._transforms = {}, {}, {}, {}, {}
+        self._rows = {}
+
+
+class _ArrowBatch:
+    """A ready Arrow array as a component batch (for :class:`rr.ComponentColumn`)."""
+
+    def __init__(self, array: pa.Array):
+        self._array = array
+
+    def as_arrow_array(self) -> pa.Array:
+        return self._array
+
+
+def _lengths(groups) -> np.ndarray:
+    return np.fromiter((len(g) for g in groups), dtype=np.int64, count=len(groups))
+
+
+def _points2d_columns(rows) -> rr.ComponentColumnList:
+    """Rows (positions (n, 2), labels [n]) as one Points2D row each."""
+    positions = [p for p, _ in rows]
+    labels = [label for _, row_labels in rows for label in row_labels]
+    return rr.Points2D.columns(positions=np.concatenate(positions), labels=labels).partition(_lengths(positions))
+
+
+def _strips3d_columns(rows) -> rr.ComponentColumnList:
+    """Rows (strips [k], labels [k]) as one LineStrips3D row each."""
+    strips = [strip for row_strips, _ in rows for strip in row_strips]
+    labels = [label for _, row_labels in rows for label in row_labels]
+    return rr.LineStrips3D.columns(strips=strips, labels=labels).partition(_lengths([s for s, _ in rows]))
+
+
+def _strip3d_columns(rows) -> rr.ComponentColumnList:
+    """Rows (one strip,) as one LineStrips3D row each (a trajectory)."""
+    return rr.LineStrips3D.columns(strips=[strip for (strip,) in rows])
+
+
+def _strips2d_columns(rows) -> rr.ComponentColumnList:
+    """Rows (strips (k, m, 2),) as one LineStrips2D row each."""
+    strips = [strip for (row_strips,) in rows for strip in row_strips]
+    return rr.LineStrips2D.columns(strips=strips).partition(_lengths([s for (s,) in rows]))
+
+
+def _ellipsoid_columns(rows) -> rr.ComponentColumnList:
+    """Rows (half_sizes (3,), centre (3,), quaternion xyzw (4,), label) as one ellipsoid each."""
+    half_sizes, centres, quaternions, labels = zip(*rows)
+    return rr.Ellipsoids3D.columns(
+        half_sizes=np.array(half_sizes),
+        centers=np.array(centres),
+        quaternions=np.array(quaternions),
+        labels=list(labels),
+    )
+
+
+def _markdown_columns(rows) -> rr.ComponentColumnList:
+    """Rows (markdown text,) as one TextDocument row each."""
+    return rr.TextDocument.columns(text=[text for (text,) in rows], media_type=[rr.MediaType.MARKDOWN] * len(rows))
+
+
+def _bar_chart_columns(rows) -> list[rr.ComponentColumn]:
+    """Rows (float64 values (n,),) as one BarChart row each: the TensorData array is built in one
+    go (shape [n], no names, an F64 buffer), what ``rr.BarChart(values)`` logs per call."""
+    values = [v for (v,) in rows]
+    data_type = rr.components.TensorDataBatch._ARROW_DATATYPE
+    n_rows = len(values)
+    lengths = _lengths(values)
+    offsets = np.zeros(n_rows + 1, dtype=np.int32)
+    np.cumsum(lengths, out=offsets[1:])
+    shape_type = data_type.field("shape").type
+    shape = pa.ListArray.from_arrays(
+        pa.array(np.arange(n_rows + 1, dtype=np.int32)), pa.array(lengths.astype(np.uint64))
+    ).cast(shape_type)
+    names = pa.nulls(n_rows, type=data_type.field("names").type)
+    buffer_type = data_type.field("buffer").type
+    f64 = [f.name for f in buffer_type].index("F64")
+    flat = np.concatenate(values).astype(np.float64) if n_rows else np.zeros(0)
+    child = pa.ListArray.from_arrays(pa.array(offsets), pa.array(flat)).cast(buffer_type[f64].type)
+    children = [pa.nulls(0, type=f.type) for f in buffer_type]
+    children[f64] = child
+    buffer = pa.Array.from_buffers(
+        type=buffer_type,
+        length=n_rows,
+        buffers=[
+            None,
+            pa.array(np.full(n_rows, f64, dtype=np.int8)).buffers()[1],
+            pa.array(np.arange(n_rows, dtype=np.int32)).buffers()[1],
+        ],
+        children=children,
+    )
+    tensors = pa.StructArray.from_arrays([shape, names, buffer], fields=list(data_type)).cast(data_type)
+    return [rr.ComponentColumn(rr.BarChart.descriptor_values(), _ArrowBatch(tensors))]
+
+
+_BLOB_TYPE = rr.components.BlobBatch._ARROW_DATATYPE
+_BLOB_DESCRIPTOR = rr.EncodedImage.descriptor_blob()
+_MEDIA_TYPE_BATCHES: dict[str, rr.DescribedComponentBatch] = {}
+
+
+def _media_type_batch(media_type: str) -> rr.DescribedComponentBatch:
+    """``EncodedImage:media_type`` = ``media_type`` (built once per media type)."""
+    batch = _MEDIA_TYPE_BATCHES.get(media_type)
+    if batch is None:
+        batch = _MEDIA_TYPE_BATCHES[media_type] = rr.DescribedComponentBatch(
+            rr.components.MediaTypeBatch([media_type]), rr.EncodedImage.descriptor_media_type()
+        )
+    return batch
+
+
+class _Track:
+    """Positions (m) appended one per frame into a growing array (no list → array per frame)."""
+
+    def __init__(self):
+        self._xyz = np.zeros((256, 3))
+        self._n = 0
+
+    def append(self, position_m: np.ndarray) -> None:
+        if self._n == len(self._xyz):
+            self._xyz = np.concatenate([self._xyz, np.zeros_like(self._xyz)])
+        self._xyz[self._n] = position_m
+        self._n += 1
+
+    def __len__(self) -> int:
+        return self._n
+
+    def array(self) -> np.ndarray:
+        return self._xyz[: self._n]
+
+
+#: Builders of per-frame archetype columns, by the ``kind`` given to :meth:`_Columns.row`.
+_ROW_COLUMNS = {
+    "points2d": _points2d_columns,
+    "strips3d": _strips3d_columns,
+    "strip3d": _strip3d_columns,
+    "strips2d": _strips2d_columns,
+    "ellipsoid": _ellipsoid_columns,
+    "markdown": _markdown_columns,
+    "bar_chart": _bar_chart_columns,
+}
 
 
 def _time_columns(stamps: list[Stamp]) -> list[rr.TimeColumn]:
@@ -264,10 +419,11 @@ class RunLogger:
         self.blueprint = None
         self._start_time_sent = False
         self._saved = False
-        self._trajectory_truth_m: list[np.ndarray] = []
-        self._trajectory_camera_m: list[np.ndarray] = []
+        self._trajectory_truth_m = _Track()
+        self._trajectory_camera_m = _Track()
         self._columns = _Columns()
         self._frames_buffered = 0
+        self._last_stamp: Stamp = (0, 0, 0.0)  # the stamp of the frame being logged
         # What the previous frame left drawn, so a state is logged only when it changes.
         self._camera_body_label: str | None = None  # None: not drawn yet; "": solved
         self._ghost_drawn = False
@@ -458,7 +614,10 @@ class RunLogger:
         if self.recording_start_ns is None:
             self.recording_start_ns = int(frame.log_time_ns)
         set_stamp(self._rec, frame.index, frame.log_time_ns, self.recording_start_ns)
-        return int(frame.index), int(frame.log_time_ns), elapsed_s(frame.log_time_ns, self.recording_start_ns)
+        self._last_stamp = (
+            int(frame.index), int(frame.log_time_ns), elapsed_s(frame.log_time_ns, self.recording_start_ns)
+        )
+        return self._last_stamp
 
     def log_camera_view(self, frame: FrameResult) -> None:
         """Log only the image and corners of ``frame`` — another camera's view of a time
@@ -502,9 +661,17 @@ class RunLogger:
     def _log_image(self, frame: FrameResult) -> None:
         if not frame.image_bytes:
             return  # corner-only recordings carry no image
+        # What rr.EncodedImage(contents=..., media_type=...) logs, without building the
+        # archetype: the blob wraps the bytes without a copy, the media type is built once.
+        data = pa.py_buffer(frame.image_bytes)
+        blob = pa.ListArray.from_arrays(
+            pa.array([0, data.size], type=pa.int32()),
+            pa.Array.from_buffers(pa.uint8(), data.size, [None, data]),
+            type=_BLOB_TYPE,
+        )
         self._rec.log(
             paths.image(frame.cam_name, frame.cam_name in self._fixed_cams),
-            rr.EncodedImage(contents=frame.image_bytes, media_type=MEDIA_TYPES[frame.image_format]),
+            [rr.DescribedComponentBatch(_ArrowBatch(blob), _BLOB_DESCRIPTOR), _media_type_batch(MEDIA_TYPES[frame.image_format])],
         )
 
     def _log_corners(self, frame: FrameResult) -> None:
@@ -522,21 +689,20 @@ class RunLogger:
                 reprojected.append(reproj)
                 reprojected_ids += [obs.marker_id] * len(reproj)
         fixed = frame.cam_name in self._fixed_cams
-        rec = self._rec
-        rec.log(
-            paths.detected(frame.cam_name, fixed),
-            rr.Points2D(np.concatenate(detected) if detected else np.zeros((0, 2)), labels=detected_ids),
+        stamp = self._last_stamp
+        row = self._columns.row
+        row(
+            paths.detected(frame.cam_name, fixed), "points2d", stamp,
+            np.concatenate(detected) if detected else np.zeros((0, 2)), detected_ids,
         )
-        rec.log(
-            paths.reprojected(frame.cam_name, fixed),
-            rr.Points2D(np.concatenate(reprojected) if reprojected else np.zeros((0, 2)), labels=reprojected_ids),
+        row(
+            paths.reprojected(frame.cam_name, fixed), "points2d", stamp,
+            np.concatenate(reprojected) if reprojected else np.zeros((0, 2)), reprojected_ids,
         )
-        rec.log(
-            paths.marker_ids(frame.cam_name, fixed),
-            rr.Points2D(
-                np.array(centres) if centres else np.zeros((0, 2)),
-                labels=[f"id {obs.marker_id}" for obs in frame.observations],
-            ),
+        row(
+            paths.marker_ids(frame.cam_name, fixed), "points2d", stamp,
+            np.array(centres) if centres else np.zeros((0, 2)),
+            [f"id {obs.marker_id}" for obs in frame.observations],
         )
         self._log_zoom(frame)
 
@@ -545,12 +711,15 @@ class RunLogger:
         of the image width (a camera logged without its size is never zoomed)."""
         cam = frame.cam_name
         below_px = ZOOM_CODE_BELOW_FRACTION * self._image_width_px.get(cam, 0)
-        small = [
-            obs for obs in frame.observations if _longest_edge_px(np.asarray(obs.corners_px, float)[:4]) < below_px
-        ]
+        small = []  # (longest edge, observation) of the codes under the threshold
+        if below_px > 0 and frame.image_bytes:
+            for obs in frame.observations:
+                edge_px = _longest_edge_px(np.asarray(obs.corners_px, float)[:4])
+                if edge_px < below_px:
+                    small.append((edge_px, obs))
         crop = None
-        if small and frame.image_bytes:
-            obs = min(small, key=lambda o: _longest_edge_px(np.asarray(o.corners_px, float)[:4]))
+        if small:
+            _, obs = min(small, key=lambda edge_obs: edge_obs[0])
             crop = _crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
         root = paths.zoom(cam)
         if crop is None:
@@ -584,7 +753,7 @@ class RunLogger:
             outlines.append(np.vstack([corners, corners[:1]]))
             used = " (used)" if obs.marker_id == frame.used_marker_id else ""
             labels.append(f"id {obs.marker_id}{used}")
-        self._rec.log(paths.MARKERS_SEEN, rr.LineStrips3D(outlines, labels=labels))
+        self._columns.row(paths.MARKERS_SEEN, "strips3d", self._last_stamp, outlines, labels)
 
     def _log_poses(self, frame: FrameResult, stamp: Stamp) -> None:
         rec = self._rec
@@ -592,7 +761,7 @@ class RunLogger:
             T_truth = np.asarray(frame.T_world_agv_truth, dtype=float)
             self._columns.transform(paths.AGV_TRUTH, stamp, T_truth)
             self._trajectory_truth_m.append(T_truth[:3, 3])
-            rec.log(paths.TRAJECTORY_TRUTH, _trajectory_strip(self._trajectory_truth_m))
+            self._columns.row(paths.TRAJECTORY_TRUTH, "strip3d", stamp, _thinned(self._trajectory_truth_m.array()))
         if frame.solved:
             T_est = np.asarray(frame.T_world_agv, dtype=float)
             if self._first_pose is None:
@@ -602,7 +771,7 @@ class RunLogger:
                 rec.log(paths.AGV_CAMERA_BODY, self._body(COLOR_CAMERA))
                 self._camera_body_label = ""
             self._trajectory_camera_m.append(T_est[:3, 3])
-            rec.log(paths.TRAJECTORY_CAMERA, _trajectory_strip(self._trajectory_camera_m))
+            self._columns.row(paths.TRAJECTORY_CAMERA, "strip3d", stamp, _thinned(self._trajectory_camera_m.array()))
         else:
             # The estimate entity keeps its last pose; grey it so a stale pose is not mistaken
             # for this frame's answer.
@@ -669,9 +838,9 @@ class RunLogger:
         if frame.solved and frame.position_cov_world_m2 is not None:
             if self._cov_scale is None:
                 self._cov_scale = _cov_scale(np.asarray(frame.position_cov_world_m2, dtype=float))
-            rec.log(paths.AGV_CAMERA_POSITION_COV, _covariance_ellipsoid(frame, self._cov_scale))
+            columns.row(paths.AGV_CAMERA_POSITION_COV, "ellipsoid", stamp, *_covariance_ellipsoid(frame, self._cov_scale))
         else:
-            rec.log(paths.AGV_CAMERA_POSITION_COV, rr.Clear(recursive=False))
+            columns.gap(paths.AGV_CAMERA_POSITION_COV, stamp)
         ratio = frame.ambiguity_ratio
         if frame.solved and frame.T_world_agv_ghost is not None and ratio is not None and ratio < GHOST_MAX_AMBIGUITY_RATIO:
             rec.log(paths.AGV_GHOST, _transform3d(np.asarray(frame.T_world_agv_ghost, dtype=float)))
@@ -687,7 +856,7 @@ class RunLogger:
         reprojected points of each iteration, and a line of text; or "closed-form"."""
         rec = self._rec
         iterations: tuple[LmIteration, ...] = tuple(frame.lm_iterations)
-        rec.log(paths.LM_THIS_FRAME, _markdown(_lm_text(frame)))
+        self._columns.row(paths.LM_THIS_FRAME, "markdown", stamp, _lm_text(frame))
         if not iterations:
             self._log_lm_points(frame, stamp, ())
             if self._lm_bars_drawn:
@@ -716,7 +885,7 @@ class RunLogger:
             # Bar i is record i (the step norm: trial step i + 1; record 0, the start, has no
             # step). No abscissa: it would triple the logging cost of a bar chart.
             logged = logged[1:] if entity == paths.LM_LOG10_STEP_NORM_PER_ITERATION else logged
-            rec.log(entity, rr.BarChart(np.where(np.isfinite(logged), logged, np.nan)))
+            self._columns.row(entity, "bar_chart", stamp, np.where(np.isfinite(logged), logged, np.nan))
         columns = self._columns
         columns.scalar(paths.LM_ITERATIONS, stamp, len(iterations) - 1)
         for entity, values in (
@@ -739,11 +908,11 @@ class RunLogger:
             arrays = [np.asarray(p, dtype=float).reshape(-1, 2) for p in per_iteration_px]
             self._columns.iteration_points(points_entity, stamp, arrays)
             tracks = np.stack(arrays, axis=1)  # (N points, iterations, 2): each point's path
-            self._rec.log(path_entity, rr.LineStrips2D(list(tracks)))
+            self._columns.row(path_entity, "strips2d", stamp, tracks)
             self._lm_points_drawn.add(frame.cam_name)
         elif frame.cam_name in self._lm_points_drawn:
             self._columns.gap(points_entity, stamp)  # frame/time/elapsed only: lm_iter untouched
-            self._rec.log(path_entity, rr.Clear(recursive=False))
+            self._columns.gap(path_entity, stamp)
             self._lm_points_drawn.discard(frame.cam_name)
 
     # -- run documents ---------------------------------------------------------------------
@@ -832,9 +1001,10 @@ def _cov_scale(position_cov_m2: np.ndarray) -> float:
     return float(10.0 ** max(0, round(math.log10(COV_DRAWN_HALF_AXIS_M / largest_3sigma_m))))
 
 
-def _covariance_ellipsoid(frame: FrameResult, scale: float) -> rr.Ellipsoids3D:
+def _covariance_ellipsoid(frame: FrameResult, scale: float) -> tuple[np.ndarray, tuple, np.ndarray, str]:
     """The 3σ position ellipsoid magnified ×``scale`` in the AGV frame, centred
-    COV_ABOVE_BODY_M above the body's top (its colour and fill are static)."""
+    COV_ABOVE_BODY_M above the body's top (its colour and fill are static): half sizes, centre,
+    quaternion (xyzw) and label."""
     R_world_agv = np.asarray(frame.T_world_agv, dtype=float)[:3, :3]
     cov_agv = R_world_agv.T @ np.asarray(frame.position_cov_world_m2, dtype=float) @ R_world_agv
     cov_agv = 0.5 * (cov_agv + cov_agv.T)
@@ -844,11 +1014,11 @@ def _covariance_ellipsoid(frame: FrameResult, scale: float) -> rr.Ellipsoids3D:
     sigma_mm = 1000.0 * math.sqrt(max(float(np.sum(eigenvalues)), 0.0))
     half_z_m = 3.0 * scale * math.sqrt(max(float(cov_agv[2, 2]), 0.0))
     top_m = AGV_BODY_CENTER_M[2] + AGV_BODY_HALF_SIZES_M[2]
-    return rr.Ellipsoids3D(
-        half_sizes=[3.0 * scale * np.sqrt(np.clip(eigenvalues, 0.0, None))],
-        centers=[(0.0, 0.0, top_m + COV_ABOVE_BODY_M + half_z_m)],
-        quaternions=[rr.Quaternion(xyzw=se3.to_quaternion_xyzw(axes))],
-        labels=[f"position 3σ ×{scale:g} (σ = {sigma_mm:.2f} mm), drawn above the body"],
+    return (
+        3.0 * scale * np.sqrt(np.clip(eigenvalues, 0.0, None)),
+        (0.0, 0.0, top_m + COV_ABOVE_BODY_M + half_z_m),
+        np.asarray(se3.to_quaternion_xyzw(axes), dtype=float),
+        f"position 3σ ×{scale:g} (σ = {sigma_mm:.2f} mm), drawn above the body",
     )
 
 
@@ -915,15 +1085,14 @@ def _summary_markdown(summary: dict) -> str:
     return "\n\n".join(parts)
 
 
-def _trajectory_strip(positions_m: list[np.ndarray]) -> rr.LineStrips3D:
-    """The trajectory so far (thinned like :func:`_trajectory`); colour and radius are static."""
-    return rr.LineStrips3D([_thinned(positions_m)])
-
-
-def _thinned(positions_m: list[np.ndarray]) -> np.ndarray:
+def _thinned(positions_m: list[np.ndarray] | np.ndarray) -> np.ndarray:
     """At most MAX_TRAJECTORY_POINTS of ``positions_m``, evenly spread, first and last kept."""
     n = len(positions_m)
+    if n <= MAX_TRAJECTORY_POINTS and isinstance(positions_m, np.ndarray):
+        return positions_m.copy()
     keep = np.unique(np.linspace(0, n - 1, min(n, MAX_TRAJECTORY_POINTS)).round().astype(int))
+    if isinstance(positions_m, np.ndarray):
+        return positions_m[keep]
     return np.array([positions_m[i] for i in keep])
 
 
@@ -971,9 +1140,13 @@ def _as_array(value, shape: tuple[int, int], what: str) -> np.ndarray:
     return a
 
 
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def _as_transform(T, what: str) -> np.ndarray:
     T = _as_array(T, (4, 4), what)
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+    # np.allclose(T[3], [0, 0, 0, 1]) (rtol 1e-5, atol 1e-8) for finite T, without its overhead
+    if not np.all(np.abs(T[3] - _LAST_ROW) <= 1e-8 + 1e-5 * _LAST_ROW):
         raise RunLogError(f"{what} is not a homogeneous transform (last row {T[3].tolist()})")
     return T
 
