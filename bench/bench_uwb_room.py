@@ -2,6 +2,7 @@
 
 Usage:  python bench/bench_uwb_room.py [--fixes 100] [--duration 40] [--seed 0] [--keep DIR]
                                         [--only grid,path,blocked,resolution]
+                                        [--set key=value ...]
 
 1. static grid (§3.2, Tables 1–2): 30 points on a 120 cm grid, ``--fixes`` camera frames and
    UWB rounds each; mean 2-D error of the camera fix (best camera, and the joint multi-camera
@@ -34,6 +35,8 @@ from agvviz.recording.reader import CompressedFrame, RecordedMessage, iter_messa
 from agvviz.settings import RunSettings
 
 RESOLUTIONS = ((1280, 1024), (640, 480), (320, 240))
+#: ``--set`` options added to every recording's overrides (e.g. ``realism=typical``).
+EXTRA: list[str] = []
 
 
 def replay_once(recording: Path) -> tuple[list, dict]:
@@ -65,7 +68,7 @@ def fusion_summary(pairs: list, replay, **settings) -> dict:
 
 def record(tmp: Path, name: str, seed: int, overrides: list[str]) -> Path:
     path = tmp / f"{name}.mcap"
-    scenario_registry.record("uwb_room", path, seed=seed, overrides=overrides)
+    scenario_registry.record("uwb_room", path, seed=seed, overrides=[*overrides, *EXTRA])
     return path
 
 
@@ -81,7 +84,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep", type=Path, default=None, help="keep the recordings in this folder")
     parser.add_argument("--only", default="grid,path,blocked,resolution")
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                        help="scenario option for every recording, e.g. realism=typical (repeatable)")
     args = parser.parse_args()
+    EXTRA[:] = args.sets
     parts = set(args.only.split(","))
     tmp = args.keep or Path(tempfile.mkdtemp(prefix="bench_uwb_room_"))
     tmp.mkdir(parents=True, exist_ok=True)

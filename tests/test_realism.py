@@ -299,7 +299,7 @@ def test_static_grid_capture_before_a_points_first_fix_sees_that_point(tmp_path)
 # -- accuracy ------------------------------------------------------------------------------------
 def test_typical_world_costs_millimetres_not_centimetres(tmp_path):
     """1 s of default qr_floor (10 frames, lm): ideal ≈ 0.3 mm; typical (seed 0: calibration
-    and map biases of ≈1 mm, 0.3 ms latency at 1 m/s) must be worse, yet below 10 mm — a
+    and map biases of ≈1 mm, 0.1 ms latency at 1 m/s) must be worse, yet below 10 mm — a
     wrong sign or unit in any draw (a degree read as a radian, a px σ as a fraction) gives
     centimetres to metres."""
     from agvviz.runner import run_recording

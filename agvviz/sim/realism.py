@@ -164,14 +164,25 @@ PROFILES: dict[str, Realism] = {
     "typical": Realism(
         "typical",
         CalibrationErrors(
-            fx_sigma_px=0.12, fy_sigma_px=0.12, cx_sigma_px=0.2, cy_sigma_px=0.2,
+            # fx, fy: a good target calibration (sub-0.1 % focal length) at 1280×1024.
+            fx_sigma_px=0.1, fy_sigma_px=0.1,
+            # cx, cy: principal point of a many-view calibration, a tenth of a pixel.
+            cx_sigma_px=0.1, cy_sigma_px=0.1,
+            # Distortion: residual of a well-fitted plumb_bob model (≈0.1 px at the corners).
             k1_sigma=0.00025, k2_sigma=0.0001, p1_sigma=0.00003, p2_sigma=0.00003,
-            extrinsic_rotation_sigma_deg=0.005, extrinsic_translation_sigma_m=0.0001,
+            # Extrinsic rotation: surveyed/hand-eye mount, 0.02°/axis = 0.35 mm per m of range.
+            extrinsic_rotation_sigma_deg=0.02,
+            # Extrinsic translation: camera centre measured to 0.1 mm per axis.
+            extrinsic_translation_sigma_m=0.0001,
         ),
+        # Map: codes surveyed to 0.1 mm, yaw and tilt of a flat-laid label, print scale 0.015 %.
         MapErrors(position_sigma_m=0.0001, height_sigma_m=0.0001, yaw_sigma_deg=0.007,
                   tilt_sigma_deg=0.015, print_scale_sigma=0.00015),
-        TimingErrors(latency_s=0.0003, jitter_sigma_s=0.0002, drop_probability=0.01),
-        BumpErrors(pitch_sigma_deg=0.1, roll_sigma_deg=0.1, correlation_m=0.3),
+        # Timing: hardware-triggered global-shutter camera with PTP-synced stamps (0.1 ms).
+        TimingErrors(latency_s=0.0001, jitter_sigma_s=0.0001, drop_probability=0.01),
+        # Bumps: an ordinary industrial floor (a mm or two over the wheelbase): 0.25° pitch/roll.
+        BumpErrors(pitch_sigma_deg=0.25, roll_sigma_deg=0.25, correlation_m=0.3),
+        # Slip: unchanged (odometry only; neither target uses it): 0.2 % mean, 0.5 % per step.
         SlipErrors(fraction=0.002, sigma=0.005),
         # The photo-calibrated camera and print with whole-pixel apertures: TYPICAL_IMAGING's
         # 0.25 stands for the phone photos' decimation to 640×480; an AGV camera read out at
