@@ -101,6 +101,18 @@ def write_bag(path: Path) -> None:
             writer.write(connection, t_ns, typestore.serialize_cdr(message, CompressedImage.__msgtype__))
 
 
+def write_bag_and_board(folder: Path) -> tuple[Path, Path]:
+    """The bag (:func:`write_bag`) and the board as a ``--markers`` side file, in ``folder``."""
+    bag = folder / "charuco_bag"
+    write_bag(bag)
+    markers = folder / "board.yaml"
+    markers.write_text(yaml.safe_dump({
+        "dictionary": DICTIONARY,
+        "boards": [dict(type="charuco", **BOARD, pose=[0, 0, 0, 0, 0, 0, 1])],
+    }))
+    return bag, markers
+
+
 @pytest.fixture(scope="module")
 def replay(tmp_path_factory):
     """Write the bag and side files, run ``agvviz run``; (.rrd contents, calibration, board)."""
@@ -108,13 +120,7 @@ def replay(tmp_path_factory):
     from agvviz.viz.readback import read_rrd
 
     tmp = tmp_path_factory.mktemp("charuco_bag")
-    bag = tmp / "charuco_bag"
-    write_bag(bag)
-    markers = tmp / "board.yaml"
-    markers.write_text(yaml.safe_dump({
-        "dictionary": DICTIONARY,
-        "boards": [dict(type="charuco", **BOARD, pose=[0, 0, 0, 0, 0, 0, 1])],
-    }))
+    bag, markers = write_bag_and_board(tmp)
     out = tmp / "run.rrd"
     command = [
         sys.executable, "-m", "agvviz.cli", "run", str(bag),
@@ -265,13 +271,7 @@ def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_pa
     from agvviz.cli import _side_inputs
     from agvviz.settings import RunSettings
 
-    bag = tmp_path / "charuco_bag"
-    write_bag(bag)
-    markers = tmp_path / "board.yaml"
-    markers.write_text(yaml.safe_dump({
-        "dictionary": DICTIONARY,
-        "boards": [dict(type="charuco", **BOARD, pose=[0, 0, 0, 0, 0, 0, 1])],
-    }))
+    bag, markers = write_bag_and_board(tmp_path)
     settings = RunSettings(ambiguity="lowest_error")
     side = _side_inputs(markers, [f"{CAM}={CALIBRATION}"], [f"{CAM}=0,0,0,0,0,0,1"], settings.body_frame)
     result = audit_recording(bag, settings, side=side, jobs=1, cache_dir=False)
