@@ -68,7 +68,12 @@ SETTING_ALIASES = {"lm.max_iters": "lm_max_iterations", "lm.max_iterations": "lm
 #: Metrics for which a larger value ranks higher.
 HIGHER_IS_BETTER = {"solved", "solved_pct"}
 
-_CAMERA_DETECTED = re.compile(r"^world/agv/camera/cam_(?P<cam>[^/]+)/image/detected$")
+#: Detected-corner entity of a camera on the AGV and of one fixed in the world (uwb_room's
+#: wall cameras, ``world/cameras/cam_<name>``): every camera logs one row per frame there.
+_CAMERA_DETECTED = {
+    fixed: re.compile("^" + re.escape(paths.detected("\0", fixed)).replace("\x00", "(?P<cam>[^/]+)") + "$")
+    for fixed in (False, True)
+}
 
 
 class CompareError(InputError):
@@ -77,16 +82,31 @@ class CompareError(InputError):
 
 # -- reading runs --------------------------------------------------------------------------
 def cameras_of(contents: RrdContents) -> list[str]:
-    """Names of the cameras whose corners a run ``.rrd`` holds, sorted."""
-    return sorted(m["cam"] for p in contents.entity_paths if (m := _CAMERA_DETECTED.match(p)))
+    """Names of the cameras whose corners a run ``.rrd`` holds, sorted: those on the AGV and
+    those fixed in the world (:func:`fixed_cameras_of` tells which)."""
+    return sorted({
+        m["cam"] for p in contents.entity_paths for pattern in _CAMERA_DETECTED.values() if (m := pattern.match(p))
+    })
+
+
+def fixed_cameras_of(contents: RrdContents) -> set[str]:
+    """Names of the cameras fixed in the world (``world/cameras/cam_<name>``) whose corners a
+    run ``.rrd`` holds: their images and corners are under :func:`paths.image` ``(cam, fixed=True)``."""
+    return {m["cam"] for p in contents.entity_paths if (m := _CAMERA_DETECTED[True].match(p))}
 
 
 def load_run(path: str | os.PathLike) -> RunSeries:
     """Read a run ``.rrd`` back into per-frame arrays (clock, solved, errors, poses).
 
-    The frame clock comes from the detected-corner entities (logged on every frame), the
-    solved frames from the estimated pose ``world/agv/camera``, the errors from ``errors/*``
-    and the settings from ``run/manifest``.
+    The frame clock comes from the detected-corner entities (logged on every frame) of the
+    cameras on the AGV and of those fixed in the world (a camera–UWB run's wall cameras log
+    every time stamp's views under one frame index), the solved frames from the estimated pose
+    ``world/agv/camera``, the errors from ``errors/*`` and the settings from ``run/manifest``.
+
+    In a camera–UWB run too, ``world/agv/camera`` and ``errors/position_mm`` are the camera
+    pipeline's estimate of each frame (the chosen camera's fix), what the run summary's
+    ``position_error_mm`` is computed from; the fused estimate (``errors/fused_position_mm``,
+    2-D, per UWB fix and frame) is not part of the series (:func:`diff` notes its summary).
 
     Raises
     ------
@@ -98,8 +118,9 @@ def load_run(path: str | os.PathLike) -> RunSeries:
         raise RrdReadError(f"{path} is not an agvviz run: it has no {paths.RUN_MANIFEST}")
     manifest = document_json(contents, paths.RUN_MANIFEST)
     clock: dict[int, int] = {}
+    fixed = fixed_cameras_of(contents)
     for cam in cameras_of(contents):
-        clock.update(frame_times(contents, paths.detected(cam), "Points2D:positions"))
+        clock.update(frame_times(contents, paths.detected(cam, cam in fixed), "Points2D:positions"))
     if not clock:
         raise RrdReadError(f"{path} holds no camera frames")
     frames = np.array(sorted(clock), dtype=np.int64)
@@ -148,12 +169,42 @@ def _has_temporal(contents: RrdContents, entity: str, component: str) -> bool:
 
 
 def _reprojected(path: Path, cams: list[str]) -> dict[str, dict[int, np.ndarray]]:
+    """Each camera's reprojected corners per frame of a run, the camera on the AGV or fixed in
+    the world (as that run logged it)."""
     contents = read_rrd(path)
+    fixed = fixed_cameras_of(contents)
     return {
-        cam: points2d(contents, paths.reprojected(cam))
+        cam: points2d(contents, paths.reprojected(cam, cam in fixed))
         for cam in cams
-        if paths.reprojected(cam) in contents.entity_paths
+        if paths.reprojected(cam, cam in fixed) in contents.entity_paths
     }
+
+
+def _fusion_note(a_path: Path, b_path: Path) -> str | None:
+    """For camera–UWB runs: what the position errors compared are, and each run's fused error
+    as its summary gives it (the fused estimate has no per-frame pairing to test)."""
+    fused = []
+    for path in (a_path, b_path):
+        contents = read_rrd(path)
+        if paths.RUN_SUMMARY not in contents.entity_paths:
+            return None
+        fusion = (document_json(contents, paths.RUN_SUMMARY) or {}).get("fusion")
+        if not isinstance(fusion, dict):
+            return None
+        fused.append(fusion)
+    parts = []
+    for label, fusion in zip("AB", fused):
+        stats = fusion.get("fused_xy_error_mm") or {}
+        rmse = stats.get("rmse")
+        text = f"{label} {fusion.get('fusion', '?')}: " + (
+            f"RMSE {rmse:.3g} mm over {stats.get('n', 0)} outputs" if isinstance(rmse, (int, float)) else "no error"
+        )
+        parts.append(text)
+    return (
+        "camera–UWB runs: the position errors compared are the camera estimate's per frame (each run "
+        "summary's position_error_mm); the fused camera+UWB estimate is not compared frame by frame "
+        "(its outputs follow the UWB fixes too); its 2-D error from each run's summary: " + "; ".join(parts)
+    )
 
 
 # -- formatting ------------------------------------------------------------------------------
@@ -413,6 +464,9 @@ def diff(
         a, b, align=align, rpe_delta=rpe_delta, time_offset=time_offset,
         confidence=confidence, n_resamples=n_resamples, seed=seed, top_k=top_k,
     )
+    note = _fusion_note(Path(a_path), Path(b_path))
+    if note is not None:
+        comparison.notes.append(note)
     seconds["compare"] = time.perf_counter() - t0
     failed = bool(expression.evaluate(condition, comparison.metrics())) if condition is not None else False
     written = None
@@ -432,7 +486,8 @@ def _write_diff_overlay(
     out: Path, a_path: Path, b_path: Path, a: RunSeries, b: RunSeries, c: Comparison, images: bool
 ) -> Path:
     ia, ib = c.matched[:, 0], c.matched[:, 1]
-    cams = cameras_of(read_rrd(a_path)) if images else []
+    a_contents = read_rrd(a_path)
+    cams = cameras_of(a_contents) if images else []
     reproj_a = _reprojected(a_path, cams) if images else {}
     reproj_b_own = _reprojected(b_path, cams) if images else {}
     # B's corners go onto A's frame numbers through the time matching.
@@ -456,6 +511,7 @@ def _write_diff_overlay(
         truth=_truth(a),
         source=a_path,
         cam_names=cams,
+        fixed_cams=fixed_cameras_of(a_contents) & set(cams),
         report_markdown=comparison_markdown(c),
         deltas=deltas,
         inputs=(a_path, b_path),
@@ -842,7 +898,8 @@ def _write_sweep_overlay(
 ) -> Path:
     index_of = {id(e): i for i, e in enumerate(entries)}
     first = series[index_of[id(ok[0])]]
-    cams = cameras_of(read_rrd(ok[0].out_path)) if images else []
+    first_contents = read_rrd(ok[0].out_path)
+    cams = cameras_of(first_contents) if images else []
     runs = []
     for rank, entry in enumerate(ok):
         s = series[index_of[id(entry)]]
@@ -870,6 +927,7 @@ def _write_sweep_overlay(
         truth=_truth(first),
         source=ok[0].out_path,
         cam_names=cams,
+        fixed_cams=fixed_cameras_of(first_contents) & set(cams),
         report_markdown=report,
         inputs=(recording, *[e.out_path for e in ok]),
     )

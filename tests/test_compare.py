@@ -24,10 +24,12 @@ from agvviz import cluster
 from agvviz.compare import (
     COMPACT_METRICS,
     CompareError,
+    cameras_of,
     diff,
     diff_table,
     diff_table_title,
     diff_verdict,
+    fixed_cameras_of,
     format_p,
     load_run,
     parse_grid,
@@ -443,3 +445,40 @@ def _arrows(contents, entity: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
                 labels += row["Arrows3D:labels"]
     order = np.argsort(frames, kind="stable")
     return np.array(frames)[order], np.array(origins)[order], np.array(vectors)[order], labels
+
+
+# 2 s at 10 Hz of uwb_room (four wall cameras fixed in the world, UWB), small images, the
+# cameras blocked for a stretch: frames no camera solved are on the clock, unsolved.
+UWB_TINY = [
+    "duration_s=2", "width_px=640", "height_px=512", "block_start_s=0.8", "block_end_s=1.3", "realism=ideal",
+]
+
+
+def test_diff_of_uwb_room_runs_reads_the_wall_cameras(tmp_path):
+    """A camera–UWB run's cameras are fixed in the world (``world/cameras/cam_<name>``): diff
+    reads its frames from them, its per-run errors are each run summary's, and the overlay
+    shows the wall cameras' images and corners."""
+    recording = tmp_path / "uwb.mcap"
+    scenario_registry.record("uwb_room", recording, seed=1, overrides=UWB_TINY)
+    a_path, b_path = tmp_path / "a.rrd", tmp_path / "b.rrd"
+    summary_a = run_recording(recording, RunSettings(), a_path, jobs=1, cache_dir=False).summary
+    summary_b = run_recording(recording, RunSettings(fusion="kalman"), b_path, jobs=1, cache_dir=False).summary
+    run_a = load_run(a_path)
+    assert len(run_a.frames) == summary_a["frames"] and int(run_a.solved.sum()) == summary_a["solved"]
+    assert 0 < summary_a["solved"] < summary_a["frames"]  # the blocked stretch is on the clock
+    out = tmp_path / "d.rrd"
+    result = diff(a_path, b_path, overlay_path=out)
+    c = result.comparison
+    for label, summary in (("a", summary_a), ("b", summary_b)):
+        row = c.row("position_rmse_mm")
+        assert getattr(row, label) == pytest.approx(summary["position_error_mm"]["rmse"], rel=1e-9)
+        assert getattr(c.row("solved"), label) == summary["solved"]
+    assert any("camera–UWB" in note and "kalman" in note for note in c.notes)
+    contents, a = read_rrd(out), read_rrd(a_path)
+    cams = cameras_of(a)
+    assert cams and fixed_cameras_of(a) == set(cams)  # uwb_room: wall cameras only
+    for cam in cams:
+        assert encoded_images(contents, f"image/{cam}") == encoded_images(a, paths.image(cam, fixed=True))
+        corners = points2d(contents, f"image/{cam}/a")
+        for frame, pts in points2d(a, paths.reprojected(cam, fixed=True)).items():
+            np.testing.assert_array_equal(corners[frame], pts)

@@ -15,7 +15,8 @@ frame index (the callers map the other runs' frames onto it). Entity tree::
                                             the truth position (runs given with their truth)
     world/error_path/<key>                  LineStrips3D (static): truth + that error, the
                                             run's path with its errors magnified
-    image/<cam>                             EncodedImage of the first run (copied, not re-encoded)
+    image/<cam>                             EncodedImage of the first run (copied, not re-encoded;
+                                            a camera on the AGV or one fixed in the world alike)
     image/<cam>/detected                    the first run's detected corners (copied)
     image/<cam>/<key>                       each run's reprojected corners (Points2D)
     errors/<quantity>/<key>                 Scalars per frame: position_mm, heading_deg, ...
@@ -323,11 +324,13 @@ def overlay_blueprint(
     deltas: list[str],
     truth: OverlayTruth | None = None,
     magnification: float | None = None,
+    fixed_cams: set[str] | frozenset[str] = frozenset(),
 ) -> rrb.Blueprint:
     """Default layout: 3D trajectories (with each run's magnified error arrows when
     ``magnification`` is given, and a close-up that follows the truth AGV) and the image with
     every run's corners on top; error plots of all runs (and the per-frame differences, with a
-    zero line) with the comparison report below. Opens paused, on the ``frame`` timeline."""
+    zero line) with the comparison report below. Opens paused, on the ``frame`` timeline.
+    ``fixed_cams``: cameras fixed in the world (wall cameras), named so in their views."""
     if len(runs) <= 2:
         colors = ", ".join(f"{r.label} {color_name(i)}" for i, r in enumerate(runs))
     else:
@@ -357,7 +360,7 @@ def overlay_blueprint(
         images = [
             rrb.Spatial2DView(
                 origin=f"{IMAGE_ROOT}/{cam}",
-                name=f"camera {cam}: detected cyan, reprojected " + (
+                name=f"{'wall camera' if cam in fixed_cams else 'camera'} {cam}: detected cyan, reprojected " + (
                     ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
                     if len(runs) <= 2 else "in each run's colour"),
             )
@@ -404,6 +407,7 @@ def write_overlay(
     report_markdown: str,
     deltas: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
     inputs: tuple[str | os.PathLike, ...] = (),
+    fixed_cams: set[str] | frozenset[str] = frozenset(),
 ) -> Path:
     """Write the overlay ``.rrd`` atomically and return its path.
 
@@ -429,6 +433,10 @@ def write_overlay(
         Key of :data:`ERROR_LABELS` → (frames, time_ns, values): per-frame B − A series.
     inputs : paths
         Other files the overlay is made from (the runs compared).
+    fixed_cams : set of str
+        Those of ``cam_names`` fixed in the world (``world/cameras/cam_<name>``, e.g.
+        uwb_room's wall cameras): their images and detected corners are read from there, not
+        from under the AGV. The reprojected corners of each run are in its ``reprojected``.
     """
     _check(runs)
     deltas = deltas or {}
@@ -446,7 +454,7 @@ def write_overlay(
         rec = rrd.rec
         _log_static(rec, runs, truth, report_markdown, list(deltas))
         if store is not None:
-            _copy_from_source(rec, store, cam_names)
+            _copy_from_source(rec, store, cam_names, fixed_cams)
             rrd.check()
         if truth is not None:
             _send_transforms(rec, clock, TRUTH_POSE, truth.frames, truth.time_ns, truth.T_world_agv)
@@ -468,7 +476,9 @@ def write_overlay(
         for key, (frames, time_ns, values) in deltas.items():
             _send_scalars(rec, clock, f"{DELTA_ROOT}/{key}", frames, time_ns, values)
             _send_zero_line(rec, clock, key, frames, time_ns)
-        rrd.commit(overlay_blueprint(runs, cam_names if store is not None else [], list(deltas), truth, magnification))
+        rrd.commit(overlay_blueprint(
+            runs, cam_names if store is not None else [], list(deltas), truth, magnification, fixed_cams
+        ))
     return out_path
 
 
@@ -556,19 +566,23 @@ def _log_static(
         )
 
 
-def _copy_from_source(rec: rr.RecordingStream, store, cam_names: list[str]) -> None:
+def _copy_from_source(
+    rec: rr.RecordingStream, store, cam_names: list[str], fixed_cams: set[str] | frozenset[str] = frozenset()
+) -> None:
     """Copy the marker map, each camera's images and detected corners of a run (its store),
-    chunk by chunk (the JPEG bytes are never decoded or re-encoded)."""
+    chunk by chunk (the JPEG bytes are never decoded or re-encoded); a camera of
+    ``fixed_cams`` from its world-fixed entity."""
     rec.send_chunks(store.stream().filter(content=[f"/{paths.MARKERS}", f"/{paths.MARKERS_FILL}"]))
     for cam in cam_names:
         rec.send_chunks(
             store.stream()
-            .filter(content=f"/{paths.image(cam)}", is_static=False)
+            .filter(content=f"/{paths.image(cam, cam in fixed_cams)}", is_static=False)
             .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{IMAGE_ROOT}/{cam}"))
         )
         rec.send_chunks(
             store.stream()
-            .filter(content=f"/{paths.detected(cam)}", is_static=False, components="Points2D:positions")
+            .filter(content=f"/{paths.detected(cam, cam in fixed_cams)}", is_static=False,
+                    components="Points2D:positions")
             .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{IMAGE_ROOT}/{cam}/detected"))
         )
         rec.log(
