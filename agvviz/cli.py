@@ -358,7 +358,7 @@ def _error_budget_with_progress(recording: Path, settings: RunSettings, work_dir
 
     try:
         result = error_budget(recording, settings, work_dir=work_dir, progress=on_step, jobs=jobs,
-                              cache_dir=False if cache_dir is False else cache_dir)
+                              cache_dir=cache_dir)
         if task is not None:
             progress.update(task, rate="done")
     finally:

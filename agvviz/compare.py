@@ -156,6 +156,7 @@ def load_run(path: str | os.PathLike) -> RunSeries:
         T_est=T_est,
         settings=dict(manifest.get("settings", {})),
         manifest=manifest,
+        summary=(document_json(contents, paths.RUN_SUMMARY) or {}) if paths.RUN_SUMMARY in contents.entity_paths else {},
     )
 
 
@@ -180,18 +181,12 @@ def _reprojected(path: Path, cams: list[str]) -> dict[str, dict[int, np.ndarray]
     }
 
 
-def _fusion_note(a_path: Path, b_path: Path) -> str | None:
+def _fusion_note(a: RunSeries, b: RunSeries) -> str | None:
     """For camera–UWB runs: what the position errors compared are, and each run's fused error
     as its summary gives it (the fused estimate has no per-frame pairing to test)."""
-    fused = []
-    for path in (a_path, b_path):
-        contents = read_rrd(path)
-        if paths.RUN_SUMMARY not in contents.entity_paths:
-            return None
-        fusion = (document_json(contents, paths.RUN_SUMMARY) or {}).get("fusion")
-        if not isinstance(fusion, dict):
-            return None
-        fused.append(fusion)
+    fused = [run.summary.get("fusion") for run in (a, b)]
+    if not all(isinstance(fusion, dict) for fusion in fused):
+        return None
     parts = []
     for label, fusion in zip("AB", fused):
         stats = fusion.get("fused_xy_error_mm") or {}
@@ -464,7 +459,7 @@ def diff(
         a, b, align=align, rpe_delta=rpe_delta, time_offset=time_offset,
         confidence=confidence, n_resamples=n_resamples, seed=seed, top_k=top_k,
     )
-    note = _fusion_note(Path(a_path), Path(b_path))
+    note = _fusion_note(a, b)
     if note is not None:
         comparison.notes.append(note)
     seconds["compare"] = time.perf_counter() - t0

@@ -80,8 +80,8 @@ class RunSeries:
         as in :data:`DIRECT` (position in mm).
     T_truth, T_est : (N, 4, 4) float
         ``T_world_agv`` of the truth and of the estimate; NaN where unknown / not solved.
-    settings, manifest : dict
-        The run's settings and manifest as stored in its ``.rrd``.
+    settings, manifest, summary : dict
+        The run's settings, manifest and summary as stored in its ``.rrd``.
     """
 
     name: str
@@ -93,6 +93,7 @@ class RunSeries:
     T_est: np.ndarray
     settings: dict = field(default_factory=dict)
     manifest: dict = field(default_factory=dict)
+    summary: dict = field(default_factory=dict)
 
     def __post_init__(self):
         n = len(self.frames)
