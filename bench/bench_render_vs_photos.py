@@ -18,7 +18,9 @@ grey — is rendered at that pose with the photo's calibration (distortion inclu
 (:data:`~agvviz.sim.imaging.IDEAL_IMAGING`: render_frame's defaults) and ``typical``
 (:data:`~agvviz.sim.imaging.TYPICAL_IMAGING`); the same residual is measured on the renders
 (``RENDERS_PER_PHOTO`` seeds each). Printed: median, RMS and p90 of the residuals, real vs
-rendered, per refiner, and the ratio of the medians render/real (target: 0.7–1.3).
+rendered, per refiner, and the ratio of the medians render/real (target: 0.7–1.3). Then the real
+corners' error split into an independent and a per-marker-corner systematic part
+(:func:`corner_error_components_px`: what ``agvviz audit``'s ``corner_bias_px`` default rests on).
 
 Run: ``.venv/bin/python bench/bench_render_vs_photos.py`` (≈1 min).
 """
@@ -117,6 +119,43 @@ def leave_one_out_residuals_px(
         predicted = cv2.perspectiveTransform(board_corners_m[i].reshape(1, 4, 2), H).reshape(4, 2)
         residuals.extend(np.linalg.norm(predicted - undistorted[i], axis=1))
     return np.array(residuals)
+
+
+def corner_error_components_px(corners_by_photo: list[dict[int, np.ndarray]], board_corners_m: dict[int, np.ndarray],
+                               camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """(independent σ, systematic σ) per image axis (px) of the corners over several photos of one
+    board — the two variance components of the audit's corner model (``sigma_px`` and
+    ``corner_bias_px``, :mod:`agvviz.audit.problem`). Each marker's leave-one-out residual is taken
+    back to the board plane (so a corner's systematic error stays put however the board lies in the
+    photo) and scaled to px at that marker's size in the photo; per marker corner, the scatter across
+    photos estimates the independent variance and the mean across photos the systematic one (its
+    variance minus the independent variance over the photo count)."""
+    per_corner: dict[tuple[int, int], list[np.ndarray]] = {}
+    for corners_px in corners_by_photo:
+        ids = sorted(corners_px)
+        if len(ids) < 3:
+            continue
+        undistorted = {
+            i: cv2.undistortPoints(corners_px[i].reshape(-1, 1, 2), camera.K, camera.dist, P=camera.K).reshape(4, 2)
+            for i in ids
+        }
+        for i in ids:
+            others = [j for j in ids if j != i]
+            H, _ = cv2.findHomography(
+                np.concatenate([board_corners_m[j] for j in others]), np.concatenate([undistorted[j] for j in others]), 0
+            )
+            predicted = cv2.perspectiveTransform(board_corners_m[i].reshape(1, 4, 2), H).reshape(4, 2)
+            px_per_m = np.mean(np.linalg.norm(np.roll(predicted, -1, axis=0) - predicted, axis=1)) / MARKER_M
+            on_board = cv2.perspectiveTransform(undistorted[i].reshape(1, 4, 2), np.linalg.inv(H)).reshape(4, 2)
+            for c in range(4):
+                per_corner.setdefault((i, c), []).append((on_board[c] - board_corners_m[i][c]) * px_per_m)
+    groups = [np.array(v) for v in per_corner.values() if len(v) >= 2]
+    if not groups:
+        return np.full(2, np.nan), np.full(2, np.nan)
+    within = np.mean([np.sum((v - v.mean(axis=0)) ** 2, axis=0) / (len(v) - 1) for v in groups], axis=0)
+    means_sq = np.mean([v.mean(axis=0) ** 2 for v in groups], axis=0)
+    systematic = means_sq - within * np.mean([1.0 / len(v) for v in groups])
+    return np.sqrt(within), np.sqrt(np.maximum(systematic, 0.0))
 
 
 def board_pose(gray: np.ndarray, board: cv2.aruco.CharucoBoard, camera: PinholeCamera) -> np.ndarray:
@@ -233,6 +272,14 @@ def main() -> int:
             median, rms, p90 = summary(residuals[(source, refiner)])
             ratio = median / real_median
             print(f"{refiner:8s} {source:8s} {markers[(source, refiner)]:7d} {median:7.3f} {rms:7.3f} {p90:7.3f} {ratio:12.2f}")
+    camera = load_calibration()
+    _, board_corners_m = make_board()
+    detected = [detect_corners(cv2.imread(str(photo), cv2.IMREAD_GRAYSCALE)) for photo in PHOTOS]
+    print("real corners' error components (px, per image axis x, y; `agvviz audit`'s sigma_px and corner_bias_px):")
+    for k, refiner in enumerate(("plain", "ecc")):
+        independent, systematic = corner_error_components_px([d[k] for d in detected], board_corners_m, camera)
+        print(f"{refiner:8s} independent {independent[0]:.3f}, {independent[1]:.3f}   "
+              f"systematic per marker corner {systematic[0]:.3f}, {systematic[1]:.3f}")
     for refiner in ("plain", "ecc"):
         ratio = summary(residuals[("typical", refiner)])[0] / summary(residuals[("real", refiner)])[0]
         verdict = "met" if 0.7 <= ratio <= 1.3 else "MISSED"

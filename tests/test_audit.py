@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.stats import norm
 from typer.testing import CliRunner
 
 from agvviz import scenario_registry
@@ -36,11 +37,19 @@ INJECT = "marker:Q034:dx_m=0.05;marker:Q015:yaw_deg=90;marker:Q025:scale=0.02;ca
 #: marker → (group that must be flagged, δ component checked, injected value)
 INJECTED = {"Q034": ("position", 0, 0.05), "Q015": ("yaw", 3, math.radians(90.0)), "Q025": ("scale", 6, 0.02)}
 CAMERA_INJECTED = np.array([0.0, 0.0, 0.02, math.radians(1.0), 0.0, 0.0])
-#: The ideal world: the injected errors are then the only map and calibration errors, exactly
-#: (bench/bench_audit.py measures typical and harsh).
-SHORT = dict(duration_s=5.0, realism="ideal")
-#: A small rendered recording: half-size images (same field of view), 6 s.
-SMALL = ["duration_s=6", "width_px=640", "height_px=512", "focal_px=500.0", "supersample=2", "realism=ideal"]
+#: The default, typical world (issue 14): its map and calibration draws lie on top of the
+#: injected errors, its timing, bumps and slip move the vehicle, and (corner-level simulation)
+#: each marker's corners carry the 0.3 px systematic error real corners do
+#: (bench/bench_render_vs_photos.py) beside 0.1 px of independent noise.
+SHORT = dict(duration_s=5.0, realism="typical")
+CORNER_BIAS_PX = 0.3
+#: Bounds on how far typical's own draws move the truth from the injected value: 6σ of
+#: realism.PROFILES["typical"] (map position 0.1 mm, yaw 0.007°, print scale 0.015 %; extrinsic
+#: 0.1 mm and 0.02° per axis).
+DRAW_BOUND = {0: 6e-4, 3: math.radians(0.042), 6: 9e-4}
+CAMERA_DRAW_BOUND = np.array([6e-4] * 3 + [math.radians(0.12)] * 3)
+#: A small rendered recording of the typical world: half-size images (same field of view), 6 s.
+SMALL = ["duration_s=6", "width_px=640", "height_px=512", "focal_px=500.0", "supersample=2"]
 
 
 def _options(**changes):
@@ -114,6 +123,11 @@ def test_flag_threshold_matches_k_sigma():
     assert flag_threshold(3.0, 1) == pytest.approx(3.0)
     # the same false-alarm probability in 2-D: sqrt(chi2.ppf(0.9973, 2)) ≈ 3.44
     assert flag_threshold(3.0, 2) == pytest.approx(3.44, abs=0.01)
+    # four groups of one marker share p = 0.27 %: each at 1 − 0.9973^(1/4) = 0.0675 %, |z| > 3.40
+    assert flag_threshold(3.0, 1, tests=4) == pytest.approx(3.40, abs=0.01)
+    # a marker's false-alarm probability over 4 independent 1-D groups is that of one |z| > 3
+    p_each = 2 * (1 - norm.cdf(flag_threshold(3.0, 1, tests=4)))
+    assert 1 - (1 - p_each) ** 4 == pytest.approx(2 * (1 - norm.cdf(3.0)), rel=1e-6)
 
 
 # -- the estimate over many seeds (corner-level simulation) -----------------------------------
@@ -124,7 +138,7 @@ def _check(est, syn) -> list[str]:
         truth = syn.marker_truth[f.marker_id]
         if f.marker_id in INJECTED:
             group, k, value = INJECTED[f.marker_id]
-            assert truth[k] == pytest.approx(value, abs=1e-9)
+            assert truth[k] == pytest.approx(value, abs=DRAW_BOUND[k])
             if not f.flagged or group not in f.reasons:
                 problems.append(f"{f.marker_id} ({group}) not found: {f.status} {f.reasons}")
             z = (f.delta[k] - truth[k]) / f.sigma[k]
@@ -134,7 +148,7 @@ def _check(est, syn) -> list[str]:
             problems.append(f"clean {f.marker_id} flagged: {f.reasons}")
     cam = est.cameras[0]
     truth = syn.camera_truth["front"]
-    np.testing.assert_allclose(truth, CAMERA_INJECTED, atol=1e-12)
+    assert np.all(np.abs(truth - CAMERA_INJECTED) <= CAMERA_DRAW_BOUND), truth - CAMERA_INJECTED
     if set(cam.reasons) != {"translation", "rotation"}:
         problems.append(f"camera not found: {cam.reasons}")
     for k in (2, 3):  # dz, pitch: the injected components
@@ -151,8 +165,8 @@ def test_injected_errors_found_over_20_seeds():
     o = _options(inject=INJECT)
     problems, z_beyond = [], []
     for seed in range(20):
-        syn = simulate(o, seed, sigma_px=0.1)
-        est = estimate(syn.data, AuditSettings(sigma_px=0.1), solver())
+        syn = simulate(o, seed, sigma_px=0.1, corner_bias_px=CORNER_BIAS_PX)
+        est = estimate(syn.data, AuditSettings(sigma_px=0.1), solver())  # corner_bias_px: its 0.3 px default
         for line in _check(est, syn):
             (z_beyond if "σ from" in line else problems).append(f"seed {seed}: {line}")
     assert not problems, problems
@@ -162,7 +176,7 @@ def test_injected_errors_found_over_20_seeds():
 def test_clean_run_flags_nothing_and_finds_no_camera_error():
     o = _options()
     for seed in range(3):
-        syn = simulate(o, 100 + seed, sigma_px=0.1)
+        syn = simulate(o, 100 + seed, sigma_px=0.1, corner_bias_px=CORNER_BIAS_PX)
         est = estimate(syn.data, AuditSettings(), solver())  # corner σ estimated from the data
         assert not [f.marker_id for f in est.markers if f.flagged]
         cam = est.cameras[0]

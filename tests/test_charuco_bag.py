@@ -263,10 +263,15 @@ def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_pa
     to a fraction of a millimetre, so every marker's in-plane placement (dx, dy) must come out
     within 1.5 mm of the board file (5σ of the audit's ≈0.1–0.3 mm σ would be tighter; 1.5 mm
     leaves room for the real corners' systematic error, ≈0.3 px at 25 px per 20 mm marker ≈
-    0.25 mm per corner) and no marker may be flagged for position or yaw (minimum 10 mm, 1°).
-    Known limit, not asserted: from 4 photos the tilt and print scale of a 20 mm marker are
-    confounded with that systematic corner error, and a few markers are flagged for tilt/scale
-    at 4–7 "σ" (the README's audit limits)."""
+    0.25 mm per corner), judged (the data sees every marker's place), and no marker may be
+    flagged for position, yaw or print scale (minimum 10 mm, 1°, 0.5 %).
+
+    Tilt: the audit's σ includes each marker's systematic corner error (``corner_bias_px``, the
+    0.3 px measured on these photos); without it 4 of the 17 markers were flagged for tilt or
+    scale at 4–7 "σ". With it, the only tilt that stands out is the board's top row (markers 0
+    and 1, at the sheet's edge) turned the same way about the row, +2.0° and +2.9° (≈0.8° σ):
+    the sheet's top edge lifting by about a millimetre, which 4 photos cannot rule out. So a
+    tilt flag is allowed on those two, about the row's axis, and nowhere else."""
     from agvviz.audit import audit_recording
     from agvviz.cli import _side_inputs
     from agvviz.settings import RunSettings
@@ -279,5 +284,9 @@ def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_pa
     assert sorted(found, key=int) == [str(i) for i in range(17)]
     for f in found.values():
         assert f.status != "seen too little" and f.frames == 4, (f.marker_id, f.status, f.frames)
+        assert not {"position", "yaw"} & set(f.unobserved), (f.marker_id, f.unobserved)
         assert abs(f.delta[0]) < 1.5e-3 and abs(f.delta[1]) < 1.5e-3, (f.marker_id, f.delta[:2])
-        assert not {"position", "yaw"} & set(f.reasons), (f.marker_id, f.reasons)
+        assert not {"position", "yaw", "scale"} & set(f.reasons), (f.marker_id, f.reasons)
+        if f.flagged:
+            assert f.marker_id in ("0", "1") and f.reasons == ["tilt"], (f.marker_id, f.reasons)
+            assert abs(f.delta[4]) > 2 * abs(f.delta[5]), (f.marker_id, np.degrees(f.delta[4:6]))  # about the row

@@ -2,8 +2,8 @@
 
 A bundle adjustment over every frame of a recording (:mod:`agvviz.audit.problem`): unknowns are
 each frame's vehicle pose, each camera's extrinsic correction, each marker's placement
-correction (x, y, yaw and print scale for floor codes; 6-DoF and scale otherwise) and the
-odometry's scale and heading drift; measurements are every detected corner, the odometry
+correction (x, y, yaw and print scale for floor codes; 6-DoF and scale otherwise), each
+marker's systematic corner error (a random effect) and the odometry's scale and heading drift; measurements are every detected corner, the odometry
 between frames and the floor the vehicle drives on; priors are the recorded calibration and
 map. Solved with ``scipy.optimize.least_squares`` on the sparse Jacobian pattern; marginal
 covariances of the marker and camera blocks from a sparse LU of JᵀJ; gauge fixed on the well
@@ -17,9 +17,10 @@ Observability, in short: with one code per frame, a marker's placement is seen o
 odometry between frames that see different codes (and through frames that see two codes at
 once); its print scale through the camera height the floor fixes; the camera's pitch, roll and
 height through the floor (the vehicle's own height, pitch and roll are ~0), its yaw through the
-direction the odometry says the vehicle moves, its x, y through turns (hand-eye). A marker seen
-in few frames, or whose posterior σ stays near its prior σ, is reported as *seen too little* and
-never flagged.
+direction the odometry says the vehicle moves, its x, y through turns (hand-eye). A group of a
+marker's correction whose posterior σ stays near its prior σ is *not observed* and not judged; a
+marker seen in few frames, or with no group observed, is reported as *seen too little* and never
+flagged.
 """
 
 from __future__ import annotations

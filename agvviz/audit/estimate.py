@@ -13,9 +13,12 @@ corner noise, covariance, gauge, flags. Pure math: no files, no Rerun, no printi
    little leaves the set and the problem is solved again (a misplaced marker must not drag the
    frame its neighbours are measured in).
 5. Flags: per group (position, yaw, tilt, scale; camera translation, rotation) the Mahalanobis
-   distance beyond :func:`~agvviz.audit.problem.flag_threshold` (k σ) AND the size beyond its
-   minimum. A marker seen too little (fewer than ``min_frames`` frames, or a posterior σ above
-   ``seen_ratio`` × its prior σ) is listed as such and never flagged.
+   distance beyond :func:`~agvviz.audit.problem.flag_threshold` (k σ, shared among the marker's
+   or camera's groups: a clean one is flagged with the probability of |z| > k) AND the size
+   beyond its minimum. A group whose posterior σ stays above ``seen_ratio`` × its prior σ is *not
+   observed* and not judged (a small marker's print scale, say, while its position is); a
+   marker seen in fewer than ``min_frames`` frames, or with no group observed, is listed as
+   *seen too little* and never flagged.
 """
 
 from __future__ import annotations
@@ -69,6 +72,10 @@ class MarkerFinding:
     rms_px: float = float("nan")  # RMS corner residual of its observations at the solution
     corners_world_mapped: np.ndarray | None = None  # (4, 3) TL, TR, BR, BL as mapped
     corners_world_estimated: np.ndarray | None = None  # (4, 3) under the estimated correction
+    #: groups (position, yaw, tilt, scale) the data barely sees (posterior σ above ``seen_ratio``
+    #: × prior σ): not judged, though the marker's other groups are
+    unobserved: list[str] = field(default_factory=list)
+    seen_little_why: str = ""  # why it is seen too little, when it is
 
     @property
     def flagged(self) -> bool:
@@ -139,6 +146,11 @@ def _best_seen(candidates: np.ndarray, frames_per: np.ndarray, most: int) -> np.
     return out
 
 
+def _with_offsets(problem: Problem, x: np.ndarray) -> np.ndarray:
+    """``x`` of a problem without corner offsets, extended by zero offsets to ``problem``'s layout."""
+    return np.concatenate([x, np.zeros(problem.layout.size - len(x))])
+
+
 def _solve(problem: Problem, x0: np.ndarray, rough: bool = False):
     res = problem.solve(x0, rough=rough)
     if not np.all(np.isfinite(res.x)):
@@ -181,15 +193,17 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
     gauge = _best_seen(candidates, frames_per, s.gauge_markers)
     floor = s.floor_prior == "on" or (s.floor_prior == "auto" and on_the_floor(init.T0))
     sigma_px = s.sigma_px if s.sigma_px > 0 else FIRST_SIGMA_PX
-    problem = Problem(data, s, init.T0, sigma_px, gauge, floor)
+    # with the corner σ to estimate, the corner offsets (a random effect) join in the second
+    # pass: in the first they would take up residual that the σ estimate must see
+    problem = Problem(data, s, init.T0, sigma_px, gauge, floor, s.corner_bias_px if s.sigma_px > 0 else 0.0)
     x = np.zeros(problem.layout.size)
     problem.layout.pack_delta(x, init.delta0)
     res = _solve(problem, x, rough=s.sigma_px == 0)
     iterations = int(res.nfev)
     if s.sigma_px == 0:
         sigma_px = max(s.sigma_px_floor, _sigma_from_residuals(problem, res.x, data))
-        problem = Problem(data, s, init.T0, sigma_px, gauge, floor)
-        res = _solve(problem, res.x)
+        problem = Problem(data, s, init.T0, sigma_px, gauge, floor, s.corner_bias_px)
+        res = _solve(problem, _with_offsets(problem, res.x))
         iterations += int(res.nfev)
     L = problem.layout
     offsets, o = [], 0  # each marker's columns within the marker block
@@ -198,17 +212,21 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
         o += len(L.marker_slots[m])
     n_marker_cols = o
     prior_sigma = problem.marker_prior_sigma
-    for _ in range(4):  # until the gauge markers are exactly the seen-enough, unflagged ones
+    # until no gauge marker is flagged or unseen: the unseen leave at once, the flagged one at a
+    # time, worst first — a misplaced gauge marker drags the frame the others are measured in, so
+    # its neighbours may look wrong until it has left; they stay candidates
+    for _ in range(s.gauge_markers + 2):
         m_res, n_par = len(res.fun), L.size
         chi2_value = float(np.sum(res.fun**2))
         sigma0_sq = max(1.0, chi2_value / max(m_res - n_par, 1))
-        cols = np.arange(6 * L.n_frames, L.size)
+        cols = np.arange(6 * L.n_frames, L.offsets0)  # the corner offsets are nuisance: not reported
         try:
             cov = marginal_covariance(res.jac, cols) * sigma0_sq
         except RuntimeError as exc:  # singular JᵀJ: cannot happen with the priors, unless degenerate
             raise RunError(f"the audit's information matrix is singular ({exc}); the recording cannot be audited") from None
         xi, delta, eta, odom = L.unpack(res.x)
-        findings, flagged, seen_little = [], np.zeros(M, dtype=bool), np.zeros(M, dtype=bool)
+        findings, flagged, seen_little, placed = [], np.zeros(M, dtype=bool), np.zeros(M, dtype=bool), np.ones(M, dtype=bool)
+        excess = np.zeros(M)  # a flagged marker's largest distance over its threshold
         corners_mapped = marker_points_world(data, np.zeros((M, 7)))
         corners_estimated = marker_points_world(data, delta)
         for m in range(M):
@@ -216,18 +234,30 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
             block = cov[np.ix_(offsets[m], offsets[m])]
             sigma = np.full(7, np.nan)
             sigma[slots] = np.sqrt(np.maximum(np.diag(block), 0.0))
-            seen_little[m] = frames_per[m] < s.min_frames or bool(np.any(sigma[slots] / prior_sigma[slots] > s.seen_ratio))
+            groups = {g: [q for q in members if q in slots] for g, members in MARKER_GROUPS.items()}
+            groups = {g: q for g, q in groups.items() if q}
+            # a group the data barely sees (posterior σ above seen_ratio × prior σ) is not judged
+            unobserved = [g for g, q in groups.items() if np.any(sigma[q] / prior_sigma[q] > s.seen_ratio)]
+            seen_little[m] = frames_per[m] < s.min_frames or len(unobserved) == len(groups)
+            groups = {g: q for g, q in groups.items() if g not in unobserved}
+            if frames_per[m] < s.min_frames:
+                little_why = f"seen in {frames_per[m]} frame(s) (fewer than min_frames={s.min_frames}): too little to say anything"
+            elif seen_little[m]:
+                little_why = (f"seen in {frames_per[m]} frames, but every σ stays above {s.seen_ratio:g} × the map prior's: "
+                              "the data cannot say")
+            else:
+                little_why = ""
             reasons, distances = [], {}
             if not seen_little[m]:
-                groups = {g: [q for q in members if q in slots] for g, members in MARKER_GROUPS.items()}
-                groups = {g: q for g, q in groups.items() if q}
                 size_ok = _judge_marker({g: delta[m, q] for g, q in groups.items()}, s)
                 for group, present in groups.items():
                     sub = [slots.index(q) for q in present]
                     dist = mahalanobis(delta[m, present], block[np.ix_(sub, sub)])
                     distances[group] = dist
-                    if dist > flag_threshold(s.k_sigma, len(present)) and size_ok[group]:
+                    threshold = flag_threshold(s.k_sigma, len(present), len(groups))
+                    if dist > threshold and size_ok[group]:
                         reasons.append(group)
+                        excess[m] = max(excess[m], dist / threshold)
             flagged[m] = bool(reasons)
             status = "seen too little" if seen_little[m] else ("flagged" if reasons else "ok")
             findings.append(MarkerFinding(
@@ -237,14 +267,20 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
                 T_world_marker_estimated=corrected_marker_pose(data.T_world_marker[m], delta[m]),
                 side_mapped_m=float(np.linalg.norm(data.points_marker_m[m, 1] - data.points_marker_m[m, 0])),
                 init_gross=init.gross.get(m), corners_world_mapped=corners_mapped[m],
-                corners_world_estimated=corners_estimated[m],
+                corners_world_estimated=corners_estimated[m], unobserved=[] if seen_little[m] else unobserved,
+                seen_little_why=little_why,
             ))
-        candidates &= ~seen_little & ~flagged  # a gauge marker found wrong leaves the gauge
-        new_gauge = _best_seen(candidates, frames_per, s.gauge_markers)
+            placed[m] = "position" not in unobserved and "yaw" not in unobserved
+        unseen = gauge & (seen_little | ~placed)
+        if np.any(unseen):
+            candidates &= ~unseen
+        elif np.any(gauge & flagged):
+            candidates[int(np.argmax(np.where(gauge & flagged, excess, -1.0)))] = False
+        new_gauge = _best_seen(candidates & ~flagged & ~seen_little & placed, frames_per, s.gauge_markers)
         if not np.any(new_gauge) or np.array_equal(new_gauge, gauge):
             break
         gauge = new_gauge
-        problem = Problem(data, s, init.T0, sigma_px, gauge, floor)
+        problem = Problem(data, s, init.T0, sigma_px, gauge, floor, s.corner_bias_px)
         res = _solve(problem, res.x)
         iterations += int(res.nfev)
     solve_s = time.perf_counter() - t0
@@ -266,7 +302,7 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
             distances[group] = dist
             size = np.linalg.norm(values)
             size_ok = size >= s.min_camera_m if group == "translation" else math.degrees(size) >= s.min_camera_deg
-            if dist > flag_threshold(s.k_sigma, 3) and size_ok:
+            if dist > flag_threshold(s.k_sigma, 3, len(CAMERA_GROUPS) + L.with_intrinsics) and size_ok:
                 reasons.append(group)
         kappa = kappa_sigma = None
         if L.with_intrinsics:
@@ -276,7 +312,7 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
             kappa_sigma = np.sqrt(np.maximum(np.diag(iblock), 0.0))
             dist = mahalanobis(kappa, iblock)
             distances["intrinsics"] = dist
-            if dist > flag_threshold(s.k_sigma, 4) and np.max(np.abs(kappa)) >= s.min_intrinsics_px:
+            if dist > flag_threshold(s.k_sigma, 4, len(CAMERA_GROUPS) + 1) and np.max(np.abs(kappa)) >= s.min_intrinsics_px:
                 reasons.append("intrinsics")
         cameras.append(CameraFinding(
             cam_name=name, correction=eta[c].copy(), sigma=sigma, status="flagged" if reasons else "ok",

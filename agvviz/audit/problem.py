@@ -20,7 +20,14 @@ Unknowns (the vector ``x`` of :class:`Layout`)
 * per camera c: ``(ρ_c, φ_c)``, ``T_agv_cam = [Exp(φ_c)·R_recorded, t_recorded + ρ_c]``
   (rotation left-perturbed in the AGV frame, as the ``calibration`` source draws it);
 * with odometry: its distance scale error ``s`` and heading-rate bias ``b`` (rad/s), the model
-  of :func:`agvviz.sim.trajectory.dead_reckoning`.
+  of :func:`agvviz.sim.trajectory.dead_reckoning`;
+* per marker m (``corner_bias_px`` > 0): a systematic offset of each of its 4 corners in its
+  own plane (m; 8 numbers), shared by every detection of that marker — a corner printed or
+  detected slightly off on that code (real corners carry ≈0.3 px of it: issue 14's real-photo
+  residual). A random effect with prior σ ``corner_bias_px`` × the marker's metres per pixel:
+  independent corner noise averages down over frames, this does not, and the offsets' common,
+  turning and expanding modes are exactly a position, yaw and scale correction — so a
+  marker's σ includes what no number of frames can separate from a wrong print.
 
 Residuals (each divided by its σ)
 ---------------------------------
@@ -31,7 +38,8 @@ Residuals (each divided by its σ)
 * the floor: each frame's height, pitch and roll against 0 (the AGV drives on the floor
   z = 0; σ floor_sigma_m, floor_tilt_sigma_deg) — what separates the camera's mounting from
   the vehicle's attitude;
-* priors: the map (each δ component against 0), the recorded extrinsic, the odometry error.
+* priors: the map (each δ component against 0), the recorded extrinsic, the odometry error,
+  the corner offsets.
 
 Gauge: corners, odometry and the floor are unchanged when the whole map and every vehicle pose
 move together in the floor plane (x, y, yaw): the data cannot see the map's overall frame; and
@@ -84,6 +92,9 @@ class AuditSettings:
     """Priors, noise model and flag thresholds of ``agvviz audit`` (``--set key=value``)."""
 
     sigma_px: float = setting(0.0, "corner σ in px; 0: estimated from the corner residuals of a first solve", min=0.0, max=50.0)
+    corner_bias_px: float = setting(0.3, "σ of each marker's systematic corner error (px): one offset per corner, shared by all the "
+                                    "marker's detections (print, detector bias on that code; 0.3 px on real photos); a random effect "
+                                    "in every marker's σ. 0: corners independent", min=0.0, max=20.0)
     sigma_px_floor: float = setting(0.02, "smallest corner σ (px) the estimate may give", min=1e-4, max=10.0)
     odom_sigma_m: float = setting(0.002, "odometry step noise per axis (m)", min=1e-5, max=1.0)
     odom_sigma_frac: float = setting(0.01, "odometry step noise per metre driven (slip), added in quadrature", min=0.0, max=0.5)
@@ -201,11 +212,16 @@ def _rzrxry(yaw: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
     return R
 
 
-def marker_points_world(data: AuditData, delta: np.ndarray) -> np.ndarray:
-    """World corners (M, 4, 3) of every marker under corrections ``delta`` (M, 7)."""
+def marker_points_world(data: AuditData, delta: np.ndarray, offsets_m: np.ndarray | None = None) -> np.ndarray:
+    """World corners (M, 4, 3) of every marker under corrections ``delta`` (M, 7) and corner
+    offsets ``offsets_m`` (M, 4, 2) in the marker's plane (none: 0)."""
     R_d = _rzrxry(delta[:, 3], delta[:, 4], delta[:, 5])
     R = data.T_world_marker[:, :3, :3] @ R_d
-    P = data.points_marker_m * (1.0 + delta[:, 6])[:, None, None]
+    P = data.points_marker_m
+    if offsets_m is not None:
+        P = P.copy()
+        P[..., :2] += offsets_m
+    P = P * (1.0 + delta[:, 6])[:, None, None]
     return np.einsum("mij,mkj->mki", R, P) + (data.T_world_marker[:, :3, 3] + delta[:, :3])[:, None, :]
 
 
@@ -231,6 +247,18 @@ def planar(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return T[..., :2, 3], np.arctan2(T[..., 1, 0], T[..., 0, 0])
 
 
+def metres_per_pixel(data: AuditData) -> np.ndarray:
+    """(M,): each marker's mapped side over its median side in the image (m/px)."""
+    side_m = np.linalg.norm(np.roll(data.points_marker_m, -1, axis=1) - data.points_marker_m, axis=-1).mean(axis=1)
+    side_px = np.linalg.norm(np.roll(data.obs_px, -1, axis=1) - data.obs_px, axis=-1).mean(axis=1)
+    out = np.zeros(len(data.marker_ids))
+    for m in range(len(out)):
+        sel = data.obs_marker == m
+        px = float(np.median(side_px[sel])) if np.any(sel) else 0.0
+        out[m] = side_m[m] / px if px > 1e-9 else 0.0
+    return out
+
+
 # -- layout --------------------------------------------------------------------------------------
 @dataclass
 class Layout:
@@ -241,11 +269,13 @@ class Layout:
     n_cameras: int
     with_odometry: bool
     with_intrinsics: bool = False
+    with_offsets: bool = False
     frame0: int = 0
     marker_cols: list[np.ndarray] = field(default_factory=list)
     camera0: int = 0
     odom0: int = 0
     intr0: int = 0
+    offsets0: int = 0
     size: int = 0
 
     def __post_init__(self):
@@ -260,6 +290,8 @@ class Layout:
         col += 2 if self.with_odometry else 0
         self.intr0 = col
         col += 4 * self.n_cameras if self.with_intrinsics else 0
+        self.offsets0 = col  # last: the covariance blocks the report reads end before it
+        col += 8 * len(self.marker_slots) if self.with_offsets else 0
         self.size = col
 
     def frame_cols(self, i: int) -> np.ndarray:
@@ -278,6 +310,18 @@ class Layout:
         if not self.with_intrinsics:
             return np.zeros((self.n_cameras, 4))
         return x[self.intr0: self.intr0 + 4 * self.n_cameras].reshape(self.n_cameras, 4)
+
+    def offset_cols(self, m: int) -> np.ndarray:
+        """Marker m's 8 corner-offset columns (TL x, y, TR x, y, …), or none."""
+        if not self.with_offsets:
+            return np.zeros(0, dtype=int)
+        return np.arange(self.offsets0 + 8 * m, self.offsets0 + 8 * m + 8)
+
+    def offsets(self, x: np.ndarray) -> np.ndarray | None:
+        """(M, 4, 2) corner offsets in each marker's plane (m), or None when not solved."""
+        if not self.with_offsets:
+            return None
+        return x[self.offsets0: self.offsets0 + 8 * len(self.marker_slots)].reshape(-1, 4, 2)
 
     def odom_cols(self) -> np.ndarray:
         return np.arange(self.odom0, self.odom0 + (2 if self.with_odometry else 0))
@@ -304,8 +348,9 @@ class Problem:
     """Residuals, Jacobian pattern and priors of one audit (module docstring)."""
 
     def __init__(self, data: AuditData, settings: AuditSettings, T0: np.ndarray, sigma_px: float,
-                 gauge: np.ndarray | None = None, floor_prior: bool = True):
+                 gauge: np.ndarray | None = None, floor_prior: bool = True, corner_bias_px: float = 0.0):
         self.floor_prior = bool(floor_prior)
+        self.corner_bias_px = float(corner_bias_px)
         self.data, self.settings, self.T0 = data, settings, np.asarray(T0, dtype=float)
         self.T_ref0 = self.T0 @ data.T_agv_cam[0]  # x = 0: the recorded extrinsic
         self.sigma_px = float(sigma_px)
@@ -319,7 +364,11 @@ class Problem:
         # Odometry pairs: consecutive frames that both carry odometry.
         pairs = [i for i in range(data.n_frames - 1) if data.has_odom[i] and data.has_odom[i + 1]]
         self.odom_pairs = np.array(pairs, dtype=int)
-        self.layout = Layout(data.n_frames, slots, len(data.cam_names), len(pairs) > 0, bool(settings.intrinsics))
+        self.layout = Layout(data.n_frames, slots, len(data.cam_names), len(pairs) > 0, bool(settings.intrinsics),
+                             self.corner_bias_px > 0)
+        #: (M,) prior σ of each marker's corner offsets (m): corner_bias_px at the median pixel
+        #: scale its detections show it at
+        self.offset_sigma_m = np.maximum(self.corner_bias_px * metres_per_pixel(data), 1e-9)
         s = settings
         prior = np.array([s.map_sigma_m] * 3 + [math.radians(s.map_yaw_sigma_deg)]
                          + [math.radians(s.map_tilt_sigma_deg)] * 2 + [s.map_scale_sigma])
@@ -355,6 +404,10 @@ class Problem:
             rr = np.arange(r, r + 8)
             rows.append(np.repeat(rr, len(c)))
             cols.append(np.tile(c, 8))
+            if L.with_offsets:  # corner j's u, v rows see only that corner's two offsets
+                oc = L.offset_cols(d.obs_marker[k])
+                rows.append(np.repeat(rr, 2))
+                cols.append(oc[np.repeat(np.arange(4), 2)[:, None] * 2 + np.arange(2)].reshape(-1))
             r += 8
         self.row_odom = r
         for i in self.odom_pairs:
@@ -393,6 +446,8 @@ class Problem:
             sig.extend(self.odom_prior_sigma)
         if L.with_intrinsics:
             sig.extend(np.tile(self.intrinsics_prior_sigma, L.n_cameras))
+        if L.with_offsets:
+            sig.extend(np.repeat(self.offset_sigma_m, 8))
         self.prior_sigma = np.array(sig)
 
     def gauge_matrix(self) -> np.ndarray:
@@ -444,7 +499,7 @@ class Problem:
         T_ref_cam = se3.inverse(T_cam[0]) @ T_cam  # (C, 4, 4): camera c in camera 0's frame
         T_ref_cam[0] = np.eye(4)
         T_wc = T_ref[d.obs_frame] @ T_ref_cam[d.obs_cam]
-        P = marker_points_world(d, delta)[d.obs_marker]  # (n, 4, 3)
+        P = marker_points_world(d, delta, L.offsets(x))[d.obs_marker]  # (n, 4, 3)
         R, t = T_wc[:, :3, :3], T_wc[:, :3, 3]
         pc = np.einsum("nji,nkj->nki", R, P - t[:, None, :])
         z = pc[..., 2]
@@ -731,11 +786,15 @@ def gauge_directions(data: AuditData, centre_xy: np.ndarray) -> np.ndarray:
     return A
 
 
-def flag_threshold(k_sigma: float, dim: int) -> float:
-    """Mahalanobis distance of a ``dim``-dimensional group with the false-alarm probability of
-    |z| > k in one dimension (k itself for dim = 1)."""
+def flag_threshold(k_sigma: float, dim: int, tests: int = 1) -> float:
+    """Mahalanobis distance of a ``dim``-dimensional group such that a clean marker (or camera)
+    whose ``tests`` groups are each tested is flagged with the false-alarm probability of
+    |z| > k in one dimension (Šidák: each group at 1 − (1 − p)^(1/tests)); k itself for
+    dim = 1, tests = 1. Per marker, not per group: the user judges markers, and a marker with
+    four groups tested at k = 3 each would be flagged falsely ≈4× as often as k says."""
     p = 2.0 * (1.0 - norm.cdf(k_sigma))
-    return float(math.sqrt(chi2.ppf(1.0 - p, dim)))
+    p_each = 1.0 - (1.0 - p) ** (1.0 / max(int(tests), 1))
+    return float(math.sqrt(chi2.ppf(1.0 - p_each, dim)))
 
 
 def mahalanobis(values: np.ndarray, cov: np.ndarray) -> float:

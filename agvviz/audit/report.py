@@ -38,10 +38,12 @@ def _pm(value: float, sigma: float, unit_scale: float, digits: int) -> str:
 
 def _why(f) -> str:
     if f.status == "seen too little":
-        return f"seen in {f.frames} frame(s): too little to say anything" if isinstance(f, MarkerFinding) else ""
+        return f.seen_little_why if isinstance(f, MarkerFinding) else ""
     parts = []
     for group in f.reasons:
         parts.append(f"{group} {f.distances.get(group, float('nan')):.1f}σ")
+    if isinstance(f, MarkerFinding) and f.unobserved:
+        parts.append(f"{'/'.join(f.unobserved)} not observed")
     text = ", ".join(parts)
     if isinstance(f, MarkerFinding) and f.init_gross is not None:
         text += ("; " if text else "") + f"start: grossly off ({f.init_gross[0]:+.0f}°)"

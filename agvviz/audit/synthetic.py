@@ -103,9 +103,13 @@ def scene_geometry(options, rng: np.random.Generator) -> _Scene:
     return _Scene(codes)
 
 
-def simulate(options, seed: int, sigma_px: float = 0.1) -> Synthetic:
+def simulate(options, seed: int, sigma_px: float = 0.1, corner_bias_px: float = 0.0) -> Synthetic:
     """Simulate ``qr_floor`` with ``options`` (:class:`scenarios.qr_floor.Options`, its
-    ``realism`` and ``inject`` included) and ``seed``: corners with σ = ``sigma_px`` noise."""
+    ``realism`` and ``inject`` included) and ``seed``: corners with σ = ``sigma_px`` noise,
+    independent per detection, plus (``corner_bias_px`` > 0) each marker's systematic corner
+    error — one offset per corner in the marker's plane, shared by all its detections, with σ
+    ``corner_bias_px`` at the marker's median size in the image (the audit's random effect,
+    :mod:`agvviz.audit.problem`; measured on real photos by ``bench/bench_render_vs_photos.py``)."""
     from scenarios import qr_floor as q
 
     q.validate(options)
@@ -138,6 +142,7 @@ def simulate(options, seed: int, sigma_px: float = 0.1) -> Synthetic:
     K = cam_draw.recorded_camera.K  # ideal pixels of the recorded calibration (undistorted)
     K_true = cam_draw.true_camera.K
     centres_world = np.array([c.T_world_marker[:3, 3] for c in true_codes])
+    seen_at = []  # (frame, marker, T_cam_world, true pixels) of every detection
     for i in range(n):
         T_cam_world = se3.inverse(T_true[i] @ cam_draw.T_parent_cam_true)
         centres_cam = centres_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
@@ -153,9 +158,26 @@ def simulate(options, seed: int, sigma_px: float = 0.1) -> Synthetic:
                 continue
             if np.min(np.linalg.norm(px - np.roll(px, 1, axis=0), axis=1)) < MIN_SIDE_PX:
                 continue
-            obs_frame.append(i)
-            obs_marker.append(m)
-            obs_px.append(px + sigma_px * noise_rng.standard_normal((4, 2)))
+            seen_at.append((i, m, T_cam_world, px))
+    offsets_m = np.zeros((len(true_codes), 4, 2))
+    if corner_bias_px > 0 and seen_at:
+        side_px = {}
+        for _, m, _, px in seen_at:
+            side_px.setdefault(m, []).append(np.mean(np.linalg.norm(np.roll(px, -1, axis=0) - px, axis=1)))
+        bias_rng = np.random.default_rng([int(seed) % 2**64, 11])
+        for m in sorted(side_px):
+            metres_per_px = true_codes[m].side_m / float(np.median(side_px[m]))
+            offsets_m[m] = corner_bias_px * metres_per_px * bias_rng.standard_normal((4, 2))
+    for i, m, T_cam_world, px in seen_at:
+        if corner_bias_px > 0:
+            code = true_codes[m]
+            points = code.points_marker_m[:4].copy()
+            points[:, :2] += offsets_m[m]  # in the true marker's plane
+            pts = se3.transform_points(T_cam_world, se3.transform_points(code.T_world_marker, points))
+            px = (K_true @ (pts / pts[:, 2:3]).T).T[:, :2]
+        obs_frame.append(i)
+        obs_marker.append(m)
+        obs_px.append(px + sigma_px * noise_rng.standard_normal((4, 2)))
     seen = sorted(set(obs_marker))
     remap = {m: k for k, m in enumerate(seen)}
     data = AuditData(
