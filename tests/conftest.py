@@ -41,3 +41,24 @@ def _detection_cache_in_tmp(tmp_path_factory):
         os.environ.pop("AGVVIZ_CACHE_DIR", None)
     else:
         os.environ["AGVVIZ_CACHE_DIR"] = old
+
+
+#: uwb_room, 3 s at 5 Hz (15 time stamps × 4 wall cameras), the cameras blocked from 1.0 s to
+#: 2.0 s, ideal world, seed 4. tests/test_uwb_room.py and tests/test_fusion_views.py both check
+#: this one recording and its mean-compensation run, so it is recorded and replayed once.
+UWB_ROOM_SMALL = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s=2.0", "realism=ideal"]
+
+
+@pytest.fixture(scope="session")
+def uwb_room_small_run(tmp_path_factory):
+    """(recording, outcome) of ``UWB_ROOM_SMALL`` (seed 4) replayed with fusion=mean_compensation.
+    Read only: tests must not modify the recording or the run's .rrd."""
+    from agvviz import scenario_registry
+    from agvviz.runner import run_recording
+    from agvviz.settings import RunSettings
+
+    tmp = tmp_path_factory.mktemp("uwb_room_small")
+    recording = tmp / "uwb_room.mcap"
+    scenario_registry.record("uwb_room", recording, seed=4, overrides=UWB_ROOM_SMALL)
+    outcome = run_recording(recording, RunSettings(fusion="mean_compensation"), tmp / "run.rrd")
+    return recording, outcome

@@ -36,6 +36,35 @@ def recording(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def uncached_run(recording, tmp_path_factory):
+    """The recording replayed with the default settings (solver lm), detecting in this process
+    without any cache: the reference that cached and re-detected runs must equal."""
+    outcome = run_recording(recording, RunSettings(solver="lm"), tmp_path_factory.mktemp("uncached") / "e.rrd",
+                            cache_dir=False, jobs=1)
+    assert outcome.timing["detection_source"] == "detected"
+    return outcome
+
+
+@pytest.fixture(scope="module")
+def detected_cache(recording, tmp_path_factory) -> tuple[Path, Path]:
+    """(cache folder, entry path relative to it) after `detect_recording` with the default
+    settings filled a fresh cache. Tests that damage the entry work on a copy
+    (:func:`_copy_cache`), so each starts from the same freshly detected entry."""
+    cache = tmp_path_factory.mktemp("detected") / "cache"
+    info = detect_recording(recording, RunSettings(), cache_dir=cache, jobs=1)
+    assert info["source"] == "detected" and info["frames"] == 40
+    return cache, Path(info["cache"]).relative_to(cache)
+
+
+def _copy_cache(detected_cache, tmp_path: Path) -> tuple[Path, Path]:
+    """A private copy of the freshly detected cache: (cache folder, its entry)."""
+    source, entry = detected_cache
+    cache = tmp_path / "cache"
+    shutil.copytree(source, cache)
+    return cache, cache / entry
+
+
 def _codes(detections):
     return [
         (c.kind, c.text, c.aruco_id, np.asarray(c.corners_px).tolist(), c.refine_method)
@@ -101,7 +130,7 @@ def _summary_without_timing(summary: dict) -> dict:
     return json.loads(json.dumps(summary, default=str))
 
 
-def test_second_run_reuses_detections_and_equals_the_first(recording, tmp_path):
+def test_second_run_reuses_detections_and_equals_the_first(recording, uncached_run, tmp_path):
     cache = tmp_path / "cache"
     first = run_recording(recording, RunSettings(solver="lm"), tmp_path / "a.rrd", cache_dir=cache, jobs=2)
     assert first.timing["detection_source"] == "detected"
@@ -118,24 +147,24 @@ def test_second_run_reuses_detections_and_equals_the_first(recording, tmp_path):
     run_recording(recording, RunSettings(refine="subpix"), tmp_path / "d.rrd", cache_dir=cache)
     assert len(list(cache.rglob("*.parquet"))) == 2
     # No cache: the same answer again.
-    uncached = run_recording(recording, RunSettings(solver="lm"), tmp_path / "e.rrd", cache_dir=False, jobs=1)
+    # (uncached_run: the same settings with cache_dir=False, jobs=1, shared with
+    # test_cache_mismatch_falls_back_to_detecting.)
+    uncached = uncached_run
     assert uncached.timing["detection_source"] == "detected"
     assert _summary_without_timing(uncached.summary) == _summary_without_timing(first.summary)
     rerun = shutil.which("rerun") or str(Path(__file__).resolve().parents[1] / ".venv/bin/rerun")
     if Path(rerun).exists():
-        for name in ("b.rrd", "e.rrd"):
+        for other_rrd in (tmp_path / "b.rrd", uncached.out_path):
             result = subprocess.run(
-                [rerun, "rrd", "compare", "--unordered", str(tmp_path / "a.rrd"), str(tmp_path / name)],
+                [rerun, "rrd", "compare", "--unordered", str(tmp_path / "a.rrd"), str(other_rrd)],
                 capture_output=True, text=True, timeout=120,
             )
             assert result.returncode == 0, result.stdout + result.stderr
 
 
-def test_damaged_cache_entry_is_a_miss_and_is_rewritten(recording, tmp_path):
-    cache = tmp_path / "cache"
-    info = detect_recording(recording, RunSettings(), cache_dir=cache, jobs=1)
-    assert info["source"] == "detected" and info["frames"] == 40
-    entry = Path(info["cache"])
+def test_damaged_cache_entry_is_a_miss_and_is_rewritten(recording, detected_cache, tmp_path):
+    cache, entry = _copy_cache(detected_cache, tmp_path)
+    assert detect_recording(recording, RunSettings(), cache_dir=cache)["source"] == "cache"
     entry.write_bytes(b"PAR1 not really parquet")
     assert detect_cache.load(entry) is None
     outcome = run_recording(recording, RunSettings(), tmp_path / "run.rrd", cache_dir=cache, jobs=1)
@@ -154,18 +183,16 @@ def test_cache_key_follows_version_and_inputs(monkeypatch):
     assert key != detect_cache.cache_key(params, {"images": {"front": "/cam/front/image"}})
 
 
-def test_cache_mismatch_falls_back_to_detecting(recording, tmp_path):
+def test_cache_mismatch_falls_back_to_detecting(recording, detected_cache, uncached_run, tmp_path):
     """A cache entry whose frames do not match the recording (it cannot happen for a
     content-keyed entry unless it was tampered with) is abandoned with a warning."""
-    cache = tmp_path / "cache"
-    info = detect_recording(recording, RunSettings(), cache_dir=cache, jobs=1)
-    entry = Path(info["cache"])
+    cache, entry = _copy_cache(detected_cache, tmp_path)
     frames = detect_cache.load(entry)
     shifted = [type(f)(f.seq, f.cam_name, f.log_time_ns + (1 if f.seq == 5 else 0), f.detections) for f in frames]
     detect_cache.save(entry, shifted)
     outcome = run_recording(recording, RunSettings(), tmp_path / "run.rrd", cache_dir=cache, jobs=1)
     assert any("detection cache did not match" in w for w in outcome.summary["warnings"])
-    reference = run_recording(recording, RunSettings(), tmp_path / "ref.rrd", cache_dir=False, jobs=1)
+    reference = uncached_run  # RunSettings() (solver lm), cache_dir=False, jobs=1
     assert outcome.summary["solved"] == reference.summary["solved"]
 
 

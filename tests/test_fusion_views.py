@@ -27,12 +27,10 @@ def correction_run(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def uwb_run(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("uwb_views")
-    recording = tmp / "uwb_room.mcap"
-    overrides = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s=2.0", "realism=ideal"]
-    scenario_registry.record("uwb_room", recording, seed=4, overrides=overrides)
-    outcome = run_recording(recording, RunSettings(fusion="mean_compensation"), tmp / "run.rrd")
+def uwb_run(uwb_room_small_run):
+    # uwb_room, 3 s at 5 Hz, blocked 1.0–2.0 s, ideal, seed 4, fusion=mean_compensation: the
+    # same recording and run as tests/test_uwb_room.py, made once (conftest.uwb_room_small_run).
+    _, outcome = uwb_room_small_run
     return read_rrd(outcome.out_path)
 
 

@@ -7,28 +7,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
 from agvviz.geometry import euler, se3
 from agvviz.graph.solve import agv_pose_from_marker
 from agvviz.recording.contract import inspect_recording
-from agvviz.runner import run_recording
-from agvviz.settings import RunSettings
 from agvviz.solvers.multi_camera import RigView, refine_rig_pose
 from agvviz.viz import paths
 from agvviz.viz.readback import _rows, document_json, read_rrd, scalar_series, text_logs
 from agvviz.viz.uwb_logger import NO_CAMERA
 
-# 3 s at 5 Hz (15 time stamps × 4 cameras), cameras blocked from 1.0 s to 2.0 s.
-SMALL = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s=2.0", "realism=ideal"]
-
-
+# 3 s at 5 Hz (15 time stamps × 4 cameras), cameras blocked from 1.0 s to 2.0 s: recorded and
+# replayed once per session by conftest.uwb_room_small_run (test_fusion_views uses it too).
 @pytest.fixture(scope="module")
-def room_run(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("room")
-    recording = tmp / "uwb_room.mcap"
-    scenario_registry.record("uwb_room", recording, seed=4, overrides=SMALL)
-    outcome = run_recording(recording, RunSettings(fusion="mean_compensation"), tmp / "run.rrd")
-    return recording, outcome
+def room_run(uwb_room_small_run):
+    return uwb_room_small_run
 
 
 def test_recording_meets_contract(room_run):
