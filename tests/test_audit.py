@@ -196,6 +196,25 @@ def test_unobservable_marker_is_listed_never_flagged():
             assert f.status == "seen too little" and not f.flagged
 
 
+def test_calibration_error_left_in_the_corners_is_reported():
+    """A recorded calibration whose fx is 5 px long and fy 5 px short (harsh's focal σ is 3 px;
+    the audit does not solve intrinsics by default, and a common focal error hides in the
+    camera height and print scales, an aspect error cannot) leaves image-position structure in
+    the corners: the report says so and points to intrinsics=true (measured p ≈ 5e-7 against the
+    1e-4 that reports); the same data with the right calibration draws no such note (p ≈ 1)."""
+    syn = simulate(_options(), 2, sigma_px=0.1, corner_bias_px=CORNER_BIAS_PX)
+    good = estimate(syn.data, AuditSettings(), solver())
+    assert not [m for m in good.messages if "calibration error" in m], good.messages
+    assert good.calibration_structure[0][1] > 1e-3
+    K = syn.data.K.copy()
+    K[0, 0, 0] += 5.0
+    K[0, 1, 1] -= 5.0
+    bad = estimate(AuditData(**{**syn.data.__dict__, "K": K}), AuditSettings(), solver())
+    notes = [m for m in bad.messages if "calibration error" in m]
+    assert len(notes) == 1 and "intrinsics=true" in notes[0], bad.messages
+    assert bad.calibration_structure[0][1] < 1e-4
+
+
 def test_bad_data_is_one_line_error():
     syn = simulate(_options(), 1, sigma_px=0.1)
     d = syn.data

@@ -266,12 +266,14 @@ def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_pa
     0.25 mm per corner), judged (the data sees every marker's place), and no marker may be
     flagged for position, yaw or print scale (minimum 10 mm, 1°, 0.5 %).
 
-    Tilt: the audit's σ includes each marker's systematic corner error (``corner_bias_px``, the
-    0.3 px measured on these photos); without it 4 of the 17 markers were flagged for tilt or
-    scale at 4–7 "σ". With it, the only tilt that stands out is the board's top row (markers 0
-    and 1, at the sheet's edge) turned the same way about the row, +2.0° and +2.9° (≈0.8° σ):
-    the sheet's top edge lifting by about a millimetre, which 4 photos cannot rule out. So a
-    tilt flag is allowed on those two, about the row's axis, and nowhere else."""
+    Nothing may be flagged at all: the audit's σ includes each marker's systematic corner error
+    (``corner_bias_px``, the 0.3 px measured on these photos; without it 4 of the 17 markers were
+    flagged for tilt or scale at 4–7 "σ"), and k·σ is per marker. The largest tilt left is the
+    board's top row (markers 0 and 1, at the sheet's edge) turned the same way about the row,
+    +2.0° and +2.9° (≈0.8° σ, Mahalanobis 3.65 against the 3.82 of a 2-D group among four): the
+    sheet's edge may lift by about a millimetre, which 4 photos cannot rule out — so this
+    test's margin there is small, and a calibration or detector change that shrinks σ will
+    show up here first. No calibration structure is left in the corners (the audit's F-test)."""
     from agvviz.audit import audit_recording
     from agvviz.cli import _side_inputs
     from agvviz.settings import RunSettings
@@ -286,7 +288,5 @@ def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_pa
         assert f.status != "seen too little" and f.frames == 4, (f.marker_id, f.status, f.frames)
         assert not {"position", "yaw"} & set(f.unobserved), (f.marker_id, f.unobserved)
         assert abs(f.delta[0]) < 1.5e-3 and abs(f.delta[1]) < 1.5e-3, (f.marker_id, f.delta[:2])
-        assert not {"position", "yaw", "scale"} & set(f.reasons), (f.marker_id, f.reasons)
-        if f.flagged:
-            assert f.marker_id in ("0", "1") and f.reasons == ["tilt"], (f.marker_id, f.reasons)
-            assert abs(f.delta[4]) > 2 * abs(f.delta[5]), (f.marker_id, np.degrees(f.delta[4:6]))  # about the row
+        assert not f.flagged, (f.marker_id, f.reasons, f.distances)
+    assert not [m for m in result.estimate.messages if "calibration error" in m], result.estimate.messages

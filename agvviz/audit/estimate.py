@@ -124,6 +124,8 @@ class AuditEstimate:
     n_params: int
     n_residuals: int
     messages: list[str] = field(default_factory=list)
+    #: per camera (share, p) of :func:`calibration_structure`
+    calibration_structure: list = field(default_factory=list)
 
 
 def _sigma_from_residuals(problem: Problem, x: np.ndarray, data: AuditData) -> float:
@@ -134,6 +136,44 @@ def _sigma_from_residuals(problem: Problem, x: np.ndarray, data: AuditData) -> f
     if dof <= 0:
         return FIRST_SIGMA_PX
     return float(math.sqrt(float(np.sum(r**2)) / dof))
+
+
+#: p-value below which the corner residuals' image-position structure is reported.
+STRUCTURE_P = 1e-4
+
+
+def calibration_structure(data: AuditData, residuals_px: np.ndarray) -> list[tuple[float, float]]:
+    """Per camera (share, p): how much of the corner residuals (n, 4, 2) px follows the image
+    position the way an error of the recorded calibration would — the first-order change of a
+    corner under dfx, dfy, dcx, dcy, radial k1, k2 and tangential p1, p2 at its normalised
+    position (x, y) — and the F-test's p-value of that fit against none. The audit does not
+    model distortion (nor, by default, the intrinsics): when p is tiny, what it leaves in the
+    corners is a calibration error, which biases the placements and makes σ too small."""
+    from scipy.stats import f as f_dist
+
+    out = []
+    for c in range(len(data.cam_names)):
+        sel = data.obs_cam == c
+        K = data.K[c]
+        px, r = data.obs_px[sel].reshape(-1, 2), residuals_px[sel].reshape(-1, 2)
+        n_basis = 8
+        if len(px) * 2 <= n_basis + 2:
+            out.append((0.0, 1.0))
+            continue
+        x, y = (px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1]
+        r2, one, zero = x * x + y * y, np.ones_like(x), np.zeros_like(x)
+        basis_u = np.column_stack([x, zero, one, zero, x * r2, x * r2 * r2, 2 * x * y, r2 + 2 * x * x])
+        basis_v = np.column_stack([zero, y, zero, one, y * r2, y * r2 * r2, r2 + 2 * y * y, 2 * x * y])
+        B, rr = np.vstack([basis_u, basis_v]), np.concatenate([r[:, 0], r[:, 1]])
+        coef, *_ = np.linalg.lstsq(B, rr, rcond=None)
+        ss_total, ss_left = float(rr @ rr), float(np.sum((rr - B @ coef) ** 2))
+        dof = len(rr) - n_basis
+        if ss_total <= 0 or ss_left <= 0:
+            out.append((0.0, 1.0))
+            continue
+        F = ((ss_total - ss_left) / n_basis) / (ss_left / dof)
+        out.append((1.0 - ss_left / ss_total, float(f_dist.sf(F, n_basis, dof))))
+    return out
 
 
 def _best_seen(candidates: np.ndarray, frames_per: np.ndarray, most: int) -> np.ndarray:
@@ -343,9 +383,19 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
         messages.append(f"least_squares stopped before converging: {res.message}")
     if not L.with_odometry:
         messages.append("the recording has no odometry: marker placements are seen only between markers in one frame")
+    structure = calibration_structure(data, r_px)
+    for name, (share, p) in zip(data.cam_names, structure):
+        if p < STRUCTURE_P:
+            advice = ("the recorded distortion is off (not solved by the audit): recalibrate" if L.with_intrinsics
+                      else "try --set intrinsics=true, or recalibrate")
+            messages.append(
+                f"camera {name}: the corner residuals follow the image position as a calibration error would "
+                f"({100 * share:.1f} % of their variance, F-test p = {p:.1g}): the recorded intrinsics or distortion are "
+                f"off, which biases the placements and makes their σ too small — read the flags with care; {advice}")
     return AuditEstimate(
         markers=findings, cameras=cameras, odometry=odometry, sigma_px=float(sigma_px),
         sigma0=math.sqrt(chi2_value / max(m_res - n_par, 1)), T_world_agv=T, T_world_agv_start=init.T0,
         corner_residuals_px=r_px, gauge=gauge_text, gauge_markers=gauge_ids, cost=float(res.cost),
         iterations=iterations, solve_s=solve_s, n_params=n_par, n_residuals=m_res, messages=messages,
+        calibration_structure=structure,
     )

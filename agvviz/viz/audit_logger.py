@@ -85,13 +85,13 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
                                                        colors=style.COLOR_REJECTED, radii=0.006), static=True)
     T = est.T_world_agv
     rec.log(paths.AUDIT_TRAJECTORY_ESTIMATED, rr.LineStrips3D([T[:, :3, 3]], colors=style.COLOR_CORRECTED, radii=0.01,
-                                                              labels=["audit: solved vehicle path"]), static=True)
+                                                              labels=["audit: solved vehicle path"], show_labels=False), static=True)
     rec.log(paths.AUDIT_TRAJECTORY_START, rr.LineStrips3D([est.T_world_agv_start[:, :3, 3]], colors=style.COLOR_CAMERA,
-                                                          radii=0.004, labels=["start (per-frame solve)"]), static=True)
+                                                          radii=0.004, labels=["start (per-frame solve)"], show_labels=False), static=True)
     truth_ok = np.isfinite(col.truth[:, 0, 0])
     if np.any(truth_ok):
         rec.log(paths.AUDIT_TRAJECTORY_TRUTH, rr.LineStrips3D([col.truth[truth_ok, :3, 3]], colors=style.COLOR_TRUTH,
-                                                              radii=0.004, labels=["truth"]), static=True)
+                                                              radii=0.004, labels=["truth"], show_labels=False), static=True)
     for c in est.cameras:
         for which, T_agv_cam, color in (("recorded", c.T_agv_cam_recorded, style.COLOR_MARKER),
                                         ("estimated", c.T_agv_cam_estimated,
@@ -141,7 +141,8 @@ def audit_blueprint(result) -> rrb.Blueprint:
     """The 3D map (recorded vs estimated) beside the report and the residual plots."""
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin=paths.WORLD, name="map: mapped (blue) vs estimated (red: flagged)"),
+            rrb.Spatial3DView(origin=paths.WORLD, name="map: mapped (blue) vs estimated (red: flagged); "
+                              "path: solved (magenta), start (orange), truth (green)"),
             rrb.Vertical(
                 rrb.TextDocumentView(origin=paths.AUDIT_REPORT, name="audit"),
                 rrb.TimeSeriesView(origin=paths.AUDIT_RESIDUALS, name="corner residual per marker (px RMS)"),
