@@ -213,6 +213,19 @@ def test_calibration_error_left_in_the_corners_is_reported():
     notes = [m for m in bad.messages if "calibration error" in m]
     assert len(notes) == 1 and "intrinsics=true" in notes[0], bad.messages
     assert bad.calibration_structure[0][1] < 1e-4
+    assert not [m for m in good.messages if "judged markers are flagged" in m], good.messages
+
+
+def test_many_flags_point_to_a_common_cause():
+    """The harsh world (its recorded intrinsics 3–4 px off) flags most markers: the report says
+    that one common error is likelier than that many misplaced markers."""
+    syn = simulate(_options(realism="harsh", duration_s=20.0), 0, sigma_px=0.1, corner_bias_px=CORNER_BIAS_PX)
+    est = estimate(syn.data, AuditSettings(), solver())
+    judged = [f for f in est.markers if f.status != "seen too little"]
+    flagged = sum(f.flagged for f in judged)
+    note = [m for m in est.messages if "judged markers are flagged" in m]
+    assert (flagged >= 4 and flagged > len(judged) / 3) == bool(note), (flagged, len(judged), est.messages)
+    assert note, f"harsh seed 0 flags {flagged} of {len(judged)}"
 
 
 def test_bad_data_is_one_line_error():

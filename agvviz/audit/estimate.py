@@ -40,6 +40,7 @@ from agvviz.audit.problem import (
     flag_threshold,
     initialise,
     mahalanobis,
+    level_reference,
     on_the_floor,
     marginal_covariance,
     marker_points_world,
@@ -140,6 +141,10 @@ def _sigma_from_residuals(problem: Problem, x: np.ndarray, data: AuditData) -> f
 
 #: p-value below which the corner residuals' image-position structure is reported.
 STRUCTURE_P = 1e-4
+#: A run with at least this many flagged markers, and more than this share of the judged ones,
+#: gets a note: a map has a few wrong entries; a wrong calibration makes most look wrong.
+MANY_FLAGGED_MIN = 4
+MANY_FLAGGED_SHARE = 1.0 / 3.0
 
 
 def calibration_structure(data: AuditData, residuals_px: np.ndarray) -> list[tuple[float, float]]:
@@ -231,7 +236,13 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
         gauge = enough if np.any(enough) else np.ones(M, dtype=bool)
     candidates = gauge.copy()
     gauge = _best_seen(candidates, frames_per, s.gauge_markers)
-    floor = s.floor_prior == "on" or (s.floor_prior == "auto" and on_the_floor(init.T0))
+    # auto: the start agrees with the odometry's height, pitch and roll (0 for an AGV's planar odometry); the
+    # height within 5 cm or the 3° the attitude test allows at the median camera–marker range (a far marker's
+    # single-frame pose is no better: an AUV 10 m from its markers starts ≈10 cm off)
+    ranges = np.linalg.norm(data.T_world_marker[data.obs_marker, :3, 3] - V[:, :3, 3], axis=1)
+    range_m = float(np.nanmedian(ranges)) if np.any(np.isfinite(ranges)) else 0.0
+    tol_m = max(0.05, math.tan(math.radians(3.0)) * range_m)
+    floor = s.floor_prior == "on" or (s.floor_prior == "auto" and on_the_floor(init.T0, level_reference(data), tol_m))
     sigma_px = s.sigma_px if s.sigma_px > 0 else FIRST_SIGMA_PX
     # with the corner σ to estimate, the corner offsets (a random effect) join in the second
     # pass: in the first they would take up residual that the σ estimate must see
@@ -383,6 +394,13 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
         messages.append(f"least_squares stopped before converging: {res.message}")
     if not L.with_odometry:
         messages.append("the recording has no odometry: marker placements are seen only between markers in one frame")
+    judged = [f for f in findings if f.status != "seen too little"]
+    n_flagged = sum(f.flagged for f in judged)
+    if n_flagged >= MANY_FLAGGED_MIN and n_flagged > MANY_FLAGGED_SHARE * len(judged):
+        messages.append(
+            f"{n_flagged} of {len(judged)} judged markers are flagged: one error common to all of them (the camera "
+            "calibration, the odometry) is more likely than that many misplaced markers — check the calibration, try "
+            "--set intrinsics=true, and read the flags with care")
     structure = calibration_structure(data, r_px)
     for name, (share, p) in zip(data.cam_names, structure):
         if p < STRUCTURE_P:

@@ -99,10 +99,11 @@ class AuditSettings:
     odom_sigma_m: float = setting(0.002, "odometry step noise per axis (m)", min=1e-5, max=1.0)
     odom_sigma_frac: float = setting(0.01, "odometry step noise per metre driven (slip), added in quadrature", min=0.0, max=0.5)
     odom_sigma_deg: float = setting(0.05, "odometry heading noise per step (deg)", min=1e-4, max=10.0)
-    floor_prior: str = setting("auto", "the vehicle drives on the floor z = 0: its height, pitch and roll are ~0 (separates the camera mounting "
-                               "from the vehicle attitude); auto: on when the start puts the vehicle there (|z| < 5 cm, tilt < 3°)",
+    floor_prior: str = setting("auto", "the vehicle's height, pitch and roll are the odometry's (an AGV's planar odometry: the floor z = 0, level; "
+                               "an AUV's INS/DVL: its depth and attitude) — separates the camera mounting from the vehicle attitude; "
+                               "auto: on when the start puts the vehicle there (|Δz| < 5 cm or 3° at the marker range, tilt < 3°)",
                                ("auto", "on", "off"))
-    floor_sigma_m: float = setting(0.005, "σ of the vehicle's height above z = 0 per frame (m)", min=1e-5, max=1.0)
+    floor_sigma_m: float = setting(0.005, "σ of the vehicle's height about the odometry's (z = 0 on a floor) per frame (m)", min=1e-5, max=1.0)
     floor_tilt_sigma_deg: float = setting(0.5, "σ of the vehicle's pitch and roll per frame (deg; floor bumps)", min=1e-4, max=30.0)
     map_sigma_m: float = setting(0.1, "map prior: σ of a marker's position per axis (m)", min=1e-4, max=100.0)
     map_yaw_sigma_deg: float = setting(10.0, "map prior: σ of a marker's yaw (deg)", min=1e-3, max=180.0)
@@ -123,7 +124,8 @@ class AuditSettings:
     seen_ratio: float = setting(0.5, "a marker whose posterior σ of any component exceeds this fraction of its prior σ is seen too little", min=0.01, max=1.0)
     init_window_frames: int = setting(20, "initialisation: odometry links frames at most this far apart", min=1, max=10000)
     init_yaw_tol_deg: float = setting(20.0, "initialisation: two markers disagreeing by more yaw are a gross error", min=1.0, max=90.0)
-    init_pos_tol_m: float = setting(0.15, "initialisation: two markers disagreeing by more are a gross error", min=0.001, max=100.0)
+    init_pos_tol_m: float = setting(0.15, "initialisation: two markers disagreeing by more (plus 3 × odom_sigma_frac × their distance) "
+                                    "are a gross error", min=0.001, max=100.0)
     intrinsics: bool = setting(False, "also solve each camera's fx, fy, cx, cy (weakly separable from print scale and mounting: priors below)")
     focal_sigma_px: float = setting(5.0, "prior σ of the recorded fx and fy (px), when intrinsics are solved", min=1e-3, max=1000.0)
     centre_sigma_px: float = setting(5.0, "prior σ of the recorded cx and cy (px), when intrinsics are solved", min=1e-3, max=1000.0)
@@ -350,6 +352,7 @@ class Problem:
     def __init__(self, data: AuditData, settings: AuditSettings, T0: np.ndarray, sigma_px: float,
                  gauge: np.ndarray | None = None, floor_prior: bool = True, corner_bias_px: float = 0.0):
         self.floor_prior = bool(floor_prior)
+        self.level_ref = level_reference(data)  # what the floor prior holds each frame's height, pitch, roll to
         self.corner_bias_px = float(corner_bias_px)
         self.data, self.settings, self.T0 = data, settings, np.asarray(T0, dtype=float)
         self.T_ref0 = self.T0 @ data.T_agv_cam[0]  # x = 0: the recorded extrinsic
@@ -451,15 +454,19 @@ class Problem:
         self.prior_sigma = np.array(sig)
 
     def gauge_matrix(self) -> np.ndarray:
-        """(4, marker columns): the mean x, y, yaw and radial correction of the gauge markers
+        """(4 or 5, marker columns): the mean x, y, yaw and radial correction of the gauge markers
         (yaw: the rotation about the world z axis, through :func:`gauge_directions`; radial:
-        ``(p − c)·d`` over the RMS distance from their centre c)."""
+        ``(p − c)·d`` over the RMS distance from their centre c) and, when they solve dz (off the
+        floor), their mean dz."""
         if hasattr(self, "_gauge_Ct"):
             return self._gauge_Ct
         d, L = self.data, self.layout
         A = gauge_directions(d, self.gauge_centre)
         n_cols = L.camera0 - 6 * L.n_frames
-        Ct = np.zeros((4, n_cols))
+        # markers off the floor (dz solved): moving every marker and the cameras' mounting up together leaves the
+        # corners, odometry and vehicle height unchanged — a 5th row, their mean dz = 0, fixes that too
+        with_dz = any(self.gauge[m] and 2 in slots for m, slots in enumerate(L.marker_slots))
+        Ct = np.zeros((5 if with_dz else 4, n_cols))
         n = max(int(self.gauge.sum()), 1)
         rel = d.T_world_marker[:, :2, 3] - self.gauge_centre
         spread = float(np.sqrt(np.mean(np.sum(rel[self.gauge] ** 2, axis=1)))) if np.any(self.gauge) else 1.0
@@ -473,6 +480,8 @@ class Problem:
                     Ct[3, col] = rel[m, slot] / (n * spread)
                 elif slot in (3, 4, 5):
                     Ct[2, col] = A[m, slot, 2] / n  # the world-yaw component of the rotation
+                elif slot == 2:
+                    Ct[4, col] = 1.0 / n
         self._gauge_Ct = Ct
         return Ct
 
@@ -530,12 +539,13 @@ class Problem:
         return np.column_stack([r_xy, r_psi])
 
     def floor_residuals(self, x: np.ndarray) -> np.ndarray:
-        """(N, 3): height (m), pitch, roll (rad) of every frame's vehicle pose."""
+        """(N, 3): height (m), pitch, roll (rad) of every frame's vehicle pose against
+        :func:`level_reference` (0 on a floor; an INS/DVL's depth and attitude otherwise)."""
         xi, _, eta, _ = self.layout.unpack(x)
         T = self.poses(xi, eta)
-        pitch = np.arcsin(np.clip(T[:, 2, 1], -1.0, 1.0))
-        roll = np.arctan2(-T[:, 2, 0], T[:, 2, 2])
-        return np.column_stack([T[:, 2, 3], pitch, roll])
+        r = _height_pitch_roll(T) - self.level_ref
+        r[:, 1:] = euler.wrap_angle_rad(r[:, 1:])
+        return r
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         s = self.settings
@@ -595,16 +605,32 @@ def _planar_transform(yaw: float, centre: np.ndarray, displacement: np.ndarray) 
     return T
 
 
-def on_the_floor(T_world_agv: np.ndarray) -> bool:
-    """Whether start poses (N, 4, 4) put the vehicle on the floor: median |z| < 5 cm and median
-    |pitch|, |roll| < 3° (the ``auto`` of the floor prior)."""
+def _height_pitch_roll(T: np.ndarray) -> np.ndarray:
+    """(N, 3): z (m), pitch, roll (rad) of poses (N, 4, 4)."""
+    return np.column_stack([T[:, 2, 3], np.arcsin(np.clip(T[:, 2, 1], -1.0, 1.0)), np.arctan2(-T[:, 2, 0], T[:, 2, 2])])
+
+
+def level_reference(data: AuditData) -> np.ndarray:
+    """(N, 3): the height (m), pitch and roll (rad) the floor prior holds each frame to: the
+    odometry's where the frame has odometry (its model — :func:`agvviz.sim.trajectory.dead_reckoning`
+    — drifts only in distance scale and heading: an AGV's odometry is planar, so this is the floor
+    z = 0, level; an AUV's INS/DVL gives its depth and gravity-referenced attitude), else 0."""
+    ref = np.zeros((data.n_frames, 3))
+    if np.any(data.has_odom):
+        ref[data.has_odom] = _height_pitch_roll(data.T_odom_agv[data.has_odom])
+    return ref
+
+
+def on_the_floor(T_world_agv: np.ndarray, reference: np.ndarray | None = None, tol_m: float = 0.05) -> bool:
+    """Whether start poses (N, 4, 4) put the vehicle on the floor — at ``reference`` (N, 3:
+    :func:`level_reference`; None: z = 0, level): median |Δz| < ``tol_m`` and median |Δpitch|,
+    |Δroll| < 3° (the ``auto`` of the floor prior)."""
     ok = np.isfinite(T_world_agv[:, 0, 0])
     if not np.any(ok):
         return False
-    T = T_world_agv[ok]
-    pitch = np.degrees(np.arcsin(np.clip(T[:, 2, 1], -1.0, 1.0)))
-    roll = np.degrees(np.arctan2(-T[:, 2, 0], T[:, 2, 2]))
-    return bool(np.median(np.abs(T[:, 2, 3])) < 0.05 and np.median(np.abs(pitch)) < 3.0 and np.median(np.abs(roll)) < 3.0)
+    d = _height_pitch_roll(T_world_agv[ok]) - (0.0 if reference is None else reference[ok])
+    d[:, 1:] = np.degrees(euler.wrap_angle_rad(d[:, 1:]))
+    return bool(np.median(np.abs(d[:, 0])) < tol_m and np.median(np.abs(d[:, 1])) < 3.0 and np.median(np.abs(d[:, 2])) < 3.0)
 
 
 def _add_candidate(cand: dict, m: int, m2: int, C: np.ndarray, centre: np.ndarray, gap: int) -> None:
@@ -670,8 +696,11 @@ def initialise(data: AuditData, settings: AuditSettings, V: np.ndarray) -> Initi
         edges[key] = np.array([euler.wrap_angle_rad(yaw), np.median(arr[:, 1]), np.median(arr[:, 2]), len(arr)])
     yaw_tol, pos_tol = math.radians(s.init_yaw_tol_deg), s.init_pos_tol_m
 
-    def inconsistent(e: np.ndarray) -> bool:
-        return abs(e[0]) > yaw_tol or math.hypot(e[1], e[2]) > pos_tol
+    def inconsistent(e: np.ndarray, m: int, m2: int) -> bool:
+        # the odometry linking two markers drifts with the distance between them (3σ of its
+        # stated per-metre error): markers 12 m apart under ice are 36 cm less sure of each other
+        tol = pos_tol + 3.0 * s.odom_sigma_frac * float(np.linalg.norm(centres[m] - centres[m2]))
+        return abs(e[0]) > yaw_tol or math.hypot(e[1], e[2]) > tol
 
     good = set(range(M))
     while True:
@@ -680,7 +709,7 @@ def initialise(data: AuditData, settings: AuditSettings, V: np.ndarray) -> Initi
         for (m, m2), e in edges.items():
             if m in good and m2 in good:
                 total[m] += 1
-                if inconsistent(e):
+                if inconsistent(e, m, m2):
                     bad_count[m] += 1
         worst = max(good, key=lambda m: (bad_count[m], bad_count[m] / max(total[m], 1), -total[m], -m), default=None)
         if worst is None or bad_count[worst] == 0:
