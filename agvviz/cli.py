@@ -298,7 +298,10 @@ def _run(
         def on_frame(done: int) -> None:
             elapsed = progress.tasks[task].elapsed or 0.0
             rate = f"{done / elapsed:.1f} frames/s" if elapsed > 0 else ""
-            progress.update(task, completed=done, rate=rate)
+            # the total is the busiest camera's image count: cameras that do not share every time
+            # stamp make more frames than that (auv_under_ice: 201 of "200")
+            total = progress.tasks[task].total
+            progress.update(task, completed=done, rate=rate, **({"total": done} if total is not None and done > total else {}))
 
         try:
             outcome = run_recording(

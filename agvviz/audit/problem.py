@@ -250,14 +250,24 @@ def planar(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def metres_per_pixel(data: AuditData) -> np.ndarray:
-    """(M,): each marker's mapped side over its median side in the image (m/px)."""
-    side_m = np.linalg.norm(np.roll(data.points_marker_m, -1, axis=1) - data.points_marker_m, axis=-1).mean(axis=1)
-    side_px = np.linalg.norm(np.roll(data.obs_px, -1, axis=1) - data.obs_px, axis=-1).mean(axis=1)
-    out = np.zeros(len(data.marker_ids))
+    """(M, 2): each marker's metres per image pixel along its own x and y axes — its mapped side
+    over the median image length of its edges along that axis (TL→TR and BL→BR for x, TR→BR
+    and TL→BL for y). Per axis because an oblique view foreshortens one axis: there a pixel of
+    corner error is many more millimetres of the marker's plane."""
+    P = data.points_marker_m
+    side_x = 0.5 * (np.linalg.norm(P[:, 1] - P[:, 0], axis=-1) + np.linalg.norm(P[:, 2] - P[:, 3], axis=-1))
+    side_y = 0.5 * (np.linalg.norm(P[:, 2] - P[:, 1], axis=-1) + np.linalg.norm(P[:, 3] - P[:, 0], axis=-1))
+    q = data.obs_px
+    px_x = 0.5 * (np.linalg.norm(q[:, 1] - q[:, 0], axis=-1) + np.linalg.norm(q[:, 2] - q[:, 3], axis=-1))
+    px_y = 0.5 * (np.linalg.norm(q[:, 2] - q[:, 1], axis=-1) + np.linalg.norm(q[:, 3] - q[:, 0], axis=-1))
+    out = np.zeros((len(data.marker_ids), 2))
     for m in range(len(out)):
         sel = data.obs_marker == m
-        px = float(np.median(side_px[sel])) if np.any(sel) else 0.0
-        out[m] = side_m[m] / px if px > 1e-9 else 0.0
+        if not np.any(sel):
+            continue
+        for axis, (side, px) in enumerate(((side_x[m], px_x[sel]), (side_y[m], px_y[sel]))):
+            median_px = float(np.median(px))
+            out[m, axis] = side / median_px if median_px > 1e-9 else 0.0
     return out
 
 
@@ -369,8 +379,8 @@ class Problem:
         self.odom_pairs = np.array(pairs, dtype=int)
         self.layout = Layout(data.n_frames, slots, len(data.cam_names), len(pairs) > 0, bool(settings.intrinsics),
                              self.corner_bias_px > 0)
-        #: (M,) prior σ of each marker's corner offsets (m): corner_bias_px at the median pixel
-        #: scale its detections show it at
+        #: (M, 2) prior σ of each marker's corner offsets along its x and y (m): corner_bias_px at
+        #: the median pixel scale its detections show each axis at
         self.offset_sigma_m = np.maximum(self.corner_bias_px * metres_per_pixel(data), 1e-9)
         s = settings
         prior = np.array([s.map_sigma_m] * 3 + [math.radians(s.map_yaw_sigma_deg)]
@@ -450,7 +460,7 @@ class Problem:
         if L.with_intrinsics:
             sig.extend(np.tile(self.intrinsics_prior_sigma, L.n_cameras))
         if L.with_offsets:
-            sig.extend(np.repeat(self.offset_sigma_m, 8))
+            sig.extend(np.tile(self.offset_sigma_m, (1, 4)).reshape(-1))  # per marker: x, y of TL, TR, BR, BL
         self.prior_sigma = np.array(sig)
 
     def gauge_matrix(self) -> np.ndarray:

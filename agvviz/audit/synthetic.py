@@ -108,7 +108,7 @@ def simulate(options, seed: int, sigma_px: float = 0.1, corner_bias_px: float = 
     ``realism`` and ``inject`` included) and ``seed``: corners with σ = ``sigma_px`` noise,
     independent per detection, plus (``corner_bias_px`` > 0) each marker's systematic corner
     error — one offset per corner in the marker's plane, shared by all its detections, with σ
-    ``corner_bias_px`` at the marker's median size in the image (the audit's random effect,
+    ``corner_bias_px`` at the marker's median size in the image along each of its axes (the audit's random effect,
     :mod:`agvviz.audit.problem`; measured on real photos by ``bench/bench_render_vs_photos.py``)."""
     from scenarios import qr_floor as q
 
@@ -161,12 +161,14 @@ def simulate(options, seed: int, sigma_px: float = 0.1, corner_bias_px: float = 
             seen_at.append((i, m, T_cam_world, px))
     offsets_m = np.zeros((len(true_codes), 4, 2))
     if corner_bias_px > 0 and seen_at:
-        side_px = {}
+        side_px = {}  # the image length of each detection's edges along the marker's x and y
         for _, m, _, px in seen_at:
-            side_px.setdefault(m, []).append(np.mean(np.linalg.norm(np.roll(px, -1, axis=0) - px, axis=1)))
+            along_x = 0.5 * (np.linalg.norm(px[1] - px[0]) + np.linalg.norm(px[2] - px[3]))
+            along_y = 0.5 * (np.linalg.norm(px[2] - px[1]) + np.linalg.norm(px[3] - px[0]))
+            side_px.setdefault(m, []).append((along_x, along_y))
         bias_rng = np.random.default_rng([int(seed) % 2**64, 11])
         for m in sorted(side_px):
-            metres_per_px = true_codes[m].side_m / float(np.median(side_px[m]))
+            metres_per_px = true_codes[m].side_m / np.median(np.array(side_px[m]), axis=0)  # (2,): x, y
             offsets_m[m] = corner_bias_px * metres_per_px * bias_rng.standard_normal((4, 2))
     for i, m, T_cam_world, px in seen_at:
         if corner_bias_px > 0:
