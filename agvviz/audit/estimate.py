@@ -386,6 +386,9 @@ def estimate(data: AuditData, settings: AuditSettings, solve_pose) -> AuditEstim
         "their neighbours, not flagged) are 0 — every correction is relative to them, and the map's overall place, "
         "heading and scale are taken as recorded"
     )
+    if problem.gauge_matrix().shape[0] > 4:
+        gauge_text += ("; the markers are off the floor, so raising them all with the cameras' mounting changes no "
+                       "measurement either: their mean height correction is 0 too")
     if not floor:
         gauge_text += ("; no floor prior (floor_prior=" + s.floor_prior + "): the camera's height, pitch and roll trade "
                        "against the vehicle's and rest on the extrinsic prior")
