@@ -277,7 +277,10 @@ def _run(
     from agvviz.recording.roles import parse_topic_options
     from agvviz.runner import NoUsableFrameError, run_recording
 
+    from agvviz.recording.source import require_recording_path
+
     _check_detect_jobs(jobs)
+    require_recording_path(recording)  # one line, before a progress bar is drawn
     settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
     if budget and (topics or roles or markers or calibration or extrinsic):
         _fail("--budget re-records the scenario of an agvviz recording with each error source off; "
@@ -852,6 +855,7 @@ def audit(
     from agvviz import audit as audit_lib
     from agvviz.audit import report
     from agvviz.audit.problem import AuditSettings
+    from agvviz.recording.source import require_recording_path
 
     if correct not in ("flagged", "all"):
         _fail(f"--correct must be flagged or all, got {correct!r}")
@@ -864,6 +868,7 @@ def audit(
         if key and key not in field_types(RunSettings):
             _fail(f"unknown setting {key!r}; audit settings: {', '.join(sorted(audit_lib.audit_setting_names()))}; "
                   f"run settings: {', '.join(sorted(field_types(RunSettings)))}")
+    require_recording_path(recording)  # one line, before a progress bar is drawn
     settings = apply_overrides(AuditSettings(), audit_pairs)
     run_settings = apply_overrides(RunSettings(), run_pairs)
     if out is not None and out.suffix != ".rrd":

@@ -16,7 +16,7 @@ import numpy as np
 
 from agvviz import __version__
 from agvviz.conventions import camera_frame
-from agvviz.errors import InputError, OutputError, RecordingError, RunError
+from agvviz.errors import InputError, OutputError, RunError
 from agvviz.evaluation.summary import timing
 from agvviz.graph import detect_cache
 from agvviz.graph.detect_pool import DetectionFeed, default_jobs
@@ -26,7 +26,15 @@ from agvviz.graph.solve import Replay
 from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
 from agvviz.recording.reader import DATA_SECTION_CRC_PROBLEM, CalibrationMsg, FrameTransformMsg, ReadReport
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
-from agvviz.recording.source import Recording, Scan, iter_role_messages, open_recording, resolve_roles, scan
+from agvviz.recording.source import (
+    Recording,
+    Scan,
+    iter_role_messages,
+    open_recording,
+    require_recording_path,
+    resolve_roles,
+    scan,
+)
 from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.results import REJECT_NO_CALIBRATION
 from agvviz.settings import RunSettings, as_dict, inapplicable, without
@@ -403,11 +411,7 @@ def run_recording(
     the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
     in the ``.rrd`` (:mod:`agvviz.viz.budget_logger`), with a layout that shows them.
     """
-    recording_path = Path(recording_path)
-    if not recording_path.exists():
-        raise RecordingError(
-            f"{recording_path}: no such file or directory; give an .mcap recording or a rosbag2 directory"
-        )
+    recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":
         raise RunError(f"output must be a .rrd file, got {out_path}")
     # OutputError when out_path is the recording (also through a link; for a bag directory,
@@ -537,11 +541,7 @@ def detect_recording(
     (:func:`agvviz.graph.detect.detection_settings`) only solves. A no-op when the cache holds
     them already. Returns ``{"source": "cache" | "detected", "frames": n, "cache": path}``;
     raises like :func:`run_recording` on a recording it cannot read."""
-    recording_path = Path(recording_path)
-    if not recording_path.exists():
-        raise RecordingError(
-            f"{recording_path}: no such file or directory; give an .mcap recording or a rosbag2 directory"
-        )
+    recording_path = require_recording_path(recording_path)
     prepared = prepare(recording_path, settings, topics, roles_file, side)
     if not prepared.can_run:
         raise _unusable_run_error(prepared.recording, {}, prepared.causes)

@@ -20,6 +20,7 @@ from agvviz.audit.problem import AuditData
 from agvviz.conventions import WORLD_FRAME
 from agvviz.errors import InputError, RecordingError
 from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners, quad_area_px2
+from agvviz.recording.source import require_recording_path
 from agvviz.recording.reader import ReadReport
 from agvviz.recording.source import iter_role_messages
 from agvviz.settings import RunSettings
@@ -58,9 +59,7 @@ def collect(
     usable frames, camera or detections."""
     from agvviz import runner
 
-    recording_path = Path(recording_path)
-    if not recording_path.exists():
-        raise RecordingError(f"{recording_path}: no such file or directory; give an .mcap recording or a rosbag2 directory")
+    recording_path = require_recording_path(recording_path)
     prepared = runner.prepare(recording_path, settings, topics, roles_file, side)
     if not prepared.usable_cameras:
         causes = "; ".join(prepared.causes) or "no camera images"

@@ -125,14 +125,21 @@ def _read_bag_metadata(directory: Path) -> dict:
     return info
 
 
+def require_recording_path(path) -> Path:
+    """``path`` as a Path; :class:`RecordingError` (one line, what to do) when nothing is there —
+    checked before any work starts (and before a progress bar is drawn)."""
+    path = Path(path)
+    if not path.exists():
+        raise RecordingError(f"{path}: no such file or directory; give an .mcap recording or a rosbag2 directory")
+    return path
+
+
 def open_recording(path) -> Recording:
     """A :class:`Recording` for a ``.mcap`` file or a rosbag2 directory.
 
     Raises :class:`RecordingError` with what to do when it is neither.
     """
-    path = Path(path)
-    if not path.exists():
-        raise RecordingError(f"{path}: no such file or directory; give an .mcap recording or a rosbag2 directory")
+    path = require_recording_path(path)
     if path.is_dir():
         info = _read_bag_metadata(path)
         storage = str(info.get("storage_identifier", ""))
