@@ -9,9 +9,10 @@ corner noise, covariance, gauge, flags. Pure math: no files, no Rerun, no printi
    σ0² = max(1, χ²/dof): never more confident than the stated σ.
 4. Gauge (:meth:`agvviz.audit.problem.Problem.gauge_matrix`) on the gauge markers: those seen
    in ``min_frames`` frames that the start found consistent with their neighbours (when at least
-   half are; else all but the grossly wrong ones); a gauge marker that ends up flagged or seen too
-   little leaves the set and the problem is solved again (a misplaced marker must not drag the
-   frame its neighbours are measured in).
+   half are; else all but the grossly wrong ones). Gauge markers seen too little (or whose place
+   is not observed) leave the set at once; flagged ones leave one at a time, worst first, and the
+   problem is solved again each time (a misplaced marker must not drag the frame its neighbours
+   are measured in; the neighbours it dragged stay eligible).
 5. Flags: per group (position, yaw, tilt, scale; camera translation, rotation) the Mahalanobis
    distance beyond :func:`~agvviz.audit.problem.flag_threshold` (k σ, shared among the marker's
    or camera's groups: a clean one is flagged with the probability of |z| > k) AND the size
@@ -28,6 +29,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import f as f_dist
 
 from agvviz.audit.problem import (
     CAMERA_GROUPS,
@@ -154,8 +156,6 @@ def calibration_structure(data: AuditData, residuals_px: np.ndarray) -> list[tup
     position (x, y) — and the F-test's p-value of that fit against none. The audit does not
     model distortion (nor, by default, the intrinsics): when p is tiny, what it leaves in the
     corners is a calibration error, which biases the placements and makes σ too small."""
-    from scipy.stats import f as f_dist
-
     out = []
     for c in range(len(data.cam_names)):
         sel = data.obs_cam == c

@@ -35,18 +35,20 @@ Residuals (each divided by its σ)
 * odometry between consecutive frames: body-frame step ``(1 + s)·Δxy`` and heading step
   ``Δψ + b·Δt`` against the measured ones (σ = hypot(odom_sigma_m, odom_sigma_frac·|Δ|) and
   odom_sigma_deg per step, ×√steps over dropped frames);
-* the floor: each frame's height, pitch and roll against 0 (the AGV drives on the floor
-  z = 0; σ floor_sigma_m, floor_tilt_sigma_deg) — what separates the camera's mounting from
-  the vehicle's attitude;
+* the vehicle's level: each frame's height, pitch and roll against the odometry's
+  (:func:`level_reference`: 0 for an AGV on the floor z = 0, an AUV's depth and attitude;
+  σ floor_sigma_m, floor_tilt_sigma_deg) — what separates the camera's mounting from the
+  vehicle's attitude;
 * priors: the map (each δ component against 0), the recorded extrinsic, the odometry error,
   the corner offsets.
 
 Gauge: corners, odometry and the floor are unchanged when the whole map and every vehicle pose
 move together in the floor plane (x, y, yaw): the data cannot see the map's overall frame; and
-they see the map's overall size only through the odometry's scale, itself unknown. Four
-constraint rows (σ :data:`GAUGE_SIGMA`, :meth:`Problem.gauge_matrix`) fix them: the mean x, y,
-yaw and radial correction of the *gauge markers* (seen enough, not flagged; the caller re-solves
-when a flag changes the set) are zero. Every marker's correction and σ is relative to them; the
+they see the map's overall size only through the odometry's scale, itself unknown; markers
+off the floor can all rise with the cameras' mounting unseen too. Four constraint rows, five
+when the gauge markers solve their height (σ :data:`GAUGE_SIGMA`, :meth:`Problem.gauge_matrix`),
+fix them: the mean x, y, yaw, radial (and height) correction of the *gauge markers* (seen
+enough, not flagged; the caller re-solves when a flag changes the set) are zero. Every marker's correction and σ is relative to them; the
 map's overall place, heading and scale are taken as recorded.
 
 Solved by :func:`scipy.optimize.least_squares` (``method="trf"``) with finite differences on
@@ -67,6 +69,7 @@ from scipy.stats import chi2, norm
 
 from agvviz.errors import InputError, RunError
 from agvviz.geometry import euler, se3, so3
+from agvviz.geometry.plane import quad_axis_lengths
 from agvviz.settings import setting, validate
 
 #: Marker correction components (module docstring); the floor codes' subset.
@@ -121,7 +124,9 @@ class AuditSettings:
     min_camera_m: float = setting(0.005, "smallest camera displacement that is flagged (m)", min=0.0, max=10.0)
     min_camera_deg: float = setting(0.25, "smallest camera rotation that is flagged (deg)", min=0.0, max=180.0)
     min_frames: int = setting(3, "a marker seen in fewer frames is reported as seen too little", min=1, max=100000)
-    seen_ratio: float = setting(0.5, "a marker whose posterior σ of any component exceeds this fraction of its prior σ is seen too little", min=0.01, max=1.0)
+    seen_ratio: float = setting(0.5, "a group of a marker's correction (position, yaw, tilt, scale) whose posterior σ exceeds this fraction of "
+                                "its prior σ is not observed and not judged; a marker with no group observed is seen too little",
+                                min=0.01, max=1.0)
     init_window_frames: int = setting(20, "initialisation: odometry links frames at most this far apart", min=1, max=10000)
     init_yaw_tol_deg: float = setting(20.0, "initialisation: two markers disagreeing by more yaw are a gross error", min=1.0, max=90.0)
     init_pos_tol_m: float = setting(0.15, "initialisation: two markers disagreeing by more (plus 3 × odom_sigma_frac × their distance) "
@@ -254,20 +259,15 @@ def metres_per_pixel(data: AuditData) -> np.ndarray:
     over the median image length of its edges along that axis (TL→TR and BL→BR for x, TR→BR
     and TL→BL for y). Per axis because an oblique view foreshortens one axis: there a pixel of
     corner error is many more millimetres of the marker's plane."""
-    P = data.points_marker_m
-    side_x = 0.5 * (np.linalg.norm(P[:, 1] - P[:, 0], axis=-1) + np.linalg.norm(P[:, 2] - P[:, 3], axis=-1))
-    side_y = 0.5 * (np.linalg.norm(P[:, 2] - P[:, 1], axis=-1) + np.linalg.norm(P[:, 3] - P[:, 0], axis=-1))
-    q = data.obs_px
-    px_x = 0.5 * (np.linalg.norm(q[:, 1] - q[:, 0], axis=-1) + np.linalg.norm(q[:, 2] - q[:, 3], axis=-1))
-    px_y = 0.5 * (np.linalg.norm(q[:, 2] - q[:, 1], axis=-1) + np.linalg.norm(q[:, 3] - q[:, 0], axis=-1))
+    side_m = quad_axis_lengths(data.points_marker_m[:, :4])  # (M, 2)
+    side_px = quad_axis_lengths(data.obs_px)  # (n, 2)
     out = np.zeros((len(data.marker_ids), 2))
     for m in range(len(out)):
         sel = data.obs_marker == m
         if not np.any(sel):
             continue
-        for axis, (side, px) in enumerate(((side_x[m], px_x[sel]), (side_y[m], px_y[sel]))):
-            median_px = float(np.median(px))
-            out[m, axis] = side / median_px if median_px > 1e-9 else 0.0
+        median_px = np.median(side_px[sel], axis=0)
+        out[m] = np.where(median_px > 1e-9, side_m[m] / np.maximum(median_px, 1e-9), 0.0)
     return out
 
 
@@ -631,14 +631,14 @@ def level_reference(data: AuditData) -> np.ndarray:
     return ref
 
 
-def on_the_floor(T_world_agv: np.ndarray, reference: np.ndarray | None = None, tol_m: float = 0.05) -> bool:
+def on_the_floor(T_world_agv: np.ndarray, reference: np.ndarray, tol_m: float = 0.05) -> bool:
     """Whether start poses (N, 4, 4) put the vehicle on the floor — at ``reference`` (N, 3:
-    :func:`level_reference`; None: z = 0, level): median |Δz| < ``tol_m`` and median |Δpitch|,
-    |Δroll| < 3° (the ``auto`` of the floor prior)."""
+    :func:`level_reference`): median |Δz| < ``tol_m`` and median |Δpitch|, |Δroll| < 3° (the
+    ``auto`` of the floor prior)."""
     ok = np.isfinite(T_world_agv[:, 0, 0])
     if not np.any(ok):
         return False
-    d = _height_pitch_roll(T_world_agv[ok]) - (0.0 if reference is None else reference[ok])
+    d = _height_pitch_roll(T_world_agv[ok]) - reference[ok]
     d[:, 1:] = np.degrees(euler.wrap_angle_rad(d[:, 1:]))
     return bool(np.median(np.abs(d[:, 0])) < tol_m and np.median(np.abs(d[:, 1])) < 3.0 and np.median(np.abs(d[:, 2])) < 3.0)
 

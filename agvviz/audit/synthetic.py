@@ -16,6 +16,7 @@ import numpy as np
 
 from agvviz.audit.problem import AuditData
 from agvviz.geometry import euler, se3, so3
+from agvviz.geometry.plane import quad_axis_lengths
 from agvviz.sim import inject as inj
 from agvviz.sim import realism as rl
 from agvviz.sim.trajectory import dead_reckoning, forward_camera_mount, sample_track
@@ -142,6 +143,12 @@ def simulate(options, seed: int, sigma_px: float = 0.1, corner_bias_px: float = 
     K = cam_draw.recorded_camera.K  # ideal pixels of the recorded calibration (undistorted)
     K_true = cam_draw.true_camera.K
     centres_world = np.array([c.T_world_marker[:3, 3] for c in true_codes])
+    def in_camera(T_cam_world, code, points_marker):
+        return se3.transform_points(T_cam_world, se3.transform_points(code.T_world_marker, points_marker))
+
+    def pixels(points_cam):
+        return (K_true @ (points_cam / points_cam[:, 2:3]).T).T[:, :2]
+
     seen_at = []  # (frame, marker, T_cam_world, true pixels) of every detection
     for i in range(n):
         T_cam_world = se3.inverse(T_true[i] @ cam_draw.T_parent_cam_true)
@@ -150,10 +157,10 @@ def simulate(options, seed: int, sigma_px: float = 0.1, corner_bias_px: float = 
         near &= np.all(np.abs(centres_cam[:, :2]) < centres_cam[:, 2:3] * 2.0, axis=1)
         for m in np.flatnonzero(near):
             code = true_codes[m]
-            pts = se3.transform_points(T_cam_world, se3.transform_points(code.T_world_marker, code.points_marker_m[:4]))
+            pts = in_camera(T_cam_world, code, code.points_marker_m[:4])
             if np.any(pts[:, 2] < 0.1):
                 continue
-            px = (K_true @ (pts / pts[:, 2:3]).T).T[:, :2]
+            px = pixels(pts)
             if np.any(px < BORDER_PX) or np.any(px[:, 0] > o.width_px - 1 - BORDER_PX) or np.any(px[:, 1] > o.height_px - 1 - BORDER_PX):
                 continue
             if np.min(np.linalg.norm(px - np.roll(px, 1, axis=0), axis=1)) < MIN_SIDE_PX:
@@ -163,9 +170,7 @@ def simulate(options, seed: int, sigma_px: float = 0.1, corner_bias_px: float = 
     if corner_bias_px > 0 and seen_at:
         side_px = {}  # the image length of each detection's edges along the marker's x and y
         for _, m, _, px in seen_at:
-            along_x = 0.5 * (np.linalg.norm(px[1] - px[0]) + np.linalg.norm(px[2] - px[3]))
-            along_y = 0.5 * (np.linalg.norm(px[2] - px[1]) + np.linalg.norm(px[3] - px[0]))
-            side_px.setdefault(m, []).append((along_x, along_y))
+            side_px.setdefault(m, []).append(quad_axis_lengths(px))
         bias_rng = np.random.default_rng([int(seed) % 2**64, 11])
         for m in sorted(side_px):
             metres_per_px = true_codes[m].side_m / np.median(np.array(side_px[m]), axis=0)  # (2,): x, y
@@ -175,8 +180,7 @@ def simulate(options, seed: int, sigma_px: float = 0.1, corner_bias_px: float = 
             code = true_codes[m]
             points = code.points_marker_m[:4].copy()
             points[:, :2] += offsets_m[m]  # in the true marker's plane
-            pts = se3.transform_points(T_cam_world, se3.transform_points(code.T_world_marker, points))
-            px = (K_true @ (pts / pts[:, 2:3]).T).T[:, :2]
+            px = pixels(in_camera(T_cam_world, code, points))
         obs_frame.append(i)
         obs_marker.append(m)
         obs_px.append(px + sigma_px * noise_rng.standard_normal((4, 2)))

@@ -27,6 +27,15 @@ def square_points_marker(side_m: float, with_midpoints: bool = False) -> np.ndar
     return np.array(pts)
 
 
+def quad_axis_lengths(corners: np.ndarray) -> np.ndarray:
+    """(…, 2): the mean length of a quad's edges along its own x (TL→TR, BL→BR) and y (TR→BR,
+    TL→BL), for corners (…, 4, k) in the order TL, TR, BR, BL (metres on the marker, or pixels)."""
+    c = np.asarray(corners, dtype=float)
+    along_x = 0.5 * (np.linalg.norm(c[..., 1, :] - c[..., 0, :], axis=-1) + np.linalg.norm(c[..., 2, :] - c[..., 3, :], axis=-1))
+    along_y = 0.5 * (np.linalg.norm(c[..., 2, :] - c[..., 1, :], axis=-1) + np.linalg.norm(c[..., 3, :] - c[..., 0, :], axis=-1))
+    return np.stack([along_x, along_y], axis=-1)
+
+
 def quad_area_px2(corners_px: np.ndarray) -> float:
     """Area (px²) of the polygon through the first four image points ``corners_px`` (N ≥ 4, 2),
     in order (shoelace formula; NaN when a point is not finite)."""
