@@ -275,9 +275,8 @@ def _run(
     cache_dir=None, budget: bool = False,
 ) -> Path:
     from agvviz.recording.roles import parse_topic_options
-    from agvviz.runner import NoUsableFrameError, run_recording
-
     from agvviz.recording.source import require_recording_path
+    from agvviz.runner import NoUsableFrameError, run_recording
 
     _check_detect_jobs(jobs)
     require_recording_path(recording)  # one line, before a progress bar is drawn

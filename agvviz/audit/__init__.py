@@ -3,9 +3,10 @@
 A bundle adjustment over every frame of a recording (:mod:`agvviz.audit.problem`): unknowns are
 each frame's vehicle pose, each camera's extrinsic correction, each marker's placement
 correction (x, y, yaw and print scale for floor codes; 6-DoF and scale otherwise), each
-marker's systematic corner error (a random effect) and the odometry's scale and heading drift; measurements are every detected corner, the odometry
-between frames and the floor the vehicle drives on; priors are the recorded calibration and
-map. Solved with ``scipy.optimize.least_squares`` on the sparse Jacobian pattern; marginal
+marker's systematic corner error (a random effect) and the odometry's scale and heading drift;
+measurements are every detected corner, the odometry between frames and the vehicle's level
+(the floor it drives on, or an AUV's depth and attitude); priors are the recorded calibration
+and map. Solved with ``scipy.optimize.least_squares`` on the sparse Jacobian pattern; marginal
 covariances of the marker and camera blocks from a sparse LU of JᵀJ; gauge fixed on the well
 seen, unflagged markers. See :mod:`agvviz.audit.estimate` for the flags.
 
