@@ -37,6 +37,10 @@ SAME_POSE_RAD = 1e-6
 #: onto it (the other branch is not a local minimum); the raw IPPE branch is kept instead.
 COLLAPSED_RAD = 1e-3
 
+#: Degrees of freedom the pooled σ needs before :meth:`PoseDiagnostics.corner_sigma_px` uses it
+#: (its relative standard error is then ≈ 1/sqrt(2·20) = 16 %).
+MIN_POOLED_DOF = 20
+
 #: ``to_world(T_cam_marker) -> (T_world_cam, T_world_agv)`` for the current frame.
 ToWorld = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -131,6 +135,26 @@ class PoseDiagnostics:
         result.T_world_agv_ghost = rejected_world_agv
         self._pending = rejected_world_agv
         return chosen
+
+    def joint_resolved(self, result: FrameResult, n_markers: int) -> None:
+        """The frame's pose came from ``n_markers`` ≥ 2 markers jointly: their corners do not
+        lie on one small plane patch, so there is no mirror pose to keep as a ghost."""
+        result.ambiguity_rule = f"joint solve over {n_markers} markers (no mirror pose)"
+        result.flipped = False
+        result.T_world_agv_ghost = None
+        self._pending = None
+
+    def corner_sigma_px(self, fallback_px: float = 1.0) -> float:
+        """Pixel σ for tests on corner residuals (the joint solve's χ² per marker): the fixed
+        ``sigma_px`` setting, else the pooled residual estimate of the frames so far once it
+        rests on :data:`MIN_POOLED_DOF` degrees of freedom, else ``fallback_px``."""
+        if self.fixed_sigma_px is not None:
+            return self.fixed_sigma_px
+        if self._dof >= MIN_POOLED_DOF:
+            sigma = uncertainty.residual_sigma_px(self._sum_sq_px2, self._dof)
+            if sigma is not None and sigma > 0.0:
+                return sigma
+        return fallback_px
 
     # -- uncertainty --------------------------------------------------------------------------
     def finish(

@@ -84,7 +84,13 @@ class FrameResult:
     observations: tuple[MarkerObservation, ...] = ()
     rejected: str | None = None  # one of REJECT_REASONS, None when solved
     reject_detail: str = ""
-    used_marker_id: str | None = None
+    used_marker_id: str | None = None  # the largest usable marker: the single-marker start
+    #: Every marker whose corners made the pose (setting ``markers=all``: the joint solve,
+    #: :mod:`agvviz.solvers.joint`); just ``used_marker_id`` with ``markers=largest``.
+    used_marker_ids: tuple[str, ...] = ()
+    #: Markers seen and mapped but left out: their corners failed the χ² test against the others.
+    excluded_marker_ids: tuple[str, ...] = ()
+    marker_note: str = ""  # the joint solve's finding in plain words (who was left out, why)
     T_world_cam: np.ndarray | None = None
     T_world_agv: np.ndarray | None = None
     hpr_rad: np.ndarray | None = None  # heading, pitch, roll of T_world_agv (eq 57)

@@ -115,6 +115,18 @@ class RunSettings:
         "corner refinement: ecc (template alignment), subpix (cornerSubPix), none",
         ("ecc", "subpix", "none"),
     )
+    markers: str = setting(
+        "all",
+        "markers per camera frame: all (one LM over the corners of every marker in view, markers "
+        "that fail a chi-square test against the others left out) or largest (paper 000: the "
+        "largest code only)",
+        ("all", "largest"),
+    )
+    marker_outlier_p: float = setting(
+        1e-3,
+        "markers=all: probability that a consistent marker fails the chi-square test and is left out",
+        min=1e-12, max=0.5,
+    )
     max_reproj_px: float = setting(
         2.0, "reject a frame whose RMS reprojection error exceeds this (px)", min=1e-3, max=1e4
     )

@@ -2,7 +2,8 @@
 
 For every camera frame: decode → undistort (when the camera has distortion) → detect and
 decode QR codes → refine corners → parse each payload strictly → solve the pose of the
-largest decoded code → T_world_cam → T_world_agv through the extrinsics (paper 000 eqs 31–33)
+largest decoded code → with ``markers=all``, one LM over every usable marker's corners started
+from it, markers that disagree left out (:mod:`agvviz.solvers.joint`) → T_world_cam → T_world_agv through the extrinsics (paper 000 eqs 31–33)
 → heading/pitch/roll (eq 57) → reprojection check → score against ground truth.
 A frame that fails any step is *rejected* with one reason from :mod:`agvviz.results` or
 :mod:`agvviz.recording.contract` (whose checks ``inspect`` shares): an image time stamp that
@@ -66,7 +67,8 @@ from agvviz.results import (
 )
 from agvviz.pose_diagnostics import PoseDiagnostics
 from agvviz.settings import RunSettings
-from agvviz.solvers import SolverOptions, solve
+from agvviz.solvers import SolverOptions, SolveResult, solve
+from agvviz.solvers.joint import MarkerView, solve_joint
 from agvviz.solvers.planar import PlanarPrior
 from agvviz.graph.sync import SyncState
 
@@ -509,8 +511,11 @@ class Replay:
         return candidates, problems
 
     def _solve_candidates(self, cam: _Camera, candidates: list, result: FrameDraft) -> FrameResult:
-        """Pose of the largest candidate, then the AGV through whichever of the camera and the
-        marker is fixed in the world and whichever rides on the AGV (:func:`agv_pose_from_marker`)."""
+        """Pose of the largest candidate (the run's solver and ambiguity rule); with
+        ``markers=all`` and more markers fixed in the same frame, one LM over all their corners
+        started from it (:func:`agvviz.solvers.joint.solve_joint`, which leaves out markers that
+        disagree); then the AGV through whichever of the camera and the marker is fixed in the
+        world and whichever rides on the AGV (:func:`agv_pose_from_marker`)."""
         camera = cam.camera
         t1 = time.perf_counter()
         observation, ideal_px, points_marker_m, marker_frame, T_frame_marker = max(
@@ -536,6 +541,31 @@ class Replay:
             lambda T: agv_pose_from_marker(T, marker_frame, T_frame_marker, cam.T_agv_cam, cam.T_world_cam),
             result,
         )
+        result.used_marker_ids = (observation.marker_id,)
+        same_frame = [c for c in candidates if c[3] == marker_frame]
+        if self.settings.markers == "all" and len(same_frame) >= 2 and self.settings.solver != "planar":
+            joint = solve_joint(
+                [MarkerView(c[0].marker_id, c[2], c[4], c[1]) for c in same_frame],
+                camera.K,
+                solved.T_cam_marker @ se3.inverse(T_frame_marker),
+                self._diagnostics.corner_sigma_px(),
+                self._solver_options,
+                self.settings.marker_outlier_p,
+            )
+            if joint.T_cam_F is None:
+                result.marker_note = f"joint solve failed ({joint.reason}): the largest code alone"
+            else:
+                # From here on the "marker" is the frame F the markers are fixed in.
+                used = [c for c in same_frame if c[0].marker_id in joint.used]
+                ideal_px = np.vstack([c[1] for c in used])
+                points_marker_m = np.vstack([se3.transform_points(c[4], c[2]) for c in used])
+                T_frame_marker = np.eye(4)
+                solved = SolveResult(joint.T_cam_F, "", joint.iterations, joint.reproj_rms_px, joint.path)
+                result.used_marker_ids = joint.used
+                result.excluded_marker_ids = joint.excluded
+                result.marker_note = joint.note
+                if len(joint.used) >= 2:
+                    self._diagnostics.joint_resolved(result, len(joint.used))
         result.lm_iterations = list(solved.iterations)
         result.lm_iteration_px = _path_px(camera, solved.path, points_marker_m)
         result.reproj_rms_px = solved.reproj_rms_px
@@ -545,7 +575,8 @@ class Replay:
                 result,
                 REJECT_REPROJECTION,
                 f"RMS reprojection error {solved.reproj_rms_px:.2f} px > "
-                f"max_reproj_px {self.settings.max_reproj_px:g} px (code {observation.marker_id})",
+                f"max_reproj_px {self.settings.max_reproj_px:g} px (code{'s' if len(result.used_marker_ids) > 1 else ''} "
+                f"{', '.join(result.used_marker_ids)})",
             )
         try:
             T_world_cam, T_world_agv = agv_pose_from_marker(

@@ -751,7 +751,10 @@ class RunLogger:
                 continue
             corners = np.asarray(obs.points_world_m, dtype=float)[:4]
             outlines.append(np.vstack([corners, corners[:1]]))
-            used = " (used)" if obs.marker_id == frame.used_marker_id else ""
+            used = (
+                " (used)" if obs.marker_id in (frame.used_marker_ids or (frame.used_marker_id,))
+                else " (left out)" if obs.marker_id in frame.excluded_marker_ids else ""
+            )
             labels.append(f"id {obs.marker_id}{used}")
         self._columns.row(paths.MARKERS_SEEN, "strips3d", self._last_stamp, outlines, labels)
 
@@ -1023,7 +1026,16 @@ def _covariance_ellipsoid(frame: FrameResult, scale: float) -> tuple[np.ndarray,
 
 
 def _lm_text(frame: FrameResult) -> str:
-    """One line on what the solver did in ``frame``."""
+    """One line on what the solver did in ``frame`` (and which markers made the pose)."""
+    text = _solve_text(frame)
+    if len(frame.used_marker_ids) > 1:
+        text += f"  \nmarkers used jointly: {', '.join(frame.used_marker_ids)}"
+    if frame.marker_note:
+        text += f"  \n**{frame.marker_note}**"
+    return text
+
+
+def _solve_text(frame: FrameResult) -> str:
     iterations = frame.lm_iterations
     outcome = "solved" if frame.solved else f"rejected: {frame.rejected}"
     if not iterations:

@@ -1,0 +1,244 @@
+"""One camera pose from every marker a frame sees: a joint LM over all their corners. Numpy/scipy only.
+
+Paper 000 solves each frame from one code (the largest); a frame that sees several markers
+holds more information. Here the unknown is ``T_cam_F``, the pose of a reference frame ``F`` in
+the camera — ``F`` is the frame the markers are fixed in (``world`` for a floor or wall map,
+``agv`` for markers on the vehicle watched by a world-fixed camera) — and every corner of
+every marker is one pixel residual of :func:`agvviz.solvers.lm.refine_lm` (left perturbation,
+δ = (ρ, φ), :mod:`agvviz.conventions`).
+
+Steps of :func:`solve_joint`:
+
+1. **Hypotheses.** The caller's start (the best single-marker pose, after its ambiguity rule)
+   and both IPPE poses of every marker on its own.
+2. **Consensus.** Under each hypothesis every marker's RMS reprojection error is compared with
+   a loose gate (:data:`HYPOTHESIS_GATE_SIGMA` σ, at least :data:`HYPOTHESIS_GATE_MIN_PX`: a
+   single marker's pose is imprecise in depth, so far markers land pixels away); the hypothesis
+   that explains the most markers wins (the caller's start on ties: paper 000's largest code).
+3. **Joint LM** over the corners of the markers that hypothesis explains.
+4. **χ² test per marker.** Under the joint pose, marker k's squared residuals over σ² follow
+   χ² with ``2·n_k − h_k`` degrees of freedom (``h_k`` its share of the 6 fitted parameters,
+   the trace of its block of the hat matrix). The worst marker above the
+   ``1 − p_outlier`` quantile is left out and the joint LM repeated — while the flagged
+   markers are a minority. When most markers are flagged the fault is not one marker's (a
+   wrong marker size, a wrong calibration, σ too small): all are kept and the solution says so
+   (:attr:`JointSolution.note`).
+
+Every marker gets a :class:`MarkerCheck`: its χ² under the joint pose, its RMS, and how far its
+own (single-marker) camera position lies from the joint one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2
+
+from agvviz.geometry import se3
+from agvviz.results import LmIteration
+from agvviz.solvers import ambiguity, uncertainty
+from agvviz.solvers.lm import refine_lm, reprojection_rms_px
+from agvviz.solvers.registry import SolverOptions
+
+#: Hypothesis gate: a marker is explained by a start pose when its RMS error is within this
+#: many σ ...
+HYPOTHESIS_GATE_SIGMA = 10.0
+#: ... and at least this many pixels (a single-marker pose's depth error moves far markers).
+HYPOTHESIS_GATE_MIN_PX = 4.0
+
+
+@dataclass(frozen=True)
+class MarkerView:
+    """One marker in one frame.
+
+    marker_id : its id (QR payload id or ArUco/AprilTag id, as text).
+    points_marker_m : (N, 3) its feature points in its own frame (z = 0).
+    T_F_marker : (4, 4) the marker in the reference frame F.
+    ideal_px : (N, 2) the points' pixels in the ideal (undistorted) image.
+    """
+
+    marker_id: str
+    points_marker_m: np.ndarray
+    T_F_marker: np.ndarray
+    ideal_px: np.ndarray
+
+    @property
+    def points_F_m(self) -> np.ndarray:
+        return se3.transform_points(self.T_F_marker, self.points_marker_m)
+
+
+@dataclass(frozen=True)
+class MarkerCheck:
+    """One marker against the joint pose.
+
+    chi2 : Σ‖r‖²/σ² of its points at the joint pose; chi2_limit : the test's quantile.
+    rms_px : its RMS reprojection error at the joint pose.
+    own_offset_m : distance between the camera position its own pose gives and the joint
+        one (None when its own pose could not be computed).
+    used : whether its corners are in the joint solution.
+    """
+
+    marker_id: str
+    chi2: float
+    chi2_limit: float
+    rms_px: float
+    own_offset_m: float | None
+    used: bool
+
+
+@dataclass(frozen=True)
+class JointSolution:
+    """What :func:`solve_joint` found.
+
+    T_cam_F : (4, 4) the joint pose, ``None`` when no LM converged (``reason`` says why).
+    used : ids of the markers whose corners made the pose; checks : one per marker given.
+    iterations, path : the final LM's records and poses (as :func:`refine_lm`).
+    reproj_rms_px : RMS over the used markers' points.
+    note : a plain-words finding (markers left out, or markers that disagree as a group).
+    """
+
+    T_cam_F: np.ndarray | None
+    reason: str = ""
+    used: tuple[str, ...] = ()
+    checks: tuple[MarkerCheck, ...] = ()
+    iterations: list[LmIteration] = field(default_factory=list)
+    path: list[np.ndarray] = field(default_factory=list)
+    reproj_rms_px: float | None = None
+    note: str = ""
+
+    @property
+    def excluded(self) -> tuple[str, ...]:
+        return tuple(c.marker_id for c in self.checks if not c.used)
+
+
+def _stack(views: list[MarkerView]) -> tuple[np.ndarray, np.ndarray]:
+    return np.vstack([v.points_F_m for v in views]), np.vstack([v.ideal_px for v in views])
+
+
+def _rms_each(T_cam_F: np.ndarray, views: list[MarkerView], K: np.ndarray) -> np.ndarray:
+    """RMS px per marker at ``T_cam_F`` (inf for a marker with a point behind the camera)."""
+    rms = np.empty(len(views))
+    for i, view in enumerate(views):
+        points = view.points_F_m
+        if np.all(se3.transform_points(T_cam_F, points)[:, 2] > 0.0):
+            rms[i] = reprojection_rms_px(T_cam_F, points, view.ideal_px, K)
+        else:
+            rms[i] = np.inf
+    return rms
+
+
+def _own_poses(views: list[MarkerView], K: np.ndarray) -> list[list[np.ndarray]]:
+    """Both IPPE poses ``T_cam_F`` of each marker on its own (best first; [] when none)."""
+    poses = []
+    for view in views:
+        pair, _ = ambiguity.ippe_pair(view.points_marker_m, view.ideal_px, K)
+        if pair is None:
+            poses.append([])
+            continue
+        T_marker_F = se3.inverse(view.T_F_marker)
+        poses.append([pair.T_best_cam_marker @ T_marker_F, pair.T_other_cam_marker @ T_marker_F])
+    return poses
+
+
+def _chi2_each(T_cam_F: np.ndarray, views: list[MarkerView], used: list[bool], K: np.ndarray, sigma_px: float):
+    """(χ², degrees of freedom) per marker at the joint pose; dof = 2·n_k − (leverage of the
+    used marker's rows on the 6 parameters; 0 for a marker not in the fit)."""
+    blocks = [uncertainty.pixel_jacobian(T_cam_F, v.points_F_m, K) for v in views]
+    J_used = np.vstack([b for b, u in zip(blocks, used) if u])
+    information_inv = np.linalg.pinv(J_used.T @ J_used)
+    chi2_values, dofs = np.empty(len(views)), np.empty(len(views))
+    for i, (view, block) in enumerate(zip(views, blocks)):
+        sum_sq, _ = uncertainty.residual_sum_sq_px2(T_cam_F, view.points_F_m, view.ideal_px, K)
+        chi2_values[i] = sum_sq / sigma_px**2
+        leverage = float(np.einsum("ij,jk,ik->", block, information_inv, block)) if used[i] else 0.0
+        dofs[i] = max(2 * len(view.points_F_m) - leverage, 0.5)
+    return chi2_values, dofs
+
+
+def solve_joint(
+    views: list[MarkerView],
+    K: np.ndarray,
+    T_start_cam_F: np.ndarray,
+    sigma_px: float,
+    options: SolverOptions = SolverOptions(objective="pixel"),
+    p_outlier: float = 1e-3,
+) -> JointSolution:
+    """The camera pose ``T_cam_F`` from every marker in ``views`` (module docstring).
+
+    Parameters
+    ----------
+    views : ≥ 1 markers of one frame, all fixed in the same frame F.
+    K : (3, 3) camera matrix of the ideal image.
+    T_start_cam_F : (4, 4) the best single-marker pose (every point of its marker in front).
+    sigma_px : pixel σ of the corners, for the gates and the χ² test (> 0).
+    options : LM settings (objective, iterations, tolerances).
+    p_outlier : a consistent marker is flagged with this probability.
+    """
+    K = np.asarray(K, dtype=float)
+    own = _own_poses(views, K)
+    hypotheses = [np.asarray(T_start_cam_F, dtype=float)] + [T for poses in own for T in poses]
+    gate_px = max(HYPOTHESIS_GATE_SIGMA * sigma_px, HYPOTHESIS_GATE_MIN_PX)
+    best_used, best_score = None, None
+    for T in hypotheses:
+        rms = _rms_each(T, views, K)
+        inliers = rms <= gate_px
+        score = (int(inliers.sum()), -float(np.sum(np.where(inliers, rms, 0.0) ** 2)))
+        if best_score is None or score > best_score:  # strict: the caller's start wins ties
+            best_score, best_used, start = score, inliers, T
+    used = list(best_used)
+    if not any(used):
+        return JointSolution(None, f"no pose explains any marker within {gate_px:.1f} px")
+    note = ""
+    while True:
+        points_F, pixels = _stack([v for v, u in zip(views, used) if u])
+        path: list[np.ndarray] = []
+        T, reason, iterations = refine_lm(
+            start, points_F, pixels, K,
+            objective=options.objective, max_iterations=options.max_iterations,
+            initial_damping=options.initial_damping, step_tol=options.step_tol,
+            cost_rel_tol=options.cost_rel_tol, path_out=path,
+        )
+        if T is None:
+            return JointSolution(None, f"joint LM: {reason}", iterations=iterations, path=path)
+        chi2_values, dofs = _chi2_each(T, views, used, K, sigma_px)
+        limits = chi2.ppf(1.0 - p_outlier, dofs)
+        flagged = [i for i in range(len(views)) if used[i] and chi2_values[i] > limits[i]]
+        n_used = sum(used)
+        if not flagged or n_used <= 1:
+            break
+        if 2 * len(flagged) >= n_used:
+            ids = ", ".join(views[i].marker_id for i in flagged)
+            note = (
+                f"markers disagree as a group ({len(flagged)} of {n_used} fail the χ² test at σ {sigma_px:.2g} px: "
+                f"{ids}): a wrong marker size, calibration or σ, not one marker"
+            )
+            break
+        worst = max(flagged, key=lambda i: chi2_values[i] / limits[i])
+        used[worst] = False
+        start = T
+    rms_each = _rms_each(T, views, K)
+    checks = []
+    for i, view in enumerate(views):
+        offset = None
+        if own[i]:
+            # The marker's own camera position (the IPPE branch nearer the joint pose: a lone
+            # marker's mirror ambiguity is not a disagreement) against the joint one.
+            p_joint = se3.inverse(T)[:3, 3]
+            offset = min(float(np.linalg.norm(se3.inverse(T_own)[:3, 3] - p_joint)) for T_own in own[i])
+        checks.append(MarkerCheck(views[i].marker_id, float(chi2_values[i]), float(limits[i]),
+                                  float(rms_each[i]), offset, bool(used[i])))
+    left_out = [c for c in checks if not c.used]
+    if left_out and not note:
+        kept = ", ".join(c.marker_id for c in checks if c.used)
+        note = "left out " + "; ".join(
+            f"{c.marker_id} (RMS {c.rms_px:.2f} px, χ² {c.chi2:.0f} > {c.chi2_limit:.0f}"
+            + (f", its own pose {c.own_offset_m * 1000:.0f} mm away" if c.own_offset_m is not None else "")
+            + ")"
+            for c in left_out
+        ) + f": disagrees with {kept}"
+    points_F, pixels = _stack([v for v, u in zip(views, used) if u])
+    return JointSolution(
+        T, "", tuple(v.marker_id for v, u in zip(views, used) if u), tuple(checks), iterations, path,
+        reprojection_rms_px(T, points_F, pixels, K), note,
+    )
