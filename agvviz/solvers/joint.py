@@ -15,7 +15,10 @@ Steps of :func:`solve_joint`:
    a loose gate (:data:`HYPOTHESIS_GATE_SIGMA` σ, at least :data:`HYPOTHESIS_GATE_MIN_PX`: a
    single marker's pose is imprecise in depth, so far markers land pixels away); the hypothesis
    that explains the most markers wins (the caller's start on ties: paper 000's largest code).
-3. **Joint LM** over the corners of the markers that hypothesis explains.
+   When none explains half of them, all are fitted together (step 4 then says whether they
+   disagree as a group).
+3. **Joint LM** over the corners of the markers that hypothesis explains; a marker it did not
+   explain joins when the joint pose passes it through the test below.
 4. **χ² test per marker.** Under the joint pose, marker k's squared residuals over σ² follow
    χ² with ``2·n_k − h_k`` degrees of freedom (``h_k`` its share of the 6 fitted parameters,
    the trace of its block of the hat matrix). The worst marker above the
@@ -179,17 +182,20 @@ def solve_joint(
     own = _own_poses(views, K)
     hypotheses = [np.asarray(T_start_cam_F, dtype=float)] + [T for poses in own for T in poses]
     gate_px = max(HYPOTHESIS_GATE_SIGMA * sigma_px, HYPOTHESIS_GATE_MIN_PX)
-    best_used, best_score = None, None
+    best_used, best_count = None, -1
     for T in hypotheses:
-        rms = _rms_each(T, views, K)
-        inliers = rms <= gate_px
-        score = (int(inliers.sum()), -float(np.sum(np.where(inliers, rms, 0.0) ** 2)))
-        if best_score is None or score > best_score:  # strict: the caller's start wins ties
-            best_score, best_used, start = score, inliers, T
+        inliers = _rms_each(T, views, K) <= gate_px
+        if int(inliers.sum()) > best_count:  # strict: the caller's start wins ties
+            best_count, best_used, start = int(inliers.sum()), inliers, T
     used = list(best_used)
     if not any(used):
         return JointSolution(None, f"no pose explains any marker within {gate_px:.1f} px")
+    if 2 * sum(used) < len(views):
+        # No single marker's pose explains half of them: not one marker at fault but all
+        # (a wrong marker size, a wrong calibration). Fit all; the test below says so.
+        used = [True] * len(views)
     note = ""
+    removed: set[int] = set()
     while True:
         points_F, pixels = _stack([v for v, u in zip(views, used) if u])
         path: list[np.ndarray] = []
@@ -203,6 +209,14 @@ def solve_joint(
             return JointSolution(None, f"joint LM: {reason}", iterations=iterations, path=path)
         chi2_values, dofs = _chi2_each(T, views, used, K, sigma_px)
         limits = chi2.ppf(1.0 - p_outlier, dofs)
+        # A marker the start pose could not explain (depth error of one marker's pose) joins
+        # once the joint pose explains it; one the χ² test left out stays out.
+        readmit = [i for i in range(len(views)) if not used[i] and i not in removed and chi2_values[i] <= limits[i]]
+        if readmit:
+            for i in readmit:
+                used[i] = True
+            start = T
+            continue
         flagged = [i for i in range(len(views)) if used[i] and chi2_values[i] > limits[i]]
         n_used = sum(used)
         if not flagged or n_used <= 1:
@@ -216,6 +230,7 @@ def solve_joint(
             break
         worst = max(flagged, key=lambda i: chi2_values[i] / limits[i])
         used[worst] = False
+        removed.add(worst)
         start = T
     rms_each = _rms_each(T, views, K)
     checks = []
