@@ -15,7 +15,7 @@ is the vehicle (``--extrinsic board_cam=0,0,0,0,0,0,1``: body frame = camera fra
 
 What is checked:
 
-1. ``agvviz run`` solves every frame (the pipeline solves the largest marker of the map seen).
+1. ``agvviz run`` solves every frame (``markers=all``: one LM over every marker of the map seen).
 2. The board poses given by the *different markers* of one frame agree. For every marker the
    detected corners the run logged (``.../image/detected``, labelled by id) give a single-marker
    pose — as the pipeline solves one: LM on SE(3), the lower-error of it and the two IPPE
@@ -42,8 +42,12 @@ What is checked:
    one is then sometimes the mirror (measured: 5 of the 68, all with ratio < 2, 56–90° off).
    So: a marker with ambiguity ratio ≥ 2 must agree on its chosen pose; one below 2 must agree
    on its chosen pose or on its mirror branch, and mirror picks are counted (at most a quarter).
-3. The run's own pose of each frame (the largest marker: ambiguity ratio 1.5–7 here) agrees
-   with the all-corner board pose within the same bound, under that marker's covariance.
+3. The largest marker's own pose (paper 000's ``markers=largest``, ambiguity ratio 1.5–7 here)
+   agrees with the all-corner board pose within the same bound, under that marker's covariance.
+4. The run's own pose (``markers=all``: one LM over every marker that passes the χ² test
+   against the others) agrees with a reference that shares nothing with agvviz's marker
+   corners: OpenCV's ChArUco detector's chessboard saddle corners (24 per photo, cornerSubPix,
+   ≈ 0.15–0.2 px, DESIGN §9) solved by ``cv2.solvePnP`` with the calibration's distortion.
 
 Skips with the reason when ``../shared/data`` is absent.
 """
@@ -248,14 +252,68 @@ def test_board_poses_from_different_markers_agree(replay):
             x, y = pixels[:, 0], pixels[:, 1]
             areas[marker_id] = 0.5 * abs(x @ np.roll(y, -1) - y @ np.roll(x, -1))
         # The run's own pose: body = camera, world = board, so T_world_body = T_board_cam.
+        # markers=largest (paper 000) would be the largest marker's pose: it agrees with the
+        # all-corner fit within that marker's bound.
         largest = max(areas, key=areas.get)
         T_board_marker, points_m = marker_frame_from_corners(board[largest])
         chosen, _, _ = lowest_error_pose(points_m, ideal[largest], K)
         cov = covariance(chosen, points_m, K, SIGMA_PX)
-        T_cam_board_run = se3.inverse(np.asarray(run_pose[frame], dtype=float))
-        assert d2(T_cam_board_run, T_cam_board, cov) <= D2_BOUND, f"frame {frame}: the run's pose"
+        assert d2(chosen @ se3.inverse(T_board_marker), T_cam_board, cov) <= D2_BOUND, f"frame {frame}: the largest marker"
     assert compared == 68
     assert mirrors <= compared // 4, f"{mirrors} of {compared} markers took the mirror pose"
+
+
+#: The joint pose against the chessboard-corner pose: each is good to ≈ 0.5–1 mm and ≈ 0.1°
+#: (the reference: 24 saddles at ≈ 0.2 px; the joint: 68 corners with ≈ 0.3 px systematic error
+#: per marker, DESIGN §9), so 3 mm and 0.4° are ≈ 3σ of their difference; the largest marker
+#: alone is 10–20 mm off on these photos (issue 23).
+JOINT_VS_CHESSBOARD_MM = 3.0
+JOINT_VS_CHESSBOARD_DEG = 0.4
+
+
+def chessboard_pose(photo: Path, board_markers: dict) -> np.ndarray:
+    """``T_cam_board`` (board frame of :mod:`agvviz.recording.sidefiles`) from OpenCV's ChArUco
+    chessboard corners. OpenCV's board frame is mapped onto agvviz's by the rigid transform
+    that takes OpenCV's marker corners onto agvviz's expansion of the same board (it must fit
+    exactly: the two agree on where every marker is)."""
+    from agvviz.geometry import se3, so3
+    from agvviz.recording.sidefiles import load_calibration
+
+    camera = load_calibration(CAM, CALIBRATION).camera
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICTIONARY))
+    board = cv2.aruco.CharucoBoard((BOARD["squares_x"], BOARD["squares_y"]), BOARD["square_length_m"],
+                                   BOARD["marker_length_m"], dictionary)
+    gray = cv2.imread(str(photo), cv2.IMREAD_GRAYSCALE)
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(gray)
+    assert ids is not None and len(ids) >= 20, f"{photo.name}: {0 if ids is None else len(ids)} chessboard corners"
+    corners = cv2.cornerSubPix(gray, corners, (3, 3), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4))
+    ok, rvec, tvec = cv2.solvePnP(board.getChessboardCorners()[ids.ravel()].astype(float), corners.reshape(-1, 2).astype(float),
+                                  camera.K, camera.dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    assert ok
+    T_cam_ocv = se3.make(so3.exp(rvec.ravel()), tvec.ravel())
+    ocv = np.vstack([np.asarray(board.getObjPoints()[k], dtype=float) for k in range(17)])
+    ours = np.vstack([board_markers[k] for k in range(17)])
+    # Kabsch with a proper rotation (planar points: the sign of the third axis is chosen so).
+    U, _, Vt = np.linalg.svd((ocv - ocv.mean(0)).T @ (ours - ours.mean(0)))
+    R = (U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt).T
+    T_ours_ocv = se3.make(R, ours.mean(0) - R @ ocv.mean(0))
+    assert np.allclose(se3.transform_points(T_ours_ocv, ocv), ours, atol=1e-9)
+    return T_cam_ocv @ se3.inverse(T_ours_ocv)
+
+
+def test_joint_pose_agrees_with_the_chessboard_corners(replay):
+    from agvviz.geometry import se3, so3
+    from agvviz.viz import paths, readback
+
+    contents, _, board = replay
+    frames_run, _, T_world_body = readback.transforms(contents, paths.AGV_CAMERA)
+    run_pose = dict(zip((int(f) for f in frames_run), T_world_body))
+    for frame, photo in enumerate(PHOTOS):
+        T_cam_board_ref = chessboard_pose(photo, board)
+        T_board_cam_run = np.asarray(run_pose[frame], dtype=float)
+        offset_mm = 1000.0 * np.linalg.norm(T_board_cam_run[:3, 3] - se3.inverse(T_cam_board_ref)[:3, 3])
+        angle_deg = np.degrees(np.linalg.norm(so3.log(T_cam_board_ref[:3, :3] @ T_board_cam_run[:3, :3])))
+        assert offset_mm <= JOINT_VS_CHESSBOARD_MM and angle_deg <= JOINT_VS_CHESSBOARD_DEG, (photo.name, offset_mm, angle_deg)
 
 
 def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_path):
