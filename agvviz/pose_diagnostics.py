@@ -40,6 +40,9 @@ COLLAPSED_RAD = 1e-3
 #: Degrees of freedom the pooled σ needs before :meth:`PoseDiagnostics.corner_sigma_px` uses it
 #: (its relative standard error is then ≈ 1/sqrt(2·20) = 16 %).
 MIN_POOLED_DOF = 20
+#: Corner noise σ (px) assumed before the pool has :data:`MIN_POOLED_DOF` degrees of freedom: the
+#: top of what OpenCV's refiners measure on real photos (DESIGN §9).
+FALLBACK_NOISE_PX = 0.5
 
 #: ``to_world(T_cam_marker) -> (T_world_cam, T_world_agv)`` for the current frame.
 ToWorld = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -65,6 +68,8 @@ class PoseDiagnostics:
         self.options = options
         self._sum_sq_px2 = 0.0
         self._dof = 0
+        self._single_sum_sq_px2 = 0.0  # residuals of markers solved on their own (note_single_marker)
+        self._single_dof = 0
         self._previous_world_agv: np.ndarray | None = None
         self._previous_ghost_world_agv: np.ndarray | None = None
         self._previous_odometry: np.ndarray | None = None
@@ -144,17 +149,25 @@ class PoseDiagnostics:
         result.T_world_agv_ghost = None
         self._pending = None
 
-    def corner_sigma_px(self, fallback_px: float = 1.0) -> float:
-        """Pixel σ for tests on corner residuals (the joint solve's χ² per marker): the fixed
-        ``sigma_px`` setting, else the pooled residual estimate of the frames so far once it
-        rests on :data:`MIN_POOLED_DOF` degrees of freedom, else ``fallback_px``."""
-        if self.fixed_sigma_px is not None:
-            return self.fixed_sigma_px
-        if self._dof >= MIN_POOLED_DOF:
-            sigma = uncertainty.residual_sigma_px(self._sum_sq_px2, self._dof)
-            if sigma is not None and sigma > 0.0:
-                return sigma
-        return fallback_px
+    def note_single_marker(self, T_cam_marker: np.ndarray, points_marker_m: np.ndarray, pixels_px: np.ndarray, K: np.ndarray) -> None:
+        """Pool the residuals of one marker solved on its own: the detector's corner noise,
+        free of what a single marker's pose absorbs (its map placement, its printed size)."""
+        sum_sq, dof = uncertainty.residual_sum_sq_px2(T_cam_marker, points_marker_m, pixels_px, K)
+        if dof > 0 and np.isfinite(sum_sq):
+            self._single_sum_sq_px2 += sum_sq
+            self._single_dof += dof
+
+    def corner_sigma_px(self, corner_bias_px: float, fallback_px: float = FALLBACK_NOISE_PX) -> float:
+        """Pixel σ of one corner coordinate for tests across markers (the joint solve's χ² per
+        marker): sqrt(noise² + ``corner_bias_px``²). The noise is the fixed ``sigma_px`` setting,
+        else the pooled residual σ of the markers solved on their own so far (once it rests on
+        :data:`MIN_POOLED_DOF` degrees of freedom), else ``fallback_px``; ``corner_bias_px`` is
+        each marker's systematic corner error, which a marker's own fit absorbs."""
+        noise = self.fixed_sigma_px
+        if noise is None:
+            pooled = uncertainty.residual_sigma_px(self._single_sum_sq_px2, self._single_dof)
+            noise = pooled if self._single_dof >= MIN_POOLED_DOF and pooled else fallback_px
+        return float(np.hypot(noise, corner_bias_px))
 
     # -- uncertainty --------------------------------------------------------------------------
     def finish(

@@ -127,6 +127,12 @@ class RunSettings:
         "markers=all: probability that a consistent marker fails the chi-square test and is left out",
         min=1e-12, max=0.5,
     )
+    corner_bias_px: float = setting(
+        0.3,
+        "markers=all: each marker's systematic corner error σ (px), added to the pixel noise in "
+        "the chi-square test across markers (0.3 px measured on real photos: docs/joint-solve.md)",
+        min=0.0, max=100.0,
+    )
     max_reproj_px: float = setting(
         2.0, "reject a frame whose RMS reprojection error exceeds this (px)", min=1e-3, max=1e4
     )

@@ -170,6 +170,8 @@ class Replay:
         self.truth_seen = False
         self.frames_solved = 0
         self.frames_scored = 0  # solved frames scored against ground truth
+        self.markers_left_out: dict[str, int] = {}  # marker id -> frames the joint solve left it out of
+        self.frames_markers_disagree = 0  # frames whose markers failed the χ² test as a group
         self._solver_options = SolverOptions(
             objective=settings.objective, max_iterations=settings.lm_max_iterations
         )
@@ -305,6 +307,9 @@ class Replay:
         if odometry is not None:
             self._diagnostics.odometry = odometry  # T_odom_agv at this frame, for ambiguity=odometry
         result = self.process_frame(value, t_ns, detections)
+        for marker_id in result.excluded_marker_ids:
+            self.markers_left_out[marker_id] = self.markers_left_out.get(marker_id, 0) + 1
+        self.frames_markers_disagree += "disagree as a group" in result.marker_note
         if result.rejected is None:
             self.frames_solved += 1
             self.frames_scored += result.position_error_m is not None
@@ -318,6 +323,19 @@ class Replay:
         no frame."""
         max_dt_ns = int(self.settings.truth_max_dt_s * 1e9)
         lines = self.time_checks.problems(max_dt_ns)
+        if self.markers_left_out:
+            worst = sorted(self.markers_left_out.items(), key=lambda item: (-item[1], item[0]))
+            shown = ", ".join(f"{marker_id} ({count} frame{'s' if count > 1 else ''})" for marker_id, count in worst[:5])
+            more = f" and {len(worst) - 5} more" if len(worst) > 5 else ""
+            lines.append(
+                f"markers left out of the joint solve by the χ² test: {shown}{more} — a marker left out "
+                "often is likely misplaced in the map or misprinted; `agvviz audit` estimates where it is"
+            )
+        if self.frames_markers_disagree:
+            lines.append(
+                f"{self.frames_markers_disagree} frame(s): the markers in view disagree as a group (most fail the "
+                "χ² test together) — check the map's marker size and the camera calibration"
+            )
         no_score = self.truth_seen and self.frames_solved > 0 and self.frames_scored == 0
         if no_score and not any("ground truth" in line for line in lines):
             lines.append(
@@ -543,12 +561,14 @@ class Replay:
         )
         result.used_marker_ids = (observation.marker_id,)
         same_frame = [c for c in candidates if c[3] == marker_frame]
+        if self.settings.solver != "planar":
+            self._diagnostics.note_single_marker(solved.T_cam_marker, points_marker_m, ideal_px, camera.K)
         if self.settings.markers == "all" and len(same_frame) >= 2 and self.settings.solver != "planar":
             joint = solve_joint(
                 [MarkerView(c[0].marker_id, c[2], c[4], c[1]) for c in same_frame],
                 camera.K,
                 solved.T_cam_marker @ se3.inverse(T_frame_marker),
-                self._diagnostics.corner_sigma_px(),
+                self._diagnostics.corner_sigma_px(self.settings.corner_bias_px),
                 self._solver_options,
                 self.settings.marker_outlier_p,
             )

@@ -222,7 +222,7 @@ def solve_joint(
         if not flagged or n_used <= 1:
             break
         if 2 * len(flagged) >= n_used:
-            ids = ", ".join(views[i].marker_id for i in flagged)
+            ids = ", ".join(views[i].marker_id for i in flagged[:6]) + (", …" if len(flagged) > 6 else "")
             note = (
                 f"markers disagree as a group ({len(flagged)} of {n_used} fail the χ² test at σ {sigma_px:.2g} px: "
                 f"{ids}): a wrong marker size, calibration or σ, not one marker"
