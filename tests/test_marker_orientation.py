@@ -214,15 +214,16 @@ def test_aruco_corner0_is_opencv_top_left(name, turn):
         assert np.max(np.linalg.norm(detection.corners_px - points, axis=1)) < CORNER_TOLERANCE_PX
 
 
-SQUARE_PX, MARGIN_PX = 120, 40
+SQUARE_PX, MARGIN_PX = 60, 20
 
 
 @pytest.mark.parametrize("legacy", [False, True], ids=["new", "legacy"])
-@pytest.mark.parametrize("name,marker_px", [("DICT_4X4_50", 72), ("DICT_5X5_100", 70), ("DICT_APRILTAG_36h11", 80)])
+@pytest.mark.parametrize("name,marker_px", [("DICT_4X4_50", 36), ("DICT_5X5_100", 42), ("DICT_APRILTAG_36h11", 40)])
 def test_charuco_marker_corners_match_opencv_board(name, marker_px, legacy):
-    """A ChArUco board drawn by OpenCV's generator (square 120 px, markers a whole number of
-    px per module so the drawing is exact), turned and warped: every detected marker's corners
-    are the ones sidefiles.charuco_marker_corners assigns, mapped board metres → image px."""
+    """A ChArUco board drawn by OpenCV's generator (square 60 px, markers a whole number (5–6)
+    of px per module at whole-px offsets, so the drawing is exact), turned and warped: every
+    detected marker's corners are the ones sidefiles.charuco_marker_corners assigns, mapped
+    board metres → image px. The AprilTag board checks the re-ordering by OpenCV's turn."""
     squares_x, squares_y, square_m = 5, 4, 0.04
     marker_m = square_m * marker_px / SQUARE_PX
     board = cv2.aruco.CharucoBoard((squares_x, squares_y), square_m, marker_m, aruco_dictionary(name))
