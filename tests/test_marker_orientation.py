@@ -248,3 +248,31 @@ def test_charuco_marker_corners_match_opencv_board(name, marker_px, legacy):
         for k, marker_id in enumerate(ids):
             corners = detections[marker_id].corners_px
             assert np.max(np.linalg.norm(corners - points[4 * k : 4 * k + 4], axis=1)) < CORNER_TOLERANCE_PX, (turn, marker_id)
+
+
+def test_library_detectors_free_cleanly(tmp_path):
+    """pupil-apriltags 1.0.4 frees a detector's families before the detector, whose destructor
+    then reads them: six detectors used and freed crash the interpreter (exit 139, every time on
+    the development machine). agvviz's detectors free in the right order: created, used, freed
+    (cache cleared) and created again, the process exits 0."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "free.py"
+    script.write_text(
+        "import gc, numpy as np\n"
+        "from agvviz.markers.apriltag import _library_detector\n"
+        "from agvviz.markers.aruco import aruco_modules\n"
+        "tag = np.kron(np.pad(np.where(aruco_modules('DICT_APRILTAG_36h11', 0), 0, 255), 1, constant_values=255), np.ones((20, 20))).astype(np.uint8)\n"
+        "for _ in range(2):\n"
+        "    for family in ('tag36h11', 'tag16h5', 'tag25h9'):\n"
+        "        for refine_edges in (False, True):\n"
+        "            _library_detector(family, refine_edges).detect(tag)\n"
+        "    _library_detector.cache_clear(); gc.collect()\n"
+        "print('ok')\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, str(script)], cwd=root, env={**os.environ, "PYTHONPATH": str(root)},
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", (done.returncode, done.stderr[-500:])
