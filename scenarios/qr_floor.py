@@ -8,6 +8,13 @@ at ``speed_mps``. Camera ``front`` sits ``cam_height_m`` above the AGV origin an
 forward so its optical axis meets the floor ``cam_lookahead_m`` ahead (paper 000 §7: 1500 mm
 height, 1000 mm horizontal distance).
 
+Option ``marker_family``: ``qr`` (default) lays the QR codes above; an OpenCV ArUco dictionary
+(``DICT_4X4_50``, …) or AprilTag family (``DICT_APRILTAG_36h11``, …) lays that family's markers
+instead — ids 0, 1, … row-major on the same grid, ``code_size_m`` the side of the black border,
+:data:`ARUCO_QUIET_ZONE_MODULES` of white around, drawn as printed
+(:func:`agvviz.markers.aruco.aruco_modules`) — and the recorded marker map is of that dictionary
+with every marker's world corners, so ``agvviz run`` detects and solves them with no side file.
+
 Recorded: calibration, ``/tf_static`` (agv → cam_front) and the marker map once at the first
 time stamp; then per frame ``/agv/ground_truth`` (world), ``/agv/odometry`` (odom) and the
 JPEG frame, all at the frame's log time, in that order.
@@ -49,6 +56,9 @@ from agvviz.sim.render import FloorScene, encode_jpeg
 from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
 from agvviz.sim import inject as inj
+from agvviz.geometry import euler, se3
+from agvviz.markers.aruco import ArucoError, aruco_dictionary, aruco_modules
+from agvviz.sim.room import placed, roof_code
 from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track, track_pose
 
 NAME = "qr_floor"
@@ -63,6 +73,10 @@ GRID_MARGIN_M = 3.0
 MAX_LABEL_TO_SYMBOL = (21 + 2 * QUIET_ZONE_MODULES) / 21
 #: At most this many codes on the floor (each is a QR symbol drawn into the scene).
 MAX_CODES = 20_000
+#: ``marker_family`` of the QR codes; any other value names an ArUco/AprilTag dictionary.
+QR_FAMILY = "qr"
+#: White margin around an ArUco/AprilTag marker's black border, in modules.
+ARUCO_QUIET_ZONE_MODULES = 2
 
 
 
@@ -98,6 +112,12 @@ class Options:
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
     inject: str = setting("", inj.HELP)
+    marker_family: str = setting(
+        QR_FAMILY,
+        "floor markers: qr (codes carrying their world coordinates), or an OpenCV ArUco dictionary "
+        "(DICT_4X4_50, ...) or AprilTag family (DICT_APRILTAG_36h11, ...): ids 0..N-1 on the grid, "
+        "code_size_m their black border's side, the map of their corners recorded",
+    )
 
 
 def realism_sources(options: dict) -> tuple[str, ...]:
@@ -145,15 +165,19 @@ def validate(options: Options) -> None:
         raise ValueError(f"time_samples and rows_per_band must be ≥ 1, got {o.time_samples}, {o.rows_per_band}")
     if abs(o.odom_scale_error) >= 0.5:
         raise ValueError(f"odom_scale_error must lie in (-0.5, 0.5), got {o.odom_scale_error}")
+    n_codes = (2 * int(half_x // o.grid_spacing_m) + 1) * (2 * int(half_y // o.grid_spacing_m) + 1)
+    label_to_symbol = _check_family(o, n_codes)
     for name, value, step in (("code_size_m", o.code_size_m / 2.0, "0.2 mm"), ("grid_spacing_m", o.grid_spacing_m, "0.1 mm")):
+        if o.marker_family != QR_FAMILY:
+            break  # only QR payloads carry coordinates on the 0.1 mm grid
         if abs(value / PAYLOAD_RESOLUTION_M - round(value / PAYLOAD_RESOLUTION_M)) > 1e-6:
             raise ValueError(
                 f"{name} must be a multiple of {step} so code vertices sit on the payload's 0.1 mm grid"
             )
-    if o.code_size_m * MAX_LABEL_TO_SYMBOL >= o.grid_spacing_m:
+    if o.code_size_m * label_to_symbol >= o.grid_spacing_m:
         raise ValueError(
             f"codes would overlap: a {o.code_size_m} m code with its quiet zone is up to "
-            f"{o.code_size_m * MAX_LABEL_TO_SYMBOL:.3f} m wide, grid_spacing_m is {o.grid_spacing_m}; "
+            f"{o.code_size_m * label_to_symbol:.3f} m wide, grid_spacing_m is {o.grid_spacing_m}; "
             "increase grid_spacing_m or decrease code_size_m"
         )
     rl.check_timing(rl.make_realism(o.realism, o.realism_off, o.realism_set).timing, 1.0 / o.rate_hz)
@@ -169,6 +193,27 @@ def validate(options: Options) -> None:
             f"k1 = {o.k1}, k2 = {o.k2} fold the lens model over inside the image "
             f"(normalised corner radius {corner_r:.2f}); use smaller distortion"
         )
+
+
+def _check_family(o: Options, n_codes: int) -> float:
+    """Check ``marker_family`` (a known family with at least ``n_codes`` ids, no midpoints for
+    ArUco) and return its label side ÷ symbol side (the overlap check's factor)."""
+    if o.marker_family == QR_FAMILY:
+        return MAX_LABEL_TO_SYMBOL
+    try:
+        dictionary = aruco_dictionary(o.marker_family)
+    except ArucoError as exc:
+        raise ValueError(f"marker_family: {exc} (or 'qr')") from None
+    count = dictionary.bytesList.shape[0]
+    if n_codes > count:
+        raise ValueError(
+            f"marker_family: the floor grid holds {n_codes} markers but {o.marker_family} has {count} ids; "
+            "increase grid_spacing_m, shrink the track or use a larger dictionary"
+        )
+    if o.with_midpoints:
+        raise ValueError("with_midpoints applies to QR payloads only (marker_family=qr)")
+    modules = dictionary.markerSize + 2
+    return (modules + 2 * ARUCO_QUIET_ZONE_MODULES) / modules
 
 
 def make_camera(options: Options) -> PinholeCamera:
@@ -188,8 +233,9 @@ def make_track(options: Options) -> RoundedRectangleTrack:
 
 
 def build_scene(options: Options, rng: np.random.Generator) -> FloorScene:
-    """The floor: codes ``Q000``, ``Q001``… on the grid (row-major from the lower-left), each
-    rotated by a random multiple of 90°, and seeded floor/ink/paper grey levels.
+    """The floor: codes ``Q000``, ``Q001``… (ArUco/AprilTag: ids ``0``, ``1``…) on the grid
+    (row-major from the lower-left), each rotated by a random multiple of 90°, and seeded
+    floor/ink/paper grey levels.
 
     Draws one integer per code, then three uniforms, from ``rng``.
     """
@@ -205,16 +251,34 @@ def build_scene(options: Options, rng: np.random.Generator) -> FloorScene:
         for i in range(-nx, nx + 1)
     ]
     quarter_turns = rng.integers(0, 4, size=len(centers))
-    codes = tuple(
-        make_floor_code(f"Q{k:03d}", center, int(turns), options.code_size_m, options.with_midpoints)
-        for k, (center, turns) in enumerate(zip(centers, quarter_turns))
-    )
+    if options.marker_family == QR_FAMILY:
+        codes = tuple(
+            make_floor_code(f"Q{k:03d}", center, int(turns), options.code_size_m, options.with_midpoints)
+            for k, (center, turns) in enumerate(zip(centers, quarter_turns))
+        )
+    else:
+        codes = tuple(
+            placed(
+                roof_code(aruco_modules(options.marker_family, k), str(k), options.code_size_m, ARUCO_QUIET_ZONE_MODULES),
+                se3.make(euler.Rz(int(turns) * np.pi / 2.0), [center[0], center[1], 0.0]),
+            )
+            for k, (center, turns) in enumerate(zip(centers, quarter_turns))
+        )
     floor_dn, black_dn, white_dn = rng.uniform([110.0, 20.0, 210.0], [140.0, 30.0, 230.0])
     return FloorScene(codes=codes, floor_dn=float(floor_dn), black_dn=float(black_dn), white_dn=float(white_dn))
 
 
-def marker_map(scene: FloorScene) -> dict:
-    """The ``agvviz.MarkerMap`` message of the scene's codes."""
+def marker_map(scene: FloorScene, marker_family: str = QR_FAMILY) -> dict:
+    """The ``agvviz.MarkerMap`` message of the scene's codes (QR codes with their payloads, or
+    the ArUco/AprilTag markers of dictionary ``marker_family`` with their world corners)."""
+    if marker_family != QR_FAMILY:
+        return {
+            "dictionary": marker_family,
+            "markers": [
+                {"id": code.marker_id, "side_m": code.side_m, "corners_world_m": code.points_world_m[:4].tolist()}
+                for code in scene.codes
+            ],
+        }
     return {
         "dictionary": "qr",
         "markers": [
@@ -312,7 +376,7 @@ def record(
     t0_ns = int(stamps_ns[0])
     writer.write_calibration(CAM_NAME, calib[CAM_NAME].recorded_camera, t0_ns)
     writer.write_tf_static([(AGV_FRAME, camera_frame(CAM_NAME), calib[CAM_NAME].T_parent_cam_recorded)], t0_ns)
-    writer.write_marker_map(marker_map(scene), t0_ns)
+    writer.write_marker_map(marker_map(scene, o.marker_family), t0_ns)
     for k in range(total):
         t_ns, t_capture_ns = int(stamps_ns[k]), int(capture_ns[k])
         T_world_agv_capture = captured[k][0]

@@ -12,7 +12,7 @@ import yaml
 
 from agvviz.errors import InputError
 from agvviz.geometry import se3
-from agvviz.markers.aruco import detect_aruco, parse_aruco_map
+from agvviz.markers.aruco import aruco_modules, detect_aruco, parse_aruco_map
 from agvviz.markers.payload import QrPayload, encode_payload
 from agvviz.recording.reader import CalibrationMsg, FrameTransformMsg
 from agvviz.recording.sidefiles import (
@@ -230,11 +230,12 @@ def test_charuco_ids_and_mixed_maps(tmp_path):
 
 @pytest.mark.parametrize("name", APRILTAG_DICTIONARIES)
 def test_aruco_detection_accepts_apriltag_dictionaries(name):
-    """A tag of each AprilTag family, drawn at 20 px per module under a perspective warp, is
+    """A tag of each AprilTag family, drawn as printed (the AprilTag library's module grid; not
+    OpenCV's generator, which turns them 180°) at 20 px per module under a perspective warp, is
     found with its id and ECC-refined corners within 0.05 px of the warped truth."""
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
-    n = dictionary.markerSize + 2
-    tag = cv2.aruco.generateImageMarker(dictionary, 3, n * 20, borderBits=1)
+    modules = aruco_modules(name, 3)
+    n = len(modules)
+    tag = np.kron(np.where(modules, 0, 255), np.ones((20, 20))).astype(np.uint8)
     tag = cv2.copyMakeBorder(tag, 60, 60, 60, 60, cv2.BORDER_CONSTANT, value=255)
     H = np.array([[1.0, 0.1, 10.0], [0.05, 1.0, 5.0], [2e-4, 1e-4, 1.0]])
     # Supersampled warp (8x) so pixels are area averages in OpenCV's pixel-centre convention.

@@ -51,7 +51,7 @@ DETECTION_SETTINGS = ("refine", "feature_points", "tracking", "keyframe_every")
 #: Bumped whenever a change to detection or tracking changes what they output, so that cached
 #: detections (:mod:`agvviz.graph.detect_cache`, keyed by it and agvviz's version) of an earlier
 #: build are never reused.
-DETECT_REVISION = 2
+DETECT_REVISION = 3
 
 #: Shortest tracking segment (frames): the unit of work of a detection worker.
 MIN_SEGMENT_FRAMES = 30

@@ -1,10 +1,10 @@
 """ArUco marker detection with sub-pixel corner refinement (OpenCV). No file I/O, no printing.
 
-Any OpenCV predefined dictionary works, the AprilTag families included
-(``DICT_APRILTAG_16h5``, ``DICT_APRILTAG_25h9``, ``DICT_APRILTAG_36h10``,
-``DICT_APRILTAG_36h11``: OpenCV's ArUco detector reads them, and their bit patterns with the
-one-module black border are the ECC templates); a tag's side is that of its black border, as
-for ArUco markers (AprilTag's "tag size").
+Any OpenCV predefined dictionary works. The AprilTag families (``DICT_APRILTAG_16h5``,
+``DICT_APRILTAG_25h9``, ``DICT_APRILTAG_36h11``) are detected, and their module grids drawn, by
+the AprilTag library itself (:mod:`agvviz.markers.apriltag`: OpenCV's AprilTag dictionaries are
+turned 180° from the printed tags on OpenCV 5.0); ``DICT_APRILTAG_36h10`` is refused. A tag's
+side is that of its black border, as for ArUco markers (AprilTag's "tag size").
 
 Input frames come from an ideal pinhole camera (the pipeline undistorts first). Corners are in
 OpenCV pixel coordinates and ArUco order TL, TR, BR, BL as printed (:mod:`agvviz.conventions`);
@@ -17,7 +17,8 @@ Refinement (``refine=``, the names the QR pipeline uses):
               to the image by :func:`agvviz.markers.qr.align_symbol_ecc`; falls back to
               ``"subpix"`` when ECC fails (``refine_note`` says why);
 ``"subpix"``  OpenCV's ``CORNER_REFINE_SUBPIX``;
-``"none"``    the detector's contour corners.
+``"none"``    the detector's contour corners;
+``"apriltag"`` (AprilTag families only) the AprilTag library's own edge refinement.
 """
 
 from __future__ import annotations
@@ -30,6 +31,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from agvviz.markers.apriltag import (
+    APRILTAG_REFINE_METHODS,
+    UNSUPPORTED_APRILTAG,
+    apriltag_modules,
+    detect_apriltags,
+    is_apriltag_dictionary,
+)
 from agvviz.markers.qr import REFINE_METHODS, align_symbol_ecc
 
 
@@ -57,8 +65,13 @@ def is_aruco_dictionary(name: str) -> bool:
 @functools.lru_cache(maxsize=8)
 def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
     """The predefined dictionary called ``name``; :class:`ArucoError` names the valid ones."""
+    if name in UNSUPPORTED_APRILTAG:
+        raise ArucoError(UNSUPPORTED_APRILTAG[name])
     if not is_aruco_dictionary(name):
-        valid = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and not n.endswith("_CUSTOM"))
+        valid = sorted(
+            n for n in dir(cv2.aruco)
+            if n.startswith("DICT_") and not n.endswith("_CUSTOM") and n not in UNSUPPORTED_APRILTAG
+        )
         raise ArucoError(f"unknown ArUco dictionary {name!r}; valid: {', '.join(valid)}")
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
 
@@ -71,6 +84,8 @@ def aruco_modules(name: str, marker_id: int) -> np.ndarray:
     count = dictionary.bytesList.shape[0]
     if not 0 <= int(marker_id) < count:
         raise ArucoError(f"marker id {marker_id} is outside {name} (ids 0..{count - 1})")
+    if is_apriltag_dictionary(name):
+        return apriltag_modules(name, int(marker_id))
     n = dictionary.markerSize + 2
     image = cv2.aruco.generateImageMarker(dictionary, int(marker_id), n, borderBits=1)
     return image == 0
@@ -84,7 +99,13 @@ def _detector(name: str, subpix: bool) -> cv2.aruco.ArucoDetector:
 
 
 def detect_aruco(gray: np.ndarray, dictionary_name: str, refine: str = "ecc") -> list[ArucoDetection]:
-    """Every marker of ``dictionary_name`` found in the uint8 gray image, corners refined."""
+    """Every marker of ``dictionary_name`` found in the uint8 gray image, corners refined
+    (AprilTag families by :func:`agvviz.markers.apriltag.detect_apriltags`)."""
+    if is_apriltag_dictionary(dictionary_name):
+        aruco_dictionary(dictionary_name)  # refuses an unsupported family as ArucoError
+        if refine not in APRILTAG_REFINE_METHODS:
+            raise ValueError(f"unknown refine method {refine!r}; valid: {', '.join(APRILTAG_REFINE_METHODS)}")
+        return detect_apriltags(gray, dictionary_name, refine=refine)
     if refine not in REFINE_METHODS:
         raise ValueError(f"unknown refine method {refine!r}; valid: {', '.join(REFINE_METHODS)}")
     corners, ids, _ = _detector(dictionary_name, refine != "none").detectMarkers(gray)

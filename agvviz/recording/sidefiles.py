@@ -60,8 +60,9 @@ SIDE_TOLERANCE_M = 1e-3
 QUATERNION_NORM_TOLERANCE = 1e-3
 #: Largest ChArUco board side in squares.
 MAX_BOARD_SQUARES = 200
-#: Accepted AprilTag dictionaries (OpenCV's names); any OpenCV ArUco dictionary works too.
-APRILTAG_DICTIONARIES = ("DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10", "DICT_APRILTAG_36h11")
+#: Accepted AprilTag dictionaries (OpenCV's names; DICT_APRILTAG_36h10 is refused, see
+#: agvviz.markers.apriltag); any OpenCV ArUco dictionary works too.
+APRILTAG_DICTIONARIES = ("DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h11")
 
 _MAP_KEYS = {"dictionary", "markers", "boards"}
 _MARKER_KEYS = {"id", "side_m", "corners_world_m", "pose", "payload", "frame"}
@@ -382,9 +383,15 @@ def charuco_marker_corners(
     dictionary: str, ids: list[int] | None = None, legacy_pattern: bool = False,
 ) -> dict[int, np.ndarray]:
     """Corners (4, 3) TL, TR, BR, BL of every ArUco marker of a ChArUco board, by id, in the
-    board frame of the module docstring (origin bottom-left, y up, z out of the face)."""
+    board frame of the module docstring (origin bottom-left, y up, z out of the face).
+
+    The board is the one OpenCV's generator draws. Its AprilTags are OpenCV's bits, turned from
+    the printed tags on OpenCV 5.0 (:func:`agvviz.markers.apriltag.opencv_quarter_turns`): their
+    corners are re-ordered so that corner 0 is the drawn tag's own top-left, the corner the
+    AprilTag detector reports first."""
     import cv2
 
+    from agvviz.markers.apriltag import is_apriltag_dictionary, opencv_quarter_turns
     from agvviz.markers.aruco import aruco_dictionary
 
     args = ((squares_x, squares_y), float(square_length_m), float(marker_length_m), aruco_dictionary(dictionary))
@@ -402,6 +409,9 @@ def charuco_marker_corners(
         cell = np.floor(centre / square)
         exact = (cell + 0.5) * square + np.sign(p - centre) * half
         corners[int(marker_id)] = np.column_stack([exact[:, 0], height_m - exact[:, 1], np.zeros(4)])
+    if is_apriltag_dictionary(dictionary):
+        order = (np.arange(4) + opencv_quarter_turns(dictionary)) % 4
+        corners = {marker_id: points[order] for marker_id, points in corners.items()}
     return corners
 
 
