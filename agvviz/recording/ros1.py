@@ -322,7 +322,8 @@ def _index(f, index_pos: int, size: int, report: ReadReport) -> tuple[dict[int, 
                 total += sum(_U32.unpack_from(data, 8 * k + 4)[0] for k in range(count))
             pos = data_at + data_len
     except _Damage as exc:
-        report.problems.append(f"the bag's index at byte {pos} is damaged ({exc}); its counts are not checked")
+        report.problems.append(f"the bag's index record at byte {pos} is damaged or cut short ({exc}); "
+                               "the message count is not checked against it")
         total = None
     return connections, total
 
@@ -425,8 +426,15 @@ def iter_raw(path, topics: set[str] | None, report: ReadReport) -> Iterator[RawM
                     report.chunks_lost += 1
                 report.problems.append(f"record at byte {pos} is damaged and skipped: {exc}")
             if not complete:
-                if op != _OP_CHUNK:
-                    report.problems.append(f"the file is cut short at byte {size}, inside a record at byte {pos}")
+                if 0 < index_pos <= pos:
+                    report.problems.append(
+                        f"the file is cut short at byte {size}, inside the bag's index (from byte {index_pos}): "
+                        "every message before it was read, part of the index is lost"
+                    )
+                elif op != _OP_CHUNK:
+                    report.problems.append(
+                        f"the file is cut short at byte {size}, inside a record at byte {pos}: what came after it is lost"
+                    )
                 break
             pos = data_at + data_len
         if not anything:
@@ -469,6 +477,12 @@ def _typestore(raw: RawMessage):
             try:
                 store = get_typestore(Stores.EMPTY)
                 store.register(get_types_from_msg(text, raw.schema_name))
+                missing = _undefined_types(store)
+                if missing:
+                    store = MessageDecodeError(
+                        f"the bag's message definition of {raw.schema_name} uses {', '.join(missing[:3])}, "
+                        "which it does not define (an unknown message definition)"
+                    )
             except Exception as exc:  # rosbags raises its own and parser errors on a bad definition
                 store = MessageDecodeError(f"the bag's message definition of {raw.schema_name} does not parse ({exc})")
         else:
@@ -488,6 +502,28 @@ def _typestore(raw: RawMessage):
     if isinstance(store, MessageDecodeError):
         raise store
     return store
+
+
+def _undefined_types(store) -> list[str]:
+    """Type names the store's definitions use but do not define."""
+    from rosbags.typesys.base import Nodetype
+
+    used: set[str] = set()
+
+    def walk(node) -> None:
+        if isinstance(node, tuple):
+            if len(node) == 2 and node[0] == Nodetype.NAME and isinstance(node[1], str):
+                used.add(node[1])
+                return
+            for item in node:
+                walk(item)
+        elif isinstance(node, list):
+            for item in node:
+                walk(item)
+
+    for _, fields in store.fielddefs.values():
+        walk(fields)
+    return sorted(used - set(store.fielddefs))
 
 
 def decode_ros1(raw: RawMessage) -> object:
