@@ -429,6 +429,8 @@ def inspect(
         lines.append(f"replay: frames of camera(s) {', '.join(prepared.usable_cameras)} can be used")
     for cause in prepared.causes:
         lines.append(f"replay: {cause}")
+    for note in prepared.replay.sync.notes.values():
+        lines.append(f"replay: warning: {note}")
     if not prepared.can_run:
         lines.append("replay: a run would fail (no frame can be used; `agvviz run` exits non-zero)")
     console.print("\n".join(lines), highlight=False, markup=False, soft_wrap=True)
