@@ -366,6 +366,16 @@ def test_not_a_bag_is_one_line(tmp_path):
     old.write_bytes(b"#ROSBAG V1.2\n" + b"\0" * 100)
     with pytest.raises(RecordingError, match="format 1.2.*rosbag fix"):
         open_recording(old)
+    # a bag header naming an encryptor (rosbag's encrypted bags): refused with the command
+    import struct
+
+    fields = b"".join(struct.pack("<I", len(f)) + f for f in (
+        b"op=\x03", b"index_pos=" + struct.pack("<Q", 0), b"conn_count=" + struct.pack("<I", 0),
+        b"chunk_count=" + struct.pack("<I", 0), b"encryptor=rosbag/AesCbcEncryptor"))
+    encrypted = tmp_path / "secret.bag"
+    encrypted.write_bytes(b"#ROSBAG V2.0\n" + struct.pack("<I", len(fields)) + fields + struct.pack("<I", 0))
+    with pytest.raises(RecordingError, match="encrypted ROS 1 bag .*rosbag decrypt"):
+        open_recording(encrypted)
     inspected = CliRunner().invoke(app, ["inspect", str(text)])
     assert inspected.exit_code != 0 and "Traceback" not in inspected.stdout
     assert "not a ROS 1 bag" in inspected.stdout + str(inspected.stderr if inspected.stderr_bytes else "")
@@ -390,3 +400,63 @@ def test_ros2_bag_converted_from_ros1_reads_the_same(bag, content, markers, nati
     assert_same_errors(frame_errors(out, side=side(markers)), native_errors)
     inspected = CliRunner().invoke(app, ["inspect", str(out)])
     assert inspected.exit_code == 0 and "Traceback" not in inspected.stdout, inspected.stdout
+
+
+def test_mcap_with_the_ros1_profile_reads_like_the_bag(content, markers, native_errors, tmp_path):
+    """An MCAP file of the ROS 1 profile (what ``mcap convert x.bag`` writes: ``ros1msg``
+    schemas named ``pkg/Type``, ``ros1`` message encoding), written with the ``mcap`` library
+    from the bag's own connections and bytes."""
+    from mcap.writer import Writer as McapWriter
+    from rosbags.rosbag1 import Reader
+
+    bag = write_ros1_bag(tmp_path / "src.bag", ros1_messages(content))
+    path = tmp_path / "ros1_profile.mcap"
+    with open(path, "wb") as f, Reader(bag) as reader:
+        writer = McapWriter(f)
+        writer.start(profile="ros1", library="test")
+        channels = {}
+        for connection in reader.connections:
+            ros1_name = connection.msgtype.replace("/msg/", "/")
+            schema = writer.register_schema(ros1_name, "ros1msg", connection.msgdef.data.encode())
+            channels[connection.id] = writer.register_channel(connection.topic, "ros1", schema)
+        for connection, t_ns, data in reader.messages():
+            writer.add_message(channels[connection.id], t_ns, bytes(data), t_ns)
+        writer.finish()
+    recording = open_recording(path)
+    assert recording.kind == "mcap" and recording.profile == "ros1"
+    assert_same_errors(frame_errors(path, side=side(markers)), native_errors)
+
+
+def test_damaged_chunk_header_is_skipped_and_reading_goes_on(bag, tmp_path):
+    """A chunk whose record header is overwritten: reported, the reader finds the next chunk
+    and reads on; what it reads is the full bag's messages less that chunk's, in order."""
+    data = bytearray(bag.read_bytes())
+    chunk_ops = [i for i in range(len(data)) if data.startswith(b"op=\x05", i)]
+    assert len(chunk_ops) >= 3
+    second = chunk_ops[1]
+    start = data.rfind(b"\x04\x00\x00\x00op=\x05", 0, second + 1)  # rosbags writes op first
+    header_at = start - 4
+    data[header_at:header_at + 4] = b"\xff\xff\xff\x7f"  # a header length past the end of the file
+    damaged = tmp_path / "damaged.bag"
+    damaged.write_bytes(bytes(data))
+    report = ReadReport()
+    got = [(m.topic, m.log_time_ns) for m in open_recording(damaged).iter_raw(report)]
+    full = [(m.topic, m.log_time_ns) for m in _raw(bag)]
+    assert 0 < len(got) < len(full)
+    assert all(item in full for item in got) and got == sorted(got, key=full.index)
+    assert any(f"record at byte {header_at} is damaged" in p for p in report.problems), report.problems
+    assert any("reading on from the next chunk" in p for p in report.problems), report.problems
+    assert any("index lists" in p and "lost" in p for p in report.problems), report.problems
+
+
+def test_old_tf_tfmessage_reads_like_tf2(content, markers, native_errors, tmp_path):
+    """ROS 1's original ``tf/tfMessage`` (before tf2) on /tf_static and /tf."""
+    messages = [
+        (topic, "tf/msg/tfMessage" if msgtype == "tf2_msgs/msg/TFMessage" else msgtype, t,
+         T1["tf/msg/tfMessage"](transforms=msg.transforms) if msgtype == "tf2_msgs/msg/TFMessage" else msg)
+        for topic, msgtype, t, msg in ros1_messages(content)
+    ]
+    path = write_ros1_bag(tmp_path / "old_tf.bag", messages)
+    prepared = prepare(path, RunSettings(), side=side(markers))
+    assert (prepared.roles.roles["tf_static"], prepared.roles.roles["tf"]) == ("/tf_static", "/tf")
+    assert_same_errors(frame_errors(path, side=side(markers)), native_errors)

@@ -704,10 +704,14 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
             if duplicates.message_seen(channel.topic, message):
                 return None
             schema = schemas.get(channel.schema_id)
+            schema_name = schema.name if schema else ""
+            if channel.message_encoding == "ros1" and schema_name.count("/") == 1:
+                # MCAP's ROS 1 profile (`mcap convert x.bag`): pkg/Type → pkg/msg/Type, as a .bag's (ros1.py)
+                schema_name = schema_name.replace("/", "/msg/")
             return RawMessage(
                 topic=channel.topic,
                 log_time_ns=message.log_time,
-                schema_name=schema.name if schema else "",
+                schema_name=schema_name,
                 schema_encoding=schema.encoding if schema else "",
                 message_encoding=channel.message_encoding,
                 data=message.data,

@@ -252,9 +252,24 @@ def _open(path: Path):
 
 
 def check_bag(path) -> None:
-    """Raise :class:`RecordingError` (one line) when ``path`` is not a ROS 1 bag of format 2.0."""
-    f, _ = _open(Path(path))
-    f.close()
+    """Raise :class:`RecordingError` (one line) when ``path`` is not a ROS 1 bag of format 2.0,
+    or is an encrypted one."""
+    path = Path(path)
+    f, size = _open(path)
+    with f:
+        try:
+            _, header, _, _, _ = _read_top(f, len(BAG_MAGIC), size)
+        except _Damage:
+            return  # damage is reported by the read
+        if _encryptor(header):
+            raise RecordingError(
+                f"{path}: an encrypted ROS 1 bag ({_encryptor(header)}); decrypt it first "
+                f"(rosbag decrypt {path.name} plain.bag)"
+            )
+
+
+def _encryptor(header: dict[str, bytes]) -> str:
+    return header.get("encryptor", b"").decode("utf-8", "replace").strip()
 
 
 def _read_top(f, pos: int, size: int) -> tuple[int, dict[str, bytes], int, int, int]:
