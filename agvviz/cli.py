@@ -185,7 +185,7 @@ def _run_help() -> str:
     rows = "\n".join(f"  {n} ({t}, default {d}): {h}" for n, t, d, h in describe(RunSettings))
     return (
         "Replay the localisation pipeline over RECORDING (an agvviz .mcap, a ROS 2 bag directory "
-        "or .mcap, a Foxglove MCAP) and write a run .rrd. Exits 2, writing nothing, when no frame "
+        "or .mcap, a ROS 1 .bag, a Foxglove MCAP) and write a run .rrd. Exits 2, writing nothing, when no frame "
         "can be used (one line per cause).\n\n"
         "Example: agvviz run recordings/qr_floor.mcap --solver lm --set objective=pixel\n\n"
         "Example: agvviz run robot_bag/ --topic truth=/vicon/agv/pose --markers map.yaml "
@@ -376,7 +376,7 @@ def _error_budget_with_progress(recording: Path, settings: RunSettings, work_dir
 @app.command(help=_run_help(), cls=_Command)
 @handle_errors
 def run(
-    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file or a rosbag2 directory"),
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file, a rosbag2 directory or a ROS 1 .bag (or folder of them)"),
     solver: Optional[str] = typer.Option(None, "--solver", help="shortcut for --set solver=NAME"),
     set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help=SET_HELP),
     out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-<settings>.rrd)"),
@@ -398,7 +398,7 @@ def run(
 @app.command(cls=_Command)
 @handle_errors
 def inspect(
-    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file or a rosbag2 directory"),
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file, a rosbag2 directory or a ROS 1 .bag (or folder of them)"),
     set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="run settings that change what a run can use (body_frame, time_source, ...)"),
     topic: List[str] = typer.Option([], "--topic", metavar="ROLE=TOPIC", help=TOPIC_HELP),
     roles: Optional[Path] = typer.Option(None, "--roles", help=ROLES_HELP),
