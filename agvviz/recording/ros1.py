@@ -85,7 +85,7 @@ class _Damage(Exception):
 class _Connection:
     topic: str
     msgtype: str  # ROS 2 form
-    msgdef: str
+    msgdef: bytes  # the message definition (UTF-8 text)
     md5sum: str
     latching: bool
 
@@ -172,7 +172,7 @@ def _connection(header: dict[str, bytes], data: bytes) -> tuple[int, _Connection
     if not topic or not msgtype:
         raise _Damage("a connection without topic or type")
     latching = _text(inner, "latching", "0").strip() not in ("", "0")
-    return conn_id, _Connection(topic, _normalize_type(msgtype), _text(inner, "message_definition", ""),
+    return conn_id, _Connection(topic, _normalize_type(msgtype), inner.get("message_definition", b""),
                                 _text(inner, "md5sum", ""), latching)
 
 
@@ -369,8 +369,8 @@ def iter_raw(path, topics: set[str] | None, report: ReadReport) -> Iterator[RawM
             read += 1
             if topics is not None and conn.topic not in topics:
                 return None
-            return RawMessage(conn.topic, time_ns, conn.msgtype, SCHEMA_ENCODING, MESSAGE_ENCODING, bytes(data),
-                              conn.msgdef.encode("utf-8"), schema_hash=conn.md5sum)
+            return RawMessage(conn.topic, time_ns, conn.msgtype, SCHEMA_ENCODING, MESSAGE_ENCODING, data,
+                              conn.msgdef, schema_hash=conn.md5sum)
 
         while pos < size:
             try:
