@@ -148,3 +148,30 @@ def test_changing_extrinsic_without_a_pose_near_the_frames_is_no_extrinsic(conte
     text = ",".join(repr(float(v)) for v in [*t, *q])
     side = SideInputs(extrinsics={"front": parse_extrinsic("front", text, "agv")})
     assert all(rej is None for rej, _, _ in frame_results(path, side).values())
+
+
+def test_hold_only_constant_links_and_forget_the_note_when_a_link_changes():
+    """Fed message by message (the library's streaming use): a lone /tf link is held with a
+    note; once a different sample arrives it is time-varying again and the note goes."""
+    from agvviz.geometry.tf_buffer import PoseSeries
+    from agvviz.graph.sync import SyncState
+    from agvviz.recording.reader import FrameTransformMsg, RecordedMessage
+
+    series = PoseSeries()
+    series.add(20, np.eye(4))
+    series.add(10, np.eye(4))  # out of order, same pose
+    assert series.is_constant()
+    series.add(5, se3.make(np.eye(3), np.array([0.0, 0.0, 1e-9])))
+    assert not series.is_constant()
+
+    sync = SyncState(body_frame="agv")
+    T1 = se3.make(np.eye(3), np.array([0.1, 0.0, 0.5]))
+    sync.add(RecordedMessage("/tf", 0, "", [FrameTransformMsg("agv", "cam_front", T1, 0)], role="tf", stamp_ns=0))
+    T, _, _ = sync.extrinsic("front", "cam_front", 10_000_000_000)  # 10 s later: held
+    np.testing.assert_array_equal(T, T1)
+    assert "only once" in sync.notes["cam_front"]
+    T2 = se3.make(np.eye(3), np.array([0.2, 0.0, 0.5]))
+    sync.add(RecordedMessage("/tf", 1, "", [FrameTransformMsg("agv", "cam_front", T2, 1)], role="tf", stamp_ns=1))
+    T, _, why = sync.extrinsic("front", "cam_front", 10_000_000_000)
+    assert T is None and "--extrinsic front=" in why and "agv → cam_front (2 samples" in why
+    assert sync.notes == {}

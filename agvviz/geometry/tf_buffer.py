@@ -37,6 +37,8 @@ class PoseSeries:
         self._times: list[int] = []
         self._poses: list[np.ndarray] = []
         self._sorted = True
+        self._constant = True  # every pose so far equals the first one added
+        self._first_added: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self._times)
@@ -44,8 +46,13 @@ class PoseSeries:
     def add(self, t_ns: int, T: np.ndarray) -> None:
         if self._times and t_ns < self._times[-1]:
             self._sorted = False
+        T = np.asarray(T, dtype=float)
+        if self._poses and self._constant:
+            self._constant = bool(np.array_equal(T, self._first_added))
+        if not self._poses:
+            self._first_added = T
         self._times.append(int(t_ns))
-        self._poses.append(np.asarray(T, dtype=float))
+        self._poses.append(T)
 
     def _sort(self) -> None:
         if not self._sorted:
@@ -56,7 +63,7 @@ class PoseSeries:
 
     def is_constant(self) -> bool:
         """True when the series holds one pose, or several that are all the same (exactly)."""
-        return bool(self._poses) and all(np.array_equal(P, self._poses[0]) for P in self._poses[1:])
+        return bool(self._poses) and self._constant
 
     def first(self) -> np.ndarray | None:
         """The earliest sample's pose (``None`` when empty)."""

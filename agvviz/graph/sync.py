@@ -189,6 +189,8 @@ class SyncState:
         never changing): held static, each with a note."""
         links = self.tf.links(self.body_frame, frame) or []
         held = {c for c in links if c not in self.tf.static and self.tf.is_constant(c)}
+        for child in set(links) - held:
+            self.notes.pop(child, None)  # fed message by message: a link that has since changed
         for child in sorted(held):
             if child in self.notes:
                 continue
