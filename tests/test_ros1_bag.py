@@ -33,7 +33,7 @@ from agvviz.errors import RecordingError
 from agvviz.geometry import se3
 from agvviz.recording.contract import format_report, inspect_recording
 from agvviz.recording.reader import CalibrationMsg, CompressedFrame, FrameTransformMsg, PoseMsg, ReadReport, iter_messages
-from agvviz.recording.source import iter_role_messages, open_recording, scan
+from agvviz.recording.source import iter_role_messages, open_recording
 from agvviz.runner import SideInputs, prepare
 from agvviz.scenario_registry import record
 from agvviz.settings import RunSettings

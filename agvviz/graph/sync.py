@@ -165,7 +165,9 @@ class SyncState:
             links = self.tf.links(self.body_frame, name)
             if links is None:
                 continue
-            missing = [c for c in links if c in self.tf.dynamic and c not in self.tf.static and not self.tf.is_constant(c)]
+            missing = [
+                c for c in links if c in self.tf.dynamic and c not in self.tf.static and not self.tf.is_constant(c)
+            ]
             described = ", ".join(
                 f"{self.tf.dynamic[c][0]} → {c} ({self.tf.samples(c)} samples, "
                 f"{(span[0] / 1e9):.3f}–{(span[1] / 1e9):.3f} s)"
@@ -196,7 +198,8 @@ class SyncState:
                 continue
             parent, series = self.tf.dynamic[child]
             n = len(series)
-            how = f"only once (stamp {series.span_ns[0] / 1e9:.3f} s)" if n == 1 else f"{n} times without ever changing"
+            how = (f"only once (stamp {series.span_ns[0] / 1e9:.3f} s)" if n == 1
+                   else f"{n} times without ever changing")
             self.notes[child] = (
                 f"camera {cam_name}: its extrinsic link {parent} → {child} is published on /tf (time-varying) "
                 f"{how}, not on /tf_static: treated as static, valid at every frame (publish it on /tf_static "

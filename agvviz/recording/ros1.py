@@ -448,13 +448,15 @@ def iter_raw(path, topics: set[str] | None, report: ReadReport) -> Iterator[RawM
                     )
                 elif op != _OP_CHUNK:
                     report.problems.append(
-                        f"the file is cut short at byte {size}, inside a record at byte {pos}: what came after it is lost"
+                        f"the file is cut short at byte {size}, inside a record at byte {pos}: "
+                        "what came after it is lost"
                     )
                 break
             pos = data_at + data_len
         if not anything:
+            why = report.problems[-1] if report.problems else "empty"
             raise RecordingError(
-                f"{path}: has the ROS 1 bag magic but no readable record ({report.problems[-1] if report.problems else 'empty'}); "
+                f"{path}: has the ROS 1 bag magic but no readable record ({why}); "
                 "the file is damaged right after its start — re-record or re-copy it"
             )
         if index_pos == 0 or index_pos >= size:
