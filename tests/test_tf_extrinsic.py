@@ -79,7 +79,8 @@ def _transforms(T: np.ndarray, t_ns: int):
 
 def write_file(path: Path, content: dict, tf: list[tuple[int, np.ndarray]]) -> Path:
     """Images, calibration and truth of ``content``; the extrinsic only on ``/tf`` at the
-    given (stamp, T_agv_cam)."""
+    given (stamp, T_agv_cam). (The SDK keeps one message type per topic per process: these
+    topics carry the same types as in the other test files that log them.)"""
     m = foxglove.messages
     camera = content["calibration"]
     with foxglove.open_mcap(path, allow_overwrite=True):
@@ -89,8 +90,8 @@ def write_file(path: Path, content: dict, tf: list[tuple[int, np.ndarray]]) -> P
             foxglove.log("/front/calibration", m.CameraCalibration(
                 timestamp=_ts(t), frame_id="cam_front", width=camera.width_px, height=camera.height_px,
                 distortion_model="plumb_bob", D=camera.dist.tolist(), K=camera.K.ravel().tolist()), log_time=t)
-            foxglove.log("/front/image", m.CompressedImage(timestamp=_ts(t), frame_id="cam_front", format="jpeg",
-                                                           data=jpeg), log_time=t)
+            foxglove.log("/front/image_raw/compressed", m.CompressedImage(
+                timestamp=_ts(t), frame_id="cam_front", format="jpeg", data=jpeg), log_time=t)
             q = se3.to_quaternion_xyzw(T_truth)
             foxglove.log("/ground_truth", m.PoseInFrame(timestamp=_ts(t), frame_id="world", pose=m.Pose(
                 position=m.Vector3(x=T_truth[0, 3], y=T_truth[1, 3], z=T_truth[2, 3]),
