@@ -185,7 +185,7 @@ def _run_help() -> str:
     rows = "\n".join(f"  {n} ({t}, default {d}): {h}" for n, t, d, h in describe(RunSettings))
     return (
         "Replay the localisation pipeline over RECORDING (an agvviz .mcap, a ROS 2 bag directory "
-        "or .mcap, a Foxglove MCAP) and write a run .rrd. Exits 2, writing nothing, when no frame "
+        "or .mcap, a ROS 1 .bag, a Foxglove MCAP) and write a run .rrd. Exits 2, writing nothing, when no frame "
         "can be used (one line per cause).\n\n"
         "Example: agvviz run recordings/qr_floor.mcap --solver lm --set objective=pixel\n\n"
         "Example: agvviz run robot_bag/ --topic truth=/vicon/agv/pose --markers map.yaml "
@@ -376,7 +376,7 @@ def _error_budget_with_progress(recording: Path, settings: RunSettings, work_dir
 @app.command(help=_run_help(), cls=_Command)
 @handle_errors
 def run(
-    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file or a rosbag2 directory"),
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file, a rosbag2 directory or a ROS 1 .bag (or folder of them)"),
     solver: Optional[str] = typer.Option(None, "--solver", help="shortcut for --set solver=NAME"),
     set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help=SET_HELP),
     out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-<settings>.rrd)"),
@@ -398,7 +398,7 @@ def run(
 @app.command(cls=_Command)
 @handle_errors
 def inspect(
-    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file or a rosbag2 directory"),
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file, a rosbag2 directory or a ROS 1 .bag (or folder of them)"),
     set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="run settings that change what a run can use (body_frame, time_source, ...)"),
     topic: List[str] = typer.Option([], "--topic", metavar="ROLE=TOPIC", help=TOPIC_HELP),
     roles: Optional[Path] = typer.Option(None, "--roles", help=ROLES_HELP),
@@ -429,6 +429,8 @@ def inspect(
         lines.append(f"replay: frames of camera(s) {', '.join(prepared.usable_cameras)} can be used")
     for cause in prepared.causes:
         lines.append(f"replay: {cause}")
+    for note in prepared.replay.sync.notes.values():
+        lines.append(f"replay: warning: {note}")
     if not prepared.can_run:
         lines.append("replay: a run would fail (no frame can be used; `agvviz run` exits non-zero)")
     console.print("\n".join(lines), highlight=False, markup=False, soft_wrap=True)

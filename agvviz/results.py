@@ -18,7 +18,8 @@ REJECT_PAYLOAD = "payload_invalid"  # payload decoded but refused by the strict 
 REJECT_GEOMETRY = "degenerate_geometry"  # payload points do not define a marker plane
 REJECT_SOLVER = "solver_failed"  # the solver returned no pose
 REJECT_REPROJECTION = "reprojection"  # reprojection error above the threshold
-REJECT_NO_CALIBRATION = "no_calibration"  # image before any calibration/extrinsics
+REJECT_NO_CALIBRATION = "no_calibration"  # image before any calibration
+REJECT_NO_EXTRINSIC = "no_extrinsic"  # calibrated, but no camera extrinsic (mount) at the image's time
 REJECT_IMAGE = "image_invalid"  # empty, not jpeg/png, or larger than MAX_IMAGE_SIDE_PX
 REJECT_CALIBRATION_SIZE = "calibration_size_mismatch"  # image size differs from the calibration's
 REJECT_TIME = "time_not_increasing"  # log time not after the previous image of the same camera
@@ -32,6 +33,7 @@ REJECT_REASONS = (
     REJECT_SOLVER,
     REJECT_REPROJECTION,
     REJECT_NO_CALIBRATION,
+    REJECT_NO_EXTRINSIC,
     REJECT_IMAGE,
     REJECT_CALIBRATION_SIZE,
     REJECT_TIME,

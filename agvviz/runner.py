@@ -36,7 +36,7 @@ from agvviz.recording.source import (
     scan,
 )
 from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
-from agvviz.results import REJECT_NO_CALIBRATION
+from agvviz.results import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC
 from agvviz.settings import RunSettings, as_dict, inapplicable, without
 from agvviz.viz.run_logger import RunLogger
 
@@ -113,7 +113,7 @@ class SideInputs:
 
 #: Rejections that say a frame could not be used at all (as opposed to a frame whose markers
 #: were not found or not solved): a run whose every frame is one of these fails.
-UNUSABLE_REJECTIONS = (REJECT_NO_CALIBRATION, REJECT_IMAGE, REJECT_CALIBRATION_SIZE, REJECT_TIME)
+UNUSABLE_REJECTIONS = (REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC, REJECT_IMAGE, REJECT_CALIBRATION_SIZE, REJECT_TIME)
 
 
 @dataclass

@@ -37,6 +37,8 @@ class PoseSeries:
         self._times: list[int] = []
         self._poses: list[np.ndarray] = []
         self._sorted = True
+        self._constant = True  # every pose so far equals the first one added
+        self._first_added: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self._times)
@@ -44,8 +46,13 @@ class PoseSeries:
     def add(self, t_ns: int, T: np.ndarray) -> None:
         if self._times and t_ns < self._times[-1]:
             self._sorted = False
+        T = np.asarray(T, dtype=float)
+        if self._poses and self._constant:
+            self._constant = bool(np.array_equal(T, self._first_added))
+        if not self._poses:
+            self._first_added = T
         self._times.append(int(t_ns))
-        self._poses.append(np.asarray(T, dtype=float))
+        self._poses.append(T)
 
     def _sort(self) -> None:
         if not self._sorted:
@@ -53,6 +60,15 @@ class PoseSeries:
             self._times = [self._times[i] for i in order]
             self._poses = [self._poses[i] for i in order]
             self._sorted = True
+
+    def is_constant(self) -> bool:
+        """True when the series holds one pose, or several that are all the same (exactly)."""
+        return bool(self._poses) and self._constant
+
+    def first(self) -> np.ndarray | None:
+        """The earliest sample's pose (``None`` when empty)."""
+        self._sort()
+        return self._poses[0] if self._poses else None
 
     @property
     def span_ns(self) -> tuple[int, int] | None:
@@ -82,7 +98,10 @@ class TransformBuffer:
 
     :meth:`lookup` gives ``T_target_source`` at a time through any chain of parents (for
     example ``base_link → camera_link → camera_optical_frame``), up to the two frames' common
-    ancestor. A frame with both a fixed and a time-varying parent uses the fixed one.
+    ancestor. A frame with both a fixed and a time-varying parent uses the fixed one. A
+    time-varying link named in ``hold`` (a child frame) is used at its first sample whatever
+    the time — for a link that is constant (:meth:`is_constant`): a fixed transform published
+    on ``/tf`` instead of ``/tf_static``.
     """
 
     max_gap_ns: int = 1_000_000_000  # interpolate a time-varying link over gaps up to this
@@ -105,25 +124,35 @@ class TransformBuffer:
         names |= {p for p, _ in self.static.values()} | {p for p, _ in self.dynamic.values()}
         return names
 
-    def _parent(self, child: str, t_ns: int | None) -> tuple[str, np.ndarray | None] | None:
+    def is_constant(self, child: str) -> bool:
+        """True when ``child``'s time-varying link holds one pose or never changes."""
+        return child in self.dynamic and self.dynamic[child][1].is_constant()
+
+    def samples(self, child: str) -> int:
+        """Number of samples of ``child``'s time-varying link (0 when it has none)."""
+        return len(self.dynamic[child][1]) if child in self.dynamic else 0
+
+    def _parent(self, child: str, t_ns: int | None, hold=()) -> tuple[str, np.ndarray | None] | None:
         """(parent, T_parent_child or None when not available at t_ns), or None for a root."""
         if child in self.static:
             return self.static[child]
         if child in self.dynamic:
             parent, series = self.dynamic[child]
+            if child in hold:
+                return parent, series.first()
             if t_ns is None:
                 return parent, None
             return parent, series.at(t_ns, self.max_gap_ns, self.max_dt_ns)
         return None
 
-    def _chain(self, frame: str, t_ns: int | None) -> list[tuple[str, np.ndarray | None]]:
+    def _chain(self, frame: str, t_ns: int | None, hold=()) -> list[tuple[str, np.ndarray | None]]:
         """[(frame, T_frame_start)] from ``frame`` itself up to its root (cycle-safe)."""
         chain = [(frame, np.eye(4))]
         seen = {frame}
         T = np.eye(4)
         current = frame
         while True:
-            step = self._parent(current, t_ns)
+            step = self._parent(current, t_ns, hold)
             if step is None:
                 return chain
             parent, T_parent_child = step
@@ -149,13 +178,14 @@ class TransformBuffer:
         links = self.links(target, source)
         return links is not None and all(f in self.static for f in links)
 
-    def lookup(self, target: str, source: str, t_ns: int | None = None) -> np.ndarray | None:
+    def lookup(self, target: str, source: str, t_ns: int | None = None, hold=()) -> np.ndarray | None:
         """``T_target_source`` at ``t_ns`` (``None`` for fixed links only), or ``None`` when the
-        frames are not connected or a time-varying link has no pose at that time."""
+        frames are not connected or a time-varying link has no pose at that time. ``hold``:
+        child frames whose time-varying link is taken at its first sample (see the class)."""
         if target == source:
             return np.eye(4)
-        chain_s = dict(self._chain(source, t_ns))
-        chain_t = self._chain(target, t_ns)
+        chain_s = dict(self._chain(source, t_ns, hold))
+        chain_t = self._chain(target, t_ns, hold)
         for frame, T_frame_target in chain_t:
             if frame in chain_s:
                 T_frame_source = chain_s[frame]

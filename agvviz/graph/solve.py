@@ -56,6 +56,7 @@ from agvviz.results import (
     REJECT_DECODE,
     REJECT_GEOMETRY,
     REJECT_NO_CALIBRATION,
+    REJECT_NO_EXTRINSIC,
     REJECT_NO_MARKER,
     REJECT_PAYLOAD,
     REJECT_REPROJECTION,
@@ -322,7 +323,7 @@ class Replay:
         ``inspect``, :class:`agvviz.recording.contract.TimeChecks`) and ground truth that scored
         no frame."""
         max_dt_ns = int(self.settings.truth_max_dt_s * 1e9)
-        lines = self.time_checks.problems(max_dt_ns)
+        lines = self.time_checks.problems(max_dt_ns) + list(self.sync.notes.values())
         if self.markers_left_out:
             worst = sorted(self.markers_left_out.items(), key=lambda item: (-item[1], item[0]))
             shown = ", ".join(f"{marker_id} ({count} frame{'s' if count > 1 else ''})" for marker_id, count in worst[:5])
@@ -420,19 +421,23 @@ class Replay:
             cam is None or cam.camera is None or (cam.T_agv_cam is None and cam.T_world_cam is None)
             or detections is None
         ):
+            no_calibration = cam is None or cam.camera is None or detections is None
             missing = (
-                "calibration" if cam is None or cam.camera is None or detections is None
+                "calibration" if no_calibration
                 else f"extrinsic ({self.sync.body_frame}→camera or {self.sync.world_frame}→camera)"
             )
             detail = (
                 f"no {missing} for camera {frame.cam_name!r} ({frame.frame_id or camera_frame(frame.cam_name)}) "
-                + ("before this frame" if not self.primed else "in the recording or side files")
+                + ("before this frame" if not self.primed else "at this frame's time" if not no_calibration
+                   else "in the recording or side files")
             )
             if cam is not None and cam.calibration_problem:
                 detail += f" ({cam.calibration_problem})"
             elif cam is not None and cam.camera is not None and cam.extrinsic_problem:
                 detail += f": {cam.extrinsic_problem}"
-            return self._reject(result, REJECT_NO_CALIBRATION, detail)
+            elif not no_calibration:
+                detail += f" (give --extrinsic {frame.cam_name}=x,y,z,qx,qy,qz,qw)"
+            return self._reject(result, REJECT_NO_CALIBRATION if no_calibration else REJECT_NO_EXTRINSIC, detail)
         result.detect_s = detections.detect_s
         if detections.reject is not None:
             if detections.drop_image:

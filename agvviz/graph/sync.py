@@ -9,7 +9,10 @@ image of one camera at time t:
 * its **extrinsic** ``T_body_cam``: the transform buffer's chain from the body frame (a
   setting: ``agv`` for agvviz recordings, ``base_link`` for ROS logs) to the image's frame id
   (any chain: ``base_link → camera_link → camera_optical_frame``), at t; or, for a camera
-  fixed in the world, ``T_world_cam``;
+  fixed in the world, ``T_world_cam``. A link of that chain published on ``/tf`` (time-varying)
+  that appears only once or never changes is a fixed mount published on the wrong topic: it
+  is treated as static (valid at every frame, not only near its stamps) and :attr:`notes`
+  says so (the run summary's warnings, ``inspect``);
 * **ground truth** and **odometry** at t, interpolated on SE(3) between the samples either
   side (at most ``truth_max_gap_ns`` apart), or the nearest sample within
   ``truth_max_dt_ns``.
@@ -75,6 +78,8 @@ class SyncState:
         self.truth_frames: set[str] = set()
         self.odometry = PoseSeries()
         self.marker_map: dict | None = None
+        #: Warnings about how the recording was read, one per subject (a /tf link held static).
+        self.notes: dict[str, str] = {}
 
     # -- filling ------------------------------------------------------------------------------
     def add_calibration(self, cam_name: str, calib: CalibrationMsg, t_ns: int) -> None:
@@ -143,7 +148,7 @@ class SyncState:
             return side, None, ""
         frames = [f for f in dict.fromkeys((frame_id, camera_frame(cam_name))) if f]
         for name in frames:
-            T = self.tf.lookup(self.body_frame, name, t_ns)
+            T = self.tf.lookup(self.body_frame, name, t_ns, hold=self._held_links(cam_name, name))
             if T is not None:
                 return T, None, ""
         for name in frames:
@@ -156,10 +161,23 @@ class SyncState:
                 if T is not None:
                     return None, T, ""  # a camera fixed in the world
         known = sorted(self.tf.frames())
-        if any(self.tf.links(self.body_frame, name) is not None for name in frames):
+        for name in frames:
+            links = self.tf.links(self.body_frame, name)
+            if links is None:
+                continue
+            missing = [
+                c for c in links if c in self.tf.dynamic and c not in self.tf.static and not self.tf.is_constant(c)
+            ]
+            described = ", ".join(
+                f"{self.tf.dynamic[c][0]} → {c} ({self.tf.samples(c)} samples, "
+                f"{(span[0] / 1e9):.3f}–{(span[1] / 1e9):.3f} s)"
+                for c in missing[:3] if (span := self.tf.dynamic[c][1].span_ns) is not None
+            )
             return None, None, (
-                f"the transform chain from body frame {self.body_frame!r} to camera frame {frames[0]!r} "
-                f"has a time-varying link (/tf) with no pose within {self.tf.max_gap_ns / 1e9:g} s of this frame"
+                f"the camera extrinsic (transform chain from body frame {self.body_frame!r} to camera frame "
+                f"{name!r}) has a time-varying link (/tf) that changes and has no pose within "
+                f"{self.tf.max_gap_ns / 1e9:g} s of this frame: {described}; give the mount with "
+                f"--extrinsic {cam_name}=x,y,z,qx,qy,qz,qw (or publish it on /tf_static)"
             )
         return None, None, (
             f"no transform chain from body frame {self.body_frame!r} (or world frame "
@@ -167,6 +185,27 @@ class SyncState:
             + (f"; frames in the transforms: {', '.join(known[:12])}{' …' if len(known) > 12 else ''}" if known else "; the recording has no transforms")
             + f" (set --set body_frame=..., or give --extrinsic {cam_name}=x,y,z,qx,qy,qz,qw)"
         )
+
+    def _held_links(self, cam_name: str, frame: str) -> set[str]:
+        """Child frames of the body → ``frame`` chain whose /tf link is constant (one sample, or
+        never changing): held static, each with a note."""
+        links = self.tf.links(self.body_frame, frame) or []
+        held = {c for c in links if c not in self.tf.static and self.tf.is_constant(c)}
+        for child in set(links) - held:
+            self.notes.pop(child, None)  # fed message by message: a link that has since changed
+        for child in sorted(held):
+            if child in self.notes:
+                continue
+            parent, series = self.tf.dynamic[child]
+            n = len(series)
+            how = (f"only once (stamp {series.span_ns[0] / 1e9:.3f} s)" if n == 1
+                   else f"{n} times without ever changing")
+            self.notes[child] = (
+                f"camera {cam_name}: its extrinsic link {parent} → {child} is published on /tf (time-varying) "
+                f"{how}, not on /tf_static: treated as static, valid at every frame (publish it on /tf_static "
+                f"or give --extrinsic {cam_name}=x,y,z,qx,qy,qz,qw to state the mount)"
+            )
+        return held
 
     def truth_at(self, t_ns: int) -> np.ndarray | None:
         return self.truth.at(t_ns, self.truth_max_gap_ns, self.truth_max_dt_ns)

@@ -337,7 +337,7 @@ class InspectReport:
     damage: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # worth knowing, not a violation
     native: bool = True  # an agvviz recording (the contract's naming applies)
-    kind: str = "mcap"  # "mcap" | "rosbag2"
+    kind: str = "mcap"  # "mcap" | "rosbag2" | "rosbag1"
     files: list[str] = field(default_factory=list)
     bag_message_count: int | None = None  # rosbag2 metadata.yaml
     bag_topic_counts: dict[str, int] = field(default_factory=dict)
@@ -599,7 +599,9 @@ def _format_ns(t_ns: int | None, start_ns: int | None = None) -> str:
 def format_report(report: InspectReport) -> str:
     """Plain multi-line text: topics, cameras, transforms, scenario, then the verdict."""
     lines = [f"recording: {report.path}" + (
-        f" (rosbag2 directory: {', '.join(report.files)})" if report.kind == "rosbag2" else ""
+        f" (rosbag2 directory: {', '.join(report.files)})" if report.kind == "rosbag2"
+        else f" (ROS 1 bag{'s' if len(report.files) > 1 else ''}: {', '.join(report.files)})" if report.kind == "rosbag1"
+        else ""
     )]
     if report.bag_message_count is not None:
         lines.append(f"metadata.yaml: {report.bag_message_count} messages in {len(report.bag_topic_counts)} topic(s)")

@@ -212,6 +212,7 @@ class RawMessage:
     message_encoding: str
     data: bytes
     schema_data: bytes = b""  # the schema's text (ros2msg definitions for ROS 2 messages)
+    schema_hash: str = ""  # the type's md5sum (ROS 1 bags)
 
 
 @dataclass(frozen=True)
@@ -326,7 +327,7 @@ def _open(path) -> tuple:
         what = "is empty" if size == 0 else f"starts with {head[:8]!r}, not the MCAP magic"
         raise RecordingError(
             f"{path}: not an MCAP file ({what}); give a recording written by "
-            "'agvviz record' or another MCAP writer"
+            "'agvviz record' or another MCAP writer (or a ROS 1 .bag, a rosbag2 directory)"
         )
     return f, size
 
@@ -703,10 +704,14 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
             if duplicates.message_seen(channel.topic, message):
                 return None
             schema = schemas.get(channel.schema_id)
+            schema_name = schema.name if schema else ""
+            if channel.message_encoding == "ros1" and schema_name.count("/") == 1:
+                # MCAP's ROS 1 profile (`mcap convert x.bag`): pkg/Type → pkg/msg/Type, as a .bag's (ros1.py)
+                schema_name = schema_name.replace("/", "/msg/")
             return RawMessage(
                 topic=channel.topic,
                 log_time_ns=message.log_time,
-                schema_name=schema.name if schema else "",
+                schema_name=schema_name,
                 schema_encoding=schema.encoding if schema else "",
                 message_encoding=channel.message_encoding,
                 data=message.data,
@@ -918,6 +923,10 @@ def decode(raw: RawMessage) -> object:
             from agvviz.recording.ros2 import decode_ros2
 
             return decode_ros2(raw)
+        if raw.message_encoding == "ros1":
+            from agvviz.recording.ros1 import decode_ros1
+
+            return decode_ros1(raw)
         if raw.message_encoding == "json":
             value = json.loads(raw.data)
             if raw.schema_name in SCHEMAS:

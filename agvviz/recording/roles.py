@@ -61,6 +61,7 @@ CALIBRATION_TYPES = ("foxglove.CameraCalibration", "sensor_msgs/msg/CameraInfo")
 TRANSFORM_TYPES = (
     "foxglove.FrameTransforms", "foxglove.FrameTransform",
     "tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped",
+    "tf/msg/tfMessage",  # ROS 1's original tf
 )
 POSE_TYPES = (
     "foxglove.PoseInFrame", "geometry_msgs/msg/PoseStamped",

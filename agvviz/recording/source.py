@@ -1,9 +1,10 @@
-"""The source stage: a recording (one ``.mcap`` or a rosbag2 directory), its topics, its
-role map, and its messages with their roles and time stamps.
+"""The source stage: a recording (one ``.mcap``, a rosbag2 directory, a ROS 1 ``.bag`` or a
+folder of them), its topics, its role map, and its messages with their roles and time stamps.
 
 * :func:`open_recording` — a ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` and
-  every split file in the order it lists them; MCAP storage). sqlite3 bags are refused with
-  the conversion command.
+  every split file in the order it lists them; MCAP storage), or a ROS 1 bag (a ``.bag`` file,
+  or a folder of ``.bag`` files read one after the other in name order, numbers as numbers —
+  :mod:`agvviz.recording.ros1`). sqlite3 bags are refused with the conversion command.
 * :func:`scan` — one streaming pass: per topic its schema, count, span and first frame id
   (what role inference needs).
 * :func:`resolve_roles` — the role map: inferred, ``--roles FILE``, ``--topic ROLE=TOPIC``.
@@ -60,7 +61,7 @@ class Recording:
 
     path: Path
     files: list[Path]
-    kind: str  # "mcap" | "rosbag2"
+    kind: str  # "mcap" | "rosbag2" | "rosbag1"
     profile: str = ""
     library: str = ""
     scenario: dict | None = None
@@ -74,17 +75,24 @@ class Recording:
 
     @property
     def name(self) -> str:
-        return self.path.stem if self.kind == "mcap" else self.path.name
+        return self.path.name if self.path.is_dir() else self.path.stem
 
     def iter_raw(self, report: ReadReport, topics: set[str] | None = None) -> Iterator:
-        """Raw messages and metadata of every file, in order (see :func:`reader.iter_raw`)."""
+        """Raw messages and metadata of every file, in order (see :func:`reader.iter_raw`,
+        :func:`agvviz.recording.ros1.iter_raw`)."""
+        if self.kind == "rosbag1":
+            from agvviz.recording import ros1
+
+            for path in self.files:
+                yield from ros1.iter_raw(path, topics, report)
+            return
         for path in self.files:
             yield from reader.iter_raw(path, topics, report)
 
     def sha256(self) -> str:
         """sha256 of the recording's bytes (a bag: metadata.yaml then each file in order)."""
         digest = hashlib.sha256()
-        paths = ([self.path / "metadata.yaml"] if self.kind == "rosbag2" else []) + self.files
+        paths = ([self.path / "metadata.yaml"] if self.kind == "rosbag2" else []) + self.files  # rosbag1: the bags
         for path in paths:
             with open(path, "rb") as f:
                 for block in iter(lambda: f.read(1 << 20), b""):
@@ -112,7 +120,7 @@ def _read_bag_metadata(directory: Path) -> dict:
         mcaps = sorted(p.name for p in directory.glob("*.mcap"))
         hint = (
             f"; it holds {', '.join(mcaps[:5])} — give one of those files instead" if mcaps
-            else "; give an .mcap file or a rosbag2 directory"
+            else "; give an .mcap file, a rosbag2 directory or a folder of ROS 1 .bag files"
         )
         raise RecordingError(f"{directory}: a directory without metadata.yaml, so not a rosbag2 bag{hint}")
     try:
@@ -130,16 +138,40 @@ def require_recording_path(path) -> Path:
     checked before any work starts (and before a progress bar is drawn)."""
     path = Path(path)
     if not path.exists():
-        raise RecordingError(f"{path}: no such file or directory; give an .mcap recording or a rosbag2 directory")
+        raise RecordingError(
+            f"{path}: no such file or directory; give an .mcap recording, a rosbag2 directory or a ROS 1 .bag"
+        )
     return path
 
 
-def open_recording(path) -> Recording:
-    """A :class:`Recording` for a ``.mcap`` file or a rosbag2 directory.
+def _open_ros1(path: Path) -> Recording | None:
+    """A ROS 1 recording: a ``.bag`` file (or any file with the bag magic), or a directory
+    without ``metadata.yaml`` holding ``.bag`` files; ``None`` when ``path`` is neither."""
+    from agvviz.recording import ros1
 
-    Raises :class:`RecordingError` with what to do when it is neither.
+    if path.is_dir():
+        bags = sorted((p for p in path.glob("*.bag") if p.is_file()), key=ros1.bag_order)
+        if not bags or (path / "metadata.yaml").exists():
+            return None
+        return Recording(path, bags, "rosbag1", profile="ros1")
+    if path.suffix == ".bag" or ros1.is_bag(path):
+        return Recording(path, [path], "rosbag1", profile="ros1")
+    return None
+
+
+def open_recording(path) -> Recording:
+    """A :class:`Recording` for a ``.mcap`` file, a rosbag2 directory, a ROS 1 ``.bag`` or a
+    folder of them.
+
+    Raises :class:`RecordingError` with what to do when it is none of them.
     """
     path = require_recording_path(path)
+    recording = _open_ros1(path)
+    if recording is not None:
+        from agvviz.recording import ros1
+
+        ros1.check_bag(recording.files[0])  # not a bag: one line now, not at the first read
+        return recording
     if path.is_dir():
         info = _read_bag_metadata(path)
         storage = str(info.get("storage_identifier", ""))
