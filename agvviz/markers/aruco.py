@@ -94,6 +94,14 @@ _OPENCV_REFINEMENT = {
 }
 
 
+#: Largest ECC template resolution for ArUco/AprilTag markers (px per module; QR codes keep
+#: :data:`agvviz.markers.qr.TEMPLATE_PX_PER_MODULE_RANGE`). ECC's cost grows with the template's
+#: pixel count: on 85–127 px DICT_6X6 markers (bench/bench_dense_board.py) a cap of 8 instead of
+#: 12 halves the time per marker (2.2 → 1.0 ms) at the same corner error (0.012 px median);
+#: 6 costs accuracy (0.017 px). Markers below 8 px per module are not affected.
+ECC_MAX_PX_PER_MODULE = 8
+
+
 def _parameters(refine: str) -> cv2.aruco.DetectorParameters:
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = _OPENCV_REFINEMENT[refine]
@@ -138,7 +146,7 @@ def _refined(gray: np.ndarray, detector: cv2.aruco.ArucoDetector, refine: str, m
         raw = marker_corners.reshape(4, 2).astype(float)
         detection = ArucoDetection(int(marker_id), raw.copy(), raw, opencv_method)
         if refine == "ecc":
-            refined, note = align_symbol_ecc(gray, modules(int(marker_id)), raw)
+            refined, note = align_symbol_ecc(gray, modules(int(marker_id)), raw, max_px_per_module=ECC_MAX_PX_PER_MODULE)
             if refined is None:
                 detection.refine_ok = False
                 detection.refine_note = f"ecc: {note}; kept subpix"

@@ -484,18 +484,29 @@ def module_agreement(gray: np.ndarray, symbol: np.ndarray, corners_px: np.ndarra
     return correlation, float(np.mean(read_dark != darkness))
 
 
+@functools.lru_cache(maxsize=512)
+def _ecc_template(symbol_bytes: bytes, n: int, scale: int) -> np.ndarray:
+    """The ECC template of an (n, n) symbol (its bytes, True dark): the symbol and a
+    :data:`TEMPLATE_BORDER_MODULES` light border, ``scale`` px per module, float32 0/255
+    (read-only: cached, a replay sees the same markers in frame after frame)."""
+    symbol = np.frombuffer(symbol_bytes, dtype=bool).reshape(n, n)
+    padded = np.pad(symbol, TEMPLATE_BORDER_MODULES, constant_values=False)
+    template = np.where(np.kron(padded, np.ones((scale, scale), dtype=bool)), 0.0, 255.0).astype(np.float32)
+    template.setflags(write=False)
+    return template
+
+
 def _refine_ecc(
-    gray: np.ndarray, symbol: np.ndarray, raw_corners_px: np.ndarray
+    gray: np.ndarray, symbol: np.ndarray, raw_corners_px: np.ndarray,
+    px_per_module_range: tuple[int, int] = TEMPLATE_PX_PER_MODULE_RANGE,
 ) -> tuple[np.ndarray | None, str]:
     """ECC-aligned symbol corners, or (None, reason)."""
     n = len(symbol)
     side_px = _mean_side_px(raw_corners_px)
-    low, high = TEMPLATE_PX_PER_MODULE_RANGE
+    low, high = px_per_module_range
     scale = int(np.clip(round(side_px / n), low, high))
     border = TEMPLATE_BORDER_MODULES
-    padded = np.pad(symbol, border, constant_values=False)
-    template = np.where(np.kron(padded, np.ones((scale, scale), dtype=bool)), 0.0, 255.0)
-    template = template.astype(np.float32)
+    template = _ecc_template(np.ascontiguousarray(symbol, dtype=bool).tobytes(), n, scale)
     # Template pixel centres are integers, so module coordinate m sits at (m + border)·scale − 0.5.
     symbol_corners_template = (
         np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=float) + border
@@ -571,17 +582,23 @@ def _accept_shift(
 
 
 def align_symbol_ecc(
-    gray: np.ndarray, dark_modules: np.ndarray, raw_corners_px: np.ndarray
+    gray: np.ndarray, dark_modules: np.ndarray, raw_corners_px: np.ndarray, *,
+    max_px_per_module: int = TEMPLATE_PX_PER_MODULE_RANGE[1],
 ) -> tuple[np.ndarray | None, str]:
     """Refine the outer corners (TL, TR, BR, BL) of any square module-grid symbol printed on a
     light background — a QR symbol or an ArUco marker with its black border — by aligning a
     template of ``dark_modules`` ((n, n) bool, row 0 the printed top) to ``gray`` with
     ``cv2.findTransformECC`` (the ``"ecc"`` method of the module docstring).
+    ``max_px_per_module`` caps the template's pixels per module (ECC's cost grows with the
+    template's pixel count).
 
     Returns the refined corners (4, 2), or ``(None, reason)`` when ECC fails, its correlation
     is low or a corner would move more than one module.
     """
-    return _refine_ecc(gray, np.asarray(dark_modules, dtype=bool), np.asarray(raw_corners_px, dtype=float))
+    low = min(TEMPLATE_PX_PER_MODULE_RANGE[0], int(max_px_per_module))
+    return _refine_ecc(
+        gray, np.asarray(dark_modules, dtype=bool), np.asarray(raw_corners_px, dtype=float), (low, int(max_px_per_module))
+    )
 
 
 #: Corners of one finder pattern in module units from its own top-left corner (x right, y
