@@ -484,16 +484,32 @@ def module_agreement(gray: np.ndarray, symbol: np.ndarray, corners_px: np.ndarra
     return correlation, float(np.mean(read_dark != darkness))
 
 
-@functools.lru_cache(maxsize=512)
-def _ecc_template(symbol_bytes: bytes, n: int, scale: int) -> np.ndarray:
-    """The ECC template of an (n, n) symbol (its bytes, True dark): the symbol and a
-    :data:`TEMPLATE_BORDER_MODULES` light border, ``scale`` px per module, float32 0/255
-    (read-only: cached, a replay sees the same markers in frame after frame)."""
-    symbol = np.frombuffer(symbol_bytes, dtype=bool).reshape(n, n)
-    padded = np.pad(symbol, TEMPLATE_BORDER_MODULES, constant_values=False)
-    template = np.where(np.kron(padded, np.ones((scale, scale), dtype=bool)), 0.0, 255.0).astype(np.float32)
+#: Templates up to this many pixels a side are cached (at most 256 of them, 64 KiB each: an
+#: ArUco marker's is 80 px at 8 px per module); larger ones (QR codes) are built per call.
+CACHED_TEMPLATE_MAX_SIDE_PX = 128
+
+
+def _ecc_template(symbol: np.ndarray, scale: int) -> np.ndarray:
+    """The ECC template of an (n, n) symbol (True dark): the symbol and a
+    :data:`TEMPLATE_BORDER_MODULES` light border, ``scale`` px per module, float32 0/255."""
+    n = len(symbol)
+    if (n + 2 * TEMPLATE_BORDER_MODULES) * scale <= CACHED_TEMPLATE_MAX_SIDE_PX:
+        return _cached_template(np.ascontiguousarray(symbol, dtype=bool).tobytes(), n, scale)
+    return _build_template(symbol, scale)
+
+
+@functools.lru_cache(maxsize=256)
+def _cached_template(symbol_bytes: bytes, n: int, scale: int) -> np.ndarray:
+    """:func:`_ecc_template` of a small symbol, cached (read-only): a replay sees the same
+    markers frame after frame."""
+    template = _build_template(np.frombuffer(symbol_bytes, dtype=bool).reshape(n, n), scale)
     template.setflags(write=False)
     return template
+
+
+def _build_template(symbol: np.ndarray, scale: int) -> np.ndarray:
+    padded = np.pad(symbol, TEMPLATE_BORDER_MODULES, constant_values=False)
+    return np.where(np.kron(padded, np.ones((scale, scale), dtype=bool)), np.float32(0.0), np.float32(255.0))
 
 
 def _refine_ecc(
@@ -506,7 +522,7 @@ def _refine_ecc(
     low, high = px_per_module_range
     scale = int(np.clip(round(side_px / n), low, high))
     border = TEMPLATE_BORDER_MODULES
-    template = _ecc_template(np.ascontiguousarray(symbol, dtype=bool).tobytes(), n, scale)
+    template = _ecc_template(symbol, scale)
     # Template pixel centres are integers, so module coordinate m sits at (m + border)·scale − 0.5.
     symbol_corners_template = (
         np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=float) + border
