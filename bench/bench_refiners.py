@@ -32,7 +32,7 @@ by ``solvePnPRefineLM``; a pose more than 30° off is the mirror branch, counted
 Time per marker: the refiner's detection minus detection without refinement, per marker
 (CPU time, one OpenCV thread, median of repeats).
 
-    PYTHONPATH=. python bench/bench_refiners.py        (≈30 s)
+    PYTHONPATH=. python bench/bench_refiners.py        (≈1 min)
 """
 
 from __future__ import annotations
