@@ -140,3 +140,27 @@ def test_ecc_on_modules_much_larger_than_the_template(module_px):
     (detection,) = detect_aruco(gray, DICTIONARY, refine="ecc")
     assert detection.refine_method == "ecc"
     assert np.max(np.linalg.norm(detection.corners_px - truth, axis=1)) < 0.05
+
+
+def test_detect_with_a_dictionary_read_from_a_file(tmp_path):
+    """A dictionary that is not predefined (as the GridBoard photo's ``tutorial_dict.yml``),
+    written and read back with OpenCV's FileStorage: ECC refines its markers as well."""
+    from agvviz.markers.aruco import detect_with_dictionary
+
+    path = str(tmp_path / "dict.yml")
+    storage = cv2.FileStorage(path, cv2.FILE_STORAGE_WRITE)
+    cv2.aruco.extendDictionary(10, 5, randomSeed=3).writeDictionary(storage)
+    storage.release()
+    dictionary = cv2.aruco.Dictionary()
+    reader = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)  # kept alive while its root is read
+    dictionary.readDictionary(reader.root())
+    module_px, n = 12, dictionary.markerSize + 2
+    image = np.full((n * module_px + 200,) * 2, 220.0, np.float32)
+    image[100 : 100 + n * module_px, 100 : 100 + n * module_px] = 30 + 190 * (
+        cv2.aruco.generateImageMarker(dictionary, 4, n * module_px, borderBits=1) / 255.0
+    )
+    gray = np.clip(np.rint(cv2.GaussianBlur(image, (0, 0), 1.0)), 0, 255).astype(np.uint8)
+    truth = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * n * module_px + 99.5
+    (detection,) = detect_with_dictionary(gray, dictionary, refine="ecc")
+    assert (detection.marker_id, detection.refine_method) == (4, "ecc")
+    assert np.max(np.linalg.norm(detection.corners_px - truth, axis=1)) < 0.05
