@@ -112,8 +112,10 @@ class RunSettings:
     lm_max_iterations: int = setting(50, "maximum LM iterations per frame", min=1, max=1000)
     refine: str = setting(
         "ecc",
-        "corner refinement: ecc (template alignment), subpix (cornerSubPix), none",
-        ("ecc", "subpix", "none"),
+        "corner refinement: ecc (template alignment; best on real photos, docs/refinement.md), subpix "
+        "(cornerSubPix), contour, apriltag (OpenCV's CORNER_REFINE_CONTOUR/_APRILTAG: ArUco and AprilTag "
+        "markers only), none",
+        ("ecc", "subpix", "contour", "apriltag", "none"),
     )
     markers: str = setting(
         "all",

@@ -56,7 +56,7 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], help="extra scenario option key=value")
     args = parser.parse_args()
     options = [
-        f"duration_s={args.duration}", "code_size_m=0.25", "grid_spacing_m=1.0", *args.set,
+        f"duration_s={args.duration}", "code_size_m=0.25", "grid_spacing_m=1.25", *args.set,
     ]
     if args.family != "qr":
         options.append(f"marker_family={args.family}")

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from agvviz.errors import InputError
 from agvviz.geometry import PinholeCamera
 from agvviz.geometry.homography import floor_homography
 from agvviz.geometry.plane import DegenerateGeometryError
@@ -51,7 +52,7 @@ DETECTION_SETTINGS = ("refine", "feature_points", "tracking", "keyframe_every")
 #: Bumped whenever a change to detection or tracking changes what they output, so that cached
 #: detections (:mod:`agvviz.graph.detect_cache`, keyed by it and agvviz's version) of an earlier
 #: build are never reused.
-DETECT_REVISION = 3
+DETECT_REVISION = 4
 
 #: Shortest tracking segment (frames): the unit of work of a detection worker.
 MIN_SEGMENT_FRAMES = 30
@@ -72,6 +73,22 @@ class DetectParams:
     tracking: bool = True
     keyframe_every: int = 10
     aruco_dictionary: str | None = None
+
+    def __post_init__(self) -> None:
+        from agvviz.markers.qr import REFINE_METHODS as QR_REFINE_METHODS
+
+        from agvviz.markers.apriltag import APRILTAG_REFINE_METHODS, is_apriltag_dictionary
+
+        if is_apriltag_dictionary(self.aruco_dictionary) and self.refine not in APRILTAG_REFINE_METHODS:
+            raise InputError(
+                f"refine={self.refine} is OpenCV's ArUco corner refinement; AprilTag families take "
+                f"refine={' or '.join(APRILTAG_REFINE_METHODS)}"
+            )
+        if self.aruco_dictionary is None and self.refine not in QR_REFINE_METHODS:
+            raise InputError(
+                f"refine={self.refine} is OpenCV's corner refinement of ArUco/AprilTag markers; the markers "
+                f"here are QR codes: use refine={' or '.join(QR_REFINE_METHODS)}"
+            )
 
     @classmethod
     def of(cls, settings: RunSettings, aruco_dictionary: str | None) -> "DetectParams":

@@ -11,14 +11,20 @@ OpenCV pixel coordinates and ArUco order TL, TR, BR, BL as printed (:mod:`agvviz
 they are the outer corners of the marker's black border, so a marker of side ``s`` in a map has
 corners ``(∓s/2, ±s/2)``.
 
-Refinement (``refine=``, the names the QR pipeline uses):
+Refinement (``refine=``, :data:`ARUCO_REFINE_METHODS`; ``ecc``, ``subpix`` and ``none`` are
+the names the QR pipeline uses too):
 
-``"ecc"``     the marker's own bit pattern (black border included) from the dictionary, aligned
-              to the image by :func:`agvviz.markers.qr.align_symbol_ecc`; falls back to
-              ``"subpix"`` when ECC fails (``refine_note`` says why);
-``"subpix"``  OpenCV's ``CORNER_REFINE_SUBPIX``;
-``"none"``    the detector's contour corners;
-``"apriltag"`` (AprilTag families only) the AprilTag library's own edge refinement.
+``"ecc"``       the marker's own bit pattern (black border included) from the dictionary, aligned
+                to the image by :func:`agvviz.markers.qr.align_symbol_ecc`, started from the
+                ``"subpix"`` corners; falls back to them when ECC fails (``refine_note`` says why);
+``"subpix"``    OpenCV's ``CORNER_REFINE_SUBPIX`` (``cornerSubPix`` at each corner);
+``"contour"``   OpenCV's ``CORNER_REFINE_CONTOUR`` (lines fitted to the marker's contour points);
+``"apriltag"``  the AprilTag library's edge refinement: for AprilTag families the library's own
+                (:mod:`agvviz.markers.apriltag`), for ArUco dictionaries OpenCV's
+                ``CORNER_REFINE_APRILTAG``;
+``"none"``      the detector's contour corners.
+
+docs/refinement.md has each one's accuracy on real photos (``bench/bench_refiners.py``).
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ from agvviz.markers.apriltag import (
     detect_apriltags,
     is_apriltag_dictionary,
 )
-from agvviz.markers.qr import REFINE_METHODS, align_symbol_ecc
+from agvviz.markers.qr import align_symbol_ecc
 
 
 class ArucoError(InputError):
@@ -91,32 +97,79 @@ def aruco_modules(name: str, marker_id: int) -> np.ndarray:
     return image == 0
 
 
-@functools.lru_cache(maxsize=8)
-def _detector(name: str, subpix: bool) -> cv2.aruco.ArucoDetector:
+#: Corner refinements of ArUco/AprilTag markers (module docstring), most accurate first.
+ARUCO_REFINE_METHODS = ("ecc", "subpix", "contour", "apriltag", "none")
+#: OpenCV's corner refinement run by the detector for each ``refine`` (ECC starts from SUBPIX).
+_OPENCV_REFINEMENT = {
+    "ecc": cv2.aruco.CORNER_REFINE_SUBPIX,
+    "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+    "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+    "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
+    "none": cv2.aruco.CORNER_REFINE_NONE,
+}
+
+
+#: Largest ECC template resolution for ArUco/AprilTag markers (px per module; QR codes keep
+#: :data:`agvviz.markers.qr.TEMPLATE_PX_PER_MODULE_RANGE`). ECC's cost grows with the template's
+#: pixel count: on 85–127 px DICT_6X6 markers (bench/bench_dense_board.py) a cap of 8 instead of
+#: 12 halves the time per marker (2.2 → 1.0 ms) at the same corner error (0.012 px median);
+#: 6 costs accuracy (0.017 px). Markers below 8 px per module are not affected.
+ECC_MAX_PX_PER_MODULE = 8
+
+
+def _parameters(refine: str) -> cv2.aruco.DetectorParameters:
     params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX if subpix else cv2.aruco.CORNER_REFINE_NONE
-    return cv2.aruco.ArucoDetector(aruco_dictionary(name), params)
+    params.cornerRefinementMethod = _OPENCV_REFINEMENT[refine]
+    return params
+
+
+@functools.lru_cache(maxsize=16)
+def _detector(name: str, refine: str) -> cv2.aruco.ArucoDetector:
+    return cv2.aruco.ArucoDetector(aruco_dictionary(name), _parameters(refine))
 
 
 def detect_aruco(gray: np.ndarray, dictionary_name: str, refine: str = "ecc") -> list[ArucoDetection]:
     """Every marker of ``dictionary_name`` found in the uint8 gray image, corners refined
-    (AprilTag families by :func:`agvviz.markers.apriltag.detect_apriltags`)."""
+    (``refine`` one of :data:`ARUCO_REFINE_METHODS`; AprilTag families by
+    :func:`agvviz.markers.apriltag.detect_apriltags`)."""
+    _check_refine(refine)
     if is_apriltag_dictionary(dictionary_name):
         aruco_dictionary(dictionary_name)  # refuses an unsupported family as ArucoError
         if refine not in APRILTAG_REFINE_METHODS:
-            raise ValueError(f"unknown refine method {refine!r}; valid: {', '.join(APRILTAG_REFINE_METHODS)}")
+            raise ArucoError(
+                f"refine={refine} is OpenCV's ArUco refinement; AprilTag families take {', '.join(APRILTAG_REFINE_METHODS)}"
+            )
         return detect_apriltags(gray, dictionary_name, refine=refine)
-    if refine not in REFINE_METHODS:
-        raise ValueError(f"unknown refine method {refine!r}; valid: {', '.join(REFINE_METHODS)}")
-    corners, ids, _ = _detector(dictionary_name, refine != "none").detectMarkers(gray)
+    return _refined(gray, _detector(dictionary_name, refine), refine, functools.partial(aruco_modules, dictionary_name))
+
+
+def detect_with_dictionary(gray: np.ndarray, dictionary: cv2.aruco.Dictionary, refine: str = "ecc") -> list[ArucoDetection]:
+    """:func:`detect_aruco` for a dictionary that is not predefined (e.g. one read from a file)."""
+    _check_refine(refine)
+    n = dictionary.markerSize + 2
+
+    def modules(marker_id: int) -> np.ndarray:
+        return cv2.aruco.generateImageMarker(dictionary, int(marker_id), n, borderBits=1) == 0
+
+    return _refined(gray, cv2.aruco.ArucoDetector(dictionary, _parameters(refine)), refine, modules)
+
+
+def _check_refine(refine: str) -> None:
+    if refine not in ARUCO_REFINE_METHODS:
+        raise ValueError(f"unknown refine method {refine!r}; valid: {', '.join(ARUCO_REFINE_METHODS)}")
+
+
+def _refined(gray: np.ndarray, detector: cv2.aruco.ArucoDetector, refine: str, modules) -> list[ArucoDetection]:
+    corners, ids, _ = detector.detectMarkers(gray)
     if ids is None:
         return []
+    opencv_method = "subpix" if refine == "ecc" else refine
     detections = []
     for marker_corners, marker_id in zip(corners, ids.ravel()):
         raw = marker_corners.reshape(4, 2).astype(float)
-        detection = ArucoDetection(int(marker_id), raw.copy(), raw, "subpix" if refine != "none" else "none")
+        detection = ArucoDetection(int(marker_id), raw.copy(), raw, opencv_method)
         if refine == "ecc":
-            refined, note = align_symbol_ecc(gray, aruco_modules(dictionary_name, int(marker_id)), raw)
+            refined, note = align_symbol_ecc(gray, modules(int(marker_id)), raw, max_px_per_module=ECC_MAX_PX_PER_MODULE)
             if refined is None:
                 detection.refine_ok = False
                 detection.refine_note = f"ecc: {note}; kept subpix"
