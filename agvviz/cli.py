@@ -923,7 +923,7 @@ def export(
 ) -> None:
     """Write the run's estimated and true trajectories (T_world_agv) for other tools.
 
-    tum: `<run>.estimate.tum` and `<run>.truth.tum`, lines `t tx ty tz qx qy qz qw`.
+    tum: `<run>.estimate.tum` and `<run>.truth.tum`, lines `t tx ty tz qx qy qz qw`. A run without ground truth exports its estimate alone and says so (no truth file is written). See docs/export.md.
 
     mcap: `<run>.poses.mcap`, Foxglove PoseInFrame on /agvviz/estimate/pose and /agvviz/truth/pose and FrameTransforms (world → agv_estimate, agv_truth) on /agvviz/tf, stamped with the recording's times: open it beside the recording in Foxglove. Needs pip install 'agvviz\\[export]'.
 
@@ -936,6 +936,8 @@ def export(
     written = export_run(run_file, format_, out_dir)
     for item in written:
         console.print(f"{item.which}: {item.poses} poses → [bold]{escape(str(item.path))}[/]", soft_wrap=True)
+    for which, why in written.missing.items():
+        console.print(f"{which}: not written — {escape(why)}", soft_wrap=True, highlight=False)
 
 
 if __name__ == "__main__":

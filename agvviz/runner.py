@@ -511,6 +511,7 @@ def run_recording(
         detection.store(read_report)
         summary["detection"] = detection.summary()
         summary["warnings"] = run_warnings(replay.warnings() + prepared.causes + detection.warnings(), read_report)
+        summary["truth"] = replay.truth_status()
         if error_budget is not None:
             summary["error_budget"] = error_budget.summary()
             logger.log_error_budget(error_budget)

@@ -75,6 +75,8 @@ def _frame_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
         ("heading RMSE / median / p95 (deg)", f"{_fmt(hdg['rmse'], 3)} / {_fmt(hdg['median'], 3)} / {_fmt(hdg['p95'], 3)}")
     )
     rows.append(("reprojection RMS median (px)", _fmt(summary["reproj_rms_px"]["median"], 3)))
+    if summary.get("truth", {}).get("note"):  # truth given, no frame scored (issue 23)
+        rows.append(("truth", summary["truth"]["note"]))
     if "time_per_frame_ms" not in timing:  # a stored summary carries no wall-clock figures
         return rows
     rows.append((

@@ -206,6 +206,15 @@ class TimeChecks:
         self._last_image[topic] = log_time_ns
         return None
 
+    def truth_vs_images(self) -> tuple[tuple[int, int], tuple[int, int]] | None:
+        """((first, last) truth log time, (first, last) image log time) in ns, or ``None`` when
+        no truth or no image has been seen."""
+        if self._truth is None or not self._images:
+            return None
+        first = min(v[2] for v in self._images.values())
+        last = max(v[3] for v in self._images.values())
+        return (self._truth[0], self._truth[1]), (first, last)
+
     def problems(self, truth_max_dt_ns: int = 0) -> list[str]:
         """Recording-level problems found so far (one line each)."""
         lines = []
