@@ -435,6 +435,12 @@ def run_recording(
         else "cnoem" if is_cnoem_trials_recording(recording.scenario, roles)
         else None
     )
+    if study is None and roles.cameras():
+        # frames of a marker family the run cannot use (no map, or another map's family): one
+        # line naming the family and what to run next, before any work (issue 23)
+        from agvviz.graph.family_scan import family_check
+
+        family_check(prepared, str(recording_path))
     corners_only = not roles.cameras() and ROLE_CORNERS in roles.roles and ROLE_UWB_RANGE not in roles.roles
     if corners_only and settings.correction == "none" and study is None:
         raise InputError(
