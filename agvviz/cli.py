@@ -440,56 +440,72 @@ def inspect(
     console.print(format_report(report), highlight=False, markup=False, soft_wrap=True)
     lines = ["", f"roles (body frame {prepared.body_frame}, time from {prepared.time_source}; override with --topic ROLE=TOPIC):"]
     lines += prepared.roles.lines() or ["  none"]
-    if prepared.usable_cameras:
+    marker_lines, family_problem = _marker_scan_lines(recording, prepared, markers, write_markers)
+    if family_problem:
+        lines.append(f"replay: {family_problem}")
+        lines.append("replay: a run would fail (`agvviz run` exits 2 naming the family)")
+    elif prepared.usable_cameras:
         lines.append(f"replay: frames of camera(s) {', '.join(prepared.usable_cameras)} can be used")
     for cause in prepared.causes:
         lines.append(f"replay: {cause}")
     if not prepared.can_run:
         lines.append("replay: a run would fail (no frame can be used; `agvviz run` exits non-zero)")
-    lines += _marker_scan_lines(recording, prepared, markers, write_markers)
+    lines += marker_lines
     console.print("\n".join(lines), highlight=False, markup=False, soft_wrap=True)
     if write_roles is not None:
         outputs.atomic_write_text(write_roles, prepared.roles.to_yaml(), inputs=[recording])
         console.print(f"roles written: {write_roles} (use it with --roles {write_roles})", highlight=False,
                       markup=False, soft_wrap=True)
-    if not report.ok or not prepared.can_run:
+    if not report.ok or not prepared.can_run or family_problem:
         raise typer.Exit(code=1)
 
 
-def _marker_scan_lines(recording: Path, prepared, markers: Optional[Path], write_markers: Optional[Path]) -> list[str]:
+def _marker_scan_lines(recording: Path, prepared, markers: Optional[Path], write_markers: Optional[Path]) -> tuple[list[str], str]:
     """inspect's marker families (issue 23): without a map (or with --write-markers) the sampled
     frames are scanned for every common family; with a map, for its family first, and for the
-    others only when the map's is not seen. Writes the map skeleton when asked."""
-    from agvviz.graph.family_scan import mismatch_line, scan_lines, scan_recording, map_skeleton_yaml
+    others only when the map's is not seen. Writes the map skeleton when asked. Returns the
+    lines and, when a run would refuse the frames' family (no map, or another map), why."""
+    from agvviz.graph.family_scan import map_problem, map_skeleton_yaml, mismatch_line, scan_lines, scan_recording
     from agvviz.markers.scan import MIN_FRAMES, SCAN_FAMILIES
 
     if not prepared.roles.cameras():
         if write_markers is not None:
             raise InputError(f"--write-markers: {recording} has no camera images to find markers in; no map written")
-        return []
+        return [], ""
     marker_map = prepared.replay.ctx.marker_map
     family = marker_map.get("dictionary") if isinstance(marker_map, dict) else None
     lines = [""]
-    if family is not None and write_markers is None:
+    broken = map_problem(prepared)
+    if broken:
+        lines.append(f"markers: the marker map cannot be used: {broken.removeprefix('marker map: ')}")
+        if write_markers is None:
+            return lines, f"the marker map cannot be used ({broken.removeprefix('marker map: ')})"
+    map_seen = False
+    if family is not None:
         quick = scan_recording(prepared, families=(family,),
                                stop=lambda s: any(f.frames_seen >= MIN_FRAMES for f in s.found()))
-        if quick.found():
-            return lines + [f"markers: the map's family ({family}) is seen in the sampled frames"]
+        map_seen = bool(quick.found())
+        if map_seen and write_markers is None:
+            return lines + [f"markers: the map's family ({family}) is seen in the sampled frames"], ""
     scan = scan_recording(prepared, families=SCAN_FAMILIES)
     lines.append("markers seen in sampled frames (no map needed to list them; family, ids ×frames, apparent side):")
     lines += scan_lines(scan)
-    mismatch = mismatch_line(prepared, scan)
+    mismatch = None if map_seen else mismatch_line(prepared, scan)
+    problem = ""
+    found = scan.found()
     if mismatch:
         lines.append(f"markers: {mismatch}")
-    elif family is None and any(f.family != "qr" for f in scan.found()):
+        problem = mismatch
+    elif family is None and found and all(f.family != "qr" for f in found):
         lines.append(f"markers: no marker map — write one with `agvviz inspect {recording} --write-markers map.yaml`, "
                      f"fill it in, then `agvviz run {recording} --markers map.yaml`")
+        problem = f"the frames show {found[0].dictionary} markers and no marker map places them"
     if write_markers is not None:
         text = map_skeleton_yaml(scan, prepared.recording.name)
         outputs.atomic_write_text(write_markers, text, inputs=[recording] + ([markers] if markers else []))
         lines.append(f"marker map skeleton written: {write_markers} (fill in side_m and pose of each marker, then "
                      f"agvviz run {recording} --markers {write_markers})")
-    return lines
+    return lines, problem
 
 
 WEB_PORT = 9090  # Rerun's web viewer (HTTP) default

@@ -194,8 +194,11 @@ def test_inspect_lists_the_families_and_writes_a_map_skeleton(recordings, tmp_pa
     rec = recordings["apriltag"]
     out = tmp_path / "map.yaml"
     proc = _agvviz("inspect", rec, "--write-markers", out)
-    assert proc.returncode == 0, proc.stderr
+    # exit 1: as it is (no map) a run could use no frame; inspect says why and what to do
+    assert proc.returncode == 1, proc.stderr
     text = " ".join(proc.stdout.split())
+    assert "replay: the frames show DICT_APRILTAG_36h11 markers and no marker map places them" in text
+    assert "can be used" not in text
     assert "markers seen in sampled frames" in text
     assert "AprilTag 36h11 (DICT_APRILTAG_36h11): in 6 of 6 sampled frame(s); ids 1×6, 4×6, 9×6" in text
     assert f"side {SIDE_PX - 1}" in text or f"side {SIDE_PX}" in text or f"side {SIDE_PX + 1}" in text
@@ -215,8 +218,11 @@ def test_inspect_lists_the_families_and_writes_a_map_skeleton(recordings, tmp_pa
     out.write_text(yaml.safe_dump(skeleton))
     loaded = load_marker_map(out)
     assert loaded["dictionary"] == "DICT_APRILTAG_36h11" and [m["id"] for m in loaded["markers"]] == ["1", "4", "9"]
-    # the filled map passes run's family check
+    # the filled map passes run's family check, and inspect's
     family_check(prepare(rec, RunSettings(), side=SideInputs(marker_map=loaded)), str(rec))
+    proc = _agvviz("inspect", rec, "--markers", out)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "the map's family (DICT_APRILTAG_36h11) is seen in the sampled frames" in proc.stdout
 
 
 def test_inspect_refuses_to_write_the_map_over_an_input(recordings, tmp_path):
@@ -252,6 +258,7 @@ def test_a_map_of_another_family_is_one_line(recordings, tmp_path):
     with pytest.raises(FamilyMismatchError, match="the marker map says ArUco DICT_6X6_250, but the frames show AprilTag 36h11"):
         family_check(prepare(rec, RunSettings(), side=SideInputs(marker_map=load_marker_map(wrong))), str(rec))
     proc = _agvviz("inspect", rec, "--markers", wrong)
+    assert proc.returncode == 1
     assert "map says DICT_6X6_250, frames show DICT_APRILTAG_36h11" in " ".join(proc.stdout.split())
     proc = _agvviz("run", rec, "--markers", wrong, "--out", tmp_path / "w.rrd", "--jobs", "1")
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "the marker map says" in proc.stderr
@@ -279,3 +286,17 @@ def test_a_map_id_listed_twice_is_one_line(tmp_path, suffix):
         load_marker_map(path)
     proc = _agvviz("inspect", tmp_path / "missing.mcap", "--markers", path)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "appears twice" in proc.stderr
+
+
+def test_a_recorded_map_with_an_id_twice_is_one_line(tmp_path):
+    """An agvviz.MarkerMap in the recording listing id 1 twice: the replay refused it and then
+    rejected every frame as no_marker with exit 0; now inspect and run say why in one line."""
+    corners = [[0, 0.1, 1.1], [0.2, 0.1, 1.1], [0.2, 0.1, 0.9], [0, 0.1, 0.9]]
+    marker_map = {"dictionary": "DICT_APRILTAG_36h11", "markers": [
+        {"id": "1", "side_m": 0.2, "corners_world_m": corners}, {"id": "1", "side_m": 0.2, "corners_world_m": corners}]}
+    rec = write_recording(tmp_path / "dup.mcap", "apriltag", marker_map)
+    proc = _agvviz("run", rec, "--out", tmp_path / "d.rrd", "--jobs", "1")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert proc.stderr.startswith("error: the marker map cannot be used: id 1 appears more than once")
+    proc = _agvviz("inspect", rec)
+    assert proc.returncode == 1 and "the marker map cannot be used: id 1 appears more than once" in proc.stdout

@@ -112,17 +112,40 @@ def _ids_text(finding: FamilyFinding, limit: int = 8) -> str:
     return text + (f", … ({len(ids)} ids)" if len(ids) > limit else "")
 
 
+def map_problem(prepared) -> str:
+    """Why the marker map in use (the recording's ``/markers/map`` or ``--markers``) cannot be
+    used as it is, or ``""``: what the replay refused it for (e.g. an ArUco id listed twice,
+    which would otherwise only show as every frame rejected ``no_marker``), or a QR map listing
+    an id twice (the replay would keep the last silently)."""
+    ctx = prepared.replay.ctx
+    if ctx.marker_map is None:
+        return ""
+    if ctx.marker_map_problem:
+        return ctx.marker_map_problem
+    if _map_family(ctx.marker_map) == QR_FAMILY:
+        ids = [str(m.get("id")) for m in ctx.marker_map.get("markers", []) if isinstance(m, dict)]
+        repeated = sorted({i for i in ids if ids.count(i) > 1}) if len(ids) != len(set(ids)) else []
+        if repeated:
+            return f"marker map: id {repeated[0]} appears more than once" + (
+                f" (and {len(repeated) - 1} more repeated id(s))" if len(repeated) > 1 else "")
+    return ""
+
+
 def family_check(prepared, recording_arg: str, frames_per_camera: int = DEFAULT_FRAMES_PER_CAMERA) -> None:
     """Refuse, before a run, frames whose marker family the run cannot use
     (:class:`FamilyMismatchError`, one line naming the family and the command to run next):
 
     * no marker map and the frames show ArUco/AprilTag markers but no QR code;
-    * a map of one family and frames that show another, none of the map's.
+    * a map of one family and frames that show another, none of the map's;
+    * a map the replay refuses (:func:`map_problem`), e.g. an id listed twice.
 
     Nothing is refused when the expected family is seen, or when no family is (the run then
     rejects its frames as it always did). ``recording_arg`` is the recording as the user named
     it, for the command in the message."""
     marker_map = prepared.replay.ctx.marker_map
+    problem = map_problem(prepared)
+    if problem:
+        raise InputError(f"the marker map cannot be used: {problem.removeprefix('marker map: ')}")
     expected = _map_family(marker_map) or QR_FAMILY
     if not prepared.roles.cameras():
         return
@@ -156,22 +179,15 @@ def family_check(prepared, recording_arg: str, frames_per_camera: int = DEFAULT_
 
 
 def mismatch_line(prepared, scan: FamilyScan) -> str | None:
-    """``inspect``'s line when the recording's (or --markers) map names a family the sampled
-    frames do not show while they show another; None otherwise."""
+    """``inspect``'s line for a map (the recording's or --markers) whose family the sampled
+    frames did not show (the caller scanned for it first) while ``scan`` found others; None
+    without a map or when the scan found nothing."""
     expected = _map_family(prepared.replay.ctx.marker_map)
-    if expected is None:
-        return None
     found = scan.found()
-    if not found or any(f.family == expected or f.dictionary == expected or _same_family(f, expected) for f in found):
+    if expected is None or not found:
         return None
-    return f"map says {expected}, frames show {', '.join(f.dictionary for f in found)}: a run would find none of the map's markers"
-
-
-def _same_family(finding: FamilyFinding, dictionary: str) -> bool:
-    """DICT_6X6_250 in the map and DICT_6X6_1000 scanned are one family."""
-    if finding.family == QR_FAMILY or not dictionary.startswith("DICT_"):
-        return False
-    return finding.family.rsplit("_", 1)[0] == dictionary.rsplit("_", 1)[0] and "APRILTAG" not in dictionary
+    return (f"map says {expected}, frames show {', '.join(f.dictionary for f in found)}: "
+            f"a run would find none of the map's markers")
 
 
 def scan_lines(scan: FamilyScan) -> list[str]:
