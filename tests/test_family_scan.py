@@ -188,6 +188,9 @@ def test_scan_recording_samples_and_names(recordings):
     (finding,) = scan.found()
     assert finding.dictionary == "DICT_APRILTAG_36h11" and set(finding.ids) == set(APRIL_IDS)
     assert all(count == 4 for count in finding.ids.values())
+    # after the probe frames only the families seen are looked for: the same findings
+    narrowed = scan_recording(prepared, frames_per_camera=4, probe_frames=1)
+    assert [(f.dictionary, f.ids) for f in narrowed.found()] == [(finding.dictionary, finding.ids)]
 
 
 def test_inspect_lists_the_families_and_writes_a_map_skeleton(recordings, tmp_path):

@@ -40,15 +40,24 @@ class FamilyMismatchError(InputError):
     """The frames show a marker family the run cannot use as given (no map, or another map)."""
 
 
+#: Sampled frames of a camera scanned for every family; after them, only the families seen so
+#: far are looked for (when any was): identification against the 1000-id dictionaries costs
+#: ≈0.1 s per family on a cluttered 640×480 frame (docs/starting-without-a-map.md).
+PROBE_FRAMES = 6
+
+
 def scan_recording(
     prepared,
     frames_per_camera: int = DEFAULT_FRAMES_PER_CAMERA,
     families: tuple[str, ...] = SCAN_FAMILIES,
     stop: Callable[[FamilyScan], bool] | None = None,
+    probe_frames: int = PROBE_FRAMES,
 ) -> FamilyScan:
     """Scan up to ``frames_per_camera`` frames per camera of ``prepared`` (a
-    :class:`agvviz.runner.Prepared`) for ``families``, stopping early when ``stop(scan)`` holds
-    after a frame. Frames that cannot be decoded are skipped (a run reports them)."""
+    :class:`agvviz.runner.Prepared`) for ``families`` — all of them on a camera's first
+    ``probe_frames`` sampled frames, then only those seen so far (all again while none has
+    been) — stopping early when ``stop(scan)`` holds after a frame. Frames that cannot be
+    decoded are skipped (a run reports them)."""
     roles, recording_scan = prepared.roles, prepared.scan
     wanted: dict[str, tuple[str, set[int]]] = {}  # topic → (camera, sampled indices)
     for role, topic in roles.roles.items():
@@ -60,6 +69,7 @@ def scan_recording(
     if not wanted:
         return result
     seen = {topic: 0 for topic in wanted}
+    seen_families: dict[str, set[str]] = {}
     left = sum(len(indices) for _, indices in wanted.values())
     for item in prepared.recording.iter_raw(ReadReport(), set(wanted)):
         topic = getattr(item, "topic", None)
@@ -73,7 +83,12 @@ def scan_recording(
         left -= 1
         gray = _gray(item)
         if gray is not None:
-            result.add(cam, scan_frame(gray, families))
+            tried = families
+            if result.frames_sampled(cam) >= probe_frames and seen_families.get(cam):
+                tried = tuple(f for f in families if f in seen_families[cam])
+            markers = scan_frame(gray, tried)
+            seen_families.setdefault(cam, set()).update(m.family for m in markers)
+            result.add(cam, markers)
             if stop is not None and stop(result):
                 break
         if left <= 0:
