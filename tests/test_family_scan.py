@@ -303,3 +303,19 @@ def test_a_recorded_map_with_an_id_twice_is_one_line(tmp_path):
     assert proc.stderr.startswith("error: the marker map cannot be used: id 1 appears more than once")
     proc = _agvviz("inspect", rec)
     assert proc.returncode == 1 and "the marker map cannot be used: id 1 appears more than once" in proc.stdout
+
+
+def test_a_qr_map_with_an_id_twice_is_named():
+    """The replay would keep the last of two entries of a QR id silently; the check names it
+    (counted, not compared pairwise: a 200 000-code map stays linear)."""
+    from types import SimpleNamespace
+
+    from agvviz.graph.family_scan import map_problem
+
+    corners = [[0, 0, 0], [0, 1, 0], [1, 1, 0], [1, 0, 0]]
+    markers = [{"id": f"Q{i}", "corners_world_m": corners} for i in range(200_000)] + [{"id": "Q7", "corners_world_m": corners}]
+    ctx = SimpleNamespace(marker_map={"dictionary": "qr", "markers": markers}, marker_map_problem="")
+    prepared = SimpleNamespace(replay=SimpleNamespace(ctx=ctx))
+    assert map_problem(prepared) == "marker map: id Q7 appears more than once"
+    ctx.marker_map = {"dictionary": "qr", "markers": markers[:-1]}
+    assert map_problem(prepared) == ""

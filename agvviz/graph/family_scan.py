@@ -15,6 +15,7 @@ without a map). Reads frames through the recording's role map; the scan itself i
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import Callable
 
 import cv2
@@ -138,8 +139,8 @@ def map_problem(prepared) -> str:
     if ctx.marker_map_problem:
         return ctx.marker_map_problem
     if _map_family(ctx.marker_map) == QR_FAMILY:
-        ids = [str(m.get("id")) for m in ctx.marker_map.get("markers", []) if isinstance(m, dict)]
-        repeated = sorted({i for i in ids if ids.count(i) > 1}) if len(ids) != len(set(ids)) else []
+        counts = Counter(str(m.get("id")) for m in ctx.marker_map.get("markers", []) if isinstance(m, dict))
+        repeated = sorted(i for i, n in counts.items() if n > 1)
         if repeated:
             return f"marker map: id {repeated[0]} appears more than once" + (
                 f" (and {len(repeated) - 1} more repeated id(s))" if len(repeated) > 1 else "")
