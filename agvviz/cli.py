@@ -424,7 +424,11 @@ def inspect(
 
     Exits with code 1 when the file violates the contract, is damaged, or holds no frame a run could use (the causes are listed, as `run` would give them).
 
+    Marker families: without a marker map, sampled frames (up to 20 per camera) are scanned for QR, ArUco and AprilTag families and each camera's families, ids, counts and apparent sizes are listed; frames of ArUco/AprilTag markers with no map (or a map of another family) make it exit 1. --write-markers FILE writes a map skeleton to fill in (docs/starting-without-a-map.md).
+
     Example: agvviz inspect rosbag2_dir --topic truth=/vicon/agv/pose --write-roles roles.yaml
+
+    Example: agvviz inspect robot.mcap --write-markers map.yaml
     """
     from agvviz.recording.contract import format_report, inspect_recording
     from agvviz.recording.roles import parse_topic_options

@@ -5,7 +5,9 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
 
 - camera frames: ``frames``, ``solved``, ``rejected`` and the error statistics
   (:func:`agvviz.evaluation.summary.summarize`) — shown when the run had camera frames, or had
-  nothing else (a run whose every frame failed still says "frames N / solved 0");
+  nothing else (a run whose every frame failed still says "frames N / solved 0"); with a
+  ``truth`` row when truth was given but scored no frame (``truth["note"]``, from
+  :meth:`agvviz.graph.solve.Replay.truth_status`: the offset between the time spans);
 - UWB fusion: ``fusion`` (:class:`agvviz.evaluation.fusion_summary.FusionStats`);
 - corrections: ``correction`` (:class:`agvviz.graph.correct.CorrectionStats`), e.g. a corner-only
   ``auv_under_ice`` run, which has no camera frame and so no frame rows;
