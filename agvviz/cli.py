@@ -291,30 +291,36 @@ def _run(
         if out is not None:
             outputs.prepare_output(out, inputs=[recording])  # fail before minutes of work, not after
         error_budget = _error_budget_with_progress(recording, settings, None, jobs, cache_dir)
-    with _progress() as progress:
-        task = progress.add_task(f"replaying {recording.name}", total=None, rate="")
+    # The bar appears once the frames are counted: an input refused while the recording is
+    # prepared (e.g. frames of a marker family without a map) prints only its error line.
+    progress = _progress()
+    task = progress.add_task(f"replaying {recording.name}", total=None, rate="")
 
-        def on_total(total: int) -> None:
-            progress.update(task, total=total)
+    def on_total(total: int) -> None:
+        progress.start()
+        progress.update(task, total=total)
 
-        def on_frame(done: int) -> None:
-            elapsed = progress.tasks[task].elapsed or 0.0
-            rate = f"{done / elapsed:.1f} frames/s" if elapsed > 0 else ""
-            # the total is the busiest camera's image count: cameras that do not share every time
-            # stamp make more frames than that (auv_under_ice: 201 of "200")
-            total = progress.tasks[task].total
-            progress.update(task, completed=done, rate=rate, **({"total": done} if total is not None and done > total else {}))
+    def on_frame(done: int) -> None:
+        progress.start()
+        elapsed = progress.tasks[task].elapsed or 0.0
+        rate = f"{done / elapsed:.1f} frames/s" if elapsed > 0 else ""
+        # the total is the busiest camera's image count: cameras that do not share every time
+        # stamp make more frames than that (auv_under_ice: 201 of "200")
+        total = progress.tasks[task].total
+        progress.update(task, completed=done, rate=rate, **({"total": done} if total is not None and done > total else {}))
 
-        try:
-            outcome = run_recording(
-                recording, settings, out, progress=on_frame, topics=topic_map, roles_file=roles,
-                side=side, on_total=on_total, jobs=jobs, cache_dir=cache_dir, error_budget=error_budget,
-            )
-        except NoUsableFrameError as exc:
-            progress.stop()
-            for cause in exc.causes:  # one line per cause, then the one-line error
-                err_console.print(Text.assemble(("cause:", "bold"), " ", cause), soft_wrap=True, highlight=False)
-            raise
+    try:
+        outcome = run_recording(
+            recording, settings, out, progress=on_frame, topics=topic_map, roles_file=roles,
+            side=side, on_total=on_total, jobs=jobs, cache_dir=cache_dir, error_budget=error_budget,
+        )
+    except NoUsableFrameError as exc:
+        _stop_started(progress)
+        for cause in exc.causes:  # one line per cause, then the one-line error
+            err_console.print(Text.assemble(("cause:", "bold"), " ", cause), soft_wrap=True, highlight=False)
+        raise
+    finally:
+        _stop_started(progress)
     # The run's .rrd is complete and in place: an interrupt from here on would only make the exit
     # code say it failed (the robustness campaign's "output of a failed command").
     from agvviz.__main__ import outputs_complete
@@ -329,6 +335,12 @@ def _run(
     console.print(f"run written: [bold]{outcome.out_path}[/]")
     console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]")
     return outcome.out_path
+
+
+def _stop_started(progress: Progress) -> None:
+    """Stop a bar that was started (Rich prints a blank line when stopping on a non-terminal)."""
+    if progress.live.is_started:
+        progress.stop()
 
 
 def _budget_hint(scenario: Optional[dict]) -> None:
@@ -403,6 +415,7 @@ def inspect(
     topic: List[str] = typer.Option([], "--topic", metavar="ROLE=TOPIC", help=TOPIC_HELP),
     roles: Optional[Path] = typer.Option(None, "--roles", help=ROLES_HELP),
     write_roles: Optional[Path] = typer.Option(None, "--write-roles", help="write the role map to this file (edit it, then run --roles FILE)"),
+    write_markers: Optional[Path] = typer.Option(None, "--write-markers", help="write a marker map skeleton (YAML, for --markers) with every marker id the frames show; fill in each marker's side_m and pose (docs/starting-without-a-map.md)"),
     markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
     calibration: List[str] = typer.Option([], "--calibration", metavar="CAM=FILE", help=CALIBRATION_HELP),
     extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=EXTRINSIC_HELP),
@@ -411,7 +424,11 @@ def inspect(
 
     Exits with code 1 when the file violates the contract, is damaged, or holds no frame a run could use (the causes are listed, as `run` would give them).
 
+    Marker families: without a marker map, sampled frames (up to 20 per camera) are scanned for QR, ArUco and AprilTag families and each camera's families, ids, counts and apparent sizes are listed; frames of ArUco/AprilTag markers with no map (or a map of another family) make it exit 1. --write-markers FILE writes a map skeleton to fill in (docs/starting-without-a-map.md).
+
     Example: agvviz inspect rosbag2_dir --topic truth=/vicon/agv/pose --write-roles roles.yaml
+
+    Example: agvviz inspect robot.mcap --write-markers map.yaml
     """
     from agvviz.recording.contract import format_report, inspect_recording
     from agvviz.recording.roles import parse_topic_options
@@ -419,13 +436,19 @@ def inspect(
 
     settings = apply_overrides(RunSettings(), list(set_))
     topic_map = parse_topic_options(list(topic))
+    if write_markers is not None:  # before minutes of reading: never over an input
+        outputs.check_not_input(write_markers, [p for p in (recording, markers, roles) if p is not None], option="--write-markers")
     side = _side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
     prepared = prepare(recording, settings, topic_map, roles, side)
     report = inspect_recording(recording, roles=prepared.roles, time_source=settings.time_source)
     console.print(format_report(report), highlight=False, markup=False, soft_wrap=True)
     lines = ["", f"roles (body frame {prepared.body_frame}, time from {prepared.time_source}; override with --topic ROLE=TOPIC):"]
     lines += prepared.roles.lines() or ["  none"]
-    if prepared.usable_cameras:
+    marker_lines, family_problem = _marker_scan_lines(recording, prepared, markers, write_markers)
+    if family_problem:
+        lines.append(f"replay: {family_problem}")
+        lines.append("replay: a run would fail (`agvviz run` exits 2 naming the family)")
+    elif prepared.usable_cameras:
         lines.append(f"replay: frames of camera(s) {', '.join(prepared.usable_cameras)} can be used")
     for cause in prepared.causes:
         lines.append(f"replay: {cause}")
@@ -433,13 +456,62 @@ def inspect(
         lines.append(f"replay: warning: {note}")
     if not prepared.can_run:
         lines.append("replay: a run would fail (no frame can be used; `agvviz run` exits non-zero)")
+    lines += marker_lines
     console.print("\n".join(lines), highlight=False, markup=False, soft_wrap=True)
     if write_roles is not None:
         outputs.atomic_write_text(write_roles, prepared.roles.to_yaml(), inputs=[recording])
         console.print(f"roles written: {write_roles} (use it with --roles {write_roles})", highlight=False,
                       markup=False, soft_wrap=True)
-    if not report.ok or not prepared.can_run:
+    if not report.ok or not prepared.can_run or family_problem:
         raise typer.Exit(code=1)
+
+
+def _marker_scan_lines(recording: Path, prepared, markers: Optional[Path], write_markers: Optional[Path]) -> tuple[list[str], str]:
+    """inspect's marker families (issue 23): without a map (or with --write-markers) the sampled
+    frames are scanned for every common family; with a map, for its family first, and for the
+    others only when the map's is not seen. Writes the map skeleton when asked. Returns the
+    lines and, when a run would refuse the frames' family (no map, or another map), why."""
+    from agvviz.graph.family_scan import map_problem, map_skeleton_yaml, mismatch_line, scan_lines, scan_recording
+    from agvviz.markers.scan import MIN_FRAMES, SCAN_FAMILIES
+
+    if not prepared.roles.cameras():
+        if write_markers is not None:
+            raise InputError(f"--write-markers: {recording} has no camera images to find markers in; no map written")
+        return [], ""
+    marker_map = prepared.replay.ctx.marker_map
+    family = marker_map.get("dictionary") if isinstance(marker_map, dict) else None
+    lines = [""]
+    broken = map_problem(prepared)
+    if broken:
+        lines.append(f"markers: the marker map cannot be used: {broken.removeprefix('marker map: ')}")
+        if write_markers is None:
+            return lines, f"the marker map cannot be used ({broken.removeprefix('marker map: ')})"
+    map_seen = False
+    if family is not None:
+        quick = scan_recording(prepared, families=(family,),
+                               stop=lambda s: any(f.frames_seen >= MIN_FRAMES for f in s.found()))
+        map_seen = bool(quick.found())
+        if map_seen and write_markers is None:
+            return lines + [f"markers: the map's family ({family}) is seen in the sampled frames"], ""
+    scan = scan_recording(prepared, families=SCAN_FAMILIES)
+    lines.append("markers seen in sampled frames (no map needed to list them; family, ids ×frames, apparent side):")
+    lines += scan_lines(scan)
+    mismatch = None if map_seen else mismatch_line(prepared, scan)
+    problem = ""
+    found = scan.found()
+    if mismatch:
+        lines.append(f"markers: {mismatch}")
+        problem = mismatch
+    elif family is None and found and all(f.family != "qr" for f in found):
+        lines.append(f"markers: no marker map — write one with `agvviz inspect {recording} --write-markers map.yaml`, "
+                     f"fill it in, then `agvviz run {recording} --markers map.yaml`")
+        problem = f"the frames show {found[0].dictionary} markers and no marker map places them"
+    if write_markers is not None:
+        text = map_skeleton_yaml(scan, prepared.recording.name)
+        outputs.atomic_write_text(write_markers, text, inputs=[recording] + ([markers] if markers else []))
+        lines.append(f"marker map skeleton written: {write_markers} (fill in side_m and pose of each marker, then "
+                     f"agvviz run {recording} --markers {write_markers})")
+    return lines, problem
 
 
 WEB_PORT = 9090  # Rerun's web viewer (HTTP) default
@@ -925,7 +997,7 @@ def export(
 ) -> None:
     """Write the run's estimated and true trajectories (T_world_agv) for other tools.
 
-    tum: `<run>.estimate.tum` and `<run>.truth.tum`, lines `t tx ty tz qx qy qz qw`.
+    tum: `<run>.estimate.tum` and `<run>.truth.tum`, lines `t tx ty tz qx qy qz qw`. A run without ground truth exports its estimate alone and says so (no truth file is written). See docs/export.md.
 
     mcap: `<run>.poses.mcap`, Foxglove PoseInFrame on /agvviz/estimate/pose and /agvviz/truth/pose and FrameTransforms (world → agv_estimate, agv_truth) on /agvviz/tf, stamped with the recording's times: open it beside the recording in Foxglove. Needs pip install 'agvviz\\[export]'.
 
@@ -938,6 +1010,8 @@ def export(
     written = export_run(run_file, format_, out_dir)
     for item in written:
         console.print(f"{item.which}: {item.poses} poses → [bold]{escape(str(item.path))}[/]", soft_wrap=True)
+    for which, why in written.missing.items():
+        console.print(f"{which}: not written — {escape(why)}", soft_wrap=True, highlight=False)
 
 
 if __name__ == "__main__":

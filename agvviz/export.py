@@ -14,8 +14,13 @@ stamped with the frames' recording times (``log_time`` and the message stamp): p
 ``foxglove.PoseInFrame`` topic ``/agvviz/<which>/pose`` (the pose ``T_world_agv`` in frame
 ``world``) and, on ``/agvviz/tf``, a ``foxglove.FrameTransforms`` with the transform
 ``world`` → ``<body frame>_<which>`` (e.g. ``agv_estimate``, ``agv_truth``) at each pose, so the
-3D panel draws both next to the recording's own frames. The truth is written when the run has
-one; a metadata record ``agvviz`` names the run.
+3D panel draws both next to the recording's own frames. A metadata record ``agvviz`` names
+the run.
+
+A run without ground truth (most real logs) exports its estimate alone: the truth file is not
+written (no ``<run>.truth.tum``, no truth topic in the MCAP) and the result's ``missing`` says
+why, for the CLI to print. Only a run with nothing to export at all (no solved frame, or only
+the truth asked for and none there) is an :class:`ExportError`.
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ from agvviz.conventions import WORLD_FRAME
 from agvviz.errors import InputError, OutputError
 from agvviz.geometry import se3, so3
 from agvviz.viz import paths
-from agvviz.viz.readback import RrdReadError, document_json, read_rrd, transforms
+from agvviz.viz.readback import RrdReadError, document_json, has_rows, read_rrd, transforms
 
 FORMATS = ("tum", "mcap")
 #: Topics of the MCAP export: PoseInFrame per trajectory (format with ``which``), FrameTransforms.
@@ -51,6 +56,15 @@ class ExportedTrajectory:
     which: str  # "estimate" | "truth"
     path: Path
     poses: int
+
+
+class Exported(list):
+    """The :class:`ExportedTrajectory` items written, plus ``missing``: trajectory → why it was
+    not written (e.g. the run has no truth)."""
+
+    def __init__(self, items=(), missing: dict[str, str] | None = None):
+        super().__init__(items)
+        self.missing = dict(missing or {})
 
 
 def tum_time(time_ns: int) -> str:
@@ -75,10 +89,11 @@ def export_run(
     fmt: str = "tum",
     out_dir: str | os.PathLike | None = None,
     which: tuple[str, ...] = ("estimate", "truth"),
-) -> list[ExportedTrajectory]:
+) -> Exported:
     """Write ``<run stem>.<which>.tum`` for each trajectory in ``which`` (``fmt="tum"``), or one
-    ``<run stem>.poses.mcap`` holding them (``fmt="mcap"``; the truth only when the run has one);
-    returns what was written. Every trajectory is read before anything is written.
+    ``<run stem>.poses.mcap`` holding them (``fmt="mcap"``); returns what was written, and in
+    ``missing`` what was not (the truth of a run without one). Every trajectory is read before
+    anything is written.
 
     Parameters
     ----------
@@ -94,7 +109,8 @@ def export_run(
     Raises
     ------
     ExportError, RrdReadError
-        Unknown format or trajectory, or the run cannot be read.
+        Unknown format or trajectory, the run cannot be read, or it holds none of the
+        trajectories asked for (no frame solved).
     OutputError
         An output would be the run itself (also through a link), or cannot be written; no
         temporary file is left and existing outputs are untouched.
@@ -118,23 +134,34 @@ def export_run(
     manifest = document_json(contents, paths.RUN_MANIFEST) if paths.RUN_MANIFEST in contents.entity_paths else {}
     name = manifest.get("recording_name", run_path.stem)
     trajectories = {}  # which → (stamps ns, T_world_agv), all read before anything is written
+    missing = {}
     for key in which:
         entity = TRAJECTORIES[key]
-        if entity not in contents.entity_paths:
-            if fmt == "mcap" and key != "estimate":
-                continue  # the MCAP holds the truth when the run has one
-            raise ExportError(f"{run_path} has no {key} trajectory ({entity}): nothing was solved or no truth")
+        try:
+            present = has_rows(contents, entity, "Transform3D:translation")
+        except RrdReadError as exc:
+            raise ExportError(f"{run_path}: cannot read the {key} trajectory: {exc}") from exc
+        if not present:
+            if key == "truth" and len(which) > 1:
+                missing[key] = "the run has no ground truth (the recording gave none, or none at the frames' times)"
+                if fmt != "mcap" and targets[key].exists():
+                    missing[key] += f"; {targets[key]} is from an earlier export and was left as it was"
+                continue
+            what = "no frame was solved" if key == "estimate" else "the run has no ground truth"
+            raise ExportError(f"{run_path} has no {key} trajectory ({entity}): {what}")
         try:
             _, time_ns, T = transforms(contents, entity)
         except RrdReadError as exc:
             raise ExportError(f"{run_path}: cannot read the {key} trajectory: {exc}") from exc
         trajectories[key] = (time_ns, T)
+    if not trajectories:
+        raise ExportError(f"{run_path} has none of the trajectories asked for ({', '.join(which)})")
     outputs.prepare_dir(out_dir, option="--out-dir")
     if fmt == "mcap":
         data = mcap_bytes(trajectories, body_frame=str(manifest.get("body_frame") or "agv"), run_name=name)
         out_path = outputs.atomic_write_bytes(targets[which[0]], data, inputs=(run_path,))
-        return [ExportedTrajectory(key, out_path, len(T)) for key, (_, T) in trajectories.items()]
-    written = []
+        return Exported([ExportedTrajectory(key, out_path, len(T)) for key, (_, T) in trajectories.items()], missing)
+    written = Exported(missing=missing)
     for key, (time_ns, T) in trajectories.items():
         header = [
             f"# agvviz {key} trajectory of run {name} ({run_path.name}): T_world_agv",

@@ -435,6 +435,12 @@ def run_recording(
         else "cnoem" if is_cnoem_trials_recording(recording.scenario, roles)
         else None
     )
+    if study is None and roles.cameras():
+        # frames of a marker family the run cannot use (no map, or another map's family): one
+        # line naming the family and what to run next, before any work (issue 23)
+        from agvviz.graph.family_scan import family_check
+
+        family_check(prepared, str(recording_path))
     corners_only = not roles.cameras() and ROLE_CORNERS in roles.roles and ROLE_UWB_RANGE not in roles.roles
     if corners_only and settings.correction == "none" and study is None:
         raise InputError(
@@ -511,6 +517,7 @@ def run_recording(
         detection.store(read_report)
         summary["detection"] = detection.summary()
         summary["warnings"] = run_warnings(replay.warnings() + prepared.causes + detection.warnings(), read_report)
+        summary["truth"] = replay.truth_status()
         if error_budget is not None:
             summary["error_budget"] = error_budget.summary()
             logger.log_error_budget(error_budget)

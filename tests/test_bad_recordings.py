@@ -323,7 +323,23 @@ def test_ground_truth_shifted_by_an_hour(base, tmp_path):
     from agvviz.viz import paths
     from agvviz.viz.readback import document_json
 
-    assert document_json(tmp_path / f"{bad.stem}.rrd", paths.RUN_SUMMARY)["warnings"] == summary["warnings"]
+    stored = document_json(tmp_path / f"{bad.stem}.rrd", paths.RUN_SUMMARY)
+    assert stored["warnings"] == summary["warnings"]
+    # issue 23: the summary table (terminal and .rrd) says truth was given and scored nothing,
+    # naming the offset between the spans (the shift above, exactly: both spans start at frames)
+    from agvviz.evaluation.summary_table import summary_rows
+
+    truth = summary["truth"]
+    assert truth["given"] and truth["frames_scored"] == 0 and truth["frames_solved"] == 3
+    first_truth, first_image = min(truth_times(bad)), min(image_times(bad))
+    assert truth["truth_offset_s"] == pytest.approx((first_truth - first_image) / 1e9, abs=1e-9)
+    assert 3599.0 < truth["truth_offset_s"] < 3601.0
+    row = dict(summary_rows(summary, {}))["truth"]
+    assert row.startswith("given but no frame scored — truth stamps start 3600") and "after the images" in row
+    assert row.endswith("check the time base")
+    assert stored["truth"] == truth
+    markdown = _summary_text(tmp_path / f"{bad.stem}.rrd")
+    assert "| truth |" in markdown and "check the time base" in markdown
 
 
 def test_truth_that_scores_nothing_is_a_warning(base, tmp_path):
@@ -336,6 +352,28 @@ def test_truth_that_scores_nothing_is_a_warning(base, tmp_path):
     summary = run(bad, tmp_path)
     assert summary["position_error_mm"]["n"] == 0
     assert any("no frame could be scored against it" in w for w in summary["warnings"]), summary["warnings"]
+    assert summary["truth"]["frames_scored"] == 0 and "truth overlaps the images" in summary["truth"]["note"]
+
+
+def test_truth_that_scores_is_no_row(base_run):
+    from agvviz.evaluation.summary_table import summary_rows
+
+    truth = base_run.summary["truth"]
+    assert truth == {"given": True, "frames_solved": 3, "frames_scored": 3}
+    assert "truth" not in dict(summary_rows(base_run.summary, {}))
+
+
+def truth_times(path: Path) -> list[int]:
+    with open(path, "rb") as f:
+        return [m.log_time for _, c, m in make_reader(f).iter_messages(topics=["/agv/ground_truth"])]
+
+
+def _summary_text(rrd: Path) -> str:
+    """The run/summary markdown document of ``rrd``, read back with Rerun."""
+    from agvviz.viz import paths
+    from agvviz.viz.readback import read_rrd, text_document
+
+    return text_document(read_rrd(rrd), paths.RUN_SUMMARY)
 
 
 def test_duplicated_messages_are_dropped(base, base_run, tmp_path):

@@ -208,3 +208,90 @@ def test_tum_export_gives_evo_ape_equal_to_agvviz(qr_floor_run, tmp_path, align)
     max_coord_m = max(np.abs(traj_ref.positions_xyz).max(), np.abs(traj_est.positions_xyz).max())
     tolerance_mm = 2 * (2 * np.sqrt(3) * 5e-9 * max_coord_m) * 1000.0
     assert abs(evo_rmse_mm - ours["ape_trans_rmse_mm"]) <= tolerance_mm, (evo_rmse_mm, ours["ape_trans_rmse_mm"])
+
+
+# -- a run without truth (issue 23: most real logs) ----------------------------------------------
+@pytest.fixture(scope="module")
+def runs_with_and_without_truth(tmp_path_factory):
+    """The same 3-frame qr_floor recording replayed as recorded and with its truth topic
+    dropped (rewritten with mcap's own writer)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    from agvviz import scenario_registry
+    from agvviz.runner import run_recording
+    from agvviz.settings import RunSettings
+
+    tmp = tmp_path_factory.mktemp("no_truth")
+    recording = tmp / "qr.mcap"
+    scenario_registry.record("qr_floor", recording, seed=2, overrides=["duration_s=0.6", "rate_hz=5", "realism=ideal"])
+    no_truth = tmp / "qr_no_truth.mcap"
+    with open(recording, "rb") as f_in, open(no_truth, "wb") as f_out:
+        reader = make_reader(f_in)
+        writer = Writer(f_out)
+        writer.start(profile=reader.get_header().profile, library="test")
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, dict(record.metadata))
+        schemas, channels = {}, {}
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            if channel.topic == "/agv/ground_truth":
+                continue
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas[schema.id], dict(channel.metadata))
+            writer.add_message(channels[channel.id], log_time=message.log_time, data=message.data,
+                               publish_time=message.publish_time)
+        writer.finish()
+    with_truth = run_recording(recording, RunSettings(solver="ippe"), tmp / "with.rrd").out_path
+    without = run_recording(no_truth, RunSettings(solver="ippe"), tmp / "without.rrd")
+    assert without.summary["position_error_mm"]["n"] == 0 and without.summary["solved"] == 3
+    return with_truth, without.out_path
+
+
+def test_export_without_truth_writes_the_estimate_and_says_so(runs_with_and_without_truth, tmp_path):
+    with_truth, without = runs_with_and_without_truth
+    written = export_run(without, "tum", tmp_path)
+    assert [(w.which, w.path.name, w.poses) for w in written] == [("estimate", "without.estimate.tum", 3)]
+    assert "no ground truth" in written.missing["truth"]
+    assert not (tmp_path / "without.truth.tum").exists()
+    # the estimate does not depend on the truth: equal to the run that had it
+    reference_written = export_run(with_truth, "tum", tmp_path / "ref")
+    reference = {w.which: w for w in reference_written}
+    assert reference["truth"].poses == 3 and not reference_written.missing
+    got_stamps, got = _read_tum(written[0].path)
+    want_stamps, want = _read_tum(reference["estimate"].path)
+    assert got_stamps == want_stamps
+    np.testing.assert_array_equal(got, want)
+    # asking for the truth alone is still an error: there is nothing to write
+    with pytest.raises(ExportError, match="no truth trajectory .*no ground truth"):
+        export_run(without, "tum", tmp_path, which=("truth",))
+
+
+def test_export_mcap_without_truth(runs_with_and_without_truth, tmp_path):
+    pytest.importorskip("foxglove", reason="foxglove-sdk (the export extra) is not installed")
+    _, without = runs_with_and_without_truth
+    written = export_run(without, "mcap", tmp_path)
+    assert [(w.which, w.path.name, w.poses) for w in written] == [("estimate", "without.poses.mcap", 3)]
+    assert "truth" in written.missing
+    messages, schemas, metadata = _read_mcap(written[0].path)
+    assert sorted(schemas) == ["/agvviz/estimate/pose", "/agvviz/tf"]
+    assert len(messages["/agvviz/estimate/pose"]) == 3
+    assert metadata[0].metadata["trajectories"] == "estimate"
+
+
+def test_cli_export_without_truth_exits_0_and_names_the_missing_truth(runs_with_and_without_truth, tmp_path):
+    import subprocess
+    import sys
+
+    _, without = runs_with_and_without_truth
+    (tmp_path / "without.truth.tum").write_text("# stale\n")  # an earlier export's file: named, kept
+    proc = subprocess.run([sys.executable, "-m", "agvviz", "export", str(without), "--out-dir", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    out = " ".join(proc.stdout.split())
+    assert "estimate: 3 poses" in out
+    assert "truth: not written — the run has no ground truth" in out
+    assert "was left as it was" in out and (tmp_path / "without.truth.tum").read_text() == "# stale\n"
+    assert (tmp_path / "without.estimate.tum").is_file()

@@ -5,7 +5,9 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
 
 - camera frames: ``frames``, ``solved``, ``rejected`` and the error statistics
   (:func:`agvviz.evaluation.summary.summarize`) — shown when the run had camera frames, or had
-  nothing else (a run whose every frame failed still says "frames N / solved 0");
+  nothing else (a run whose every frame failed still says "frames N / solved 0"); with a
+  ``truth`` row when truth was given but scored no frame (``truth["note"]``, from
+  :meth:`agvviz.graph.solve.Replay.truth_status`: the offset between the time spans);
 - UWB fusion: ``fusion`` (:class:`agvviz.evaluation.fusion_summary.FusionStats`);
 - corrections: ``correction`` (:class:`agvviz.graph.correct.CorrectionStats`), e.g. a corner-only
   ``auv_under_ice`` run, which has no camera frame and so no frame rows;
@@ -75,6 +77,8 @@ def _frame_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
         ("heading RMSE / median / p95 (deg)", f"{_fmt(hdg['rmse'], 3)} / {_fmt(hdg['median'], 3)} / {_fmt(hdg['p95'], 3)}")
     )
     rows.append(("reprojection RMS median (px)", _fmt(summary["reproj_rms_px"]["median"], 3)))
+    if summary.get("truth", {}).get("note"):  # truth given, no frame scored (issue 23)
+        rows.append(("truth", summary["truth"]["note"]))
     if "time_per_frame_ms" not in timing:  # a stored summary carries no wall-clock figures
         return rows
     rows.append((

@@ -353,6 +353,31 @@ class Replay:
             )
         return lines
 
+    def truth_status(self) -> dict:
+        """The run summary's ``truth`` section: whether ground truth was given, how many solved
+        frames it scored, and — when it was given but scored none — ``note``, one line naming
+        the offset between the truth's and the images' time spans (the usual cause: a truth
+        log on another clock or time zone)."""
+        status = {"given": self.truth_seen, "frames_solved": self.frames_solved, "frames_scored": self.frames_scored}
+        if not (self.truth_seen and self.frames_solved > 0 and self.frames_scored == 0):
+            return status
+        spans = self.time_checks.truth_vs_images()
+        note = "given but no frame scored"
+        if spans is not None:
+            (t0, t1), (i0, i1) = spans
+            offset_s = (t0 - i0) / 1e9
+            status["truth_offset_s"] = offset_s
+            if t0 > i1:
+                where = f"truth stamps start {offset_s:.6g} s after the images"
+            elif t1 < i0:
+                where = f"truth stamps start {-offset_s:.6g} s before the images (and end before them)"
+            else:
+                where = (f"truth overlaps the images in time (starting {offset_s:+.6g} s from them) but no "
+                         f"sample lies within truth_max_dt_s = {self.settings.truth_max_dt_s:g} s of a solved frame")
+            note += f" — {where}; check the time base"
+        status["note"] = note
+        return status
+
     def _known_cameras(self) -> set[str]:
         names = set(self.sync.calibrations) | set(self.sync.side_calibrations) | set(self.sync.side_extrinsics)
         names |= set(self.ctx.cameras) | set(self.camera_frames)

@@ -206,6 +206,15 @@ class TimeChecks:
         self._last_image[topic] = log_time_ns
         return None
 
+    def truth_vs_images(self) -> tuple[tuple[int, int], tuple[int, int]] | None:
+        """((first, last) truth log time, (first, last) image log time) in ns, or ``None`` when
+        no truth or no image has been seen."""
+        if self._truth is None or not self._images:
+            return None
+        first = min(v[2] for v in self._images.values())
+        last = max(v[3] for v in self._images.values())
+        return (self._truth[0], self._truth[1]), (first, last)
+
     def problems(self, truth_max_dt_ns: int = 0) -> list[str]:
         """Recording-level problems found so far (one line each)."""
         lines = []
@@ -237,12 +246,38 @@ class TimeChecks:
         return lines
 
 
-def qr_map_of(marker_map: dict) -> dict[str, np.ndarray]:
+class QrMap(dict):
+    """World corners (4, 3) per id of a QR marker map (a dict, built once and not changed), with
+    a k-d tree of the codes' centres built on first use: the nearest mapped code to a point and
+    each code's nearest neighbour cost O(log n) and O(n log n) in memory O(n), whatever the map
+    size (a 200 000-code map: no n × n array)."""
+
+    _tree = None
+
+    def centre_tree(self):
+        """``scipy.spatial.cKDTree`` of the codes' centres (the mean of their 4 corners)."""
+        if self._tree is None:
+            self._tree = _centre_tree(self)
+        return self._tree
+
+
+def _centre_tree(qr_map: dict):
+    from scipy.spatial import cKDTree
+
+    centres = np.array([np.asarray(c, dtype=float).mean(axis=0) for c in qr_map.values()]).reshape(-1, 3)
+    return cKDTree(centres)
+
+
+def _tree_of(qr_map: dict):
+    return qr_map.centre_tree() if isinstance(qr_map, QrMap) else _centre_tree(qr_map)
+
+
+def qr_map_of(marker_map: dict) -> QrMap:
     """World corners (4, 3) per id of a QR ``agvviz.MarkerMap`` (dictionary ``"qr"``); empty
     for ArUco maps and for markers mounted on the vehicle."""
+    out = QrMap()
     if not isinstance(marker_map, dict) or marker_map.get("dictionary") != "qr":
-        return {}
-    out = {}
+        return out
     for entry in marker_map.get("markers", []):
         if entry.get("frame", "world") != "world":
             continue
@@ -253,13 +288,14 @@ def qr_map_of(marker_map: dict) -> dict[str, np.ndarray]:
 
 
 def unmapped_tolerance_m(qr_map: dict[str, np.ndarray]) -> float:
-    """How far from the nearest mapped code a code the map does not list may be (m)."""
-    centres = np.array([c.mean(axis=0) for c in qr_map.values()])
+    """How far from the nearest mapped code a code the map does not list may be (m):
+    :data:`UNMAPPED_CODE_SPACINGS` × the largest nearest-neighbour distance between mapped
+    codes' centres, at least 1 m. Nearest neighbours come from a k-d tree (memory O(n))."""
     spacing = 0.0
-    if len(centres) > 1:
-        d = np.linalg.norm(centres[:, None] - centres[None], axis=2)
-        np.fill_diagonal(d, np.inf)
-        spacing = float(d.min(axis=1).max())
+    if len(qr_map) > 1:
+        tree = _tree_of(qr_map)
+        distances, _ = tree.query(tree.data, k=2)  # itself, then its nearest
+        spacing = float(distances[:, 1].max())
     return max(1.0, UNMAPPED_CODE_SPACINGS * spacing)
 
 
@@ -282,7 +318,7 @@ def payload_map_problem(
         return None
     tol = unmapped_tolerance_m(qr_map) if unmapped_tol_m is None else unmapped_tol_m
     centre = vertices.mean(axis=0)
-    nearest = min(float(np.linalg.norm(centre - c.mean(axis=0))) for c in qr_map.values())
+    nearest = float(_tree_of(qr_map).query(centre, k=1)[0])
     if nearest > tol:
         return (
             f"code {marker_id} is not in the marker map and its payload puts it {nearest:.1f} m "

@@ -301,6 +301,10 @@ def _aruco_marker(entry: object, where: str, dictionary: str, count: int) -> dic
     if not 0 <= marker_id < count:
         raise ValueError(f"{where}: id {marker_id} is not an id of {dictionary} (0..{count - 1})")
     where = f"{where} (id {marker_id})"
+    empty = [key for key in ("side_m", "pose", "corners_world_m") if key in entry and entry[key] is None]
+    if empty:
+        raise ValueError(f"{where}: {' and '.join(empty)} empty — fill in the marker's size and position, or "
+                         "remove the entry (docs/starting-without-a-map.md)")
     frame = _frame(entry, where)
     has_corners, has_pose = "corners_world_m" in entry, "pose" in entry
     if has_corners == has_pose:

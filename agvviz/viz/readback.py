@@ -93,12 +93,22 @@ def _int_times(batch: pa.RecordBatch) -> pa.RecordBatch:
     return pa.RecordBatch.from_arrays(columns, names=batch.schema.names)
 
 
-def _rows(src: str | os.PathLike | RrdContents, entity: str, component: str) -> list[dict]:
+def has_rows(src: str | os.PathLike | RrdContents, entity: str, component: str) -> bool:
+    """Whether ``entity`` has any row carrying ``component`` (e.g. a run's ``world/agv/truth``
+    holds its static body but no transform when the run had no truth); :class:`RrdReadError`
+    only for damaged data."""
+    return bool(_rows(src, entity, component, required=False))
+
+
+def _rows(src: str | os.PathLike | RrdContents, entity: str, component: str, required: bool = True) -> list[dict]:
     """Rows of ``entity`` that carry ``component``, each as {column name: value} (row id,
-    timelines present on that row's chunk, the component), sorted by row id = logging order."""
+    timelines present on that row's chunk, the component), sorted by row id = logging order.
+    None is :class:`RrdReadError` unless ``required`` is False (then an empty list)."""
     contents = _contents(src)
     entity = entity.lstrip("/")
     if entity not in contents.entity_paths:
+        if not required:
+            return []
         raise RrdReadError(f"{contents.path} has no entity {entity!r}")
     rows = []
     try:
@@ -110,7 +120,7 @@ def _rows(src: str | os.PathLike | RrdContents, entity: str, component: str) -> 
     except BaseException as exc:  # noqa: BLE001 — damaged chunk data
         raise RrdReadError(f"cannot read {entity!r} from {contents.path}: {_one_line(exc)}; {_REWRITE}") from exc
     rows = [row for row in rows if row.get(component) is not None]
-    if not rows:
+    if not rows and required:
         raise RrdReadError(f"{contents.path}: entity {entity!r} has no {component!r} data")
     return sorted(rows, key=lambda row: row[_ROW_ID])
 
