@@ -62,7 +62,7 @@ def main() -> None:
         options.append(f"marker_family={args.family}")
     print(f"qr_floor {' '.join(options)}; seeds {args.seeds}")
     errors = collections.defaultdict(list)
-    crlb_all, nees_all, in_view, left_out = [], [], collections.Counter(), 0
+    crlb_all, ratio_all, nees_all, in_view, left_out = [], [], [], collections.Counter(), 0
     with tempfile.TemporaryDirectory() as tmp:
         for seed in (int(s) for s in args.seeds.split(",")):
             recording = Path(tmp) / f"seed{seed}.mcap"
@@ -75,6 +75,7 @@ def main() -> None:
                 errors[mode] += [f.position_error_m for f in solved if f.position_error_m is not None]
                 if mode == "all":
                     crlb_all += [f.crlb_position_m for f in solved if f.crlb_position_m is not None]
+                    ratio_all += [f.position_over_crlb for f in solved if f.position_over_crlb is not None]
                     nees_all += [f.nees for f in solved if f.nees is not None]
                     in_view.update(len(f.observations) for f in frames)
                     left_out += sum(len(f.excluded_marker_ids) for f in frames)
@@ -84,8 +85,8 @@ def main() -> None:
     print(f"markers=largest: position RMSE {1000 * rmse_largest:.2f} mm  (solved {', '.join(errors['solved_largest'])})")
     print(f"markers=all:     position RMSE {1000 * rmse_all:.2f} mm  (solved {', '.join(errors['solved_all'])})")
     crlb = rms(crlb_all)
-    print(f"joint: RMS CRLB of all corners {1000 * crlb:.2f} mm; RMSE / CRLB = {rmse_all / crlb:.2f} (goal <= 1.1); "
-          f"NEES mean {np.mean(nees_all):.1f} (6 = consistent)")
+    print(f"joint: RMS CRLB of all corners {1000 * crlb:.2f} mm; RMSE / RMS CRLB = {rmse_all / crlb:.2f}; "
+          f"RMS of per-frame error / CRLB = {rms(ratio_all):.2f} (goal <= 1.1); NEES mean {np.mean(nees_all):.1f} (6 = consistent)")
 
 
 if __name__ == "__main__":
