@@ -15,6 +15,8 @@ Steps of :func:`solve_joint`:
    a loose gate (:data:`HYPOTHESIS_GATE_SIGMA` σ, at least :data:`HYPOTHESIS_GATE_MIN_PX`: a
    single marker's pose is imprecise in depth, so far markers land pixels away); the hypothesis
    that explains the most markers wins (the caller's start on ties: paper 000's largest code).
+   When none explains all, each is first refitted on the markers it puts within
+   :data:`LOCAL_GATE_PX` (local optimisation, as in LO-RANSAC) and counted again.
    When none explains half of them, all are fitted together (step 4 then says whether they
    disagree as a group).
 3. **Joint LM** over the corners of the markers that hypothesis explains; a marker it did not
@@ -49,6 +51,10 @@ from agvviz.solvers.registry import SolverOptions
 HYPOTHESIS_GATE_SIGMA = 10.0
 #: ... and at least this many pixels (a single-marker pose's depth error moves far markers).
 HYPOTHESIS_GATE_MIN_PX = 4.0
+#: When no hypothesis explains every marker, each is refitted on the markers it puts within
+#: this many pixels (a far marker under a near marker's pose), with at most this many LM steps.
+LOCAL_GATE_PX = 25.0
+LOCAL_ITERATIONS = 10
 
 
 @dataclass(frozen=True)
@@ -187,6 +193,25 @@ def solve_joint(
         inliers = _rms_each(T, views, K) <= gate_px
         if int(inliers.sum()) > best_count:  # strict: the caller's start wins ties
             best_count, best_used, start = int(inliers.sum()), inliers, T
+    if best_count < len(views):
+        # Local optimisation (as in LO-RANSAC): one marker's pose is poor in depth, so refit
+        # each hypothesis on the markers it roughly explains and count again.
+        for T in hypotheses:
+            near = _rms_each(T, views, K) <= max(gate_px, LOCAL_GATE_PX)
+            if near.sum() < 2:
+                continue
+            points_F, pixels = _stack([v for v, n in zip(views, near) if n])
+            T_local, _, _ = refine_lm(
+                T, points_F, pixels, K, objective=options.objective, max_iterations=LOCAL_ITERATIONS,
+                initial_damping=options.initial_damping, step_tol=options.step_tol, cost_rel_tol=options.cost_rel_tol,
+            )
+            if T_local is None:
+                continue
+            inliers = _rms_each(T_local, views, K) <= gate_px
+            if int(inliers.sum()) > best_count:
+                best_count, best_used, start = int(inliers.sum()), inliers, T_local
+            if best_count == len(views):
+                break
     used = list(best_used)
     if not any(used):
         return JointSolution(None, f"no pose explains any marker within {gate_px:.1f} px")
