@@ -24,10 +24,10 @@ Steps of :func:`solve_joint`:
 4. **χ² test per marker.** Under the joint pose, marker k's squared residuals over σ² follow
    χ² with ``2·n_k − h_k`` degrees of freedom (``h_k`` its share of the 6 fitted parameters,
    the trace of its block of the hat matrix). The worst marker above the
-   ``1 − p_outlier`` quantile is left out and the joint LM repeated — while the flagged
-   markers are a minority. When most markers are flagged the fault is not one marker's (a
-   wrong marker size, a wrong calibration, σ too small): all are kept and the solution says so
-   (:attr:`JointSolution.note`).
+   ``1 − p_outlier`` quantile is left out and the joint LM repeated. When at least half of
+   three or more markers fail (in the fit or left out of it) the fault is not one marker's (a
+   wrong marker size, a wrong calibration, σ too small): all are fitted together and the
+   solution says so (:attr:`JointSolution.note`).
 
 Every marker gets a :class:`MarkerCheck`: its χ² under the joint pose, its RMS, and how far its
 own (single-marker) camera position lies from the joint one.
@@ -221,6 +221,7 @@ def solve_joint(
         used = [True] * len(views)
     note = ""
     removed: set[int] = set()
+    group = False
     while True:
         points_F, pixels = _stack([v for v, u in zip(views, used) if u])
         path: list[np.ndarray] = []
@@ -237,21 +238,28 @@ def solve_joint(
         # A marker the start pose could not explain (depth error of one marker's pose) joins
         # once the joint pose explains it; one the χ² test left out stays out.
         readmit = [i for i in range(len(views)) if not used[i] and i not in removed and chi2_values[i] <= limits[i]]
+        readmit = [] if group else readmit
         if readmit:
             for i in readmit:
                 used[i] = True
             start = T
             continue
-        flagged = [i for i in range(len(views)) if used[i] and chi2_values[i] > limits[i]]
-        n_used = sum(used)
-        if not flagged or n_used <= 1:
+        if group:
             break
-        if 2 * len(flagged) >= n_used:
-            ids = ", ".join(views[i].marker_id for i in flagged[:6]) + (", …" if len(flagged) > 6 else "")
+        failing = [i for i in range(len(views)) if i not in removed and chi2_values[i] > limits[i]]
+        flagged = [i for i in failing if used[i]]
+        n_candidates = len(views) - len(removed)
+        if len(views) > 2 and failing and 2 * len(failing) >= n_candidates:
+            # Most markers fail together: not one marker at fault. Fit all, say so.
+            ids = ", ".join(views[i].marker_id for i in failing[:6]) + (", …" if len(failing) > 6 else "")
             note = (
-                f"markers disagree as a group ({len(flagged)} of {n_used} fail the χ² test at σ {sigma_px:.2g} px: "
+                f"markers disagree as a group ({len(failing)} of {n_candidates} fail the χ² test at σ {sigma_px:.2g} px: "
                 f"{ids}): a wrong marker size, calibration or σ, not one marker"
             )
+            group, used, start = True, [True] * len(views), T
+            removed.clear()
+            continue
+        if not flagged or sum(used) <= 1:
             break
         worst = max(flagged, key=lambda i: chi2_values[i] / limits[i])
         used[worst] = False
