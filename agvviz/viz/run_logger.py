@@ -1028,10 +1028,15 @@ def _covariance_ellipsoid(frame: FrameResult, scale: float) -> tuple[np.ndarray,
 def _lm_text(frame: FrameResult) -> str:
     """One line on what the solver did in ``frame`` (and which markers made the pose)."""
     text = _solve_text(frame)
+    markers = ""
     if len(frame.used_marker_ids) > 1:
-        text += f"  \nmarkers used jointly: {', '.join(frame.used_marker_ids)}"
+        markers = f"markers {', '.join(frame.used_marker_ids)} jointly"
+    if frame.excluded_marker_ids:
+        markers += f"{'; ' if markers else ''}**left out {', '.join(frame.excluded_marker_ids)}**"
+    if markers:
+        text = f"{markers} — {text}"
     if frame.marker_note:
-        text += f"  \n**{frame.marker_note}**"
+        text += f"  \n{frame.marker_note}"
     return text
 
 
