@@ -503,6 +503,38 @@ def test_a_fifo_is_refused_without_waiting_for_a_writer(tmp_path):
         list(iter_messages(fifo))  # opening it would block for ever
 
 
+@pytest.mark.parametrize("name", ["pipe.mcap", "pipe.bag"])
+def test_inspect_and_run_refuse_a_fifo_without_waiting_for_a_writer(tmp_path, name):
+    """The command line on a FIFO: one line and exit 2, at once (the recording-kind sniffing
+    must not open it: that waits for a writer). A watchdog thread feeds the pipe after 20 s so
+    a regression fails instead of hanging the suite."""
+    import os
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    done = threading.Event()
+
+    def unblock():
+        if not done.wait(20.0):
+            with open(fifo, "wb"):  # lets a blocked open() return
+                pass
+
+    threading.Thread(target=unblock, daemon=True).start()
+    try:
+        for command in (["inspect", str(fifo)], ["run", str(fifo), "--out", str(tmp_path / "x.rrd")]):
+            t0 = time.monotonic()
+            result = subprocess.run([sys.executable, "-m", "agvviz", *command], capture_output=True, text=True, timeout=60)
+            assert time.monotonic() - t0 < 20.0, f"{command[0]} waited on the FIFO"
+            assert result.returncode == 2, (command, result.returncode, result.stderr)
+            assert "not a regular file" in result.stderr and "Traceback" not in result.stderr
+    finally:
+        done.set()
+
+
 def _zero_chunk(uncompressed_bytes: int, claimed_bytes: int | None = None) -> bytes:
     """A zstd chunk record inflating to zero bytes, with its CRC right (a decompression bomb)."""
     import zlib

@@ -221,6 +221,8 @@ def _decompress(compression: str, data: bytes, size: int, complete: bool) -> byt
 def is_bag(path) -> bool:
     """True when ``path`` is a regular file starting with the ROS 1 bag magic (any version)."""
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return False  # opening a FIFO would wait for a writer
         with open(path, "rb") as f:
             return f.read(len(_MAGIC_PREFIX)) == _MAGIC_PREFIX
     except OSError:
