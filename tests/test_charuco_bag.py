@@ -157,6 +157,8 @@ def detected_corners(contents) -> dict[int, dict[int, np.ndarray]]:
         assert ids is not None and len(ids) == len(points)
         per_marker: dict[int, list] = {}
         for label, point in zip(ids, points):
+            if label.endswith(":chessboard"):
+                continue  # the board's saddle corners (their own label), not a marker's
             per_marker.setdefault(int(label), []).append(point)
         out[int(row["frame"])] = {k: np.array(v) for k, v in per_marker.items()}
     return out

@@ -40,6 +40,20 @@ SADDLE_OFFSET_FRACTION = 0.15
 MIN_SADDLES = 4
 
 
+#: What ends the name of a board's chessboard corners (:func:`chessboard_id`).
+CHESSBOARD_SUFFIX = ":chessboard"
+
+
+def chessboard_id(board_index: int) -> str:
+    """The name of board ``board_index``'s chessboard corners in a frame's record
+    (``used_marker_ids``, ``excluded_marker_ids``, notes) and in the viewer's labels."""
+    return f"board{board_index}{CHESSBOARD_SUFFIX}"
+
+
+def is_chessboard_id(marker_id: str) -> bool:
+    return isinstance(marker_id, str) and marker_id.endswith(CHESSBOARD_SUFFIX)
+
+
 @dataclass(frozen=True)
 class CharucoSpec:
     """One ChArUco board's layout (what detection needs; its pose is the map's business)."""
@@ -151,7 +165,7 @@ def detect_chessboard(
     if len(seen) < 2:
         return None
     empty = np.zeros(0, dtype=int), np.zeros((0, 2))
-    where = f"board {board_index} chessboard"
+    where = chessboard_id(board_index)
     check_board_frame(spec)
     ours = charuco_marker_corners(spec.squares_x, spec.squares_y, spec.square_length_m, spec.marker_length_m,
                                   spec.dictionary, list(spec.ids), spec.legacy_pattern)

@@ -197,6 +197,11 @@ def marker_map_from_document(document: object) -> dict:
         markers.append(marker)
     boards: list[dict] = []
     for i, board in enumerate(boards_in):
+        if isinstance(board, dict) and "chessboard_corners_m" in board:
+            # A board of an agvviz.MarkerMap (a map lifted out of a recording): its markers are
+            # listed already; parse_aruco_map below checks it against them.
+            boards.append(board)
+            continue
         board_markers, board_entry = _charuco_markers(board, f"boards[{i}]", dictionary)
         markers.extend(board_markers)
         boards.append(board_entry)
