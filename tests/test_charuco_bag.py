@@ -464,3 +464,23 @@ def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_pa
         assert abs(f.delta[0]) < 1.5e-3 and abs(f.delta[1]) < 1.5e-3, (f.marker_id, f.delta[:2])
         assert not f.flagged, (f.marker_id, f.reasons, f.distances)
     assert not [m for m in result.estimate.messages if "calibration error" in m], result.estimate.messages
+
+
+def test_a_board_of_the_wrong_dictionary_is_one_line(tmp_path):
+    """The board side file names DICT_5X5_250 where DICT_6X6 markers are printed: no marker of
+    the map is found, and the run stops before any work with one line naming the dictionary
+    the frames show (no pose, no saddles from markers that are not there)."""
+    bag, markers = write_bag_and_board(tmp_path)
+    board = yaml.safe_load(markers.read_text())
+    board["dictionary"] = "DICT_5X5_250"
+    markers.write_text(yaml.safe_dump(board))
+    command = [
+        sys.executable, "-m", "agvviz.cli", "run", str(bag), "--markers", str(markers),
+        "--calibration", f"{CAM}={CALIBRATION}", "--extrinsic", f"{CAM}=0,0,0,0,0,0,1",
+        "--out", str(tmp_path / "run.rrd"),
+    ]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 2, (done.stdout, done.stderr)
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "DICT_5X5_250" in lines[0] and "DICT_6X6" in lines[0], done.stderr
+    assert "Traceback" not in done.stderr and not (tmp_path / "run.rrd").exists()

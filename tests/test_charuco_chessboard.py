@@ -138,3 +138,73 @@ def test_a_board_of_odd_rows_is_the_same_in_both_patterns():
 def test_the_chessboard_name():
     assert chessboard_id(2) == "board2:chessboard" and is_chessboard_id("board2:chessboard")
     assert not is_chessboard_id("12")
+
+
+def board_map() -> dict:
+    from agvviz.recording.sidefiles import marker_map_from_document
+
+    return marker_map_from_document({
+        "dictionary": "DICT_6X6_250",
+        "boards": [dict(type="charuco", squares_x=5, squares_y=6, square_length_m=0.04, marker_length_m=0.03,
+                        legacy_pattern=True, pose=[1.0, 2.0, 0.0, 0.0, 0.0, 0.3826834, 0.9238795])],
+    })
+
+
+def test_the_map_keeps_the_board_and_its_chessboard_corners():
+    """A side file's board is kept beside its 15 markers (``boards``: layout, pose, the 20
+    chessboard corners in the world); the map lifted out as JSON reads back the same, and a
+    board entry that disagrees with its layout or markers is refused in one line."""
+    import json
+
+    from agvviz.markers.aruco import ArucoError, parse_aruco_map
+    from agvviz.recording.schemas import MARKER_MAP, validate
+    from agvviz.recording.sidefiles import marker_map_from_document
+
+    marker_map = board_map()
+    assert len(marker_map["markers"]) == 15 and validate(MARKER_MAP, marker_map) == []
+    (entry,) = marker_map["boards"]
+    assert entry["legacy_pattern"] is True and entry["ids"] == list(range(15)) and len(entry["chessboard_corners_m"]) == 20
+    lifted = json.loads(json.dumps(marker_map))
+    assert marker_map_from_document(lifted) == lifted
+    (board,) = parse_aruco_map(lifted).boards
+    assert board.spec == spec_of("DICT_6X6_250", (5, 6), True)
+    # the corner at the board's top-left inner saddle: (0.04, H − 0.04) in the board frame, turned 45° about z
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    assert np.allclose(board.corners_m[0], [1.0 + c * 0.04 - s * 0.20, 2.0 + s * 0.04 + c * 0.20, 0.0], atol=1e-6)
+    assert "boards" not in marker_map_from_document({"dictionary": "DICT_6X6_250", "markers": lifted["markers"]})
+    for key, value, message in [
+        ("legacy_pattern", False, "not where the board puts them"),
+        ("chessboard_corners_m", lifted["boards"][0]["chessboard_corners_m"][:-1], "chessboard_corners_m"),
+        ("squares_x", 7, "ids must list"),
+    ]:
+        bad = json.loads(json.dumps(marker_map))
+        bad["boards"][0][key] = value
+        with pytest.raises(ArucoError, match=message):
+            parse_aruco_map(bad)
+        with pytest.raises(ValueError, match=message):
+            marker_map_from_document(bad)
+
+
+def test_detect_params_know_the_boards_and_the_cache_keeps_the_saddles(tmp_path):
+    """DetectParams carry the boards (hashable, picklable; another board, another cache key);
+    the detection cache stores and returns the saddles."""
+    import pickle
+
+    from agvviz.graph import detect_cache
+    from agvviz.graph.detect import DetectParams, FrameDetections
+    from agvviz.graph.detect_pool import DetectedFrame
+    from agvviz.markers.aruco import parse_aruco_map
+    from agvviz.markers.charuco import ChessboardCorners
+
+    specs = tuple(b.spec for b in parse_aruco_map(board_map()).boards)
+    params = DetectParams(refine="subpix", aruco_dictionary="DICT_6X6_250", charuco_boards=specs)
+    assert pickle.loads(pickle.dumps(params)) == params and hash(params) == hash(pickle.loads(pickle.dumps(params)))
+    other = DetectParams(refine="subpix", aruco_dictionary="DICT_6X6_250", charuco_boards=(spec_of("DICT_6X6_250", (5, 6), False),))
+    assert detect_cache.cache_key(params, {}) != detect_cache.cache_key(other, {})
+    found = ChessboardCorners(0, np.array([3, 4]), np.array([[10.25, 20.5], [30.0, 40.125]]), "a note")
+    path = tmp_path / "entry.parquet"
+    detect_cache.save(path, [DetectedFrame(0, "cam", 5, FrameDetections(chessboards=(found,)))])
+    (frame,) = detect_cache.load(path)
+    (back,) = frame.detections.chessboards
+    assert back.board_index == 0 and back.corner_ids.tolist() == [3, 4] and back.note == "a note"
+    assert np.array_equal(back.corners_px, found.corners_px)
