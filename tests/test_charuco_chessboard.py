@@ -72,23 +72,34 @@ def test_opencv_board_is_agvviz_board(dictionary, squares, legacy):
     assert np.allclose(T[:3, 3], [0.0, H, 0.0], atol=1e-6)
 
 
-def render(spec: CharucoSpec) -> tuple[np.ndarray, np.ndarray]:
-    """(warped gray image, truth pixels (N, 2) of every chessboard corner by id). Drawn and
-    warped at 4× the size, then area-averaged down (an anti-aliased image, like a camera's)."""
+def render(spec: CharucoSpec, H: np.ndarray = H_WARP, out_size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(warped gray image, truth pixels (N, 2) of every chessboard corner by id): the drawn
+    board (pixel-centre coordinates) mapped by ``H``. Drawn and warped at 4× the size, then
+    area-averaged down (an anti-aliased image, like a camera's)."""
     board = opencv_board(spec)
     size = (spec.squares_x * SQUARE_PX + 2 * MARGIN_PX, spec.squares_y * SQUARE_PX + 2 * MARGIN_PX)
     image = board.generateImage((4 * size[0], 4 * size[1]), marginSize=4 * MARGIN_PX, borderBits=1)
     # pixel-centre coordinates: big = A · small (A: ×4 about the pixel edges)
     A = np.array([[4.0, 0.0, 1.5], [0.0, 4.0, 1.5], [0.0, 0.0, 1.0]])
-    out_size = (size[0] + 160, size[1] + 120)
-    big = cv2.warpPerspective(image, A @ H_WARP @ np.linalg.inv(A), (4 * out_size[0], 4 * out_size[1]),
+    out_size = out_size or (size[0] + 160, size[1] + 120)
+    big = cv2.warpPerspective(image, A @ H @ np.linalg.inv(A), (4 * out_size[0], 4 * out_size[1]),
                               flags=cv2.INTER_LINEAR, borderValue=255)
     out = cv2.resize(big, out_size, interpolation=cv2.INTER_AREA)
     # OpenCV's corner (x, y) m sits at pixel MARGIN + x·SQUARE_PX/square of the unwarped image
     # (pixel edges at integers, so minus 0.5 in pixel-centre coordinates), then the warp.
     corners = np.asarray(board.getChessboardCorners(), float)[:, :2] / spec.square_length_m * SQUARE_PX + MARGIN_PX - 0.5
-    h = np.c_[corners, np.ones(len(corners))] @ H_WARP.T
+    h = np.c_[corners, np.ones(len(corners))] @ H.T
     return out, h[:, :2] / h[:, 2:]
+
+
+def camera_view(spec: CharucoSpec, K: np.ndarray, T_cam_board: np.ndarray) -> np.ndarray:
+    """The homography drawn board pixels → image of a pinhole camera ``K`` at ``T_cam_board``
+    (agvviz's board frame: OpenCV's (x, y) is (x, H − y) there)."""
+    s = spec.square_length_m / SQUARE_PX
+    drawn_to_opencv = np.array([[s, 0.0, (0.5 - MARGIN_PX) * s], [0.0, s, (0.5 - MARGIN_PX) * s], [0.0, 0.0, 1.0]])
+    opencv_to_board = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, spec.squares_y * spec.square_length_m], [0.0, 0.0, 1.0]])
+    board_to_image = K @ np.column_stack([T_cam_board[:3, 0], T_cam_board[:3, 1], T_cam_board[:3, 3]])
+    return board_to_image @ opencv_to_board @ drawn_to_opencv
 
 
 def detect(gray: np.ndarray, spec: CharucoSpec):
@@ -124,6 +135,7 @@ def test_a_wrong_legacy_flag_gives_no_saddles_and_says_why(dictionary, squares):
     _, found = detect(gray, described)
     assert found is not None and len(found.corner_ids) == 0
     assert "do not lie where the board places them" in found.note and "legacy_pattern" in found.note
+    assert found.misplaced_ids, found.note
 
 
 def test_a_board_of_odd_rows_is_the_same_in_both_patterns():
@@ -208,3 +220,77 @@ def test_detect_params_know_the_boards_and_the_cache_keeps_the_saddles(tmp_path)
     (back,) = frame.detections.chessboards
     assert back.board_index == 0 and back.corner_ids.tolist() == [3, 4] and back.note == "a note"
     assert np.array_equal(back.corners_px, found.corners_px)
+
+
+def test_a_run_with_the_wrong_legacy_flag_gives_no_pose_and_says_why(tmp_path):
+    """A 5×6 board (even rows: the two patterns differ) printed in the new pattern, seen by a
+    known camera, replayed with ``agvviz run``: described right, every frame is solved with the
+    saddles (``board0:chessboard``) and the camera is where it was (1 mm, 0.1°: noise-free
+    render, ≈0.1 px saddles); described with ``legacy_pattern: true``, no frame gets a pose
+    and the run's warnings name the board, its misplaced markers and the flag to check. (Without
+    that check 12 of the 15 markers agree on a pose one square off — 0.06 px RMS — and the
+    joint solve would leave out the other 3: a wrong pose.)"""
+    import subprocess
+    import sys
+
+    import yaml
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from agvviz.geometry import se3, so3
+    from agvviz.viz import paths, readback
+
+    spec = spec_of("DICT_6X6_250", (5, 6), False)
+    K = np.array([[700.0, 0.0, 320.0], [0.0, 700.0, 240.0], [0.0, 0.0, 1.0]])
+    # camera 0.45 m from the board's centre, turned 15° about x and 10° about y, looking at it
+    R = so3.exp(np.radians([180.0 + 15.0, 10.0, 0.0]) * np.array([1.0, 1.0, 1.0]))
+    centre = np.array([0.1, 0.12, 0.0])
+    T_cam_board = se3.make(R, np.array([0.0, 0.0, 0.45]) - R @ centre)
+    gray, _ = render(spec, camera_view(spec, K, T_cam_board), (640, 480))
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    Image = typestore.types["sensor_msgs/msg/CompressedImage"]
+    Header, Time = typestore.types["std_msgs/msg/Header"], typestore.types["builtin_interfaces/msg/Time"]
+    with Writer(tmp_path / "bag", version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection("/cam/image_raw/compressed", Image.__msgtype__, typestore=typestore)
+        for i in range(3):
+            t_ns = 1_700_000_000_000_000_000 + i * 100_000_000
+            message = Image(header=Header(stamp=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id="cam"),
+                            format="png", data=np.frombuffer(cv2.imencode(".png", gray)[1].tobytes(), np.uint8))
+            writer.write(connection, t_ns, typestore.serialize_cdr(message, Image.__msgtype__))
+    storage = cv2.FileStorage(str(tmp_path / "calib.yml"), cv2.FILE_STORAGE_WRITE)
+    storage.write("image_width", 640)
+    storage.write("image_height", 480)
+    storage.write("camera_matrix", K)
+    storage.write("distortion_coefficients", np.zeros(5))
+    storage.release()
+    outcomes = {}
+    for legacy in (False, True):
+        board = dict(type="charuco", squares_x=5, squares_y=6, square_length_m=0.04, marker_length_m=0.03,
+                     legacy_pattern=legacy, pose=[0, 0, 0, 0, 0, 0, 1])
+        (tmp_path / "board.yaml").write_text(yaml.safe_dump({"dictionary": "DICT_6X6_250", "boards": [board]}))
+        out = tmp_path / f"run_{legacy}.rrd"
+        done = subprocess.run(
+            [sys.executable, "-m", "agvviz.cli", "run", str(tmp_path / "bag"), "--markers", str(tmp_path / "board.yaml"),
+             "--calibration", f"cam={tmp_path / 'calib.yml'}", "--extrinsic", "cam=0,0,0,0,0,0,1",
+             "--jobs", "1", "--no-cache", "--out", str(out)],
+            capture_output=True, text=True, timeout=600,
+        )
+        assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+        outcomes[legacy] = (readback.read_rrd(out), done.stdout + done.stderr)
+    contents, text = outcomes[False]
+    summary = readback.document_json(contents, paths.RUN_SUMMARY)
+    assert summary.get("solved", summary.get("frames_solved")) == 3, summary
+    frames, _, T_board_cam = readback.transforms(contents, paths.AGV_CAMERA)
+    texts = [r["TextDocument:text"][0] for r in readback._rows(contents, paths.LM_THIS_FRAME, "TextDocument:text")]
+    assert all("board0:chessboard" in t.split(" — ")[0] for t in texts), texts
+    for T in T_board_cam:
+        T = np.asarray(T, float)
+        assert np.linalg.norm(T[:3, 3] - se3.inverse(T_cam_board)[:3, 3]) < 1e-3
+        assert np.degrees(np.linalg.norm(so3.log(T[:3, :3] @ T_cam_board[:3, :3]))) < 0.1
+    assert "board0:chessboard" not in text
+    contents, text = outcomes[True]
+    summary = readback.document_json(contents, paths.RUN_SUMMARY)
+    assert summary.get("solved", summary.get("frames_solved")) == 0, text
+    assert "board0:chessboard: saddles not used on 3 frame(s)" in text and "legacy_pattern" in text, text
+    assert "markers 2, 7, 12 (3 of 15 seen) do not lie where the board places them" in text, text
+    assert summary["rejected"] == {"payload_map_mismatch": 3}, summary["rejected"]

@@ -86,7 +86,7 @@ def save(path: Path, frames: list[DetectedFrame]) -> None:
             ],
             "chessboards": [
                 {"board_index": b.board_index, "corner_ids": [int(i) for i in b.corner_ids],
-                 "corners_px": _points(b.corners_px), "note": b.note}
+                 "corners_px": _points(b.corners_px), "note": b.note, "misplaced_ids": list(b.misplaced_ids)}
                 for b in d.chessboards
             ],
         })
@@ -103,7 +103,7 @@ def save(path: Path, frames: list[DetectedFrame]) -> None:
         ("codes", pa.list_(code_type)),
         ("chessboards", pa.list_(pa.struct([
             ("board_index", pa.int64()), ("corner_ids", pa.list_(pa.int64())),
-            ("corners_px", pa.list_(pa.float64())), ("note", pa.string()),
+            ("corners_px", pa.list_(pa.float64())), ("note", pa.string()), ("misplaced_ids", pa.list_(pa.int64())),
         ]))),
     ])
     table = pa.Table.from_pylist(rows, schema=schema)
@@ -136,7 +136,7 @@ def load(path: Path) -> list[DetectedFrame] | None:
             )
             chessboards = tuple(
                 ChessboardCorners(int(b["board_index"]), np.asarray(b["corner_ids"], dtype=int),
-                                  _array(b["corners_px"]), b["note"] or "")
+                                  _array(b["corners_px"]), b["note"] or "", tuple(b["misplaced_ids"] or ()))
                 for b in r["chessboards"]
             )
             reject = (r["reject_reason"], r["reject_detail"] or "") if r["reject_reason"] else None

@@ -174,6 +174,8 @@ class Replay:
         self.frames_scored = 0  # solved frames scored against ground truth
         self.markers_left_out: dict[str, int] = {}  # marker id -> frames the joint solve left it out of
         self.frames_markers_disagree = 0  # frames whose markers failed the χ² test as a group
+        #: board chessboard name -> (frames its saddles were not used, the first such note)
+        self.chessboards_not_used: dict[str, tuple[int, str]] = {}
         self._solver_options = SolverOptions(
             objective=settings.objective, max_iterations=settings.lm_max_iterations
         )
@@ -335,6 +337,8 @@ class Replay:
                 f"markers left out of the joint solve by the χ² test: {shown}{more} — a marker left out "
                 "often is likely misplaced in the map or misprinted; `agvviz audit` estimates where it is"
             )
+        for name, (count, note) in sorted(self.chessboards_not_used.items()):
+            lines.append(f"{name}: saddles not used on {count} frame(s) — first: {note}")
         if self.frames_markers_disagree:
             lines.append(
                 f"{self.frames_markers_disagree} frame(s): the markers in view disagree as a group (most fail the "
@@ -514,6 +518,10 @@ class Replay:
         for found in chessboards:
             if found.note:
                 notes.append(found.note)
+            if len(found.corner_ids) == 0 and "not used" in found.note:  # not: too few markers in view
+                name = chessboard_id(found.board_index)
+                count, first = self.chessboards_not_used.get(name, (0, found.note))
+                self.chessboards_not_used[name] = (count + 1, first)
             if not 0 <= found.board_index < len(aruco_map.boards) or len(found.corner_ids) == 0:
                 continue
             board = aruco_map.boards[found.board_index]
@@ -529,6 +537,11 @@ class Replay:
             result.observations.append(observation)
             candidates.append((observation, ideal, board.points_board_m[ids], board.frame, board.T_frame_board))
         result.marker_note = "; ".join(notes)
+        misplaced = [found for found in chessboards if found.misplaced_ids]
+        if misplaced:
+            # A board seen unlike its description (a wrong legacy_pattern, ids or squares): its
+            # markers would give a pose off by whole squares. The frame is refused.
+            return [], [(REJECT_MAP_MISMATCH, found.note) for found in misplaced]
         if not candidates and not problems:
             problems.append((REJECT_NO_MARKER, f"no {aruco_map.dictionary} marker found"))
         return candidates, problems

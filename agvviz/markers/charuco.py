@@ -33,6 +33,10 @@ SUBPIX_HALF_WINDOW_PX = 3
 #: The board's markers must fit one homography (board plane → undistorted image) to this many
 #: pixels (RMS), else the layout is not the image's (wrong legacy_pattern, ids, squares).
 LAYOUT_RMS_PX = 1.5
+#: A marker whose corners lie further than this (RMS, px) from the homography of the board's
+#: other markers (RANSAC) is not where the board places it: the board's description is wrong
+#: (a wrong legacy_pattern moves some markers by a square, others not at all).
+MISPLACED_PX = 3.0
 #: A refined saddle further than this fraction of a square (in px) from where the markers'
 #: homography puts it is dropped (cornerSubPix walked to another feature).
 SADDLE_OFFSET_FRACTION = 0.15
@@ -78,12 +82,15 @@ class ChessboardCorners:
     board_index : the board's place in the map's ``boards``.
     corner_ids : (N,) int chessboard corner ids; corners_px : (N, 2).
     note : why none (or fewer) were kept, when the board's markers were seen.
+    misplaced_ids : markers of the board seen where the board does not place them (then no
+        corners): the board is not what the map says, and no pose from it can be trusted.
     """
 
     board_index: int
     corner_ids: np.ndarray
     corners_px: np.ndarray
     note: str = ""
+    misplaced_ids: tuple[int, ...] = ()
 
 
 @functools.lru_cache(maxsize=16)
@@ -171,6 +178,25 @@ def detect_chessboard(
                                   spec.dictionary, list(spec.ids), spec.legacy_pattern)
     plane = np.vstack([ours[i][:, :2] for i in seen])
     pixels = np.vstack([np.asarray(markers[i], dtype=float).reshape(4, 2) for i in seen])
+    # RANSAC (OpenCV's, fixed seed) then least squares on the markers it keeps: a marker that
+    # is not where the board places it shows up as one far from the others' homography.
+    H, _ = cv2.findHomography(plane, pixels, cv2.RANSAC, MISPLACED_PX) if len(seen) >= 3 else (None, None)
+    if H is None:
+        H, _ = cv2.findHomography(plane, pixels, 0)
+    if H is None:
+        return ChessboardCorners(board_index, *empty, f"{where}: its markers fit no homography")
+    fitted = cv2.perspectiveTransform(plane.reshape(1, -1, 2), H).reshape(-1, 2)
+    per_marker_px = np.sqrt(np.mean(np.sum((fitted - pixels) ** 2, axis=1).reshape(-1, 4), axis=1))
+    misplaced = tuple(int(i) for i, d in zip(seen, per_marker_px) if d > MISPLACED_PX)
+    if misplaced:
+        shown = ", ".join(map(str, misplaced[:6])) + (", …" if len(misplaced) > 6 else "")
+        return ChessboardCorners(
+            board_index, *empty,
+            f"{where} not used: its markers {shown} ({len(misplaced)} of {len(seen)} seen) do not lie where the board "
+            f"places them (up to {per_marker_px.max():.0f} px from the others' homography; check squares_x/y, ids, "
+            "legacy_pattern)",
+            misplaced,
+        )
     H, _ = cv2.findHomography(plane, pixels, 0)
     if H is None:
         return ChessboardCorners(board_index, *empty, f"{where}: its markers fit no homography")
