@@ -178,7 +178,7 @@ def detect_chessboard(
                                   spec.dictionary, list(spec.ids), spec.legacy_pattern)
     plane = np.vstack([ours[i][:, :2] for i in seen])
     pixels = np.vstack([np.asarray(markers[i], dtype=float).reshape(4, 2) for i in seen])
-    # RANSAC (OpenCV's, fixed seed) then least squares on the markers it keeps: a marker that
+    # RANSAC (OpenCV's, seeded the same on every call) then least squares on the markers it keeps: a marker that
     # is not where the board places it shows up as one far from the others' homography.
     H, _ = cv2.findHomography(plane, pixels, cv2.RANSAC, MISPLACED_PX) if len(seen) >= 3 else (None, None)
     if H is None:
@@ -238,11 +238,3 @@ def detect_chessboard(
         return ChessboardCorners(board_index, *empty, (note or where) + "; too few left, not used")
     return ChessboardCorners(board_index, ids[keep], refined[keep], note)
 
-
-def spec_error(spec: CharucoSpec) -> str:
-    """A one-line problem with ``spec`` that OpenCV or agvviz would refuse, or ''."""
-    try:
-        check_board_frame(spec)
-    except (ArucoError, cv2.error) as exc:
-        return str(exc).strip().splitlines()[-1]
-    return ""
