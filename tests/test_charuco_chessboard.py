@@ -294,3 +294,18 @@ def test_a_run_with_the_wrong_legacy_flag_gives_no_pose_and_says_why(tmp_path):
     assert "board0:chessboard: saddles not used on 3 frame(s)" in text and "legacy_pattern" in text, text
     assert "markers 2, 7, 12 (3 of 15 seen) do not lie where the board places them" in text, text
     assert summary["rejected"] == {"payload_map_mismatch": 3}, summary["rejected"]
+
+
+def test_saddles_left_out_are_named_apart_from_markers():
+    """The run's warnings name a board's saddles left out by the χ² test on their own line
+    (what to check for a board), not among the markers 'misplaced in the map'."""
+    from agvviz.graph.solve import Replay
+    from agvviz.settings import RunSettings
+
+    replay = Replay(RunSettings())
+    replay.markers_left_out = {"board0:chessboard": 2, "7": 3}
+    lines = replay.warnings()
+    (saddles,) = [line for line in lines if "board0:chessboard" in line]
+    assert saddles.startswith("board0:chessboard (the board's saddle corners) left out") and "2 frame(s)" in saddles
+    (markers,) = [line for line in lines if line.startswith("markers left out")]
+    assert "7 (3 frames)" in markers and "chessboard" not in markers

@@ -329,8 +329,14 @@ class Replay:
         no frame."""
         max_dt_ns = int(self.settings.truth_max_dt_s * 1e9)
         lines = self.time_checks.problems(max_dt_ns) + list(self.sync.notes.values())
-        if self.markers_left_out:
-            worst = sorted(self.markers_left_out.items(), key=lambda item: (-item[1], item[0]))
+        left_out = {k: n for k, n in self.markers_left_out.items() if not is_chessboard_id(k)}
+        for name, count in sorted((k, n) for k, n in self.markers_left_out.items() if is_chessboard_id(k)):
+            lines.append(
+                f"{name} (the board's saddle corners) left out of the joint solve by the χ² test on {count} frame(s): "
+                "they disagree with the markers — check the board's square_length_m and marker_length_m, and its flatness"
+            )
+        if left_out:
+            worst = sorted(left_out.items(), key=lambda item: (-item[1], item[0]))
             shown = ", ".join(f"{marker_id} ({count} frame{'s' if count > 1 else ''})" for marker_id, count in worst[:5])
             more = f" and {len(worst) - 5} more" if len(worst) > 5 else ""
             lines.append(
