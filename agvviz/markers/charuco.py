@@ -11,10 +11,11 @@ corner id: row ``c // (squares_x − 1)`` from the top, column ``c % (squares_x 
 :func:`detect_chessboard` gives OpenCV's ``CharucoDetector.detectBoard`` the markers agvviz
 already detected (in OpenCV's own corner order: AprilTag corners are turned back by
 :func:`agvviz.markers.apriltag.opencv_quarter_turns`), refines the saddles with
-``cornerSubPix`` and keeps them only when they agree with the board's layout: a homography
-fitted to the board's marker corners must explain them (a wrong ``legacy_pattern``, ``ids`` or
-square count puts markers where the image has none), and every saddle must lie near where that
-homography puts it.
+``cornerSubPix`` and keeps them only when they agree with the board's layout: every marker
+must lie on the homography (board plane → image) of the others (RANSAC, :data:`MISPLACED_PX`;
+a wrong ``legacy_pattern``, ``ids`` or square count moves some markers by whole squares — the
+result then names them in ``misplaced_ids`` and the solve refuses the frame), the markers must
+fit it as a whole (:data:`LAYOUT_RMS_PX`), and every saddle must lie near where it puts it.
 """
 
 from __future__ import annotations
