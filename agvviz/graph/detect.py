@@ -52,7 +52,7 @@ DETECTION_SETTINGS = ("refine", "feature_points", "tracking", "keyframe_every")
 #: Bumped whenever a change to detection or tracking changes what they output, so that cached
 #: detections (:mod:`agvviz.graph.detect_cache`, keyed by it and agvviz's version) of an earlier
 #: build are never reused.
-DETECT_REVISION = 4
+DETECT_REVISION = 5
 
 #: Shortest tracking segment (frames): the unit of work of a detection worker.
 MIN_SEGMENT_FRAMES = 30
@@ -65,14 +65,17 @@ def detection_settings(settings: RunSettings) -> dict:
 
 @dataclass(frozen=True)
 class DetectParams:
-    """What detection depends on besides the frame: the detection settings and the marker
-    family (``aruco_dictionary`` of the marker map, or None for QR codes)."""
+    """What detection depends on besides the frame: the detection settings, the marker
+    family (``aruco_dictionary`` of the marker map, or None for QR codes) and the layouts of the
+    map's ChArUco boards (``charuco_boards``, :class:`agvviz.markers.charuco.CharucoSpec`, in the
+    map's order), whose chessboard corners are found from their detected markers."""
 
     refine: str = "ecc"
     feature_points: str = "vertices"
     tracking: bool = True
     keyframe_every: int = 10
     aruco_dictionary: str | None = None
+    charuco_boards: tuple = ()
 
     def __post_init__(self) -> None:
         from agvviz.markers.qr import REFINE_METHODS as QR_REFINE_METHODS
@@ -91,8 +94,8 @@ class DetectParams:
             )
 
     @classmethod
-    def of(cls, settings: RunSettings, aruco_dictionary: str | None) -> "DetectParams":
-        return cls(**detection_settings(settings), aruco_dictionary=aruco_dictionary)
+    def of(cls, settings: RunSettings, aruco_dictionary: str | None, charuco_boards: tuple = ()) -> "DetectParams":
+        return cls(**detection_settings(settings), aruco_dictionary=aruco_dictionary, charuco_boards=tuple(charuco_boards))
 
     @property
     def tracks(self) -> bool:
@@ -147,6 +150,9 @@ class FrameDetections:
     or undecodable image, a size that is not the calibration's); ``drop_image`` then says the
     bytes are nothing a viewer should try to show. ``keyframe`` is False for a frame whose codes
     were tracked (``tracked`` of them); ``note`` says why tracking fell back, if it did.
+    ``chessboards`` are the saddle corners of the map's ChArUco boards in view
+    (:class:`agvviz.markers.charuco.ChessboardCorners`, undistorted image px; one with no
+    corners carries the note saying why they were not used).
     """
 
     codes: tuple[CodeDetection, ...] = ()
@@ -156,6 +162,7 @@ class FrameDetections:
     keyframe: bool = True
     tracked: int = 0
     note: str = ""
+    chessboards: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -275,6 +282,7 @@ class SegmentDetector:
             return FrameDetections(reject=reject, drop_image=drop, detect_s=time.perf_counter() - t0)
         params = self.params
         keyframe, tracked, note = True, 0, ""
+        chessboards: tuple = ()
         if params.aruco_dictionary is not None:
             from agvviz.markers.aruco import detect_aruco
 
@@ -285,6 +293,12 @@ class SegmentDetector:
                 )
                 for d in detect_aruco(gray, params.aruco_dictionary, refine=params.refine)
             )
+            if params.charuco_boards:
+                from agvviz.markers.charuco import detect_chessboard
+
+                seen = {c.aruco_id: c.corners_px for c in codes}
+                found = (detect_chessboard(gray, spec, i, seen) for i, spec in enumerate(params.charuco_boards))
+                chessboards = tuple(c for c in found if c is not None)
         elif params.tracks:
             if self._tracker is None:
                 from agvviz.markers.tracking import CodeTracker
@@ -300,7 +314,8 @@ class SegmentDetector:
 
             codes = tuple(_qr_code(gray, d, params) for d in detect_qr_codes(gray, refine=params.refine))
         return FrameDetections(
-            codes=codes, detect_s=time.perf_counter() - t0, keyframe=keyframe, tracked=tracked, note=note
+            codes=codes, detect_s=time.perf_counter() - t0, keyframe=keyframe, tracked=tracked, note=note,
+            chessboards=chessboards,
         )
 
 

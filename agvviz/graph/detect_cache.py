@@ -25,6 +25,7 @@ import numpy as np
 from agvviz import __version__, outputs
 from agvviz.graph.detect import DETECT_REVISION, CodeDetection, DetectParams, FrameDetections
 from agvviz.graph.detect_pool import DetectedFrame
+from agvviz.markers.charuco import ChessboardCorners
 
 CACHE_ENV = "AGVVIZ_CACHE_DIR"
 
@@ -83,6 +84,11 @@ def save(path: Path, frames: list[DetectedFrame]) -> None:
                 }
                 for c in d.codes
             ],
+            "chessboards": [
+                {"board_index": b.board_index, "corner_ids": [int(i) for i in b.corner_ids],
+                 "corners_px": _points(b.corners_px), "note": b.note, "misplaced_ids": list(b.misplaced_ids)}
+                for b in d.chessboards
+            ],
         })
     code_type = pa.struct([
         ("kind", pa.string()), ("corners_px", pa.list_(pa.float64())), ("raw_corners_px", pa.list_(pa.float64())),
@@ -95,6 +101,10 @@ def save(path: Path, frames: list[DetectedFrame]) -> None:
         ("reject_reason", pa.string()), ("reject_detail", pa.string()), ("drop_image", pa.bool_()),
         ("detect_s", pa.float64()), ("keyframe", pa.bool_()), ("tracked", pa.int64()), ("note", pa.string()),
         ("codes", pa.list_(code_type)),
+        ("chessboards", pa.list_(pa.struct([
+            ("board_index", pa.int64()), ("corner_ids", pa.list_(pa.int64())),
+            ("corners_px", pa.list_(pa.float64())), ("note", pa.string()), ("misplaced_ids", pa.list_(pa.int64())),
+        ]))),
     ])
     table = pa.Table.from_pylist(rows, schema=schema)
     buffer = pa.BufferOutputStream()
@@ -124,10 +134,16 @@ def load(path: Path) -> list[DetectedFrame] | None:
                 )
                 for c in r["codes"]
             )
+            chessboards = tuple(
+                ChessboardCorners(int(b["board_index"]), np.asarray(b["corner_ids"], dtype=int),
+                                  _array(b["corners_px"]), b["note"] or "", tuple(b["misplaced_ids"] or ()))
+                for b in r["chessboards"]
+            )
             reject = (r["reject_reason"], r["reject_detail"] or "") if r["reject_reason"] else None
             detections = FrameDetections(
                 codes=codes, reject=reject, drop_image=bool(r["drop_image"]), detect_s=0.0,
                 keyframe=bool(r["keyframe"]), tracked=int(r["tracked"]), note=r["note"] or "",
+                chessboards=chessboards,
             )
             frames.append(DetectedFrame(int(r["seq"]), r["cam_name"], int(r["log_time_ns"]), detections))
         if [f.seq for f in frames] != list(range(len(frames))):

@@ -35,6 +35,7 @@ from agvviz.graph.detect import (
     camera_model,
 )
 from agvviz.markers.aruco import ArucoError, ArucoMap, parse_aruco_map
+from agvviz.markers.charuco import chessboard_id, is_chessboard_id
 from agvviz.markers.payload import PayloadError, parse_payload
 from agvviz.recording.contract import (
     IMAGE_FORMATS,
@@ -173,6 +174,8 @@ class Replay:
         self.frames_scored = 0  # solved frames scored against ground truth
         self.markers_left_out: dict[str, int] = {}  # marker id -> frames the joint solve left it out of
         self.frames_markers_disagree = 0  # frames whose markers failed the χ² test as a group
+        #: board chessboard name -> (frames its saddles were not used, the first such note)
+        self.chessboards_not_used: dict[str, tuple[int, str]] = {}
         self._solver_options = SolverOptions(
             objective=settings.objective, max_iterations=settings.lm_max_iterations
         )
@@ -188,7 +191,9 @@ class Replay:
     def detect_params(self) -> DetectParams:
         """The detect stage's parameters: the detection settings and the marker family."""
         aruco = self.ctx.aruco_map
-        return DetectParams.of(self.settings, aruco.dictionary if aruco is not None else None)
+        if aruco is None:
+            return DetectParams.of(self.settings, None)
+        return DetectParams.of(self.settings, aruco.dictionary, tuple(b.spec for b in aruco.boards))
 
     def image_frame(self, message: RecordedMessage) -> CompressedFrame:
         """The message's frame under the camera name of its role (the role map names cameras)."""
@@ -324,14 +329,22 @@ class Replay:
         no frame."""
         max_dt_ns = int(self.settings.truth_max_dt_s * 1e9)
         lines = self.time_checks.problems(max_dt_ns) + list(self.sync.notes.values())
-        if self.markers_left_out:
-            worst = sorted(self.markers_left_out.items(), key=lambda item: (-item[1], item[0]))
+        left_out = {k: n for k, n in self.markers_left_out.items() if not is_chessboard_id(k)}
+        for name, count in sorted((k, n) for k, n in self.markers_left_out.items() if is_chessboard_id(k)):
+            lines.append(
+                f"{name} (the board's saddle corners) left out of the joint solve by the χ² test on {count} frame(s): "
+                "they disagree with the markers — check the board's square_length_m and marker_length_m, and its flatness"
+            )
+        if left_out:
+            worst = sorted(left_out.items(), key=lambda item: (-item[1], item[0]))
             shown = ", ".join(f"{marker_id} ({count} frame{'s' if count > 1 else ''})" for marker_id, count in worst[:5])
             more = f" and {len(worst) - 5} more" if len(worst) > 5 else ""
             lines.append(
                 f"markers left out of the joint solve by the χ² test: {shown}{more} — a marker left out "
                 "often is likely misplaced in the map or misprinted; `agvviz audit` estimates where it is"
             )
+        for name, (count, note) in sorted(self.chessboards_not_used.items()):
+            lines.append(f"{name}: saddles not used on {count} frame(s) — first: {note}")
         if self.frames_markers_disagree:
             lines.append(
                 f"{self.frames_markers_disagree} frame(s): the markers in view disagree as a group (most fail the "
@@ -473,7 +486,7 @@ class Replay:
             return self._reject(result, *detections.reject)
         camera = cam.camera
         if self.ctx.aruco_map is not None:
-            candidates, problems = self._aruco_candidates(detections.codes, camera, result)
+            candidates, problems = self._aruco_candidates(detections.codes, camera, result, detections.chessboards)
         else:
             candidates, problems = self._qr_candidates(detections.codes, camera, result)
         if not candidates:
@@ -482,9 +495,13 @@ class Replay:
             return self._reject(result, reason, "; ".join(d for _, d in problems))
         return self._solve_candidates(cam, candidates, result)
 
-    def _aruco_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameDraft):
+    def _aruco_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameDraft,
+                          chessboards: tuple = ()):
         """ArUco markers of the map among the detected codes: (candidates, problems) as in
-        :meth:`_qr_candidates`; a marker id the map does not list is a problem, not a pose."""
+        :meth:`_qr_candidates`; a marker id the map does not list is a problem, not a pose.
+        The saddle corners of each ChArUco board in view are one more candidate, named
+        :func:`chessboard_id` (for the joint solve only: never the largest marker); a board
+        whose saddles were not used says why in the frame's ``marker_note``."""
         aruco_map = self.ctx.aruco_map
         candidates, problems = [], []
         for det in codes:
@@ -503,6 +520,34 @@ class Replay:
             )
             result.observations.append(observation)
             candidates.append((observation, det.corners_px, marker.points_marker_m, marker.frame, marker.T_frame_marker))
+        notes = []
+        for found in chessboards:
+            if found.note:
+                notes.append(found.note)
+            if len(found.corner_ids) == 0 and "not used" in found.note:  # not: too few markers in view
+                name = chessboard_id(found.board_index)
+                count, first = self.chessboards_not_used.get(name, (0, found.note))
+                self.chessboards_not_used[name] = (count + 1, first)
+            if not 0 <= found.board_index < len(aruco_map.boards) or len(found.corner_ids) == 0:
+                continue
+            board = aruco_map.boards[found.board_index]
+            ids = np.asarray(found.corner_ids, dtype=int)
+            ideal = np.asarray(found.corners_px, dtype=float)
+            observation = MarkerObservation(
+                marker_id=chessboard_id(found.board_index),
+                payload="",
+                corners_px=_ideal_to_image_px(camera, ideal),
+                points_world_m=board.corners_m[ids],
+                points_frame=board.frame,
+            )
+            result.observations.append(observation)
+            candidates.append((observation, ideal, board.points_board_m[ids], board.frame, board.T_frame_board))
+        result.marker_note = "; ".join(notes)
+        misplaced = [found for found in chessboards if found.misplaced_ids]
+        if misplaced:
+            # A board seen unlike its description (a wrong legacy_pattern, ids or squares): its
+            # markers would give a pose off by whole squares. The frame is refused.
+            return [], [(REJECT_MAP_MISMATCH, found.note) for found in misplaced]
         if not candidates and not problems:
             problems.append((REJECT_NO_MARKER, f"no {aruco_map.dictionary} marker found"))
         return candidates, problems
@@ -566,9 +611,12 @@ class Replay:
         world and whichever rides on the AGV (:func:`agv_pose_from_marker`)."""
         camera = cam.camera
         t1 = time.perf_counter()
+        # A board's saddles join the joint solve; they are never "the largest marker".
+        markers = [c for c in candidates if not is_chessboard_id(c[0].marker_id)] or candidates
         observation, ideal_px, points_marker_m, marker_frame, T_frame_marker = max(
-            candidates, key=lambda c: quad_area_px2(c[1])
+            markers, key=lambda c: quad_area_px2(c[1][:4])
         )
+        board_note = result.marker_note
         result.used_marker_id = observation.marker_id
         camera_on_agv = marker_frame == WORLD_FRAME and cam.T_agv_cam is not None
         prior = None
@@ -603,7 +651,7 @@ class Replay:
                 self.settings.marker_outlier_p,
             )
             if joint.T_cam_F is None:
-                result.marker_note = f"joint solve failed ({joint.reason}): the largest code alone"
+                result.marker_note = _notes(f"joint solve failed ({joint.reason}): the largest code alone", board_note)
             else:
                 # From here on the "marker" is the frame F the markers are fixed in.
                 used = [c for c in same_frame if c[0].marker_id in joint.used]
@@ -613,7 +661,7 @@ class Replay:
                 solved = SolveResult(joint.T_cam_F, "", joint.iterations, joint.reproj_rms_px, joint.path)
                 result.used_marker_ids = joint.used
                 result.excluded_marker_ids = joint.excluded
-                result.marker_note = joint.note
+                result.marker_note = _notes(joint.note, board_note)
                 if len(joint.used) >= 2:
                     self._diagnostics.joint_resolved(result, len(joint.used))
         result.lm_iterations = list(solved.iterations)
@@ -661,6 +709,10 @@ class Replay:
             result, solved.T_cam_marker, points_marker_m, ideal_px, camera.K, cam.T_agv_cam, camera_on_agv
         )
         return result
+
+
+def _notes(*notes: str) -> str:
+    return "; ".join(n for n in notes if n)
 
 
 def agv_pose_from_marker(

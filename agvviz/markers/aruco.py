@@ -197,11 +197,30 @@ class MapMarker:
 
 
 @dataclass(frozen=True)
+class MapBoard:
+    """One ChArUco board of a marker map (its markers are in :attr:`ArucoMap.markers`).
+
+    spec : its layout (:class:`agvviz.markers.charuco.CharucoSpec`).
+    frame : "world" or "agv"; T_frame_board : (4, 4) the board frame in ``frame``.
+    points_board_m : (N, 3) chessboard corners by corner id in the board frame (z = 0);
+    corners_m : (N, 3) the same in ``frame``.
+    """
+
+    spec: object
+    frame: str
+    T_frame_board: np.ndarray
+    points_board_m: np.ndarray
+    corners_m: np.ndarray
+
+
+@dataclass(frozen=True)
 class ArucoMap:
-    """An ``agvviz.MarkerMap`` of ArUco markers: the dictionary and the markers by id."""
+    """An ``agvviz.MarkerMap`` of ArUco markers: the dictionary, the markers by id and the
+    ChArUco boards (optional ``boards`` key)."""
 
     dictionary: str
     markers: dict[int, MapMarker]
+    boards: tuple[MapBoard, ...] = ()
 
 
 def parse_aruco_map(marker_map: dict) -> ArucoMap | None:
@@ -254,7 +273,87 @@ def parse_aruco_map(marker_map: dict) -> ArucoMap | None:
         except DegenerateGeometryError as exc:
             raise ArucoError(f"marker map: marker {marker_id}: {exc}") from None
         markers[marker_id] = MapMarker(frame, corners, T_frame_marker, points_marker_m[:4])
-    return ArucoMap(dictionary, markers)
+    boards_in = marker_map.get("boards", [])
+    if boards_in is None:
+        boards_in = []
+    if not isinstance(boards_in, list):
+        raise ArucoError(f"marker map: boards must be a list, got {type(boards_in).__name__}")
+    boards = tuple(_map_board(entry, i, dictionary, count, markers) for i, entry in enumerate(boards_in))
+    return ArucoMap(dictionary, markers, boards)
+
+
+#: A board's stored chessboard corners and its markers' corners must agree with its layout and
+#: pose to this (metres; JSON round trips are exact, a hand edit is not).
+BOARD_TOLERANCE_M = 1e-6
+
+
+def _map_board(entry: object, index: int, dictionary: str, count: int, markers: dict[int, MapMarker]) -> MapBoard:
+    """A ``boards`` entry checked against its layout, its pose and the map's markers."""
+    from agvviz.markers.charuco import CharucoSpec, check_board_frame, chessboard_corners_board_m
+    from agvviz.geometry import se3
+
+    where = f"marker map: board {index}"
+    if not isinstance(entry, dict):
+        raise ArucoError(f"{where} must be an object, got {type(entry).__name__}")
+    if entry.get("type", "charuco") != "charuco":
+        raise ArucoError(f"{where}: type {_shown(entry.get('type'))} is not supported; only 'charuco'")
+    if entry.get("dictionary", dictionary) != dictionary:
+        raise ArucoError(f"{where}: dictionary {_shown(entry.get('dictionary'))} differs from the map's {dictionary!r}")
+    values = {}
+    for key in ("squares_x", "squares_y"):
+        v = entry.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or not 2 <= v <= 200:
+            raise ArucoError(f"{where}: {key} must be an integer in 2..200, got {_shown(v)}")
+        values[key] = v
+    for key in ("square_length_m", "marker_length_m"):
+        v = entry.get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0:
+            raise ArucoError(f"{where}: {key} must be a positive number, got {_shown(v)}")
+        values[key] = float(v)
+    if values["marker_length_m"] >= values["square_length_m"]:
+        raise ArucoError(f"{where}: marker_length_m must be below square_length_m")
+    legacy = entry.get("legacy_pattern", False)
+    if not isinstance(legacy, bool):
+        raise ArucoError(f"{where}: legacy_pattern must be true or false")
+    ids = entry.get("ids")
+    n_markers = values["squares_x"] * values["squares_y"] // 2
+    if (not isinstance(ids, list) or len(ids) != n_markers
+            or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < count for i in ids) or len(set(ids)) != len(ids)):
+        raise ArucoError(f"{where}: ids must list {n_markers} distinct ids of {dictionary}")
+    frame = entry.get("frame", "world")
+    if not (isinstance(frame, str) and frame in ("world", "agv")):
+        raise ArucoError(f"{where}: frame {_shown(frame)}; expected 'world' or 'agv'")
+    pose = entry.get("pose")
+    try:
+        pose = np.asarray(pose, dtype=float)
+    except (TypeError, ValueError):
+        pose = None
+    if pose is None or pose.shape != (7,) or not np.all(np.isfinite(pose)) or abs(np.linalg.norm(pose[3:]) - 1.0) > 1e-3:
+        raise ArucoError(f"{where}: pose must be [x, y, z, qx, qy, qz, qw] with a unit quaternion")
+    T_frame_board = se3.from_quaternion_xyzw(pose[3:] / np.linalg.norm(pose[3:]), pose[:3])
+    spec = CharucoSpec(dictionary, values["squares_x"], values["squares_y"], values["square_length_m"],
+                       values["marker_length_m"], tuple(ids), legacy)
+    check_board_frame(spec)
+    points_board_m = chessboard_corners_board_m(spec)
+    corners_m = se3.transform_points(T_frame_board, points_board_m)
+    if "chessboard_corners_m" in entry:
+        try:
+            stored = np.asarray(entry["chessboard_corners_m"], dtype=float)
+        except (TypeError, ValueError):
+            stored = None
+        if stored is None or stored.shape != corners_m.shape or not np.all(np.abs(stored - corners_m) <= BOARD_TOLERANCE_M):
+            raise ArucoError(f"{where}: chessboard_corners_m are not the {len(corners_m)} corners of its layout at its pose")
+    from agvviz.recording.sidefiles import charuco_marker_corners
+
+    expected = charuco_marker_corners(spec.squares_x, spec.squares_y, spec.square_length_m, spec.marker_length_m,
+                                      dictionary, list(ids), legacy)
+    for marker_id in ids:
+        marker = markers.get(marker_id)
+        if marker is None or marker.frame != frame:
+            raise ArucoError(f"{where}: its marker {marker_id} is not among the map's markers (in frame {frame!r})")
+        if not np.all(np.abs(se3.transform_points(T_frame_board, expected[marker_id]) - marker.corners_m) <= BOARD_TOLERANCE_M):
+            raise ArucoError(f"{where}: marker {marker_id}'s corners are not where the board puts them")
+    return MapBoard(spec, frame, T_frame_board, points_board_m, corners_m)
 
 
 def _shown(value: object) -> str:

@@ -38,7 +38,10 @@ MARKER_MAP = {
         "OpenCV ArUco dictionary name such as 'DICT_6X6_250'; payload is a QR code's text. "
         "frame (optional, default 'world') names the frame the corners are given in: 'agv' for "
         "a marker mounted on the vehicle (paper 003), whose corners_world_m are then in the "
-        "agv frame."
+        "agv frame. boards (optional) lists ChArUco boards whose markers are among markers: "
+        "their layout (squares, square and marker length, dictionary, legacy_pattern, ids), "
+        "pose [x, y, z, qx, qy, qz, qw] of the board frame in frame, and chessboard_corners_m, "
+        "the chessboard (saddle) corners in frame by OpenCV's ChArUco corner id (docs/joint-solve.md)."
     ),
     "type": "object",
     "required": ["dictionary", "markers"],
@@ -60,6 +63,29 @@ MARKER_MAP = {
                     },
                     "payload": {"type": "string"},
                     "frame": {"type": "string", "minLength": 1},
+                },
+            },
+        },
+        "boards": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "required": [
+                    "type", "squares_x", "squares_y", "square_length_m", "marker_length_m", "dictionary",
+                    "legacy_pattern", "ids", "pose", "chessboard_corners_m",
+                ],
+                "properties": {
+                    "type": {"type": "string", "minLength": 1},
+                    "squares_x": {"type": "integer", "minimum": 2},
+                    "squares_y": {"type": "integer", "minimum": 2},
+                    "square_length_m": {"type": "number", "exclusiveMinimum": 0},
+                    "marker_length_m": {"type": "number", "exclusiveMinimum": 0},
+                    "dictionary": {"type": "string", "minLength": 1},
+                    "legacy_pattern": {"type": "boolean"},
+                    "ids": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 1},
+                    "pose": {"type": "array", "items": {"type": "number"}, "minItems": 7, "maxItems": 7},
+                    "frame": {"type": "string", "minLength": 1},
+                    "chessboard_corners_m": {"type": "array", "items": _POINT3_M, "minItems": 1},
                 },
             },
         },

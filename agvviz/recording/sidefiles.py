@@ -142,8 +142,9 @@ def load_marker_map(path) -> dict:
     -------
     dict
         ``{"dictionary": str, "markers": [{"id": str, "side_m": float, "corners_world_m":
-        [[x, y, z]] * 4, "payload"?: str, "frame"?: "agv"}]}`` — exactly what the reader yields
-        for ``/markers/map``; boards are expanded into their markers.
+        [[x, y, z]] * 4, "payload"?: str, "frame"?: "agv"}], "boards"?: [...]}`` — exactly what
+        the reader yields for ``/markers/map``; boards are expanded into their markers and kept
+        under ``boards`` (layout, pose, chessboard corners in their frame).
 
     Raises
     ------
@@ -194,8 +195,16 @@ def marker_map_from_document(document: object) -> dict:
         where = f"markers[{i}]"
         marker = _qr_marker(entry, where) if is_qr else _aruco_marker(entry, where, dictionary, count)
         markers.append(marker)
+    boards: list[dict] = []
     for i, board in enumerate(boards_in):
-        markers.extend(_charuco_markers(board, f"boards[{i}]", dictionary))
+        if isinstance(board, dict) and "chessboard_corners_m" in board:
+            # A board of an agvviz.MarkerMap (a map lifted out of a recording): its markers are
+            # listed already; parse_aruco_map below checks it against them.
+            boards.append(board)
+            continue
+        board_markers, board_entry = _charuco_markers(board, f"boards[{i}]", dictionary)
+        markers.extend(board_markers)
+        boards.append(board_entry)
 
     seen: dict[str, int] = {}  # the replay looks markers up by id alone, whatever their frame
     for i, marker in enumerate(markers):
@@ -205,6 +214,8 @@ def marker_map_from_document(document: object) -> dict:
         seen[key] = i
 
     result = {"dictionary": dictionary, "markers": markers}
+    if boards:
+        result["boards"] = boards
     problems = validate(MARKER_MAP, result)
     if problems:
         raise ValueError("; ".join(problems[:3]))
@@ -419,8 +430,11 @@ def charuco_marker_corners(
     return corners
 
 
-def _charuco_markers(board: object, where: str, dictionary: str) -> list[dict]:
+def _charuco_markers(board: object, where: str, dictionary: str) -> tuple[list[dict], dict]:
+    """The board's markers (map entries) and the board's own map entry (its layout, pose and
+    chessboard corners in its frame: the ``boards`` of ``agvviz.MarkerMap``)."""
     from agvviz.markers.aruco import aruco_dictionary
+    from agvviz.markers.charuco import CharucoSpec, chessboard_corners_board_m
 
     board = _check_keys(board, _BOARD_KEYS, where)
     if board.get("type", "charuco") != "charuco":
@@ -471,7 +485,16 @@ def _charuco_markers(board: object, where: str, dictionary: str) -> list[dict]:
         if frame != WORLD_FRAME:
             entry["frame"] = frame
         out.append(entry)
-    return out
+    spec = CharucoSpec(dictionary, squares_x, squares_y, square, marker, tuple(ids), legacy)
+    board_entry = {
+        "type": "charuco", "squares_x": squares_x, "squares_y": squares_y, "square_length_m": square,
+        "marker_length_m": marker, "dictionary": dictionary, "legacy_pattern": legacy, "ids": list(ids),
+        "pose": [float(v) for v in T_frame_board[:3, 3]] + [float(v) for v in se3.to_quaternion_xyzw(T_frame_board)],
+        "chessboard_corners_m": se3.transform_points(T_frame_board, chessboard_corners_board_m(spec)).tolist(),
+    }
+    if frame != WORLD_FRAME:
+        board_entry["frame"] = frame
+    return out, board_entry
 
 
 # -- calibration -------------------------------------------------------------------------------

@@ -39,6 +39,7 @@ import rerun as rr
 from agvviz.evaluation.summary_table import markdown_table, summary_rows
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
+from agvviz.markers.charuco import is_chessboard_id
 from agvviz.results import FrameResult, LmIteration
 from agvviz.viz import paths
 from agvviz.viz.blueprint import default_blueprint
@@ -682,8 +683,9 @@ class RunLogger:
         for obs in frame.observations:
             corners = np.asarray(obs.corners_px, dtype=float)
             detected.append(corners)
+            # A ChArUco board's saddles carry their own label (board<k>:chessboard).
             detected_ids += [obs.marker_id] * len(corners)
-            centres.append(corners[:4].mean(axis=0))
+            centres.append((corners if is_chessboard_id(obs.marker_id) else corners[:4]).mean(axis=0))
             if obs.reprojected_px is not None:
                 reproj = np.asarray(obs.reprojected_px, dtype=float)
                 reprojected.append(reproj)
@@ -714,6 +716,8 @@ class RunLogger:
         small = []  # (longest edge, observation) of the codes under the threshold
         if below_px > 0 and frame.image_bytes:
             for obs in frame.observations:
+                if is_chessboard_id(obs.marker_id):
+                    continue  # saddles, not a code's outline
                 edge_px = _longest_edge_px(np.asarray(obs.corners_px, float)[:4])
                 if edge_px < below_px:
                     small.append((edge_px, obs))
@@ -749,7 +753,8 @@ class RunLogger:
         for obs in frame.observations:
             if obs.points_frame != "world":
                 continue
-            corners = np.asarray(obs.points_world_m, dtype=float)[:4]
+            corners = np.asarray(obs.points_world_m, dtype=float)
+            corners = _outline_of_points(corners) if is_chessboard_id(obs.marker_id) else corners[:4]
             outlines.append(np.vstack([corners, corners[:1]]))
             used = (
                 " (used)" if obs.marker_id in (frame.used_marker_ids or (frame.used_marker_id,))
@@ -1122,6 +1127,17 @@ def _pinhole(camera: PinholeCamera) -> rr.Pinhole:
         image_plane_distance=FRUSTUM_IMAGE_PLANE_M,
         color=COLOR_CAMERA,
     )
+
+
+def _outline_of_points(points_m: np.ndarray) -> np.ndarray:
+    """The convex hull (in their plane) of coplanar 3-D points: a board's saddles seen."""
+    centre = points_m.mean(axis=0)
+    if len(points_m) < 3:
+        return points_m
+    _, _, Vt = np.linalg.svd(points_m - centre)
+    uv = ((points_m - centre) @ Vt[:2].T).astype(np.float32)
+    hull = cv2.convexHull(uv, returnPoints=False).ravel()
+    return points_m[hull]
 
 
 def _check_frame(frame: FrameResult) -> None:
