@@ -205,6 +205,55 @@ def d2(T_cam_board_est, T_cam_board_ref, cov_left) -> float:
     return float(delta @ np.linalg.solve(cov_left, delta))
 
 
+def test_the_photos_in_a_ros1_bag_replay_like_the_ros2_bag(replay, tmp_path):
+    """The same real photos in a ROS 1 ``.bag`` written by ``rosbags`` (Noetic type store):
+    ``sensor_msgs/CompressedImage`` with the recorded bytes and a ``sensor_msgs/CameraInfo``
+    carrying the OpenCV calibration under ROS 1's upper-case ``K``/``D`` (instead of
+    ``--calibration``). The run reads it directly and gives the ROS 2 bag's poses (the same
+    bytes, the same calibration numbers: equal to round-off, 1e-9 m)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from agvviz.recording.sidefiles import load_calibration
+    from agvviz.viz import paths, readback
+    from agvviz.viz.readback import read_rrd
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    T = store.types
+    camera = load_calibration(CAM, CALIBRATION).camera
+    bag = tmp_path / "charuco.bag"
+    with Writer(bag) as writer:
+        image_conn = writer.add_connection(TOPIC, "sensor_msgs/msg/CompressedImage", typestore=store)
+        info_conn = writer.add_connection("/board_cam/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
+        for i, photo in enumerate(PHOTOS):
+            t_ns = T0_NS + i * DT_NS
+            header = T["std_msgs/msg/Header"](seq=i, stamp=T["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9),
+                                              frame_id="board_cam_optical_frame")
+            P = np.zeros(12)
+            P[[0, 1, 2, 4, 5, 6, 10]] = camera.K.ravel()[[0, 1, 2, 3, 4, 5, 8]]
+            info = T["sensor_msgs/msg/CameraInfo"](
+                header=header, height=camera.height_px, width=camera.width_px, distortion_model="plumb_bob",
+                D=np.asarray(camera.dist, dtype=np.float64), K=camera.K.ravel().astype(np.float64), R=np.eye(3).ravel(),
+                P=P, binning_x=0, binning_y=0,
+                roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+            )
+            writer.write(info_conn, t_ns, store.serialize_ros1(info, "sensor_msgs/msg/CameraInfo"))
+            image = T["sensor_msgs/msg/CompressedImage"](header=header, format="jpeg",
+                                                         data=np.frombuffer(photo.read_bytes(), dtype=np.uint8))
+            writer.write(image_conn, t_ns, store.serialize_ros1(image, "sensor_msgs/msg/CompressedImage"))
+    _, markers = write_bag_and_board(tmp_path)
+    out = tmp_path / "ros1.rrd"
+    command = [sys.executable, "-m", "agvviz.cli", "run", str(bag), "--markers", str(markers),
+               "--extrinsic", f"{CAM}=0,0,0,0,0,0,1", "--set", "ambiguity=lowest_error", "--out", str(out)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, f"{done.stdout}\n{done.stderr}"
+    contents_ros2, _, _ = replay
+    _, _, poses_ros2 = readback.transforms(contents_ros2, paths.AGV_CAMERA)
+    frames, _, poses_ros1 = readback.transforms(read_rrd(out), paths.AGV_CAMERA)
+    assert len(frames) == 4
+    np.testing.assert_allclose(np.asarray(poses_ros1)[:, :3, 3], np.asarray(poses_ros2)[:, :3, 3], atol=1e-9)
+
+
 def test_every_frame_is_solved(replay):
     from agvviz.viz import paths, readback
 
