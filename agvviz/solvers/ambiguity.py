@@ -64,22 +64,21 @@ def ippe_poses_batch(
     points_marker_m: list[np.ndarray], pixels_px: list[np.ndarray], K: np.ndarray
 ) -> tuple[np.ndarray, list[str]]:
     """Both solutions ``T_cam_marker`` of ``cv2.solvePnPGeneric(SOLVEPNP_IPPE)`` for each of B
-    coplanar point sets (z = 0), in OpenCV's order, unranked (:func:`ippe_pair` ranks them).
+    coplanar point sets (z = 0), in OpenCV's order, unranked (:func:`ippe_pair` ranks them by
+    reprojection error; a caller that needs both, not which is better, skips that).
 
     Returns ``(T, reasons)``: T (B, 2, 4, 4), NaN for a set without two valid solutions, and
     per set ``""`` or why not (OpenCV fails, returns fewer than two solutions, or a solution is
-    non-finite or puts a point behind the camera). OpenCV is called once per set; the rest is
-    vectorised over the sets.
+    non-finite or puts a point behind the camera).
     """
     K = np.ascontiguousarray(K, dtype=np.float64)
-    n_sets = len(points_marker_m)
-    reasons = [""] * n_sets
-    rvecs_tvecs = np.full((n_sets, 2, 6), np.nan)
-    objects = [np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3) for p in points_marker_m]
-    for k, (obj, px) in enumerate(zip(objects, pixels_px)):
+    T = np.full((len(points_marker_m), 2, 4, 4), np.nan)
+    reasons = [""] * len(points_marker_m)
+    for k, (points, pixels) in enumerate(zip(points_marker_m, pixels_px)):
+        obj = np.ascontiguousarray(points, dtype=np.float64)
         try:
             count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-                obj, np.ascontiguousarray(px, dtype=np.float64), K, None, flags=cv2.SOLVEPNP_IPPE
+                obj, np.ascontiguousarray(pixels, dtype=np.float64), K, None, flags=cv2.SOLVEPNP_IPPE
             )
         except cv2.error as exc:
             lines = str(exc).strip().splitlines()
@@ -88,29 +87,13 @@ def ippe_poses_batch(
         if count < 2:
             reasons[k] = f"IPPE returned {count} solution(s), need 2"
             continue
-        for j in range(2):
-            rvecs_tvecs[k, j, :3] = np.asarray(rvecs[j], float).ravel()
-            rvecs_tvecs[k, j, 3:] = np.asarray(tvecs[j], float).ravel()
-    T = se3.exp_batch(np.concatenate([np.zeros((2 * n_sets, 3)), rvecs_tvecs[:, :, :3].reshape(-1, 3)], axis=1))
-    T[:, :3, 3] = rvecs_tvecs[:, :, 3:].reshape(-1, 3)
-    T = T.reshape(n_sets, 2, 4, 4)
-    counts = np.array([len(obj) for obj in objects], dtype=int)
-    valid = np.zeros((2, n_sets), bool)
-    sets = np.flatnonzero(counts > 0)  # an empty set has OpenCV's reason already
-    if len(sets):
-        set_of_row = np.repeat(sets, counts[sets])
-        points = np.vstack([objects[k] for k in sets])
-        # depth of every point under both poses of its set: (2, N)
-        depth = np.einsum("njk,nk->jn", T[set_of_row, :, 2, :3], points) + T[set_of_row, :, 2, 3].T
-        starts = np.concatenate([[0], np.cumsum(counts[sets])[:-1]])
-        with np.errstate(invalid="ignore"):
-            in_front = np.minimum.reduceat(depth, starts, axis=1) > 0.0
-        valid[:, sets] = np.all(np.isfinite(T[sets]), axis=(2, 3)).T & in_front
-    for k in range(n_sets):
-        if not reasons[k] and not valid[:, k].all():
-            reasons[k] = "an IPPE solution is non-finite or puts a point behind the camera"
-        if reasons[k]:
-            T[k] = np.nan
+        for j, (rvec, tvec) in enumerate(zip(rvecs[:2], tvecs[:2])):
+            pose = se3.make(so3.exp(np.asarray(rvec, float).ravel()), np.asarray(tvec, float).ravel())
+            if not (np.all(np.isfinite(pose)) and np.all(se3.transform_points(pose, obj)[:, 2] > 0.0)):
+                reasons[k] = "an IPPE solution is non-finite or puts a point behind the camera"
+                T[k] = np.nan
+                break
+            T[k, j] = pose
     return T, reasons
 
 
