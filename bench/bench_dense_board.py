@@ -25,12 +25,24 @@ Printed, per refiner asked for:
 
 ``--write-recording`` writes the frames as an agvviz recording (calibration, marker map, camera
 at its true pose as the vehicle) to time ``agvviz run`` as a whole process.
+
+``--whole-run N`` times ``agvviz run REC --no-cache --jobs J`` as a whole process, N times
+(start-up, detection workers, solve, logging, the .rrd written): per run the wall time, the
+CPU time of the process and its detection workers (read from ``/proc`` while they run; Linux),
+the run's own throughput line and its position RMSE; printed are the medians, frames ÷ wall
+time, and frames ÷ (CPU time ÷ 2): the frames/s two otherwise idle cores would give.
+
+    PYTHONPATH=. python bench/bench_dense_board.py --frames 120 --whole-run 3
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import re
+import subprocess
 import sys
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 
@@ -185,18 +197,75 @@ def write_recording(path: str, frames) -> None:
             w.write_pose("/agv/ground_truth", T_world_cam, "world", t)
 
 
+def _process_tree_cpu_s(root_pid: int) -> dict[int, float]:
+    """CPU seconds (user + system) so far of ``root_pid`` and every process under it."""
+    tick = os.sysconf("SC_CLK_TCK")
+    parent, cpu = {}, {}
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/stat") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        parent[int(name)], cpu[int(name)] = int(fields[1]), (int(fields[11]) + int(fields[12])) / tick
+    tree, grown = {root_pid}, True
+    while grown:
+        children = {pid for pid, ppid in parent.items() if ppid in tree} - tree
+        tree |= children
+        grown = bool(children)
+    return {pid: cpu[pid] for pid in tree if pid in cpu}
+
+
+def whole_run(recording: str, jobs: int) -> dict:
+    """One ``agvviz run`` as a whole process: wall s, CPU s of its process tree (sampled every
+    20 ms until each process ends, so a process's last ≤ 20 ms are missed), its throughput
+    line and position RMSE."""
+    with tempfile.TemporaryDirectory() as tmp:
+        command = [sys.executable, "-m", "agvviz", "run", recording, "--no-cache", "--jobs", str(jobs),
+                   "--out", os.path.join(tmp, "run.rrd")]
+        cpu: dict[int, float] = {}
+        t0 = time.perf_counter()
+        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+            while proc.poll() is None:
+                cpu.update(_process_tree_cpu_s(proc.pid))
+                time.sleep(0.02)
+            wall_s = time.perf_counter() - t0
+            out = proc.stdout.read()
+    if proc.returncode != 0:
+        raise SystemExit(f"agvviz run failed (exit {proc.returncode}):\n{out[-2000:]}")
+
+    def figure(label: str) -> str:
+        match = re.search(re.escape(label) + r"[^│|]*[│|]\s*([^│|]+?)\s*[│|]", out)
+        return match.group(1) if match else "?"
+
+    return {"wall_s": wall_s, "cpu_s": sum(cpu.values()), "throughput": figure("throughput (frames/s"),
+            "position": figure("position RMSE / median / p95 (mm)")}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=16)
     parser.add_argument("--refine", nargs="+", default=["ecc"])
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--write-recording", metavar="PATH")
+    parser.add_argument("--whole-run", type=int, metavar="N", help="time `agvviz run` as a whole process N times")
+    parser.add_argument("--recording", metavar="PATH", help="--whole-run: this recording instead of rendering one")
     args = parser.parse_args(argv)
+    if args.whole_run and args.recording:
+        return print_whole_run(args.recording, args.whole_run, args.workers)
     frames = [render(seed) for seed in range(args.frames)]
     if args.write_recording:
         write_recording(args.write_recording, frames)
         print(f"wrote {args.frames} frames to {args.write_recording}")
         return 0
+    if args.whole_run:
+        with tempfile.TemporaryDirectory() as tmp:
+            recording = os.path.join(tmp, "dense.mcap")
+            write_recording(recording, frames)
+            return print_whole_run(recording, args.whole_run, args.workers)
     print(f"{args.frames} frames {WIDTH_PX}×{HEIGHT_PX}, {COLUMNS * ROWS} markers {DICTIONARY}; detect stage "
           f"(JPEG decode + detection + refinement)")
     print(f"{'refine':8s} {'CPU ms/frame':>12s} {'wall ms/frame':>13s} {f'fps {args.workers} cores (CPU)':>18s} "
@@ -207,6 +276,27 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['fps_pool']:20.2f} {r['found']:8.1f} {r['median']:9.4f} {r['rms']:7.4f} {r['p90']:7.4f}")
     print("fps on n cores (CPU) = n ÷ CPU time per frame (one OpenCV thread per process, as the detection workers run); "
           "fps (wall) = frames ÷ wall time through a pool of n processes, which a busy machine lowers")
+    return 0
+
+
+def print_whole_run(recording: str, runs: int, jobs: int) -> int:
+    from agvviz.recording import CompressedFrame, iter_messages
+
+    n_frames = sum(isinstance(m.value, CompressedFrame) for m in iter_messages(recording))
+    print(f"`agvviz run {os.path.basename(recording)} --no-cache --jobs {jobs}`, {n_frames} frames, whole process, "
+          f"{runs} runs (load average before: {os.getloadavg()[0]:.1f})")
+    print(f"{'run':>4s} {'wall s':>7s} {'CPU s':>6s} {'frames/s (wall)':>15s} {'frames/s (2 idle cores)':>23s} "
+          f"{'its throughput line':>19s}  position RMSE / median / p95 mm")
+    results = []
+    for k in range(runs):
+        r = whole_run(recording, jobs)
+        results.append(r)
+        print(f"{k + 1:4d} {r['wall_s']:7.2f} {r['cpu_s']:6.2f} {n_frames / r['wall_s']:15.1f} "
+              f"{n_frames / (r['cpu_s'] / 2):23.1f} {r['throughput']:>19s}  {r['position']}")
+    wall, cpu = np.median([r["wall_s"] for r in results]), np.median([r["cpu_s"] for r in results])
+    print(f"median: {wall:.2f} s wall, {cpu:.2f} s CPU: {n_frames / wall:.1f} frames/s (wall), "
+          f"{n_frames / (cpu / 2):.1f} frames/s on 2 idle cores (frames ÷ (CPU ÷ 2)); "
+          f"load average after: {os.getloadavg()[0]:.1f}")
     return 0
 
 

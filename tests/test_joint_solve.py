@@ -158,6 +158,49 @@ def test_two_markers_that_disagree_keep_the_start_and_name_the_other():
     assert solution.checks[1].own_offset_m == pytest.approx(0.3, abs=0.1)
 
 
+def test_marker_checks_match_their_definitions_marker_by_marker():
+    """Each MarkerCheck (computed for all markers at once: one projection, one Jacobian, OpenCV's
+    IPPE unranked) against its definition computed marker by marker: χ² = Σ‖r‖²/σ², the RMS
+    reprojection error, the χ² quantile at 2·n − leverage (leverage: trace of the marker's block
+    of the hat matrix of the used markers; 0 when left out), and the own-pose offset from
+    :func:`ippe_pair`'s two poses. Once with the start explaining every marker (the other
+    markers' IPPE poses are then not hypotheses) and once from a wrong marker's pose (they are)."""
+    from scipy.stats import chi2
+
+    from agvviz.solvers.lm import reprojection_rms_px
+
+    rng = np.random.default_rng(21)
+    true_markers = _world_markers()
+    mapped = list(true_markers)
+    mapped[2] = true_markers[2] @ se3.make(np.eye(3), [0.12, 0.0, 0.0])
+    sigma = 0.4
+    for start_from_wrong in (False, True):
+        views = _views(rng, sigma, mapped, true_markers)
+        if start_from_wrong:
+            pair, _ = ippe_pair(views[2].points_marker_m, views[2].ideal_px, K)
+            start = pair.T_best_cam_marker @ se3.inverse(views[2].T_F_marker)
+        else:
+            start, _ = _largest_start(views)
+        solution = solve_joint(views, K, start, sigma, OPTIONS)
+        assert solution.excluded == ("2",), solution.note
+        T = solution.T_cam_F
+        used = [c.used for c in solution.checks]
+        J_used = np.vstack([uncertainty.pixel_jacobian(T, v.points_F_m, K) for v, u in zip(views, used) if u])
+        information_inv = np.linalg.inv(J_used.T @ J_used)
+        p_joint = se3.inverse(T)[:3, 3]
+        for view, check in zip(views, solution.checks):
+            sum_sq, _ = uncertainty.residual_sum_sq_px2(T, view.points_F_m, view.ideal_px, K)
+            assert check.chi2 == pytest.approx(sum_sq / sigma**2, rel=1e-9)
+            assert check.rms_px == pytest.approx(reprojection_rms_px(T, view.points_F_m, view.ideal_px, K), rel=1e-9)
+            J = uncertainty.pixel_jacobian(T, view.points_F_m, K)
+            leverage = float(np.trace(J @ information_inv @ J.T)) if check.used else 0.0
+            assert check.chi2_limit == pytest.approx(chi2.ppf(1 - 1e-3, 2 * len(view.ideal_px) - leverage), rel=1e-9)
+            pair, _ = ippe_pair(view.points_marker_m, view.ideal_px, K)
+            own = [se3.inverse(T_own @ se3.inverse(view.T_F_marker))[:3, 3]
+                   for T_own in (pair.T_best_cam_marker, pair.T_other_cam_marker)]
+            assert check.own_offset_m == pytest.approx(min(np.linalg.norm(p - p_joint) for p in own), rel=1e-9, abs=1e-12)
+
+
 # -- the replay on rendered frames ---------------------------------------------------------------
 
 

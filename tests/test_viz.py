@@ -33,6 +33,7 @@ from agvviz.viz import paths
 from agvviz.viz.readback import (
     document_json,
     encoded_images,
+    line_strips2d,
     points2d,
     read_rrd,
     scalar_series,
@@ -314,3 +315,28 @@ def test_bad_frame_logs_nothing(tmp_path):
         logger.log_frame(bad)
     logger.close()
     assert sorted(encoded_images(tmp_path / "partial.rrd", paths.image(CAM))) == [good.index]
+
+
+def test_lm_paths_equal_input(tmp_path):
+    """Each LM record's reprojected points (lm_iteration_px) come back as one strip per point,
+    start → final, float32 as rerun stores 2D points; a frame with a different number of
+    iterations and points, and NaN (a pose with a point behind the camera), round-trip too."""
+    rng = np.random.default_rng(11)
+    frames = []
+    for i, (n_iter, n_points) in enumerate(((3, 4), (5, 128), (2, 8))):
+        frame = _frames(rng)[i]
+        per_iteration = [rng.uniform(0, 32, (n_points, 2)) for _ in range(n_iter)]
+        if i == 2:
+            per_iteration[0] = np.full((n_points, 2), np.nan)
+        lm = [LmIteration(cost=1.0, reproj_rms_px=1.0, damping=1e-3, step_norm=0.1, accepted=True)] * n_iter
+        frames.append(dataclasses.replace(frame, rejected=None, lm_iterations=lm, lm_iteration_px=tuple(per_iteration),
+                                          T_world_agv=frame.T_world_agv_truth))
+    _write_run(tmp_path / "lm.rrd", frames)
+    strips = line_strips2d(tmp_path / "lm.rrd", paths.lm_path(CAM))
+    assert sorted(strips) == [0, 1, 2]
+    for frame in frames:
+        want = np.stack(frame.lm_iteration_px, axis=1).astype(np.float32)  # (points, iterations, 2)
+        got = strips[frame.index]
+        assert len(got) == len(want)
+        for got_strip, want_strip in zip(got, want):
+            np.testing.assert_array_equal(got_strip, want_strip)

@@ -60,6 +60,51 @@ class IppePair:
         return self.rms_other_px / self.rms_best_px
 
 
+def ippe_poses_batch(
+    points_marker_m: list[np.ndarray], pixels_px: list[np.ndarray], K: np.ndarray
+) -> tuple[np.ndarray, list[str]]:
+    """Both solutions ``T_cam_marker`` of ``cv2.solvePnPGeneric(SOLVEPNP_IPPE)`` for each of B
+    coplanar point sets (z = 0), in OpenCV's order, unranked (:func:`ippe_pair` ranks them by
+    reprojection error; a caller that needs both, not which is better, skips that).
+
+    Returns ``(T, reasons)``: T (B, 2, 4, 4), NaN for a set without two valid solutions, and
+    per set ``""`` or why not (OpenCV fails, returns fewer than two solutions, or a solution is
+    non-finite or puts a point behind the camera).
+    """
+    K = np.ascontiguousarray(K, dtype=np.float64)
+    T = np.full((len(points_marker_m), 2, 4, 4), np.nan)
+    reasons = [""] * len(points_marker_m)
+    for k, (points, pixels) in enumerate(zip(points_marker_m, pixels_px)):
+        obj = np.ascontiguousarray(points, dtype=np.float64)
+        try:
+            count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+                obj, np.ascontiguousarray(pixels, dtype=np.float64), K, None, flags=cv2.SOLVEPNP_IPPE
+            )
+        except cv2.error as exc:
+            lines = str(exc).strip().splitlines()
+            reasons[k] = f"opencv error: {lines[-1] if lines else type(exc).__name__}"
+            continue
+        if count < 2:
+            reasons[k] = f"IPPE returned {count} solution(s), need 2"
+            continue
+        for j, (rvec, tvec) in enumerate(zip(rvecs[:2], tvecs[:2])):
+            pose = se3.make(so3.exp(np.asarray(rvec, float).ravel()), np.asarray(tvec, float).ravel())
+            if not (np.all(np.isfinite(pose)) and np.all(se3.transform_points(pose, obj)[:, 2] > 0.0)):
+                reasons[k] = "an IPPE solution is non-finite or puts a point behind the camera"
+                T[k] = np.nan
+                break
+            T[k, j] = pose
+    return T, reasons
+
+
+def ippe_poses(
+    points_marker_m: np.ndarray, pixels_px: np.ndarray, K: np.ndarray
+) -> tuple[tuple[np.ndarray, np.ndarray] | None, str]:
+    """:func:`ippe_poses_batch` of one point set: ``((T_a, T_b), "")`` or ``(None, reason)``."""
+    T, (reason,) = ippe_poses_batch([points_marker_m], [pixels_px], K)
+    return (None, reason) if reason else ((T[0, 0], T[0, 1]), "")
+
+
 def ippe_pair(
     points_marker_m: np.ndarray, pixels_px: np.ndarray, K: np.ndarray
 ) -> tuple[IppePair | None, str]:
@@ -68,23 +113,12 @@ def ippe_pair(
     Returns ``(pair, "")`` or ``(None, reason)`` when OpenCV fails, returns fewer than two
     solutions, or a solution puts a point behind the camera.
     """
+    both, reason = ippe_poses(points_marker_m, pixels_px, K)
+    if both is None:
+        return None, reason
     obj = np.ascontiguousarray(points_marker_m, dtype=np.float64)
     img = np.ascontiguousarray(pixels_px, dtype=np.float64)
-    try:
-        count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-            obj, img, np.ascontiguousarray(K, dtype=np.float64), None, flags=cv2.SOLVEPNP_IPPE
-        )
-    except cv2.error as exc:
-        lines = str(exc).strip().splitlines()
-        return None, f"opencv error: {lines[-1] if lines else type(exc).__name__}"
-    if count < 2:
-        return None, f"IPPE returned {count} solution(s), need 2"
-    poses = []
-    for rvec, tvec in zip(rvecs[:2], tvecs[:2]):
-        T = se3.make(so3.exp(np.asarray(rvec, float).ravel()), np.asarray(tvec, float).ravel())
-        if not (np.all(np.isfinite(T)) and np.all(se3.transform_points(T, obj)[:, 2] > 0.0)):
-            return None, "an IPPE solution is non-finite or puts a point behind the camera"
-        poses.append((reprojection_rms_px(T, obj, img, K), T))
+    poses = [(reprojection_rms_px(T, obj, img, K), T) for T in both]
     poses.sort(key=lambda item: item[0])
     (rms_a, T_a), (rms_b, T_b) = poses
     return IppePair(T_a, T_b, rms_a, rms_b), ""

@@ -10,7 +10,8 @@ every marker is one pixel residual of :func:`agvviz.solvers.lm.refine_lm` (left 
 Steps of :func:`solve_joint`:
 
 1. **Hypotheses.** The caller's start (the best single-marker pose, after its ambiguity rule)
-   and both IPPE poses of every marker on its own.
+   and both IPPE poses of every marker on its own. The latter are only computed when the start
+   does not explain every marker (it wins ties, so they could not change the choice).
 2. **Consensus.** Under each hypothesis every marker's RMS reprojection error is compared with
    a loose gate (:data:`HYPOTHESIS_GATE_SIGMA` σ, at least :data:`HYPOTHESIS_GATE_MIN_PX`: a
    single marker's pose is imprecise in depth, so far markers land pixels away); the hypothesis
@@ -31,6 +32,11 @@ Steps of :func:`solve_joint`:
 
 Every marker gets a :class:`MarkerCheck`: its χ² under the joint pose, its RMS, and how far its
 own (single-marker) camera position lies from the joint one.
+
+Cost: the markers' points are stacked once, and a pose is tested against all markers by one
+projection (a stack of hypotheses by one batched projection); the χ² test takes one Jacobian
+of all points. For 32 markers (128 points) a frame costs a few ms, most of it OpenCV's IPPE for
+the own-pose offsets and the LM (``bench/bench_dense_board.py``).
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 from agvviz.geometry import se3
 from agvviz.results import LmIteration
@@ -121,20 +127,55 @@ class JointSolution:
         return tuple(c.marker_id for c in self.checks if not c.used)
 
 
-def _stack(views: list[MarkerView]) -> tuple[np.ndarray, np.ndarray]:
-    return np.vstack([v.points_F_m for v in views]), np.vstack([v.ideal_px for v in views])
+def _chi2_quantile(q: float, dofs: np.ndarray) -> np.ndarray:
+    """χ² quantile ``q`` for each degrees of freedom: scipy.stats.chi2.ppf's own arithmetic
+    (2·P⁻¹(dof/2, q), regularised lower incomplete gamma), from scipy.special — importing
+    scipy.stats costs ≈1 s of every run's start-up."""
+    return 2.0 * gammaincinv(np.asarray(dofs, dtype=float) / 2.0, q)
 
 
-def _rms_each(T_cam_F: np.ndarray, views: list[MarkerView], K: np.ndarray) -> np.ndarray:
-    """RMS px per marker at ``T_cam_F`` (inf for a marker with a point behind the camera)."""
-    rms = np.empty(len(views))
-    for i, view in enumerate(views):
-        points = view.points_F_m
-        if np.all(se3.transform_points(T_cam_F, points)[:, 2] > 0.0):
-            rms[i] = reprojection_rms_px(T_cam_F, points, view.ideal_px, K)
-        else:
-            rms[i] = np.inf
-    return rms
+class _Stacked:
+    """Every marker's points in F and pixels stacked once, with each marker's rows, so a pose
+    is tested against all markers by one projection (:func:`_rms_each`, :func:`_chi2_each`)."""
+
+    def __init__(self, views: list[MarkerView]):
+        counts = np.array([len(v.ideal_px) for v in views])
+        if np.any(counts < 1):
+            raise ValueError("every marker view needs at least one point")
+        self.counts = counts
+        self.starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        self.marker_of_row = np.repeat(np.arange(len(views)), counts)
+        self.points_F = np.vstack([v.points_F_m for v in views])
+        self.pixels = np.vstack([np.asarray(v.ideal_px, dtype=float) for v in views])
+
+    def select(self, used) -> tuple[np.ndarray, np.ndarray]:
+        """(points F, pixels) of the markers flagged in ``used``, in the views' order."""
+        rows = np.asarray(used, dtype=bool)[self.marker_of_row]
+        return self.points_F[rows], self.pixels[rows]
+
+    def per_marker(self, per_row: np.ndarray) -> np.ndarray:
+        """Sums over each marker's rows along the last axis: (…, N) → (…, M)."""
+        return np.add.reduceat(per_row, self.starts, axis=-1)
+
+
+def _squared_errors_px2(T_cam_F: np.ndarray, stacked: _Stacked, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(squared pixel error of every point (…, N), each marker in front of the camera (…, M))
+    at one pose (4, 4) or a stack of poses (H, 4, 4)."""
+    w = se3.transform_points_batch(T_cam_F, stacked.points_F)
+    in_front = np.minimum.reduceat(w[..., 2], stacked.starts, axis=-1) > 0.0
+    projected = w @ np.asarray(K, dtype=float).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        error = projected[..., :2] / projected[..., 2:3] - stacked.pixels
+    return np.sum(error**2, axis=-1), in_front
+
+
+def _rms_each(T_cam_F: np.ndarray, stacked: _Stacked, K: np.ndarray) -> np.ndarray:
+    """RMS px per marker at ``T_cam_F`` (4, 4) → (M,), or at each of a stack of poses
+    (H, 4, 4) → (H, M); inf for a marker with a point behind the camera."""
+    squared, in_front = _squared_errors_px2(T_cam_F, stacked, K)
+    with np.errstate(invalid="ignore"):
+        rms = np.sqrt(stacked.per_marker(squared) / stacked.counts)
+    return np.where(in_front, rms, np.inf)
 
 
 def _own_poses(views: list[MarkerView], K: np.ndarray) -> list[list[np.ndarray]]:
@@ -150,18 +191,40 @@ def _own_poses(views: list[MarkerView], K: np.ndarray) -> list[list[np.ndarray]]
     return poses
 
 
-def _chi2_each(T_cam_F: np.ndarray, views: list[MarkerView], used: list[bool], K: np.ndarray, sigma_px: float):
+def _own_offsets_m(views: list[MarkerView], own: list[list[np.ndarray]] | None, T_cam_F: np.ndarray, K: np.ndarray) -> list[float | None]:
+    """Per marker, how far its own camera position (the IPPE branch nearer the joint one: a lone
+    marker's mirror ambiguity is not a disagreement) lies from the joint pose's; None when IPPE
+    fails. ``own``: the poses ``T_cam_F`` of :func:`_own_poses` when already computed; else
+    IPPE runs here unranked (the nearer branch does not need the two ranked)."""
+    p_joint_F = se3.inverse(T_cam_F)[:3, 3]
+    if own is None:
+        T_cam_marker, _ = ambiguity.ippe_poses_batch([v.points_marker_m for v in views], [v.ideal_px for v in views], K)
+        # camera position in F = T_F_marker · (camera position −Rᵀt in the marker frame)
+        p_cam_marker = -np.einsum("mjkl,mjk->mjl", T_cam_marker[:, :, :3, :3], T_cam_marker[:, :, :3, 3])
+        T_F_marker = np.stack([v.T_F_marker for v in views])
+        p_cam_F = np.einsum("mkl,mjl->mjk", T_F_marker[:, :3, :3], p_cam_marker) + T_F_marker[:, None, :3, 3]
+        distance = np.min(np.linalg.norm(p_cam_F - p_joint_F, axis=-1), axis=1)
+        return [float(d) if np.isfinite(d) else None for d in distance]
+    return [
+        min(float(np.linalg.norm(se3.inverse(T_own)[:3, 3] - p_joint_F)) for T_own in poses) if poses else None
+        for poses in own
+    ]
+
+
+def _chi2_each(T_cam_F: np.ndarray, stacked: _Stacked, used: list[bool], K: np.ndarray, sigma_px: float):
     """(χ², degrees of freedom) per marker at the joint pose; dof = 2·n_k − (leverage of the
-    used marker's rows on the 6 parameters; 0 for a marker not in the fit)."""
-    blocks = [uncertainty.pixel_jacobian(T_cam_F, v.points_F_m, K) for v in views]
-    J_used = np.vstack([b for b, u in zip(blocks, used) if u])
+    used marker's rows on the 6 parameters; 0 for a marker not in the fit). One Jacobian of
+    every point; a marker's leverage is the trace of its block of the hat matrix
+    ``J (J_usedᵀ J_used)⁺ Jᵀ``."""
+    J = uncertainty.pixel_jacobian(T_cam_F, stacked.points_F, K)  # (2N, 6), rows (u, v) per point
+    used_rows = np.repeat(np.asarray(used, dtype=bool)[stacked.marker_of_row], 2)
+    J_used = J[used_rows]
     information_inv = np.linalg.pinv(J_used.T @ J_used)
-    chi2_values, dofs = np.empty(len(views)), np.empty(len(views))
-    for i, (view, block) in enumerate(zip(views, blocks)):
-        sum_sq, _ = uncertainty.residual_sum_sq_px2(T_cam_F, view.points_F_m, view.ideal_px, K)
-        chi2_values[i] = sum_sq / sigma_px**2
-        leverage = float(np.einsum("ij,jk,ik->", block, information_inv, block)) if used[i] else 0.0
-        dofs[i] = max(2 * len(view.points_F_m) - leverage, 0.5)
+    leverage_rows = np.einsum("ij,jk,ik->i", J, information_inv, J)
+    leverage = np.where(used, stacked.per_marker(leverage_rows[0::2] + leverage_rows[1::2]), 0.0)
+    squared, _ = _squared_errors_px2(T_cam_F, stacked, K)
+    chi2_values = stacked.per_marker(squared) / sigma_px**2
+    dofs = np.maximum(2 * stacked.counts - leverage, 0.5)
     return chi2_values, dofs
 
 
@@ -185,34 +248,42 @@ def solve_joint(
     p_outlier : a consistent marker is flagged with this probability.
     """
     K = np.asarray(K, dtype=float)
-    own = _own_poses(views, K)
-    hypotheses = [np.asarray(T_start_cam_F, dtype=float)] + [T for poses in own for T in poses]
+    stacked = _Stacked(views)
     gate_px = max(HYPOTHESIS_GATE_SIGMA * sigma_px, HYPOTHESIS_GATE_MIN_PX)
-    best_used, best_count = None, -1
-    for T in hypotheses:
-        inliers = _rms_each(T, views, K) <= gate_px
-        if int(inliers.sum()) > best_count:  # strict: the caller's start wins ties
-            best_count, best_used, start = int(inliers.sum()), inliers, T
+    start = np.asarray(T_start_cam_F, dtype=float)
+    best_used = _rms_each(start, stacked, K) <= gate_px
+    best_count = int(best_used.sum())
+    own = None
+    if best_count < len(views):
+        # The caller's start does not explain every marker: try each marker's own poses. (When
+        # it does, none can explain more and the start wins ties, so they are not computed.)
+        own = _own_poses(views, K)
+        hypotheses = [start] + [T for poses in own for T in poses]
+        rms_hypotheses = _rms_each(np.stack(hypotheses), stacked, K)  # (H, M)
+        for T, rms in zip(hypotheses[1:], rms_hypotheses[1:]):
+            inliers = rms <= gate_px
+            if int(inliers.sum()) > best_count:  # strict: the caller's start wins ties
+                best_count, best_used, start = int(inliers.sum()), inliers, T
     if best_count < len(views):
         # Local optimisation (as in LO-RANSAC): one marker's pose is poor in depth, so refit
         # each hypothesis on the markers it roughly explains and count again.
-        for T in hypotheses:
-            near = _rms_each(T, views, K) <= max(gate_px, LOCAL_GATE_PX)
+        for T, rms in zip(hypotheses, rms_hypotheses):
+            near = rms <= max(gate_px, LOCAL_GATE_PX)
             if near.sum() < 2:
                 continue
-            points_F, pixels = _stack([v for v, n in zip(views, near) if n])
+            points_F, pixels = stacked.select(near)
             T_local, _, _ = refine_lm(
                 T, points_F, pixels, K, objective=options.objective, max_iterations=LOCAL_ITERATIONS,
                 initial_damping=options.initial_damping, step_tol=options.step_tol, cost_rel_tol=options.cost_rel_tol,
             )
             if T_local is None:
                 continue
-            inliers = _rms_each(T_local, views, K) <= gate_px
+            inliers = _rms_each(T_local, stacked, K) <= gate_px
             if int(inliers.sum()) > best_count:
                 best_count, best_used, start = int(inliers.sum()), inliers, T_local
             if best_count == len(views):
                 break
-    used = list(best_used)
+    used = [bool(u) for u in best_used]
     if not any(used):
         return JointSolution(None, f"no pose explains any marker within {gate_px:.1f} px")
     if 2 * sum(used) < len(views):
@@ -223,7 +294,7 @@ def solve_joint(
     removed: set[int] = set()
     group = False
     while True:
-        points_F, pixels = _stack([v for v, u in zip(views, used) if u])
+        points_F, pixels = stacked.select(used)
         path: list[np.ndarray] = []
         T, reason, iterations = refine_lm(
             start, points_F, pixels, K,
@@ -233,8 +304,8 @@ def solve_joint(
         )
         if T is None:
             return JointSolution(None, f"joint LM: {reason}", iterations=iterations, path=path)
-        chi2_values, dofs = _chi2_each(T, views, used, K, sigma_px)
-        limits = chi2.ppf(1.0 - p_outlier, dofs)
+        chi2_values, dofs = _chi2_each(T, stacked, used, K, sigma_px)
+        limits = _chi2_quantile(1.0 - p_outlier, dofs)
         # A marker the start pose could not explain (depth error of one marker's pose) joins
         # once the joint pose explains it; one the χ² test left out stays out.
         readmit = [i for i in range(len(views)) if not used[i] and i not in removed and chi2_values[i] <= limits[i]]
@@ -265,17 +336,12 @@ def solve_joint(
         used[worst] = False
         removed.add(worst)
         start = T
-    rms_each = _rms_each(T, views, K)
-    checks = []
-    for i, view in enumerate(views):
-        offset = None
-        if own[i]:
-            # The marker's own camera position (the IPPE branch nearer the joint pose: a lone
-            # marker's mirror ambiguity is not a disagreement) against the joint one.
-            p_joint = se3.inverse(T)[:3, 3]
-            offset = min(float(np.linalg.norm(se3.inverse(T_own)[:3, 3] - p_joint)) for T_own in own[i])
-        checks.append(MarkerCheck(views[i].marker_id, float(chi2_values[i]), float(limits[i]),
-                                  float(rms_each[i]), offset, bool(used[i])))
+    rms_each = _rms_each(T, stacked, K)
+    offsets = _own_offsets_m(views, own, T, K)
+    checks = tuple(
+        MarkerCheck(view.marker_id, float(chi2_values[i]), float(limits[i]), float(rms_each[i]), offsets[i], bool(used[i]))
+        for i, view in enumerate(views)
+    )
     left_out = [c for c in checks if not c.used]
     if left_out and not note:
         kept = ", ".join(c.marker_id for c in checks if c.used)
@@ -285,8 +351,8 @@ def solve_joint(
             + ")"
             for c in left_out
         ) + f": disagrees with {kept}"
-    points_F, pixels = _stack([v for v, u in zip(views, used) if u])
+    points_F, pixels = stacked.select(used)
     return JointSolution(
-        T, "", tuple(v.marker_id for v, u in zip(views, used) if u), tuple(checks), iterations, path,
+        T, "", tuple(v.marker_id for v, u in zip(views, used) if u), checks, iterations, path,
         reprojection_rms_px(T, points_F, pixels, K), note,
     )

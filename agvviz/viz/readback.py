@@ -160,6 +160,16 @@ def points2d(src: str | os.PathLike | RrdContents, entity: str) -> dict[int, np.
     }
 
 
+def line_strips2d(src: str | os.PathLike | RrdContents, entity: str) -> dict[int, list[np.ndarray]]:
+    """LineStrips2D strips of ``entity`` per frame (the last logged in each frame), each (m, 2) px."""
+    return {
+        int(row[paths.TIMELINE_FRAME]): [
+            np.array(strip, dtype=np.float64).reshape(-1, 2) for strip in row["LineStrips2D:strips"]
+        ]
+        for row in _rows(src, entity, "LineStrips2D:strips")
+    }
+
+
 def encoded_images(src: str | os.PathLike | RrdContents, entity: str) -> dict[int, tuple[bytes, str]]:
     """EncodedImage bytes and media type of ``entity`` per frame (the last logged in each frame)."""
     contents = _contents(src)

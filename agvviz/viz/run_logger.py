@@ -252,10 +252,29 @@ def _strip3d_columns(rows) -> rr.ComponentColumnList:
     return rr.LineStrips3D.columns(strips=[strip for (strip,) in rows])
 
 
-def _strips2d_columns(rows) -> rr.ComponentColumnList:
-    """Rows (strips (k, m, 2),) as one LineStrips2D row each."""
-    strips = [strip for (row_strips,) in rows for strip in row_strips]
-    return rr.LineStrips2D.columns(strips=strips).partition(_lengths([s for (s,) in rows]))
+def _strips2d_columns(rows) -> list[rr.ComponentColumn]:
+    """Rows (strips (k, m, 2) or k arrays (m_i, 2),) as one LineStrips2D row each: the Arrow
+    array built in one go (float32 points, one offset per strip), what
+    ``rr.LineStrips2D.columns(strips=...)`` builds strip by strip (an LM path of 128 points is
+    128 strips a frame)."""
+    points, strip_lengths, row_lengths = [], [], []
+    for (row_strips,) in rows:
+        if isinstance(row_strips, np.ndarray) and row_strips.ndim == 3:
+            k, m = row_strips.shape[:2]
+            points.append(row_strips.reshape(-1, 2))
+            strip_lengths.append(np.full(k, m, dtype=np.int64))
+        else:
+            k = len(row_strips)
+            points += [np.asarray(strip, dtype=float).reshape(-1, 2) for strip in row_strips]
+            strip_lengths.append(_lengths(row_strips))
+        row_lengths.append(k)
+    flat = np.concatenate(points).astype(np.float32).ravel() if points else np.zeros(0, np.float32)
+    offsets = np.zeros(sum(row_lengths) + 1, dtype=np.int32)
+    np.cumsum(np.concatenate(strip_lengths) if strip_lengths else np.zeros(0, np.int64), out=offsets[1:])
+    strips = pa.ListArray.from_arrays(
+        pa.array(offsets), pa.FixedSizeListArray.from_arrays(pa.array(flat), type=_STRIP2D_TYPE.value_type), type=_STRIP2D_TYPE
+    )
+    return [rr.ComponentColumn(rr.LineStrips2D.descriptor_strips(), _ArrowBatch(strips), lengths=row_lengths)]
 
 
 def _ellipsoid_columns(rows) -> rr.ComponentColumnList:
@@ -309,6 +328,7 @@ def _bar_chart_columns(rows) -> list[rr.ComponentColumn]:
 
 
 _BLOB_TYPE = rr.components.BlobBatch._ARROW_DATATYPE
+_STRIP2D_TYPE = rr.components.LineStrip2DBatch._ARROW_DATATYPE
 _BLOB_DESCRIPTOR = rr.EncodedImage.descriptor_blob()
 _MEDIA_TYPE_BATCHES: dict[str, rr.DescribedComponentBatch] = {}
 
