@@ -257,3 +257,31 @@ def test_replay_leaves_out_the_largest_code_when_its_payload_lies():
     assert result.excluded_marker_ids == ("B",)
     assert "left out B" in result.marker_note
     assert result.position_error_m < 0.01
+
+
+def test_replay_keeps_the_largest_code_when_the_markers_fit_no_common_pose():
+    """The calibration given to the replay has k1 0.3 larger than the lens that made the image:
+    each code on its own still fits (0.47 px RMS), but the three, spread over the image, fit no
+    common pose within max_reproj_px = 1 px (they disagree as a group). The frame keeps the
+    largest code's own pose — paper 000's answer — instead of losing the frame, and says why."""
+    from agvviz.geometry import PinholeCamera
+    from agvviz.graph.solve import replay
+    from agvviz.recording.reader import CalibrationMsg, FrameTransformMsg
+    from agvviz.settings import RunSettings
+    from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
+    from tests.test_pipeline import CAM, CAMERA, T_AGV_CAM, T_WORLD_AGV, _frame, _msg
+
+    gray = render_frame(FloorScene(codes=tuple(_floor_codes())), CAMERA, T_WORLD_AGV @ T_AGV_CAM, np.random.default_rng(0))
+    wrong = PinholeCamera(CAMERA.K.copy(), np.array([0.25, 0.01, 0, 0, 0]), CAMERA.width_px, CAMERA.height_px)
+    static = [
+        _msg(f"/cam/{CAM}/calibration", 0, CalibrationMsg(CAM, f"cam_{CAM}", wrong, "plumb_bob")),
+        _msg("/tf_static", 0, [FrameTransformMsg("agv", f"cam_{CAM}", T_AGV_CAM)]),
+    ]
+    messages = static + _frame(1_000, encode_jpeg(gray, quality=95))
+    (largest,) = replay(messages, RunSettings(markers="largest", max_reproj_px=1.0))
+    (result,) = replay(messages, RunSettings(max_reproj_px=1.0))
+    assert largest.solved and largest.reproj_rms_px < 1.0
+    assert result.solved, result.reject_detail
+    assert result.used_marker_ids == ("B",)
+    assert "> max_reproj_px 1 px: the largest code B alone" in result.marker_note
+    np.testing.assert_allclose(result.T_world_agv, largest.T_world_agv, atol=1e-12)

@@ -174,6 +174,7 @@ class Replay:
         self.frames_scored = 0  # solved frames scored against ground truth
         self.markers_left_out: dict[str, int] = {}  # marker id -> frames the joint solve left it out of
         self.frames_markers_disagree = 0  # frames whose markers failed the χ² test as a group
+        self.frames_joint_fallback = 0  # frames whose joint pose failed max_reproj_px: the largest code alone
         #: board chessboard name -> (frames its saddles were not used, the first such note)
         self.chessboards_not_used: dict[str, tuple[int, str]] = {}
         self._solver_options = SolverOptions(
@@ -345,6 +346,11 @@ class Replay:
             )
         for name, (count, note) in sorted(self.chessboards_not_used.items()):
             lines.append(f"{name}: saddles not used on {count} frame(s) — first: {note}")
+        if self.frames_joint_fallback:
+            lines.append(
+                f"{self.frames_joint_fallback} frame(s): the markers in view fit no common pose within max_reproj_px, "
+                "the largest code alone was used — check the camera calibration and the map"
+            )
         if self.frames_markers_disagree:
             lines.append(
                 f"{self.frames_markers_disagree} frame(s): the markers in view disagree as a group (most fail the "
@@ -654,6 +660,19 @@ class Replay:
             result.solve_s += time.perf_counter() - t2  # the solve's time includes the joint solve
             if joint.T_cam_F is None:
                 result.marker_note = _notes(f"joint solve failed ({joint.reason}): the largest code alone", board_note)
+            elif (
+                joint.reproj_rms_px > self.settings.max_reproj_px
+                and solved.reproj_rms_px is not None and solved.reproj_rms_px <= self.settings.max_reproj_px
+            ):
+                # The markers do not fit one pose within max_reproj_px (a calibration or map error
+                # spread over the image) but the largest one fits on its own: keep paper 000's
+                # one-code pose rather than no pose, and say so.
+                result.marker_note = _notes(
+                    f"{joint.note + '; ' if joint.note else ''}the joint pose's RMS {joint.reproj_rms_px:.2f} px > "
+                    f"max_reproj_px {self.settings.max_reproj_px:g} px: the largest code {observation.marker_id} alone",
+                    board_note,
+                )
+                self.frames_joint_fallback += 1
             else:
                 # From here on the "marker" is the frame F the markers are fixed in.
                 used = [c for c in same_frame if c[0].marker_id in joint.used]
