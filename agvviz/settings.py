@@ -113,8 +113,8 @@ class RunSettings:
     refine: str = setting(
         "ecc",
         "corner refinement: ecc (template alignment; best on real photos, docs/refinement.md), subpix "
-        "(cornerSubPix), contour, apriltag (OpenCV's CORNER_REFINE_CONTOUR/_APRILTAG: ArUco and AprilTag "
-        "markers only), none",
+        "(cornerSubPix), contour (OpenCV's CORNER_REFINE_CONTOUR: ArUco only), apriltag (the AprilTag "
+        "edge refinement: the library's own on AprilTags, OpenCV's on ArUco; not QR), none",
         ("ecc", "subpix", "contour", "apriltag", "none"),
     )
     markers: str = setting(
