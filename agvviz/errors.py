@@ -25,7 +25,7 @@ This module imports nothing from agvviz, so the math modules may use it.
 
 from __future__ import annotations
 
-#: Exit codes (README "Exit codes").
+#: Exit codes (README "Exit codes", docs/errors-and-outputs.md).
 EXIT_OK = 0
 EXIT_CONDITION = 1
 EXIT_BAD_INPUT = 2

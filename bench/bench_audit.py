@@ -17,7 +17,7 @@ Usage:  python bench/bench_audit.py [--workdir DIR] [--seeds 20] [--skip-recordi
    of clean-marker components beyond 3σ (a check of the σ), under the ideal and typical
    profiles; then the clean recording (no injection): markers flagged, camera flagged.
    Under ``harsh`` the audit is not trustworthy (the intrinsics errors it does not estimate
-   bias everything; see the README) — measured and printed too, as a warning.
+   bias everything; see docs/audit.md) — measured and printed too, as a warning.
 4. (``--figures 4``) The rates of 3 under ``typical`` with 0.3 px of per-marker systematic
    corner error in the simulation (what real corners carry, ``bench_render_vs_photos.py``), the
    audit's random effect for it off (``corner_bias_px=0``) and on (the default).
