@@ -12,7 +12,7 @@ Every problem raises :class:`SideFileError` (an :class:`~agvviz.errors.InputErro
 whose message is one line naming the file (or the option) and what is wrong.
 
 Marker maps (YAML or JSON; docs/robot-logs.md "Side files")
-------------------------------------------------
+-----------------------------------------------------------
 The in-recording ``agvviz.MarkerMap`` JSON is accepted as is (a map lifted out of one recording
 works for another). On top of it a side file may
 
