@@ -95,8 +95,9 @@ def _pose_matrix(values, what: str) -> np.ndarray:
         raise ValueError(f"{what} must be 7 numbers [x, y, z, qx, qy, qz, qw], got {values!r}")
     numbers = [_number(v, what) for v in values]
     q = np.array(numbers[3:])
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+    with np.errstate(over="ignore"):  # a huge component gives norm inf, refused below
+        norm = float(np.linalg.norm(q))
+    if not abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE:
         raise ValueError(
             f"{what}: quaternion (qx, qy, qz, qw) = {numbers[3:]} has norm {norm:.6g}, not 1 "
             f"(within {QUATERNION_NORM_TOLERANCE:g})"
