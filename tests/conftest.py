@@ -62,3 +62,44 @@ def uwb_room_small_run(tmp_path_factory):
     scenario_registry.record("uwb_room", recording, seed=4, overrides=UWB_ROOM_SMALL)
     outcome = run_recording(recording, RunSettings(fusion="mean_compensation"), tmp / "run.rrd")
     return recording, outcome
+
+
+#: qr_floor, 4 frames at 640×512, ideal world, seed 1: the source of truth that
+#: tests/test_real_logs.py, test_ros1_bag.py and test_tf_extrinsic.py rewrite with other tools
+#: (rosbags, foxglove-sdk) and compare against, so it is recorded once.
+QR_SMALL = ["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500", "realism=ideal"]
+
+
+@pytest.fixture(scope="session")
+def qr_small(tmp_path_factory):
+    """Path of the ``QR_SMALL`` recording (seed 1). Read only."""
+    from agvviz.scenario_registry import record
+
+    path = tmp_path_factory.mktemp("qr_small") / "qr.mcap"
+    record("qr_floor", path, seed=1, overrides=QR_SMALL)
+    return path
+
+
+@pytest.fixture(scope="session")
+def qr_small_content(qr_small) -> dict:
+    """What ``qr_small`` holds, decoded by agvviz's reader: ``images`` [(log time, JPEG bytes)],
+    ``calibration`` (camera), ``T_agv_cam``, ``truth`` and ``odometry`` [(log time, T)],
+    ``marker_map``. Read only."""
+    from agvviz.recording.reader import CalibrationMsg, CompressedFrame, FrameTransformMsg, PoseMsg, iter_messages
+
+    out = {"images": [], "truth": [], "odometry": []}
+    for m in iter_messages(qr_small):
+        v = m.value
+        if isinstance(v, CompressedFrame):
+            out["images"].append((m.log_time_ns, v.data))
+        elif isinstance(v, CalibrationMsg):
+            out["calibration"] = v.camera
+        elif isinstance(v, list) and v and isinstance(v[0], FrameTransformMsg):
+            out["T_agv_cam"] = v[0].T_parent_child
+        elif isinstance(v, PoseMsg) and m.topic == "/agv/ground_truth":
+            out["truth"].append((m.log_time_ns, v.T))
+        elif isinstance(v, PoseMsg) and m.topic == "/agv/odometry":
+            out["odometry"].append((m.log_time_ns, v.T))
+        elif isinstance(v, dict) and m.topic == "/markers/map":
+            out["marker_map"] = v
+    return out

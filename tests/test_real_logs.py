@@ -32,18 +32,10 @@ from typer.testing import CliRunner
 from agvviz.cli import app
 from agvviz.errors import InputError, RecordingError, RunError
 from agvviz.geometry import se3
-from agvviz.recording.reader import (
-    CalibrationMsg,
-    CompressedFrame,
-    FrameTransformMsg,
-    PoseMsg,
-    ReadReport,
-    iter_messages,
-)
+from agvviz.recording.reader import FrameTransformMsg, PoseMsg, ReadReport, iter_messages
 from agvviz.recording.source import iter_role_messages, open_recording, scan
 from agvviz.recording.contract import inspect_recording
 from agvviz.runner import SideInputs, prepare, run_recording
-from agvviz.scenario_registry import record
 from agvviz.settings import RunSettings
 
 rosbags = pytest.importorskip("rosbags", reason="rosbags (test extra) not installed")
@@ -64,33 +56,14 @@ T_BASE_MOUNT = se3.make(
 
 # -- the native recording and its content -----------------------------------------------------------
 @pytest.fixture(scope="module")
-def native(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("native") / "qr.mcap"
-    record(
-        "qr_floor", path, seed=1,
-        overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500", "realism=ideal"],
-    )
-    return path
+def native(qr_small) -> Path:
+    """The shared small qr_floor recording (tests/conftest.py ``QR_SMALL``)."""
+    return qr_small
 
 
 @pytest.fixture(scope="module")
-def content(native) -> dict:
-    out = {"images": [], "truth": [], "odometry": []}
-    for m in iter_messages(native):
-        v = m.value
-        if isinstance(v, CompressedFrame):
-            out["images"].append((m.log_time_ns, v.data))
-        elif isinstance(v, CalibrationMsg):
-            out["calibration"] = v.camera
-        elif isinstance(v, list) and v and isinstance(v[0], FrameTransformMsg):
-            out["T_agv_cam"] = v[0].T_parent_child
-        elif isinstance(v, PoseMsg) and m.topic == "/agv/ground_truth":
-            out["truth"].append((m.log_time_ns, v.T))
-        elif isinstance(v, PoseMsg) and m.topic == "/agv/odometry":
-            out["odometry"].append((m.log_time_ns, v.T))
-        elif isinstance(v, dict) and m.topic == "/markers/map":
-            out["marker_map"] = v
-    return out
+def content(qr_small_content) -> dict:
+    return qr_small_content
 
 
 def frame_errors(path, settings: RunSettings | None = None, **kw) -> dict[int, tuple]:

@@ -19,7 +19,6 @@ its default (copied ROS 1 definitions) and a ROS 2 type store.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
@@ -32,11 +31,11 @@ from agvviz.cli import app
 from agvviz.errors import RecordingError
 from agvviz.geometry import se3
 from agvviz.recording.contract import format_report, inspect_recording
-from agvviz.recording.reader import CalibrationMsg, CompressedFrame, FrameTransformMsg, PoseMsg, ReadReport, iter_messages
+from agvviz.recording.reader import ReadReport
 from agvviz.recording.source import iter_role_messages, open_recording
 from agvviz.runner import SideInputs, prepare
-from agvviz.scenario_registry import record
 from agvviz.settings import RunSettings
+from test_real_logs import frame_errors  # noqa: E402  (tests/ is on sys.path under pytest)
 
 rosbags = pytest.importorskip("rosbags", reason="rosbags (test extra) not installed")
 from rosbags.rosbag1 import Writer  # noqa: E402
@@ -55,38 +54,15 @@ IMAGE_TOPIC = "/front/image_raw/compressed"
 
 
 # -- the native recording and its content ------------------------------------------------------
-def native_content(path: Path) -> dict:
-    """Images (log time, JPEG), calibration, T_agv_cam, truth, odometry and marker map of an
-    agvviz recording."""
-    out = {"images": [], "truth": [], "odometry": []}
-    for m in iter_messages(path):
-        v = m.value
-        if isinstance(v, CompressedFrame):
-            out["images"].append((m.log_time_ns, v.data))
-        elif isinstance(v, CalibrationMsg):
-            out["calibration"] = v.camera
-        elif isinstance(v, list) and v and isinstance(v[0], FrameTransformMsg):
-            out["T_agv_cam"] = v[0].T_parent_child
-        elif isinstance(v, PoseMsg) and m.topic == "/agv/ground_truth":
-            out["truth"].append((m.log_time_ns, v.T))
-        elif isinstance(v, PoseMsg) and m.topic == "/agv/odometry":
-            out["odometry"].append((m.log_time_ns, v.T))
-        elif isinstance(v, dict) and m.topic == "/markers/map":
-            out["marker_map"] = v
-    return out
+@pytest.fixture(scope="module")
+def native(qr_small) -> Path:
+    """The shared small qr_floor recording (tests/conftest.py ``QR_SMALL``)."""
+    return qr_small
 
 
 @pytest.fixture(scope="module")
-def native(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("native") / "qr.mcap"
-    record("qr_floor", path, seed=1,
-           overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500", "realism=ideal"])
-    return path
-
-
-@pytest.fixture(scope="module")
-def content(native) -> dict:
-    return native_content(native)
+def content(qr_small_content) -> dict:
+    return qr_small_content
 
 
 @pytest.fixture(scope="module")
@@ -94,18 +70,6 @@ def markers(content, tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("map") / "map.json"
     path.write_text(json.dumps(content["marker_map"]))
     return path
-
-
-def frame_errors(path, settings: RunSettings | None = None, **kw) -> dict[int, tuple]:
-    """time → (rejection, position error m) of every frame, through the run's own stages."""
-    settings = dataclasses.replace(settings or RunSettings(), tracking=False)
-    prepared = prepare(path, settings, **kw)
-    out = {}
-    for m in iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, ReadReport()):
-        r = prepared.replay.feed(m)
-        if r is not None:
-            out[r.log_time_ns] = (r.rejected, r.position_error_m)
-    return out
 
 
 @pytest.fixture(scope="module")

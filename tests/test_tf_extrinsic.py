@@ -26,24 +26,20 @@ from agvviz.recording.reader import ReadReport
 from agvviz.recording.source import iter_role_messages
 from agvviz.results import REJECT_NO_EXTRINSIC
 from agvviz.runner import SideInputs, prepare, run_recording
-from agvviz.scenario_registry import record
 from agvviz.settings import RunSettings
 
 foxglove = pytest.importorskip("foxglove", reason="foxglove-sdk (test extra) not installed")
-from test_ros1_bag import native_content  # noqa: E402  (tests/ is on sys.path under pytest)
 
 
 @pytest.fixture(scope="module")
-def native(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("native") / "qr.mcap"
-    record("qr_floor", path, seed=1,
-           overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500", "realism=ideal"])
-    return path
+def native(qr_small) -> Path:
+    """The shared small qr_floor recording (tests/conftest.py ``QR_SMALL``)."""
+    return qr_small
 
 
 @pytest.fixture(scope="module")
-def content(native) -> dict:
-    return native_content(native)
+def content(qr_small_content) -> dict:
+    return qr_small_content
 
 
 def frame_results(path, side: SideInputs | None = None) -> dict[int, tuple]:
