@@ -3,8 +3,8 @@
 For every camera frame: decode → undistort (when the camera has distortion) → detect and
 decode QR codes → refine corners → parse each payload strictly → solve the pose of the
 largest decoded code → with ``markers=all``, one LM over every usable marker's corners started
-from it, markers that disagree left out (:mod:`agvviz.solvers.joint`) → T_world_cam → T_world_agv through the extrinsics (paper 000 eqs 31–33)
-→ heading/pitch/roll (eq 57) → reprojection check → score against ground truth.
+from it, markers that disagree left out (:mod:`agvviz.solvers.joint`) → T_world_cam →
+T_world_agv through the extrinsics (paper 000 eqs 31–33) → heading/pitch/roll (eq 57) → reprojection check → score against ground truth.
 A frame that fails any step is *rejected* with one reason from :mod:`agvviz.results` or
 :mod:`agvviz.recording.contract` (whose checks ``inspect`` shares): an image time stamp that
 does not increase per camera (``time_not_increasing``), an empty, non-jpeg/png or oversized
@@ -316,7 +316,6 @@ class Replay:
         result = self.process_frame(value, t_ns, detections)
         for marker_id in result.excluded_marker_ids:
             self.markers_left_out[marker_id] = self.markers_left_out.get(marker_id, 0) + 1
-        self.frames_markers_disagree += "disagree as a group" in result.marker_note
         if result.rejected is None:
             self.frames_solved += 1
             self.frames_scored += result.position_error_m is not None
@@ -658,6 +657,7 @@ class Replay:
                 self.settings.marker_outlier_p,
             )
             result.solve_s += time.perf_counter() - t2  # the solve's time includes the joint solve
+            self.frames_markers_disagree += joint.disagree_as_group
             if joint.T_cam_F is None:
                 result.marker_note = _notes(f"joint solve failed ({joint.reason}): the largest code alone", board_note)
             elif (

@@ -111,6 +111,7 @@ class JointSolution:
     iterations, path : the final LM's records and poses (as :func:`refine_lm`).
     reproj_rms_px : RMS over the used markers' points.
     note : a plain-words finding (markers left out, or markers that disagree as a group).
+    disagree_as_group : most markers failed the χ² test together, so all were fitted.
     """
 
     T_cam_F: np.ndarray | None
@@ -121,6 +122,7 @@ class JointSolution:
     path: list[np.ndarray] = field(default_factory=list)
     reproj_rms_px: float | None = None
     note: str = ""
+    disagree_as_group: bool = False
 
     @property
     def excluded(self) -> tuple[str, ...]:
@@ -308,8 +310,9 @@ def solve_joint(
         limits = _chi2_quantile(1.0 - p_outlier, dofs)
         # A marker the start pose could not explain (depth error of one marker's pose) joins
         # once the joint pose explains it; one the χ² test left out stays out.
-        readmit = [i for i in range(len(views)) if not used[i] and i not in removed and chi2_values[i] <= limits[i]]
-        readmit = [] if group else readmit
+        readmit = [] if group else [
+            i for i in range(len(views)) if not used[i] and i not in removed and chi2_values[i] <= limits[i]
+        ]
         if readmit:
             for i in readmit:
                 used[i] = True
@@ -354,5 +357,5 @@ def solve_joint(
     points_F, pixels = stacked.select(used)
     return JointSolution(
         T, "", tuple(v.marker_id for v, u in zip(views, used) if u), checks, iterations, path,
-        reprojection_rms_px(T, points_F, pixels, K), note,
+        reprojection_rms_px(T, points_F, pixels, K), note, group,
     )
