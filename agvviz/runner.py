@@ -10,7 +10,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -36,7 +36,7 @@ from agvviz.recording.source import (
     scan,
 )
 from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
-from agvviz.results import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC
+from agvviz.results import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC, FrameResult
 from agvviz.settings import RunSettings, as_dict, inapplicable, without
 from agvviz.viz.run_logger import RunLogger
 
@@ -529,6 +529,25 @@ def run_recording(
         read_report=read_report,
         timing={**timing(scores, wall_time_s), **detection.timing()},
     )
+
+
+def replay_frames(
+    recording_path: Path,
+    settings: RunSettings,
+    *,
+    topics: dict[str, str] | None = None,
+    roles_file: Path | None = None,
+    side: SideInputs | None = None,
+) -> Iterator[FrameResult]:
+    """The solve stage's result of every camera frame of ``recording_path`` under ``settings``,
+    in recording order, detected in this process and written nowhere (no ``.rrd``, no cache):
+    what benches and tests compare frame by frame. Raises like :func:`prepare`."""
+    prepared = prepare(require_recording_path(recording_path), settings, topics, roles_file, side)
+    report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    for message in iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report):
+        result = prepared.replay.feed(message)
+        if result is not None:
+            yield result
 
 
 def detect_recording(

@@ -31,10 +31,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from agvviz.geometry import se3, so3  # noqa: E402
-from agvviz.recording.reader import ReadReport  # noqa: E402
 from agvviz.recording.sidefiles import charuco_marker_corners, load_calibration, load_marker_map, parse_extrinsic  # noqa: E402
-from agvviz.recording.source import iter_role_messages  # noqa: E402
-from agvviz.runner import SideInputs, prepare  # noqa: E402
+from agvviz.runner import SideInputs, replay_frames  # noqa: E402
 from agvviz.settings import RunSettings, apply_overrides  # noqa: E402
 from test_charuco_bag import BOARD, CALIBRATION, CAM, DICTIONARY, PHOTOS, chessboard_pose, write_bag_and_board  # noqa: E402
 
@@ -45,14 +43,7 @@ def replay(bag: Path, marker_map: dict, overrides: list[str]) -> list:
     side.marker_map = marker_map
     side.calibrations[CAM] = load_calibration(CAM, CALIBRATION)
     side.extrinsics[CAM] = parse_extrinsic(CAM, "0,0,0,0,0,0,1", settings.body_frame)
-    prepared = prepare(bag, settings, None, None, side)
-    report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    frames = []
-    for message in iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report):
-        result = prepared.replay.feed(message)
-        if result is not None:
-            frames.append(result)
-    return frames
+    return list(replay_frames(bag, settings, side=side))
 
 
 def main() -> None:

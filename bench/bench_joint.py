@@ -23,24 +23,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agvviz.recording.reader import ReadReport  # noqa: E402
-from agvviz.recording.source import iter_role_messages  # noqa: E402
-from agvviz.runner import prepare  # noqa: E402
+from agvviz import runner  # noqa: E402
 from agvviz.scenario_registry import record as record_scenario  # noqa: E402
 from agvviz.settings import RunSettings, apply_overrides  # noqa: E402
 
 
 def replay_frames(recording: Path, overrides: list[str]) -> list:
     """Every frame result of ``recording`` replayed under the run settings ``overrides``."""
-    settings = apply_overrides(RunSettings(), overrides)
-    prepared = prepare(recording, settings, None, None, None)
-    report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    frames = []
-    for message in iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report):
-        result = prepared.replay.feed(message)
-        if result is not None:
-            frames.append(result)
-    return frames
+    return list(runner.replay_frames(recording, apply_overrides(RunSettings(), overrides)))
 
 
 def rms(values) -> float:

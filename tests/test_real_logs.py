@@ -32,10 +32,10 @@ from typer.testing import CliRunner
 from agvviz.cli import app
 from agvviz.errors import InputError, RecordingError, RunError
 from agvviz.geometry import se3
-from agvviz.recording.reader import FrameTransformMsg, PoseMsg, ReadReport, iter_messages
-from agvviz.recording.source import iter_role_messages, open_recording, scan
+from agvviz.recording.reader import FrameTransformMsg, PoseMsg, iter_messages
+from agvviz.recording.source import open_recording, scan
 from agvviz.recording.contract import inspect_recording
-from agvviz.runner import SideInputs, prepare, run_recording
+from agvviz.runner import SideInputs, prepare, replay_frames, run_recording
 from agvviz.settings import RunSettings
 
 rosbags = pytest.importorskip("rosbags", reason="rosbags (test extra) not installed")
@@ -75,13 +75,7 @@ def frame_errors(path, settings: RunSettings | None = None, **kw) -> dict[int, t
     detection's) would differ between them at the 0.1 mm level, which says nothing about
     the readers under test."""
     settings = dataclasses.replace(settings or RunSettings(), tracking=False)
-    prepared = prepare(path, settings, **kw)
-    out = {}
-    for m in iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, ReadReport()):
-        r = prepared.replay.feed(m)
-        if r is not None:
-            out[r.log_time_ns] = (r.rejected, r.position_error_m)
-    return out
+    return {r.log_time_ns: (r.rejected, r.position_error_m) for r in replay_frames(path, settings, **kw)}
 
 
 @pytest.fixture(scope="module")

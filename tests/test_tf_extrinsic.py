@@ -22,10 +22,8 @@ from typer.testing import CliRunner
 from agvviz.cli import app
 from agvviz.errors import RunError
 from agvviz.geometry import se3
-from agvviz.recording.reader import ReadReport
-from agvviz.recording.source import iter_role_messages
 from agvviz.results import REJECT_NO_EXTRINSIC
-from agvviz.runner import SideInputs, prepare, run_recording
+from agvviz.runner import SideInputs, prepare, replay_frames, run_recording
 from agvviz.settings import RunSettings
 
 foxglove = pytest.importorskip("foxglove", reason="foxglove-sdk (test extra) not installed")
@@ -44,13 +42,8 @@ def content(qr_small_content) -> dict:
 
 def frame_results(path, side: SideInputs | None = None) -> dict[int, tuple]:
     """time → (rejection, detail, position error m) of every frame, through the run's stages."""
-    prepared = prepare(path, dataclasses.replace(RunSettings(), tracking=False), side=side)
-    out = {}
-    for m in iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, ReadReport()):
-        r = prepared.replay.feed(m)
-        if r is not None:
-            out[r.log_time_ns] = (r.rejected, r.reject_detail, r.position_error_m)
-    return out
+    frames = replay_frames(path, dataclasses.replace(RunSettings(), tracking=False), side=side)
+    return {r.log_time_ns: (r.rejected, r.reject_detail, r.position_error_m) for r in frames}
 
 
 @pytest.fixture(scope="module")
