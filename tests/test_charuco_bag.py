@@ -463,20 +463,26 @@ def test_the_runs_saddles_are_opencvs(replay):
         assert np.sqrt(np.mean(distance**2)) <= SADDLES_RMS_PX and distance.max() <= SADDLES_MAX_PX, distance
 
 
-def test_a_board_whose_marker_size_is_10_percent_wrong_is_reported(tmp_path):
-    """The board side file says 22 mm markers where 20 mm are printed: every marker's corners
-    miss by ≈ 1.8 px (the others' σ: ≈ 0.3 px), no single marker is to blame, so the joint
-    solve keeps all and every frame — and the run's warnings — say the markers disagree as a group."""
+def run_with_board(tmp_path: Path, edit) -> subprocess.CompletedProcess:
+    """``agvviz run`` on the bag with the board side file changed by ``edit(board dict)``
+    (written to ``tmp_path/run.rrd``)."""
     bag, markers = write_bag_and_board(tmp_path)
     board = yaml.safe_load(markers.read_text())
-    board["boards"][0]["marker_length_m"] = 0.022
+    edit(board)
     markers.write_text(yaml.safe_dump(board))
     command = [
         sys.executable, "-m", "agvviz.cli", "run", str(bag), "--markers", str(markers),
         "--calibration", f"{CAM}={CALIBRATION}", "--extrinsic", f"{CAM}=0,0,0,0,0,0,1",
         "--out", str(tmp_path / "run.rrd"),
     ]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    return subprocess.run(command, capture_output=True, text=True, timeout=600)
+
+
+def test_a_board_whose_marker_size_is_10_percent_wrong_is_reported(tmp_path):
+    """The board side file says 22 mm markers where 20 mm are printed: every marker's corners
+    miss by ≈ 1.8 px (the others' σ: ≈ 0.3 px), no single marker is to blame, so the joint
+    solve keeps all and every frame — and the run's warnings — say the markers disagree as a group."""
+    done = run_with_board(tmp_path, lambda board: board["boards"][0].update(marker_length_m=0.022))
     assert done.returncode == 0, done.stderr
     assert "4 frame(s): the markers in view disagree as a group" in done.stdout + done.stderr
 
@@ -519,16 +525,7 @@ def test_a_board_of_the_wrong_dictionary_is_one_line(tmp_path):
     """The board side file names DICT_5X5_250 where DICT_6X6 markers are printed: no marker of
     the map is found, and the run stops before any work with one line naming the dictionary
     the frames show (no pose, no saddles from markers that are not there)."""
-    bag, markers = write_bag_and_board(tmp_path)
-    board = yaml.safe_load(markers.read_text())
-    board["dictionary"] = "DICT_5X5_250"
-    markers.write_text(yaml.safe_dump(board))
-    command = [
-        sys.executable, "-m", "agvviz.cli", "run", str(bag), "--markers", str(markers),
-        "--calibration", f"{CAM}={CALIBRATION}", "--extrinsic", f"{CAM}=0,0,0,0,0,0,1",
-        "--out", str(tmp_path / "run.rrd"),
-    ]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    done = run_with_board(tmp_path, lambda board: board.update(dictionary="DICT_5X5_250"))
     assert done.returncode == 2, (done.stdout, done.stderr)
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "DICT_5X5_250" in lines[0] and "DICT_6X6" in lines[0], done.stderr
