@@ -122,7 +122,8 @@ def write_bag_and_board(folder: Path) -> tuple[Path, Path]:
 @pytest.fixture(scope="module")
 def replay(tmp_path_factory):
     """Write the bag and side files, run ``agvviz run``; (.rrd contents, calibration, board)."""
-    from agvviz.recording.sidefiles import charuco_marker_corners, load_calibration
+    from agvviz.markers.charuco import charuco_marker_corners
+    from agvviz.recording.sidefiles import load_calibration
     from agvviz.viz.readback import read_rrd
 
     tmp = tmp_path_factory.mktemp("charuco_bag")

@@ -23,7 +23,7 @@ from agvviz.markers.charuco import (
     is_chessboard_id,
     opencv_board,
 )
-from agvviz.recording.sidefiles import charuco_marker_corners
+from agvviz.markers.charuco import charuco_marker_corners
 
 SQUARE_PX = 60
 SADDLE_TOLERANCE_PX = 0.25

@@ -6,7 +6,7 @@ and warped by known homographies. Corner 0 must be the printed top-left and ever
 sit on the warped truth, for tag36h11, tag16h5 and tag25h9. ArUco: OpenCV is the reference
 (its ``generateImageMarker``). ChArUco: boards drawn by OpenCV's own board generator (legacy
 and new pattern); the detected corners must be those agvviz's map expansion
-(:func:`agvviz.recording.sidefiles.charuco_marker_corners`) assigns, through the known image
+(:func:`agvviz.markers.charuco.charuco_marker_corners`) assigns, through the known image
 transform. The module grids the renderer draws are compared bit for bit with the official
 images.
 
@@ -29,7 +29,7 @@ import pytest
 
 from agvviz.markers.apriltag import opencv_quarter_turns
 from agvviz.markers.aruco import ArucoError, aruco_dictionary, aruco_modules, detect_aruco
-from agvviz.recording.sidefiles import charuco_marker_corners
+from agvviz.markers.charuco import charuco_marker_corners
 
 
 def _shared_data() -> Path:
@@ -222,7 +222,7 @@ SQUARE_PX, MARGIN_PX = 60, 20
 def test_charuco_marker_corners_match_opencv_board(name, marker_px, legacy):
     """A ChArUco board drawn by OpenCV's generator (square 60 px, markers a whole number (5–6)
     of px per module at whole-px offsets, so the drawing is exact), turned and warped: every
-    detected marker's corners are the ones sidefiles.charuco_marker_corners assigns, mapped
+    detected marker's corners are the ones charuco.charuco_marker_corners assigns, mapped
     board metres → image px. The AprilTag board checks the re-ordering by OpenCV's turn."""
     squares_x, squares_y, square_m = 5, 4, 0.04
     marker_m = square_m * marker_px / SQUARE_PX

@@ -343,7 +343,7 @@ def _map_board(entry: object, index: int, dictionary: str, count: int, markers: 
             stored = None
         if stored is None or stored.shape != corners_m.shape or not np.all(np.abs(stored - corners_m) <= BOARD_TOLERANCE_M):
             raise ArucoError(f"{where}: chessboard_corners_m are not the {len(corners_m)} corners of its layout at its pose")
-    from agvviz.recording.sidefiles import charuco_marker_corners
+    from agvviz.markers.charuco import charuco_marker_corners
 
     expected = charuco_marker_corners(spec.squares_x, spec.squares_y, spec.square_length_m, spec.marker_length_m,
                                       dictionary, list(ids), legacy)

@@ -119,6 +119,41 @@ def opencv_corner_order(dictionary: str) -> np.ndarray:
     return (np.arange(4) - opencv_quarter_turns(dictionary)) % 4
 
 
+def charuco_marker_corners(
+    squares_x: int, squares_y: int, square_length_m: float, marker_length_m: float,
+    dictionary: str, ids: list[int] | None = None, legacy_pattern: bool = False,
+) -> dict[int, np.ndarray]:
+    """Corners (4, 3) TL, TR, BR, BL of every ArUco marker of a ChArUco board, by id, in the
+    board frame of :mod:`agvviz.recording.sidefiles` (origin bottom-left, y up, z out of the face).
+
+    The board is the one OpenCV's generator draws. Its AprilTags are OpenCV's bits, turned from
+    the printed tags on OpenCV 5.0 (:func:`agvviz.markers.apriltag.opencv_quarter_turns`): their
+    corners are re-ordered so that corner 0 is the drawn tag's own top-left, the corner the
+    AprilTag detector reports first."""
+    from agvviz.markers.apriltag import is_apriltag_dictionary, opencv_quarter_turns
+    from agvviz.markers.aruco import aruco_dictionary
+
+    args = ((squares_x, squares_y), float(square_length_m), float(marker_length_m), aruco_dictionary(dictionary))
+    board = cv2.aruco.CharucoBoard(*args, np.asarray(ids, dtype=np.int32)) if ids is not None else cv2.aruco.CharucoBoard(*args)
+    if legacy_pattern:
+        board.setLegacyPattern(True)
+    square, half = float(square_length_m), float(marker_length_m) / 2.0
+    height_m = squares_y * square
+    corners = {}
+    for marker_id, points in zip(np.asarray(board.getIds()).ravel(), board.getObjPoints()):
+        # OpenCV's points are float32: take the layout (which square, which corner is which)
+        # from them and compute the coordinates in float64.
+        p = np.asarray(points, dtype=float).reshape(4, 2 if np.size(points) == 8 else 3)[:, :2]
+        centre = p.mean(axis=0)
+        cell = np.floor(centre / square)
+        exact = (cell + 0.5) * square + np.sign(p - centre) * half
+        corners[int(marker_id)] = np.column_stack([exact[:, 0], height_m - exact[:, 1], np.zeros(4)])
+    if is_apriltag_dictionary(dictionary):
+        order = (np.arange(4) + opencv_quarter_turns(dictionary)) % 4
+        corners = {marker_id: points[order] for marker_id, points in corners.items()}
+    return corners
+
+
 def chessboard_corners_board_m(spec: CharucoSpec) -> np.ndarray:
     """(N, 3) chessboard corners by corner id, in agvviz's board frame (module docstring)."""
     nx = spec.squares_x - 1
@@ -133,11 +168,9 @@ def chessboard_corners_board_m(spec: CharucoSpec) -> np.ndarray:
 def check_board_frame(spec: CharucoSpec) -> np.ndarray:
     """``T_agvviz_opencv`` (4, 4): the rigid transform from OpenCV's board frame to agvviz's,
     fitted to OpenCV's marker object points (in OpenCV's corner order) against agvviz's
-    expansion (:func:`agvviz.recording.sidefiles.charuco_marker_corners`) of the same board;
+    expansion (:func:`charuco_marker_corners`) of the same board;
     it must also take OpenCV's chessboard corners onto :func:`chessboard_corners_board_m`.
     Raises :class:`ArucoError` when either does not fit (the two disagree on the board)."""
-    from agvviz.recording.sidefiles import charuco_marker_corners
-
     board = opencv_board(spec)
     ours = charuco_marker_corners(spec.squares_x, spec.squares_y, spec.square_length_m, spec.marker_length_m,
                                   spec.dictionary, list(spec.ids), spec.legacy_pattern)
@@ -167,8 +200,6 @@ def detect_chessboard(
     """The board's saddles in the (undistorted) uint8 ``gray`` image from its detected
     ``markers`` ({id: (4, 2) corners TL, TR, BR, BL as printed}); None when fewer than two of
     its markers are in view. A result without corners carries the ``note`` saying why."""
-    from agvviz.recording.sidefiles import charuco_marker_corners
-
     seen = [i for i in spec.ids if i in markers]
     if len(seen) < 2:
         return None

@@ -394,48 +394,11 @@ def _positive_int(board: dict, key: str, where: str, low: int, high: int) -> int
     return value
 
 
-def charuco_marker_corners(
-    squares_x: int, squares_y: int, square_length_m: float, marker_length_m: float,
-    dictionary: str, ids: list[int] | None = None, legacy_pattern: bool = False,
-) -> dict[int, np.ndarray]:
-    """Corners (4, 3) TL, TR, BR, BL of every ArUco marker of a ChArUco board, by id, in the
-    board frame of the module docstring (origin bottom-left, y up, z out of the face).
-
-    The board is the one OpenCV's generator draws. Its AprilTags are OpenCV's bits, turned from
-    the printed tags on OpenCV 5.0 (:func:`agvviz.markers.apriltag.opencv_quarter_turns`): their
-    corners are re-ordered so that corner 0 is the drawn tag's own top-left, the corner the
-    AprilTag detector reports first."""
-    import cv2
-
-    from agvviz.markers.apriltag import is_apriltag_dictionary, opencv_quarter_turns
-    from agvviz.markers.aruco import aruco_dictionary
-
-    args = ((squares_x, squares_y), float(square_length_m), float(marker_length_m), aruco_dictionary(dictionary))
-    board = cv2.aruco.CharucoBoard(*args, np.asarray(ids, dtype=np.int32)) if ids is not None else cv2.aruco.CharucoBoard(*args)
-    if legacy_pattern:
-        board.setLegacyPattern(True)
-    square, half = float(square_length_m), float(marker_length_m) / 2.0
-    height_m = squares_y * square
-    corners = {}
-    for marker_id, points in zip(np.asarray(board.getIds()).ravel(), board.getObjPoints()):
-        # OpenCV's points are float32: take the layout (which square, which corner is which)
-        # from them and compute the coordinates in float64.
-        p = np.asarray(points, dtype=float).reshape(4, 2 if np.size(points) == 8 else 3)[:, :2]
-        centre = p.mean(axis=0)
-        cell = np.floor(centre / square)
-        exact = (cell + 0.5) * square + np.sign(p - centre) * half
-        corners[int(marker_id)] = np.column_stack([exact[:, 0], height_m - exact[:, 1], np.zeros(4)])
-    if is_apriltag_dictionary(dictionary):
-        order = (np.arange(4) + opencv_quarter_turns(dictionary)) % 4
-        corners = {marker_id: points[order] for marker_id, points in corners.items()}
-    return corners
-
-
 def _charuco_markers(board: object, where: str, dictionary: str) -> tuple[list[dict], dict]:
     """The board's markers (map entries) and the board's own map entry (its layout, pose and
     chessboard corners in its frame: the ``boards`` of ``agvviz.MarkerMap``)."""
     from agvviz.markers.aruco import aruco_dictionary
-    from agvviz.markers.charuco import CharucoSpec, chessboard_corners_board_m
+    from agvviz.markers.charuco import CharucoSpec, charuco_marker_corners, chessboard_corners_board_m
 
     board = _check_keys(board, _BOARD_KEYS, where)
     if board.get("type", "charuco") != "charuco":
