@@ -78,15 +78,12 @@ class DetectParams:
     charuco_boards: tuple = ()
 
     def __post_init__(self) -> None:
+        from agvviz.markers.apriltag import is_apriltag_dictionary
+        from agvviz.markers.aruco import check_apriltag_refine
         from agvviz.markers.qr import REFINE_METHODS as QR_REFINE_METHODS
 
-        from agvviz.markers.apriltag import APRILTAG_REFINE_METHODS, is_apriltag_dictionary
-
-        if is_apriltag_dictionary(self.aruco_dictionary) and self.refine not in APRILTAG_REFINE_METHODS:
-            raise InputError(
-                f"refine={self.refine} is OpenCV's ArUco corner refinement; AprilTag families take "
-                f"refine={' or '.join(APRILTAG_REFINE_METHODS)}"
-            )
+        if is_apriltag_dictionary(self.aruco_dictionary):
+            check_apriltag_refine(self.refine)  # ArucoError, an InputError: before any work
         if self.aruco_dictionary is None and self.refine not in QR_REFINE_METHODS:
             raise InputError(
                 f"refine={self.refine} is OpenCV's corner refinement of ArUco/AprilTag markers; the markers "

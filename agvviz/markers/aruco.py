@@ -135,10 +135,7 @@ def detect_aruco(gray: np.ndarray, dictionary_name: str, refine: str = "ecc") ->
     _check_refine(refine)
     if is_apriltag_dictionary(dictionary_name):
         aruco_dictionary(dictionary_name)  # refuses an unsupported family as ArucoError
-        if refine not in APRILTAG_REFINE_METHODS:
-            raise ArucoError(
-                f"refine={refine} is OpenCV's ArUco refinement; AprilTag families take {', '.join(APRILTAG_REFINE_METHODS)}"
-            )
+        check_apriltag_refine(refine)
         return detect_apriltags(gray, dictionary_name, refine=refine)
     return _refined(gray, _detector(dictionary_name, refine), refine, functools.partial(aruco_modules, dictionary_name))
 
@@ -152,6 +149,16 @@ def detect_with_dictionary(gray: np.ndarray, dictionary: cv2.aruco.Dictionary, r
         return cv2.aruco.generateImageMarker(dictionary, int(marker_id), n, borderBits=1) == 0
 
     return _refined(gray, cv2.aruco.ArucoDetector(dictionary, _parameters(refine)), refine, modules)
+
+
+def check_apriltag_refine(refine: str) -> None:
+    """:class:`ArucoError` when ``refine`` is an OpenCV ArUco refinement the AprilTag library's
+    detector does not have (``contour``)."""
+    if refine not in APRILTAG_REFINE_METHODS:
+        raise ArucoError(
+            f"refine={refine} is OpenCV's ArUco corner refinement; AprilTag families take "
+            f"refine={' or '.join(APRILTAG_REFINE_METHODS)}"
+        )
 
 
 def _check_refine(refine: str) -> None:
