@@ -47,7 +47,7 @@ def _interrupted(message: bool = True) -> int:
 
 def _remove_temps() -> None:
     try:
-        from agvviz.outputs import remove_live_temps
+        from agvviz.recording.outputs import remove_live_temps
 
         remove_live_temps()
     except BaseException:  # noqa: BLE001 — best effort while exiting

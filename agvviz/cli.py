@@ -26,7 +26,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
-from agvviz import __version__, outputs
+from agvviz import __version__
+from agvviz.recording import outputs
 from agvviz.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_OUTPUT, AgvvizError, InputError
 from agvviz.settings import RunSettings, apply_overrides, describe
 
@@ -135,7 +136,7 @@ def _progress() -> Progress:
 @handle_errors
 def scenarios() -> None:
     """List every scenario with its options and defaults."""
-    from agvviz import scenario_registry
+    from agvviz import scenarios as scenario_registry
 
     for name, module in scenario_registry.available().items():
         table = Table(title=f"{name} — {module.DESCRIPTION}", title_justify="left")
@@ -148,7 +149,7 @@ def scenarios() -> None:
 
 
 def _record(scenario: str, seed: int, sets: list[str], out: Path) -> Path:
-    from agvviz import scenario_registry
+    from agvviz import scenarios as scenario_registry
 
     scenario_registry.build_options(scenario, sets)  # validate before any work
     with _progress() as progress:
@@ -231,7 +232,7 @@ def _side_inputs(markers: Optional[Path], calibration: list[str], extrinsic: lis
     """Side-file values (agvviz.recording.sidefiles) for the replay; InputError on bad input."""
     from agvviz.errors import InputError
     from agvviz.recording import sidefiles
-    from agvviz.runner import SideInputs
+    from agvviz.replay.run import SideInputs
 
     side = SideInputs()
     if markers is not None:
@@ -276,7 +277,7 @@ def _run(
 ) -> Path:
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
-    from agvviz.runner import NoUsableFrameError, run_recording
+    from agvviz.replay.run import NoUsableFrameError, run_recording
 
     _check_detect_jobs(jobs)
     require_recording_path(recording)  # one line, before a progress bar is drawn
@@ -432,7 +433,7 @@ def inspect(
     """
     from agvviz.recording.contract import format_report, inspect_recording
     from agvviz.recording.roles import parse_topic_options
-    from agvviz.runner import prepare
+    from agvviz.replay.run import prepare
 
     settings = apply_overrides(RunSettings(), list(set_))
     topic_map = parse_topic_options(list(topic))
@@ -471,7 +472,7 @@ def _marker_scan_lines(recording: Path, prepared, markers: Optional[Path], write
     frames are scanned for every common family; with a map, for its family first, and for the
     others only when the map's is not seen. Writes the map skeleton when asked. Returns the
     lines and, when a run would refuse the frames' family (no map, or another map), why."""
-    from agvviz.graph.family_scan import map_problem, map_skeleton_yaml, mismatch_line, scan_lines, scan_recording
+    from agvviz.replay.detect.family_scan import map_problem, map_skeleton_yaml, mismatch_line, scan_lines, scan_recording
     from agvviz.markers.scan import MIN_FRAMES, SCAN_FAMILIES
 
     if not prepared.roles.cameras():
@@ -735,7 +736,7 @@ def diff(
 
     Example: agvviz diff runs/lm.rrd runs/p4p.rrd --out runs/diff.rrd --fail-if "B.position_rmse_mm > 1.05*A.position_rmse_mm"
     """
-    from agvviz.compare import diff as diff_runs, diff_table, diff_table_title, diff_verdict
+    from agvviz.app.compare import diff as diff_runs, diff_table, diff_table_title, diff_verdict
 
     outcome = diff_runs(
         a, b, overlay_path=out, fail_if=fail_if, align=align, rpe_delta=rpe_delta,
@@ -806,8 +807,8 @@ def sweep(
 
     Example: agvviz sweep recordings/qr_floor.mcap --set solver=p4p,lm,ippe --set lm_max_iterations=3,10
     """
-    from agvviz.compare import grid_settings, parse_grid, ranking_rows
-    from agvviz.compare import sweep as sweep_runs
+    from agvviz.app.compare import grid_settings, parse_grid, ranking_rows
+    from agvviz.app.compare import sweep as sweep_runs
 
     if jobs is not None and jobs < 1:
         _fail(f"--jobs must be ≥ 1 (or left out for one per CPU), got {jobs}")
@@ -902,7 +903,7 @@ def budget(
 @handle_errors
 def audit(
     recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file or a rosbag2 directory"),
-    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="audit setting (agvviz/audit/problem.py AuditSettings: "
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="audit setting (agvviz/evaluation/audit/problem.py AuditSettings: "
                                    "k_sigma, min_position_m, sigma_px, map_sigma_m, …) or run setting (repeatable)"),
     out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-audit.rrd); the corrected "
                                        "map <out>-markers.yaml and extrinsic <out>-extrinsic.txt are written beside it"),
@@ -925,9 +926,9 @@ def audit(
 
     Example: agvviz audit recordings/qr_floor.mcap --set k_sigma=3 --out runs/audit.rrd
     """
-    from agvviz import audit as audit_lib
-    from agvviz.audit import report
-    from agvviz.audit.problem import AuditSettings
+    from agvviz.app import audit as audit_lib
+    from agvviz.evaluation.audit import report
+    from agvviz.evaluation.audit.problem import AuditSettings
     from agvviz.recording.source import require_recording_path
 
     if correct not in ("flagged", "all"):
@@ -1005,7 +1006,7 @@ def export(
 
     Example: agvviz export runs/qr_floor-lm.rrd --format mcap --out-dir exports
     """
-    from agvviz.export import export_run
+    from agvviz.app.export import export_run
 
     written = export_run(run_file, format_, out_dir)
     for item in written:

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 from agvviz.conventions import DEFAULT_GIMBAL_THRESHOLD
 from agvviz.fusion.common import FUSION_NAMES
-from agvviz.multicam import CAMERA_SELECT
+from agvviz.solvers.multi_camera import CAMERA_SELECT
 from agvviz.solvers.ambiguity import POLICIES as AMBIGUITY_POLICIES
 from agvviz.solvers.registry import SOLVER_NAMES
 from agvviz.uwb.localize import METHODS as UWB_METHODS

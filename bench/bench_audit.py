@@ -7,7 +7,7 @@ Usage:  python bench/bench_audit.py [--workdir DIR] [--seeds 20] [--skip-recordi
    recorded into DIR once and reused): first with a cold detection cache (detection included),
    then again from the cache (collect = reading + the solve stage's payload parsing; solve = the
    bundle adjustment with its covariance).
-2. Scaling (corner-level simulation, agvviz.audit.synthetic, so detection does not count): the
+2. Scaling (corner-level simulation, agvviz.evaluation.audit.synthetic, so detection does not count): the
    solve time against frames (duration 10…80 s on the same track: markers stay ~20) and against
    markers (grid_spacing_m 1.5 → 0.75 m: 2–4× more codes per frame, the same 200 frames).
 3. Rates over --seeds seeds (synthetic, the default 20 s track) with the issue's injected
@@ -41,8 +41,8 @@ INJECTED = {"Q040": ("position", 0), "Q047": ("yaw", 3), "Q050": ("scale", 6)}
 
 
 def figure_1(workdir: Path, skip_recording: bool) -> None:
-    from agvviz import scenario_registry
-    from agvviz.audit import audit_recording
+    from agvviz import scenarios as scenario_registry
+    from agvviz.app.audit import audit_recording
     from agvviz.settings import RunSettings
 
     rec = workdir / "qr_floor-seed1.mcap"
@@ -70,9 +70,9 @@ def _solve_time(options, seed: int = 1, sim_bias_px: float = 0.0, audit_bias_px:
     """Simulate (independent corner σ 0.1 px, plus ``sim_bias_px`` of per-marker systematic
     corner error) and audit with the corner σ known and ``corner_bias_px`` = ``audit_bias_px``
     (None: the default)."""
-    from agvviz.audit.estimate import estimate
-    from agvviz.audit.problem import AuditSettings
-    from agvviz.audit.synthetic import simulate, solver
+    from agvviz.evaluation.audit.estimate import estimate
+    from agvviz.evaluation.audit.problem import AuditSettings
+    from agvviz.evaluation.audit.synthetic import simulate, solver
 
     syn = simulate(options, seed, sigma_px=0.1, corner_bias_px=sim_bias_px)
     if audit_bias_px is not None:
@@ -84,7 +84,7 @@ def _solve_time(options, seed: int = 1, sim_bias_px: float = 0.0, audit_bias_px:
 
 
 def figure_2() -> None:
-    from scenarios import qr_floor as q
+    from agvviz.scenarios import qr_floor as q
 
     print("2. scaling (synthetic corners; solve time incl. start, covariance, gauge re-solves)")
     print(f"   {'frames':>6} {'markers':>7} {'obs':>6} {'unknowns':>8} {'solve s':>8} {'ms/frame':>8}")
@@ -101,7 +101,7 @@ def figure_2() -> None:
 
 def rates(profile: str, seeds: int, inject: str, sim_bias_px: float = 0.0, audit_bias_px: float | None = None,
           **audit_changes) -> dict:
-    from scenarios import qr_floor as q
+    from agvviz.scenarios import qr_floor as q
 
     o = q.Options(realism=profile, inject=inject)
     out = {"misses": 0, "injected": 0, "false": 0, "justified": 0, "clean": 0, "beyond3": 0, "cam_miss": 0, "cam_false": 0,

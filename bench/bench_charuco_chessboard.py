@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from agvviz.geometry import se3, so3  # noqa: E402
 from agvviz.markers.charuco import charuco_marker_corners  # noqa: E402
 from agvviz.recording.sidefiles import load_calibration, load_marker_map, parse_extrinsic  # noqa: E402
-from agvviz.runner import SideInputs, replay_frames  # noqa: E402
+from agvviz.replay.run import SideInputs, replay_frames  # noqa: E402
 from agvviz.settings import RunSettings, apply_overrides  # noqa: E402
 from test_charuco_bag import BOARD, CALIBRATION, CAM, DICTIONARY, PHOTOS, chessboard_pose, write_bag_and_board  # noqa: E402
 

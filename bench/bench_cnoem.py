@@ -142,9 +142,9 @@ def sweep_section(trials: int, seed: int) -> list[str]:
 
 
 def recording_section(path: Path) -> list[str]:
-    """A grid recording through the library's study stage (agvviz.graph.cnoem_trials), as
+    """A grid recording through the library's study stage (agvviz.replay.studies.cnoem), as
     `agvviz run` solves it."""
-    from agvviz.graph.cnoem_trials import replay_cnoem_trials
+    from agvviz.replay.studies.cnoem import replay_cnoem_trials
     from agvviz.recording.reader import iter_messages
     from agvviz.settings import RunSettings
 

@@ -24,8 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from agvviz import scenario_registry
-from agvviz.compare import diff, parse_grid, sweep
+from agvviz import scenarios as scenario_registry
+from agvviz.app.compare import diff, parse_grid, sweep
 
 
 def _mb(path: Path) -> str:

@@ -12,11 +12,11 @@ corners mapped through the same homography (OpenCV pixel-centre convention).
 Printed, per refiner asked for:
 
 * in process, one OpenCV thread (as a detection worker runs): the detect stage as ``agvviz run``
-  calls it (:class:`agvviz.graph.detect.SegmentDetector` on a
-  :class:`~agvviz.graph.detect.FrameJob`: JPEG decode, ArUco detection, refinement) — median
+  calls it (:class:`agvviz.replay.detect.stage.SegmentDetector` on a
+  :class:`~agvviz.replay.detect.stage.FrameJob`: JPEG decode, ArUco detection, refinement) — median
   CPU and wall ms per frame, and the frames/s of ``--workers`` cores (workers ÷ CPU time per
   frame: what an otherwise idle machine gives);
-* two worker processes (:class:`agvviz.graph.detect_pool.DetectionFeed`'s way: segments of
+* two worker processes (:class:`agvviz.replay.detect.pool.DetectionFeed`'s way: segments of
   frames in a process pool, ``jobs=2``): frames/s over all frames;
 * the corner error against the truth (median, RMS, p90 px) and markers found.
 
@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 
 from agvviz.geometry.camera import PinholeCamera
-from agvviz.graph.detect import DetectParams, FrameJob, SegmentDetector, detect_segment
+from agvviz.replay.detect.stage import DetectParams, FrameJob, SegmentDetector, detect_segment
 from agvviz.recording.reader import CalibrationMsg
 
 DICTIONARY = "DICT_6X6_250"

@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agvviz import runner  # noqa: E402
-from agvviz.scenario_registry import record as record_scenario  # noqa: E402
+from agvviz.replay import run as runner  # noqa: E402
+from agvviz.scenarios import record as record_scenario  # noqa: E402
 from agvviz.settings import RunSettings, apply_overrides  # noqa: E402
 
 

@@ -1,5 +1,5 @@
 """Paper 000 §6 Monte-Carlo study: record p4p_monte_carlo, solve every trial with p4p, lm,
-lm_pixel, lm_amb, ippe and sqpnp through the library's trials stage (agvviz.graph.trials, the same
+lm_pixel, lm_amb, ippe and sqpnp through the library's trials stage (agvviz.replay.studies.monte_carlo, the same
 as `agvviz run` on the recording), and write the report (markdown table + .rrd with the plots).
 
 Usage:  python bench/bench_monte_carlo.py [--trials 1000] [--cells all] [--seed 0] [--out DIR]
@@ -15,8 +15,8 @@ import os
 import time
 from pathlib import Path
 
-from agvviz import scenario_registry
-from agvviz.graph.trials import replay_trials
+from agvviz import scenarios as scenario_registry
+from agvviz.replay.studies.monte_carlo import replay_trials
 from agvviz.recording.reader import iter_messages
 from agvviz.settings import RunSettings
 from agvviz.viz.monte_carlo_report import write_report_rrd

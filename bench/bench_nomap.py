@@ -87,9 +87,9 @@ def scan_speed() -> None:
 
 
 def run_check(workdir: Path) -> None:
-    from agvviz import scenario_registry
-    from agvviz.graph.family_scan import family_check
-    from agvviz.runner import prepare
+    from agvviz import scenarios as scenario_registry
+    from agvviz.replay.detect.family_scan import family_check
+    from agvviz.replay.run import prepare
     from agvviz.settings import RunSettings
 
     recording = workdir / "qr_floor_10s.mcap"
@@ -106,8 +106,8 @@ def scan_charuco_recording(workdir: Path) -> None:
     import foxglove
     from foxglove.channels import CompressedImageChannel
 
-    from agvviz.graph.family_scan import scan_recording
-    from agvviz.runner import prepare
+    from agvviz.replay.detect.family_scan import scan_recording
+    from agvviz.replay.run import prepare
     from agvviz.settings import RunSettings
 
     photos = [(_data_dir() / "opencv_contrib_aruco" / f"img_0{i}.jpg") for i in range(4)]

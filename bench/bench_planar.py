@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from agvviz import scenario_registry
-from agvviz.graph.solve import replay
+from agvviz import scenarios as scenario_registry
+from agvviz.replay.solve import replay
 from agvviz.recording.reader import iter_messages
 from agvviz.settings import RunSettings
 

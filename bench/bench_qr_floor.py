@@ -22,12 +22,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.evaluation import FrameScore
 from agvviz.geometry.plane import square_points_marker
-from agvviz.graph.solve import replay
+from agvviz.replay.solve import replay
 from agvviz.recording.reader import CompressedFrame, iter_messages, CalibrationMsg
-from agvviz.runner import run_recording
+from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings
 
 

@@ -29,7 +29,7 @@ def write_files(out: Path) -> list[Path]:
     import foxglove
 
     import test_real_logs as t
-    from agvviz.scenario_registry import record
+    from agvviz.scenarios import record
 
     native = out / "native.mcap"
     record("qr_floor", native, seed=1, overrides=["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500", "realism=ideal"])

@@ -125,7 +125,7 @@ def corner_error_components_px(corners_by_photo: list[dict[int, np.ndarray]], bo
                                camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
     """(independent σ, systematic σ) per image axis (px) of the corners over several photos of one
     board — the two variance components of the audit's corner model (``sigma_px`` and
-    ``corner_bias_px``, :mod:`agvviz.audit.problem`). Each marker's leave-one-out residual is taken
+    ``corner_bias_px``, :mod:`agvviz.evaluation.audit.problem`). Each marker's leave-one-out residual is taken
     back to the board plane (so a corner's systematic error stays put however the board lies in the
     photo) and scaled to px at that marker's size in the photo; per marker corner, the scatter across
     photos estimates the independent variance and the mean across photos the systematic one (its

@@ -27,10 +27,10 @@ import tempfile
 from pathlib import Path
 
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.evaluation.fusion_summary import FusionStats
-from agvviz.graph.fuse import FusionReplay
-from agvviz.graph.solve import Replay
+from agvviz.replay.fuse import FusionReplay
+from agvviz.replay.solve import Replay
 from agvviz.recording.reader import CompressedFrame, RecordedMessage, iter_messages
 from agvviz.settings import RunSettings
 

@@ -29,7 +29,7 @@ import pytest
 
 @pytest.fixture(autouse=True, scope="session")
 def _detection_cache_in_tmp(tmp_path_factory):
-    """Runs store detections in a cache folder (agvviz.graph.detect_cache): the suite's go to a
+    """Runs store detections in a cache folder (agvviz.replay.detect.cache): the suite's go to a
     temporary folder, never the user's ~/.cache (subprocesses inherit the variable)."""
     import os
 
@@ -53,8 +53,8 @@ UWB_ROOM_SMALL = ["duration_s=3", "rate_hz=5", "block_start_s=1.0", "block_end_s
 def uwb_room_small_run(tmp_path_factory):
     """(recording, outcome) of ``UWB_ROOM_SMALL`` (seed 4) replayed with fusion=mean_compensation.
     Read only: tests must not modify the recording or the run's .rrd."""
-    from agvviz import scenario_registry
-    from agvviz.runner import run_recording
+    from agvviz import scenarios as scenario_registry
+    from agvviz.replay.run import run_recording
     from agvviz.settings import RunSettings
 
     tmp = tmp_path_factory.mktemp("uwb_room_small")
@@ -73,7 +73,7 @@ QR_SMALL = ["duration_s=0.4", "width_px=640", "height_px=512", "focal_px=500", "
 @pytest.fixture(scope="session")
 def qr_small(tmp_path_factory):
     """Path of the ``QR_SMALL`` recording (seed 1). Read only."""
-    from agvviz.scenario_registry import record
+    from agvviz.scenarios import record
 
     path = tmp_path_factory.mktemp("qr_small") / "qr.mcap"
     record("qr_floor", path, seed=1, overrides=QR_SMALL)

@@ -17,11 +17,11 @@ import pytest
 from scipy.stats import norm
 from typer.testing import CliRunner
 
-from agvviz import scenario_registry
-from agvviz.audit import AuditSettings
-from agvviz.audit.estimate import estimate
-from agvviz.audit.problem import AuditData, flag_threshold
-from agvviz.audit.synthetic import camera_truth, marker_truth, scene_geometry, simulate, solver
+from agvviz import scenarios as scenario_registry
+from agvviz.app.audit import AuditSettings
+from agvviz.evaluation.audit.estimate import estimate
+from agvviz.evaluation.audit.problem import AuditData, flag_threshold
+from agvviz.evaluation.audit.synthetic import camera_truth, marker_truth, scene_geometry, simulate, solver
 from agvviz.cli import app
 from agvviz.errors import InputError
 from agvviz.recording.sidefiles import load_marker_map, parse_extrinsic
@@ -53,7 +53,7 @@ SMALL = ["duration_s=6", "width_px=640", "height_px=512", "focal_px=500.0", "sup
 
 
 def _options(**changes):
-    from scenarios import qr_floor as q
+    from agvviz.scenarios import qr_floor as q
 
     return q.Options(**{**SHORT, **changes})
 
@@ -81,13 +81,13 @@ def test_inject_parses_and_refuses_bad_items():
     with pytest.raises(ValueError, match="no marker 'Q999'"):
         inj.check_targets(inj.parse_inject("marker:Q999:dx_m=1"), ["Q000"], ["front"])
     with pytest.raises(ValueError, match="no camera 'rear'"):
-        from scenarios import qr_floor as q
+        from agvviz.scenarios import qr_floor as q
 
         q.validate(q.Options(inject="camera:rear:dz_m=0.01"))
 
 
 def test_injection_is_the_exact_truth_of_the_draws():
-    from scenarios import qr_floor as q
+    from agvviz.scenarios import qr_floor as q
 
     o = _options(inject=INJECT)
     code = scene_geometry(o, np.random.default_rng(0)).codes[34]
@@ -106,7 +106,7 @@ def test_injection_is_the_exact_truth_of_the_draws():
 
 
 def test_synthetic_scene_is_the_scenario_scene():
-    from scenarios import qr_floor as q
+    from agvviz.scenarios import qr_floor as q
 
     o = _options()
     a, b = np.random.default_rng(5), np.random.default_rng(5)

@@ -9,12 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.geometry import se3
 from agvviz.recording.contract import inspect_recording
 from agvviz.recording.reader import PoseMsg, iter_messages
 from agvviz.sim import auv
-from scenarios import auv_under_ice as scenario
+from agvviz.scenarios import auv_under_ice as scenario
 
 
 def test_rig_looks_forward_and_toes_out():
@@ -105,7 +105,7 @@ def test_grid_recording_carries_the_cells_truth(tmp_path):
 
 
 def test_images_show_the_markers_under_fluctuating_light(tmp_path):
-    from agvviz.graph.solve import Replay
+    from agvviz.replay.solve import Replay
     from agvviz.settings import RunSettings
 
     o = scenario.Options(duration_s=6.0)

@@ -25,11 +25,11 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from mcap.reader import make_reader
 from mcap.records import DataEnd
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.geometry import PinholeCamera, se3
 from agvviz.markers import qr
 from agvviz.markers.qr import detect_qr_codes
-from agvviz.graph.solve import Replay
+from agvviz.replay.solve import Replay
 from agvviz.recording.contract import (
     PAYLOAD_MAP_TOLERANCE_M,
     REJECT_CALIBRATION_SIZE,
@@ -52,8 +52,8 @@ from agvviz.recording.reader import (
     RecordedMessage,
     iter_messages,
 )
-from agvviz.results import REJECT_NO_CALIBRATION, REJECT_PAYLOAD
-from agvviz.runner import run_recording
+from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_PAYLOAD
+from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings
 
 REAL_PHOTO = Path(__file__).resolve().parents[2] / "shared" / "data" / "zxing_qrcode" / "qrcode-2" / "31.png"

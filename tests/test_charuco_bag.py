@@ -504,7 +504,7 @@ def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_pa
     sheet's edge may lift by about a millimetre, which 4 photos cannot rule out — so this
     test's margin there is small, and a calibration or detector change that shrinks σ will
     show up here first. No calibration structure is left in the corners (the audit's F-test)."""
-    from agvviz.audit import audit_recording
+    from agvviz.app.audit import audit_recording
     from agvviz.cli import _side_inputs
     from agvviz.settings import RunSettings
 

@@ -202,9 +202,9 @@ def test_detect_params_know_the_boards_and_the_cache_keeps_the_saddles(tmp_path)
     the detection cache stores and returns the saddles."""
     import pickle
 
-    from agvviz.graph import detect_cache
-    from agvviz.graph.detect import DetectParams, FrameDetections
-    from agvviz.graph.detect_pool import DetectedFrame
+    from agvviz.replay.detect import cache as detect_cache
+    from agvviz.replay.detect.stage import DetectParams, FrameDetections
+    from agvviz.replay.detect.pool import DetectedFrame
     from agvviz.markers.aruco import parse_aruco_map
     from agvviz.markers.charuco import ChessboardCorners
 
@@ -299,7 +299,7 @@ def test_a_run_with_the_wrong_legacy_flag_gives_no_pose_and_says_why(tmp_path):
 def test_saddles_left_out_are_named_apart_from_markers():
     """The run's warnings name a board's saddles left out by the χ² test on their own line
     (what to check for a board), not among the markers 'misplaced in the map'."""
-    from agvviz.graph.solve import Replay
+    from agvviz.replay.solve import Replay
     from agvviz.settings import RunSettings
 
     replay = Replay(RunSettings())

@@ -1,4 +1,4 @@
-"""The CNOEM trials stage (agvviz.graph.cnoem_trials) on tiny auv_under_ice mode=grid recordings,
+"""The CNOEM trials stage (agvviz.replay.studies.cnoem) on tiny auv_under_ice mode=grid recordings,
 its sink (agvviz.viz.trials_logger) and its rows of the summary table
 (agvviz.evaluation.summary_table)."""
 
@@ -9,13 +9,13 @@ import json
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.errors import RecordingError
 from agvviz.evaluation import cnoem_study
 from agvviz.evaluation.cnoem_study import METHODS
 from agvviz.evaluation.summary_table import summary_rows
-from agvviz.graph.cnoem_trials import is_cnoem_trials_recording, replay_cnoem_trials, study_method
-from agvviz.graph.trials import trials_timing
+from agvviz.replay.studies.cnoem import is_cnoem_trials_recording, replay_cnoem_trials, study_method
+from agvviz.replay.studies.monte_carlo import trials_timing
 from agvviz.recording.reader import PoseMsg, ReadReport, RecordedMessage, iter_messages
 from agvviz.recording.source import iter_role_messages, open_recording, resolve_roles, scan
 from agvviz.recording.topics import ROLE_CORNERS
@@ -248,7 +248,7 @@ def test_run_on_a_grid_recording_solves_every_trial(grid, tmp_path):
     import subprocess
     import sys
 
-    from agvviz.runner import run_recording
+    from agvviz.replay.run import run_recording
 
     done, totals = [], []
     outcome = run_recording(

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.cli import app
-from agvviz import cluster
-from agvviz.compare import (
+from agvviz.app import cluster
+from agvviz.app.compare import (
     COMPACT_METRICS,
     CompareError,
     cameras_of,
@@ -38,7 +38,7 @@ from agvviz.compare import (
 from agvviz.errors import InputError
 from agvviz.evaluation.comparison import DIRECT, RunSeries, compare_runs
 from agvviz.evaluation.expression import ExpressionError
-from agvviz.runner import run_recording
+from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz import overlay, paths
 from agvviz.viz.readback import (

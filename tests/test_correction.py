@@ -1,4 +1,4 @@
-"""Paper 002's correction cycle (agvviz.graph.correct): window bookkeeping, latency compensation
+"""Paper 002's correction cycle (agvviz.replay.correct): window bookkeeping, latency compensation
 through T_F_G, gates, and the replay + run integration on an auv_under_ice recording."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agvviz.graph.correct import (
+from agvviz.replay.correct import (
     CorrectionCycle,
     CorrectionError,
     CorrectionReplay,
@@ -98,7 +98,7 @@ def test_settings_and_unknown_cameras_are_refused_clearly():
 
 @pytest.fixture(scope="module")
 def route_recording(tmp_path_factory):
-    from agvviz import scenario_registry
+    from agvviz import scenarios as scenario_registry
 
     path = tmp_path_factory.mktemp("auv") / "auv.mcap"
     scenario_registry.record("auv_under_ice", path, seed=4, overrides=["duration_s=24", "realism=ideal"])
@@ -107,7 +107,7 @@ def route_recording(tmp_path_factory):
 
 @pytest.mark.parametrize("solver", ["cnoem", "bundle"])
 def test_correction_replay_beats_the_drifting_navigation(route_recording, solver):
-    from agvviz.graph.solve import Replay
+    from agvviz.replay.solve import Replay
     from agvviz.recording.reader import iter_messages
     from agvviz.settings import RunSettings
 
@@ -129,7 +129,7 @@ def test_correction_replay_beats_the_drifting_navigation(route_recording, solver
 
 
 def test_agvviz_run_with_correction_writes_the_window_and_events(route_recording, tmp_path):
-    from agvviz.runner import run_recording
+    from agvviz.replay.run import run_recording
     from agvviz.settings import RunSettings
     from agvviz.viz import correction_logger as cl
     from agvviz.viz.readback import _rows, read_rrd, scalar_series, text_logs

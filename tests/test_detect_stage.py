@@ -1,4 +1,4 @@
-"""The detect stage (agvviz.graph.detect), its worker pool (detect_pool) and its cache
+"""The detect stage (agvviz.replay.detect.stage), its worker pool (detect_pool) and its cache
 (detect_cache): detections — and so runs — are the same whoever computes them.
 
 Equality here is exact, not within a tolerance: the same frames go through the same code in
@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
-from agvviz.graph import detect_cache
-from agvviz.graph.detect import DetectParams, SegmentDetector, detection_settings
-from agvviz.graph.detect_pool import DetectionFeed
-from agvviz.graph.solve import Replay
+from agvviz import scenarios as scenario_registry
+from agvviz.replay.detect import cache as detect_cache
+from agvviz.replay.detect.stage import DetectParams, SegmentDetector, detection_settings
+from agvviz.replay.detect.pool import DetectionFeed
+from agvviz.replay.solve import Replay
 from agvviz.recording.reader import iter_messages
-from agvviz.runner import detect_recording, prepare, run_recording
+from agvviz.replay.run import detect_recording, prepare, run_recording
 from agvviz.settings import RunSettings
 
 # 4 s at 10 Hz = 40 frames: several segments of the default keyframe interval (10).

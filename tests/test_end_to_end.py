@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.cli import app
 from agvviz.recording.contract import inspect_recording
-from agvviz.runner import run_recording
+from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz.readback import document_json, points2d, read_rrd, scalar_series
@@ -118,7 +118,7 @@ def test_cli_rejects_bad_settings_with_clear_errors(tmp_path):
 
 
 def test_run_refuses_to_overwrite_its_input(run_files, tmp_path):
-    from agvviz.runner import RunError
+    from agvviz.replay.run import RunError
 
     recording, _ = run_files
     with pytest.raises(RunError):

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from agvviz.export import ExportError, export_run, tum_time
+from agvviz.app.export import ExportError, export_run, tum_time
 from agvviz.geometry import se3
-from agvviz.results import REJECT_NO_MARKER, FrameResult
+from agvviz.model.frames import REJECT_NO_MARKER, FrameResult
 from agvviz.viz.run_logger import RunLogger
 
 T0_NS = 1_700_000_000_123_456_789
@@ -166,8 +166,8 @@ def test_mcap_without_the_sdk_names_the_extra(run, tmp_path, monkeypatch):
 # -- TUM checked against evo ---------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def qr_floor_run(tmp_path_factory):
-    from agvviz import scenario_registry
-    from agvviz.runner import run_recording
+    from agvviz import scenarios as scenario_registry
+    from agvviz.replay.run import run_recording
     from agvviz.settings import RunSettings
 
     tmp = tmp_path_factory.mktemp("evo")
@@ -184,7 +184,7 @@ def test_tum_export_gives_evo_ape_equal_to_agvviz(qr_floor_run, tmp_path, align)
     from evo.core import metrics, sync
     from evo.tools import file_interface
 
-    from agvviz.compare import load_run
+    from agvviz.app.compare import load_run
     from agvviz.evaluation.comparison import run_metrics
 
     written = {w.which: w.path for w in export_run(qr_floor_run, "tum", tmp_path)}
@@ -218,8 +218,8 @@ def runs_with_and_without_truth(tmp_path_factory):
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
-    from agvviz import scenario_registry
-    from agvviz.runner import run_recording
+    from agvviz import scenarios as scenario_registry
+    from agvviz.replay.run import run_recording
     from agvviz.settings import RunSettings
 
     tmp = tmp_path_factory.mktemp("no_truth")

@@ -3,7 +3,7 @@
 Frames are rendered with OpenCV's own marker generator (ArUco, AprilTag) and the ``qrcode``
 encoding agvviz uses (a QR code with an ``AGV1`` payload), written into Foxglove MCAP files with
 the Foxglove SDK (a third-party writer, as a robot's log would be), and scanned by
-``agvviz.graph.family_scan`` / ``agvviz inspect`` / ``agvviz run``. The real photo
+``agvviz.replay.detect.family_scan`` / ``agvviz inspect`` / ``agvviz run``. The real photo
 ``../shared/data/opencv_contrib_aruco/singlemarkersoriginal.jpg`` (six DICT_6X6_250 markers,
 ids 23, 40, 62, 98, 124, 203 — opencv_contrib's own test expectation) checks the scan on a
 photograph with clutter.
@@ -22,10 +22,10 @@ import pytest
 import yaml
 
 from agvviz.geometry import se3
-from agvviz.graph.family_scan import FamilyMismatchError, family_check, map_skeleton_yaml, scan_recording
+from agvviz.replay.detect.family_scan import FamilyMismatchError, family_check, map_skeleton_yaml, scan_recording
 from agvviz.markers.scan import FamilyScan, sample_indices, scan_frame, smallest_dictionary
 from agvviz.recording.sidefiles import SideFileError, load_marker_map
-from agvviz.runner import SideInputs, prepare
+from agvviz.replay.run import SideInputs, prepare
 from agvviz.settings import RunSettings
 
 foxglove = pytest.importorskip("foxglove", reason="foxglove-sdk is not installed")
@@ -310,7 +310,7 @@ def test_a_qr_map_with_an_id_twice_is_named():
     (counted, not compared pairwise: a 200 000-code map stays linear)."""
     from types import SimpleNamespace
 
-    from agvviz.graph.family_scan import map_problem
+    from agvviz.replay.detect.family_scan import map_problem
 
     corners = [[0, 0, 0], [0, 1, 0], [1, 1, 0], [1, 0, 0]]
     markers = [{"id": f"Q{i}", "corners_world_m": corners} for i in range(200_000)] + [{"id": "Q7", "corners_world_m": corners}]

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import rerun.blueprint as rrb
 
-from agvviz import scenario_registry
-from agvviz.runner import run_recording
+from agvviz import scenarios as scenario_registry
+from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz import correction_logger as cl
 from agvviz.viz import paths, uwb_logger as ul

@@ -24,11 +24,12 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from agvviz import outputs, scenario_registry
+from agvviz.recording import outputs
+from agvviz import scenarios as scenario_registry
 from agvviz.cli import app, exit_for, handle_errors
-from agvviz.compare import CompareError, parse_grid, sweep
+from agvviz.app.compare import CompareError, parse_grid, sweep
 from agvviz.errors import OutputError
-from agvviz.runner import run_recording
+from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz.readback import RrdReadError, read_rrd
 from agvviz.viz.rrd_file import AtomicRrd, looks_complete

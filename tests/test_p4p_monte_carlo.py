@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.evaluation.monte_carlo import PAPER_FIGURES, checks, collect, evaluate_cell, report_markdown
 from agvviz.recording.contract import inspect_recording
 from agvviz.recording.reader import iter_messages
 from agvviz.viz.monte_carlo_report import write_report_rrd
 from agvviz.viz.readback import read_rrd, scalar_series, text_document
-from scenarios import p4p_monte_carlo as mc
+from agvviz.scenarios import p4p_monte_carlo as mc
 
 
 def test_paper_geometry_and_snr_definition():

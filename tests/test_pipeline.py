@@ -17,14 +17,14 @@ from agvviz.recording.reader import (
     PoseMsg,
     RecordedMessage,
 )
-from agvviz.results import (
+from agvviz.model.frames import (
     REJECT_IMAGE,
     REJECT_NO_CALIBRATION,
     REJECT_NO_MARKER,
     REJECT_PAYLOAD,
     REJECT_REPROJECTION,
 )
-from agvviz.graph.solve import replay
+from agvviz.replay.solve import replay
 from agvviz.settings import RunSettings
 from agvviz.sim.qr_texture import make_floor_code, qr_symbol_modules
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings, strategies as st
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.errors import InputError
 from agvviz.evaluation import expression
 from agvviz.evaluation.expression import ExpressionError

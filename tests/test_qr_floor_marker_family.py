@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from agvviz import scenario_registry
-from agvviz.runner import run_recording
-from agvviz.scenario_registry import ScenarioError
+from agvviz import scenarios as scenario_registry
+from agvviz.replay.run import run_recording
+from agvviz.scenarios import ScenarioError
 from agvviz.settings import RunSettings
 
 # 4 frames of a half-size camera (640×512, f = 500 px, 2×2 supersampling) over the default grid

@@ -8,14 +8,15 @@ import hashlib
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.geometry import se3
 from agvviz.geometry.euler import hpr_from_matrix
 from agvviz.recording import topics
 from agvviz.recording.reader import RawMessage, iter_messages, iter_raw
 from agvviz.sim import realism as rl
 from agvviz.sim.trajectory import forward_camera_mount, track_pose
-from scenarios import qr_floor, uwb_room
+from agvviz.scenarios import qr_floor
+from agvviz.scenarios import uwb_room
 
 # Small worlds: 3 frames of a 320×256 qr_floor, 2 time stamps of a 320×256 uwb_room.
 QR_SMALL = ["duration_s=0.3", "width_px=320", "height_px=256", "focal_px=250", "supersample=2"]
@@ -309,7 +310,7 @@ def test_typical_world_costs_millimetres_not_centimetres(tmp_path):
     the separation does not depend on the frame count — seed 0 gives ideal 0.34 / typical
     2.5 mm at 5 frames and 0.25 / 2.2 mm at 10. Both bounds keep their margins (typical ≈7×
     ideal, 10 mm ≈4× typical); a wrong unit or sign is as wrong on 5 frames as on 10."""
-    from agvviz.runner import run_recording
+    from agvviz.replay.run import run_recording
     from agvviz.settings import RunSettings
 
     errors = {}

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.recording import topics
 from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
@@ -160,7 +160,7 @@ def test_uwb_room_renders_typical_images_of_the_moving_roof_code(tmp_path):
 def test_a_standing_camera_exposes_the_static_frame_bit_for_bit():
     """What lets uwb_room's static grid render each frame once: with the pose constant over
     the exposure, motion blur and rolling shutter bands give the static irradiance exactly."""
-    from scenarios import qr_floor
+    from agvviz.scenarios import qr_floor
     from agvviz.sim.trajectory import forward_camera_mount
 
     options = scenario_registry.build_options("qr_floor", QR_SMALL)

@@ -33,7 +33,7 @@ from agvviz.geometry import se3
 from agvviz.recording.contract import format_report, inspect_recording
 from agvviz.recording.reader import ReadReport
 from agvviz.recording.source import iter_role_messages, open_recording
-from agvviz.runner import SideInputs, prepare
+from agvviz.replay.run import SideInputs, prepare
 from agvviz.settings import RunSettings
 from test_real_logs import frame_errors  # noqa: E402  (tests/ is on sys.path under pytest)
 

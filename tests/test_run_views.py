@@ -16,7 +16,7 @@ import pytest
 
 from agvviz.evaluation.summary import FrameScore, summarize
 from agvviz.geometry.camera import PinholeCamera
-from agvviz.results import REJECT_NO_MARKER, REJECT_REPROJECTION, FrameResult, LmIteration, MarkerObservation
+from agvviz.model.frames import REJECT_NO_MARKER, REJECT_REPROJECTION, FrameResult, LmIteration, MarkerObservation
 from agvviz.viz import paths
 from agvviz.viz.readback import _rows, read_rrd, scalar_series, text_document, document_json, transforms
 from agvviz.viz.run_logger import (

@@ -10,7 +10,7 @@ import tracemalloc
 import pytest
 from typer.testing import CliRunner
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.cli import app
 from agvviz.errors import InputError
 from agvviz.settings import (

@@ -17,7 +17,7 @@ from agvviz.sim import render as render_module
 from agvviz.sim.qr_texture import make_floor_code, qr_symbol_modules
 from agvviz.sim.render import FloorCode, FloorScene, encode_jpeg, render_frame, render_irradiance, true_corners_px
 from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track
-from scenarios import qr_floor
+from agvviz.scenarios import qr_floor
 
 WHITE_DN, BLACK_DN = 220.0, 25.0
 

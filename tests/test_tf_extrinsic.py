@@ -22,8 +22,8 @@ from typer.testing import CliRunner
 from agvviz.cli import app
 from agvviz.errors import RunError
 from agvviz.geometry import se3
-from agvviz.results import REJECT_NO_EXTRINSIC
-from agvviz.runner import SideInputs, prepare, replay_frames, run_recording
+from agvviz.model.frames import REJECT_NO_EXTRINSIC
+from agvviz.replay.run import SideInputs, prepare, replay_frames, run_recording
 from agvviz.settings import RunSettings
 
 foxglove = pytest.importorskip("foxglove", reason="foxglove-sdk (test extra) not installed")
@@ -144,7 +144,7 @@ def test_hold_only_constant_links_and_forget_the_note_when_a_link_changes():
     """Fed message by message (the library's streaming use): a lone /tf link is held with a
     note; once a different sample arrives it is time-varying again and the note goes."""
     from agvviz.geometry.tf_buffer import PoseSeries
-    from agvviz.graph.sync import SyncState
+    from agvviz.replay.sync import SyncState
     from agvviz.recording.reader import FrameTransformMsg, RecordedMessage
 
     series = PoseSeries()

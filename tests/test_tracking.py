@@ -20,7 +20,7 @@ from agvviz.markers.tracking import TRACKED_NOTE, CodeTracker, TrackOutcome
 from agvviz.sim.qr_texture import make_floor_code
 from agvviz.sim.render import FloorScene, render_frame, true_corners_px
 from agvviz.sim.trajectory import forward_camera_mount, sample_track
-from scenarios import qr_floor
+from agvviz.scenarios import qr_floor
 
 N_FRAMES = 12
 #: Tracked corners against full detection's on the same frame. Both are ECC runs to the same

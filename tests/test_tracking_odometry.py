@@ -14,16 +14,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.geometry import euler, se3
 from agvviz.geometry.homography import floor_homography, plane_homography
 from agvviz.geometry.plane import DegenerateGeometryError
 from agvviz.geometry.tf_buffer import PoseSeries
-from agvviz.graph.detect import DetectParams, SegmentDetector
-from agvviz.graph.detect_pool import DetectionFeed
+from agvviz.replay.detect.stage import DetectParams, SegmentDetector
+from agvviz.replay.detect.pool import DetectionFeed
 from agvviz.recording.reader import PoseMsg, iter_messages
 from agvviz.recording.topics import ROLE_ODOMETRY
-from agvviz.runner import prepare
+from agvviz.replay.run import prepare
 from agvviz.settings import RunSettings
 from agvviz.sim.trajectory import forward_camera_mount
 

@@ -1,4 +1,4 @@
-"""The trials stage (agvviz.graph.trials) on a tiny p4p_monte_carlo recording, its sink
+"""The trials stage (agvviz.replay.studies.monte_carlo) on a tiny p4p_monte_carlo recording, its sink
 (agvviz.viz.trials_logger) and the kind-aware summary table (agvviz.evaluation.summary_table)."""
 
 from __future__ import annotations
@@ -8,12 +8,12 @@ import json
 import numpy as np
 import pytest
 
-from agvviz import scenario_registry
+from agvviz import scenarios as scenario_registry
 from agvviz.errors import RecordingError
 from agvviz.evaluation.monte_carlo import SOLVERS, collect, evaluate_cell
 from agvviz.evaluation.summary import FrameScore, summarize, timing
 from agvviz.evaluation.summary_table import summary_rows
-from agvviz.graph.trials import is_trials_recording, replay_trials, study_solver, trials_timing
+from agvviz.replay.studies.monte_carlo import is_trials_recording, replay_trials, study_solver, trials_timing
 from agvviz.recording.reader import ReadReport, RecordedMessage
 from agvviz.recording.source import iter_role_messages, open_recording, resolve_roles, scan
 from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS
@@ -28,7 +28,7 @@ TRIALS = 3
 CELLS = ("crlb_tilt30_h0.2667_z2_s0.25_n4", "crlb_tilt30_h0.2667_z2_s0.5_n8", "crlb_tilt30_h0.2667_z2_s1_n4")
 import subprocess
 import sys
-from agvviz.runner import run_recording
+from agvviz.replay.run import run_recording
 
 
 def _roles_and_scenario(path):

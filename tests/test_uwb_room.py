@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from agvviz.geometry import euler, se3
-from agvviz.graph.solve import agv_pose_from_marker
+from agvviz.replay.solve import agv_pose_from_marker
 from agvviz.recording.contract import inspect_recording
 from agvviz.solvers.multi_camera import RigView, refine_rig_pose
 from agvviz.viz import paths
@@ -91,7 +91,7 @@ def test_agv_pose_from_a_marker_on_the_agv_seen_by_a_wall_camera():
 
 
 def test_joint_multi_camera_lm_recovers_the_pose_from_exact_corners():
-    from scenarios import uwb_room
+    from agvviz.scenarios import uwb_room
 
     o = uwb_room.Options()
     camera = uwb_room.make_camera(o).without_distortion()

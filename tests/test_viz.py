@@ -21,7 +21,7 @@ import pytest
 from rerun.chunk import RrdReader
 
 from agvviz.geometry.camera import PinholeCamera
-from agvviz.results import (
+from agvviz.model.frames import (
     REJECT_NO_MARKER,
     REJECT_REPROJECTION,
     REJECT_SOLVER,

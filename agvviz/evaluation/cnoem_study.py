@@ -224,7 +224,7 @@ def report_markdown(results: list[CellResult], heading: str) -> str:
     paper's ratio (:func:`paper_ratio`), RMS ÷ CRLB in the well-conditioned and the singular
     cells, convergence to the right minimum, failures, the marginal tables of the attributes
     that vary over ``results``, and every cell. ``bench/bench_cnoem.py`` (the whole grid) and
-    ``agvviz run`` on a grid recording (:mod:`agvviz.graph.cnoem_trials`) both write it."""
+    ``agvviz run`` on a grid recording (:mod:`agvviz.replay.studies.cnoem`) both write it."""
     s = summarise(results)
     paper, scope = paper_ratio(r.cell for r in results)
     multistart = sum(r.mean_m("cnoem_multistart") for r in results) / sum(r.mean_m(PAPER_BASELINE) for r in results)
@@ -297,7 +297,7 @@ def read_grid_recording(messages) -> dict[str, RecordedCell]:
     Each trial starts with its ``/markers/map`` message; its first ``/agv/odometry`` and
     ``/agv/ground_truth`` poses are F's (navigation, truth); every ``/markers/corners`` message
     becomes a sighting placed in F through the navigation and the camera's ``/tf_static``
-    extrinsic — the same chain as :class:`agvviz.graph.correct.CorrectionCycle`. Corners are taken as
+    extrinsic — the same chain as :class:`agvviz.replay.correct.CorrectionCycle`. Corners are taken as
     ideal pixels (the scenario's cameras have no distortion). Raises
     :class:`~agvviz.errors.RecordingError` when the messages hold no trial or a trial that
     cannot be placed (no calibration or extrinsic for its camera, no pose before its corners, a

@@ -3,8 +3,8 @@
 For an agvviz recording made under a non-ideal realism profile (:mod:`agvviz.sim.realism`),
 each error source that is on is switched off in turn: the scenario is recorded again with the
 same seed and options plus ``realism_off=<existing>,<source>``
-(:func:`agvviz.scenario_registry.record`), replayed with the same run settings
-(:func:`agvviz.runner.run_recording`) and compared with the replay of the recording itself.
+(:func:`agvviz.scenarios.record`), replayed with the same run settings
+(:func:`agvviz.replay.run.run_recording`) and compared with the replay of the recording itself.
 Every source draws from its own random stream, so that counterfactual world differs from the
 original only by the source switched off: the budget is exact, not a Monte-Carlo estimate.
 
@@ -176,7 +176,7 @@ def sources_on(options: dict, scenario: str | None = None) -> list[str]:
     ``ideal`` profile's under the scenario options ``options`` (``realism``, ``realism_off``,
     ``realism_set``) — of those the scenario ``scenario`` applies (its module's
     ``realism_sources(options)``; e.g. no slip without odometry), when given."""
-    from agvviz import scenario_registry
+    from agvviz import scenarios as scenario_registry
     from agvviz.sim import realism as rl
 
     realism = rl.make_realism(options["realism"], options.get("realism_off", ""), options.get("realism_set", ""))
@@ -207,7 +207,7 @@ def _overrides(module, options: dict, off: list[str]) -> list[str]:
 # -- the budget -----------------------------------------------------------------------------
 def _per_frame(run_path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(frames, time_ns, position error mm with NaN where unsolved) of a run ``.rrd``."""
-    from agvviz.compare import load_run
+    from agvviz.app.compare import load_run
 
     run = load_run(run_path)
     errors = np.where(run.solved, run.errors["position"], np.nan)
@@ -244,7 +244,7 @@ def error_budget(
     ``sources`` limits the budget to these (names of :data:`agvviz.sim.realism.SOURCES` or
     ``imaging.<effect>``; default: every source that is on). ``progress(done, total, what)``
     is called before and after each step (one step: a recording or a replay). ``jobs`` and
-    ``cache_dir`` are passed to :func:`agvviz.runner.run_recording`.
+    ``cache_dir`` are passed to :func:`agvviz.replay.run.run_recording`.
 
     Raises
     ------
@@ -254,9 +254,9 @@ def error_budget(
     RunError
         The recording's run solved no frame (no RMSE to share out).
     """
-    from agvviz import scenario_registry
+    from agvviz import scenarios as scenario_registry
     from agvviz.recording.source import open_recording
-    from agvviz.runner import run_recording
+    from agvviz.replay.run import run_recording
 
     recording_path = Path(recording_path)
     scenario = _scenario_of(recording_path)

@@ -1,6 +1,6 @@
 """Run statistics from per-frame results: counts, rejections, errors against truth, timing.
 
-Pure numpy; the pipeline's :class:`~agvviz.results.FrameResult` s are reduced to small
+Pure numpy; the pipeline's :class:`~agvviz.model.frames.FrameResult` s are reduced to small
 :class:`FrameScore` records as they stream past, so memory does not grow with images.
 :func:`summarize` depends only on the data (it is stored in the run ``.rrd``, which must be
 reproducible); :func:`timing` holds the wall-clock figures, which are printed, never stored.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agvviz.results import FrameResult
+from agvviz.model.frames import FrameResult
 
 
 @dataclass(frozen=True)

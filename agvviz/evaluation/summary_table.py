@@ -7,19 +7,19 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
   (:func:`agvviz.evaluation.summary.summarize`) — shown when the run had camera frames, or had
   nothing else (a run whose every frame failed still says "frames N / solved 0"); with a
   ``truth`` row when truth was given but scored no frame (``truth["note"]``, from
-  :meth:`agvviz.graph.solve.Replay.truth_status`: the offset between the time spans);
+  :meth:`agvviz.replay.solve.Replay.truth_status`: the offset between the time spans);
 - UWB fusion: ``fusion`` (:class:`agvviz.evaluation.fusion_summary.FusionStats`);
-- corrections: ``correction`` (:class:`agvviz.graph.correct.CorrectionStats`), e.g. a corner-only
+- corrections: ``correction`` (:class:`agvviz.replay.correct.CorrectionStats`), e.g. a corner-only
   ``auv_under_ice`` run, which has no camera frame and so no frame rows;
-- Monte-Carlo trials: ``trials`` (:mod:`agvviz.graph.trials`): cells × trials × solvers and
+- Monte-Carlo trials: ``trials`` (:mod:`agvviz.replay.studies.monte_carlo`): cells × trials × solvers and
   each solver's RMSE ÷ CRLB;
-- CNOEM grid trials: ``cnoem_study`` (:mod:`agvviz.graph.cnoem_trials`): cells × trials ×
+- CNOEM grid trials: ``cnoem_study`` (:mod:`agvviz.replay.studies.cnoem`): cells × trials ×
   methods, each method's mean and RMS error and RMS ÷ CRLB, CNOEM ÷ IPPE against the paper;
 - an error budget: ``error_budget`` (``run --budget``,
   :meth:`agvviz.evaluation.error_budget.ErrorBudget.summary`): each source's share.
 
 ``timing`` holds the wall-clock figures (:func:`agvviz.evaluation.summary.timing`,
-:func:`agvviz.graph.trials.trials_timing`), printed but never stored.
+:func:`agvviz.replay.studies.monte_carlo.trials_timing`), printed but never stored.
 """
 
 from __future__ import annotations

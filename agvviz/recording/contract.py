@@ -57,7 +57,7 @@ from agvviz.recording.topics import (
     camera_calibration_topic,
     camera_of_role,
 )
-from agvviz.results import (  # the frame rejection reasons of the checks below
+from agvviz.model.frames import (  # the frame rejection reasons of the checks below
     REJECT_CALIBRATION_SIZE,
     REJECT_IMAGE,
     REJECT_MAP_MISMATCH,

@@ -224,7 +224,7 @@ class Scan:
 
 
 _PROBED = IMAGE_TYPES + CALIBRATION_TYPES + POSE_TYPES + TRANSFORM_TYPES
-#: Schemas whose messages feed the sync stage (:class:`agvviz.graph.sync.SyncState`).
+#: Schemas whose messages feed the sync stage (:class:`agvviz.replay.sync.SyncState`).
 CONTEXT_TYPES = CALIBRATION_TYPES + POSE_TYPES + TRANSFORM_TYPES + ("agvviz.MarkerMap",)
 
 

@@ -108,7 +108,7 @@ class RecordingWriter:
 
     # -- context manager ------------------------------------------------------------------
     def __enter__(self) -> "RecordingWriter":
-        from agvviz import outputs  # temporary names, their clean-up, OutputError
+        from agvviz.recording import outputs  # temporary names, their clean-up, OutputError
 
         folder = self.path.parent
         if not folder.is_dir():
@@ -140,7 +140,7 @@ class RecordingWriter:
         if exc_type is not None:
             self._discard()
             return
-        from agvviz import outputs
+        from agvviz.recording import outputs
 
         try:
             self._writer.finish()
@@ -157,7 +157,7 @@ class RecordingWriter:
             raise
 
     def _discard(self) -> None:
-        from agvviz import outputs
+        from agvviz.recording import outputs
 
         if self._file is not None and not self._file.closed:
             try:

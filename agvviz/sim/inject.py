@@ -1,7 +1,7 @@
 """Deterministic error injection: exact map and calibration errors on top of the realism draws.
 
 A scenario option ``inject`` names errors to put into the world on purpose, so that a test
-knows exactly what an audit (:mod:`agvviz.audit`) must find. Syntax — items separated by ``;``,
+knows exactly what an audit (:mod:`agvviz.app.audit`) must find. Syntax — items separated by ``;``,
 each ``KIND:TARGET:key=value[,key=value…]``::
 
     marker:Q012:dx_m=0.05                   code Q012 lies 5 cm further along world x than mapped

@@ -47,7 +47,7 @@ import numpy as np
 from scipy.special import gammaincinv
 
 from agvviz.geometry import se3
-from agvviz.results import LmIteration
+from agvviz.solvers.types import LmIteration
 from agvviz.solvers import ambiguity, uncertainty
 from agvviz.solvers.lm import refine_lm, reprojection_rms_px
 from agvviz.solvers.registry import SolverOptions

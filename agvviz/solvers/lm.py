@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from agvviz.geometry import se3
-from agvviz.results import LmIteration
+from agvviz.solvers.types import LmIteration
 from agvviz.solvers import lm_core
 
 OBJECTIVES = ("depth", "pixel")

@@ -34,7 +34,7 @@ Failures (``failed``)
 
 Records
     ``iterations[0]`` is the start (its cost, λ₀, step 0, accepted); then one
-    :class:`~agvviz.results.LmIteration` per trial step: the cost and RMS of the point kept
+    :class:`~agvviz.solvers.types.LmIteration` per trial step: the cost and RMS of the point kept
     after it, the λ the step was solved with, ‖δ‖, whether it was accepted. ``path[k]`` is the
     point kept after record k (the same object while steps are refused).
 
@@ -52,7 +52,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from agvviz.results import LmIteration
+from agvviz.solvers.types import LmIteration
 
 #: λ is divided by this after an accepted step and multiplied by it after a refused one.
 DAMPING_FACTOR = 10.0

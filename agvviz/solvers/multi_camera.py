@@ -22,6 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from agvviz.geometry import euler, se3
+
+#: How a multi-camera rig's frame fixes are used (setting ``camera_select``): the best camera's
+#: pose, or one pose refined over every camera (:mod:`agvviz.replay.multicam`).
+CAMERA_SELECT = ("best", "combine")
 from agvviz.solvers import lm_core
 
 

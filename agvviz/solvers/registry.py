@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agvviz.geometry import se3
-from agvviz.results import LmIteration
+from agvviz.solvers.types import LmIteration
 from agvviz.solvers.lm import OBJECTIVES, refine_lm, reprojection_rms_px
 from agvviz.solvers.opencv_peers import solve_opencv
 from agvviz.solvers.p4p import solve_p4p

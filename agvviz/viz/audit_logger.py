@@ -1,4 +1,4 @@
-"""Write an audit (:mod:`agvviz.audit`) into an ``.rrd`` of its own.
+"""Write an audit (:mod:`agvviz.app.audit`) into an ``.rrd`` of its own.
 
 Entity tree (:mod:`agvviz.viz.paths`, block "agvviz audit"; timelines ``frame`` and ``time``)::
 
@@ -56,8 +56,8 @@ def _send_scalars(rec: rr.RecordingStream, entity: str, frames: np.ndarray, stam
 
 
 def log_audit(rec: rr.RecordingStream, result) -> None:
-    """Log ``result`` (:class:`agvviz.audit.AuditResult`) into ``rec``."""
-    from agvviz.audit import report
+    """Log ``result`` (:class:`agvviz.app.audit.AuditResult`) into ``rec``."""
+    from agvviz.evaluation.audit import report
 
     est, col = result.estimate, result.collected
     data = col.data
@@ -119,7 +119,7 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
         _send_scalars(rec, paths.audit_marker_residual(f.marker_id), frames[i[order]], stamps[i[order]], rms[sel][order])
     # odometry step residuals, from consecutive solved poses
     if data.has_odom.any() and len(T) > 1:
-        from agvviz.audit.problem import planar
+        from agvviz.evaluation.audit.problem import planar
         from agvviz.geometry import se3
 
         pairs = np.flatnonzero(data.has_odom[:-1] & data.has_odom[1:])
@@ -155,7 +155,7 @@ def audit_blueprint(result) -> rrb.Blueprint:
 
 def write_audit_rrd(out_path: str | os.PathLike, result) -> Path:
     """Write ``result`` to ``out_path`` (temporary file beside it, renamed when complete)."""
-    from agvviz.audit import recording_key
+    from agvviz.app.audit import recording_key
 
     inputs = [result.recording] + (sorted(result.recording.iterdir()) if result.recording.is_dir() else [])
     with AtomicRrd(

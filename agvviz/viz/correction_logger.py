@@ -1,4 +1,4 @@
-"""Log paper 002's correction cycle (:mod:`agvviz.graph.correct`) into a run ``.rrd``.
+"""Log paper 002's correction cycle (:mod:`agvviz.replay.correct`) into a run ``.rrd``.
 
 Entities (timelines ``frame``, ``time`` and ``elapsed``; the solver's iterations also on
 ``cnoem_iter``):
@@ -42,7 +42,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.graph.correct import CorrectionEvent, CorrectionStep
+from agvviz.replay.correct import CorrectionEvent, CorrectionStep
 from agvviz.viz import paths
 from agvviz.viz.run_logger import _trajectory
 from agvviz.viz.style import (

@@ -2,7 +2,7 @@
 
 :class:`AtomicRrd` opens a data-only :class:`rerun.RecordingStream` (pinned recording id, no
 log time or tick, no properties, chunks cut by size only) whose bytes end up in a temporary
-file beside the target (:func:`agvviz.outputs.temp_path`), so memory stays flat;
+file beside the target (:func:`agvviz.recording.outputs.temp_path`), so memory stays flat;
 :meth:`AtomicRrd.commit` sends the layout (active and default, so the file opens in it), writes
 the footer, checks the file is complete and renames it into place; :meth:`AtomicRrd.discard`
 deletes it. Used as a context manager, an exception discards.
@@ -30,7 +30,7 @@ from typing import Iterable
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz import outputs
+from agvviz.recording import outputs
 from agvviz.errors import OutputError
 
 #: The chunk batcher never cuts a chunk on a wall-clock tick (a day is "never" here), so the

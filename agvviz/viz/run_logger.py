@@ -40,7 +40,7 @@ from agvviz.evaluation.summary_table import markdown_table, summary_rows
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
-from agvviz.results import FrameResult, LmIteration
+from agvviz.model.frames import FrameResult, LmIteration
 from agvviz.viz import paths
 from agvviz.viz.blueprint import default_blueprint
 from agvviz.viz.rrd_file import AtomicRrd

@@ -1,11 +1,11 @@
 """Sinks of the study stages: log a study run into the run's recording stream.
 
-Monte-Carlo (:mod:`agvviz.graph.trials`): the entities and the layout are the study's
+Monte-Carlo (:mod:`agvviz.replay.studies.monte_carlo`): the entities and the layout are the study's
 (:mod:`agvviz.viz.monte_carlo_report`, shared with ``bench/bench_monte_carlo.py``): every
 trial's error per cell and solver over timeline ``trial``, the CRLB of each cell, the per-cell
 figures and the report.
 
-CNOEM grid (:mod:`agvviz.graph.cnoem_trials`), timeline ``trial`` = the trial's index within
+CNOEM grid (:mod:`agvviz.replay.studies.cnoem`), timeline ``trial`` = the trial's index within
 its cell::
 
     cnoem/report                                TextDocument: the study report (static)
@@ -24,8 +24,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.graph.cnoem_trials import CnoemTrialsOutcome
-from agvviz.graph.trials import TrialsOutcome
+from agvviz.replay.studies.cnoem import CnoemTrialsOutcome
+from agvviz.replay.studies.monte_carlo import TrialsOutcome
 from agvviz.viz import paths
 from agvviz.viz.cnoem_report import COLORS as CNOEM_COLORS
 from agvviz.viz.monte_carlo_report import TIMELINE_TRIAL, log_study, study_blueprint

@@ -1,7 +1,7 @@
 """Log UWB ranging, UWB fixes, the camera choice and camera–UWB fusion into a run ``.rrd``.
 
 Entities are in :mod:`agvviz.viz.paths` (the "UWB and camera–UWB fusion" section) and below;
-items come from :class:`agvviz.graph.fuse.FusionReplay`. Everything is stamped with
+items come from :class:`agvviz.replay.fuse.FusionReplay`. Everything is stamped with
 :func:`agvviz.viz.timelines.set_stamp`: ``frame`` (the latest camera frame index), ``time`` and
 ``elapsed`` (seconds since the recording's first stamp).
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
-from agvviz.graph.fuse import FrameSetResult, RangeResult, UwbFixResult
+from agvviz.replay.fuse import FrameSetResult, RangeResult, UwbFixResult
 from agvviz.viz import paths
 from agvviz.viz.run_logger import _trajectory
 from agvviz.viz.style import (

@@ -1,0 +1,1 @@
+"""The audit's mathematics: the bundle-adjustment problem, its estimate and report (values in, values out)."""

@@ -1,0 +1,1 @@
+"""Types in one room: the frozen values the replay passes between its stages and to its sinks."""

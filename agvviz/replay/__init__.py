@@ -1,0 +1,1 @@
+"""The replay: one graph of stages (sync, detect, solve, fuse, correct, studies) over a recording, feeding sinks."""

@@ -1,0 +1,1 @@
+"""Study stages: Monte-Carlo trials (paper 000) and CNOEM grid cells (paper 002)."""
