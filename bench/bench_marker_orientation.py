@@ -30,7 +30,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 from test_marker_orientation import APRILTAG_IMGS, FAMILIES, WARPS, official, printed, turned, warped  # noqa: E402
 
 from agvviz.markers.apriltag import APRILTAG_REFINE_METHODS  # noqa: E402
-from agvviz.markers.aruco import aruco_dictionary, detect_aruco  # noqa: E402
+from agvviz.markers.aruco import detect_aruco  # noqa: E402
+from agvviz.markers.dictionary import aruco_dictionary  # noqa: E402
 
 
 def opencv_corners(image: np.ndarray, name: str, tag_id: int) -> np.ndarray | None:

@@ -6,7 +6,7 @@ calibration made from them, ``tutorial_camera_charuco.yml``.
 
 For each photo: ArUco markers are detected with OpenCV (``ArucoDetector``, no corner
 refinement) and their corners taken (a) as OpenCV gives them ("plain") and (b) refined by
-agvviz's ECC template alignment (:func:`agvviz.markers.qr.align_symbol_ecc` with the marker's
+agvviz's ECC template alignment (:func:`agvviz.markers.ecc.align_symbol_ecc` with the marker's
 bits, as :func:`agvviz.markers.aruco.detect_aruco` does). The corners are undistorted with the
 calibration, and for each marker a homography board plane → image is fitted (least squares) to
 the corners of the *other* markers; the residual is the distance of this marker's four corners
@@ -37,7 +37,7 @@ import numpy as np
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.aruco import aruco_modules
-from agvviz.markers.qr import align_symbol_ecc
+from agvviz.markers.ecc import align_symbol_ecc
 from agvviz.sim import imaging
 from agvviz.sim.render import FloorCode, FloorScene, render_irradiance
 

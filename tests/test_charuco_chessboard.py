@@ -168,7 +168,8 @@ def test_the_map_keeps_the_board_and_its_chessboard_corners():
     board entry that disagrees with its layout or markers is refused in one line."""
     import json
 
-    from agvviz.markers.aruco import ArucoError, parse_aruco_map
+    from agvviz.markers.aruco import parse_aruco_map
+    from agvviz.markers.types import ArucoError
     from agvviz.recording.schemas import MARKER_MAP, validate
     from agvviz.recording.sidefiles import marker_map_from_document
 

@@ -28,7 +28,9 @@ import numpy as np
 import pytest
 
 from agvviz.markers.apriltag import opencv_quarter_turns
-from agvviz.markers.aruco import ArucoError, aruco_dictionary, aruco_modules, detect_aruco
+from agvviz.markers.aruco import aruco_modules, detect_aruco
+from agvviz.markers.dictionary import aruco_dictionary
+from agvviz.markers.types import ArucoError
 from agvviz.markers.charuco import charuco_marker_corners
 
 

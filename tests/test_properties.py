@@ -22,7 +22,8 @@ from agvviz.errors import InputError
 from agvviz.evaluation import expression
 from agvviz.evaluation.expression import ExpressionError
 from agvviz.geometry import se3, so3
-from agvviz.markers.aruco import ArucoError, ArucoMap, parse_aruco_map
+from agvviz.markers.aruco import ArucoMap, parse_aruco_map
+from agvviz.markers.types import ArucoError
 from agvviz.markers.payload import (
     MAX_ABS_COORD_MM,
     MAX_PAYLOAD_CHARS,

@@ -15,7 +15,8 @@ import pytest
 from agvviz.errors import InputError
 from agvviz.replay.detect.stage import DetectParams
 from agvviz.markers.aruco import ARUCO_REFINE_METHODS, ECC_MAX_PX_PER_MODULE, aruco_modules, detect_aruco
-from agvviz.markers.qr import align_symbol_ecc, detect_qr_codes
+from agvviz.markers.ecc import align_symbol_ecc
+from agvviz.markers.qr import detect_qr_codes
 from agvviz.settings import RunSettings
 
 DICTIONARY = "DICT_6X6_250"

@@ -8,11 +8,28 @@
 
 All three take the same calls — :meth:`camera` (a fix, or ``None`` when no camera saw the
 marker), :meth:`uwb_fix` and :meth:`uwb_range` — and return a :class:`FusionStep`.
+:func:`make_fusion` (defined here, above the three) makes one by name.
 """
 
-from agvviz.fusion.common import FUSION_NAMES, FusedFix, FusionStep, SwitchEvent, make_fusion
+from __future__ import annotations
+
+import numpy as np
+
+from agvviz.fusion.common import FUSION_NAMES, FusedFix, FusionStep, SwitchEvent, UwbPosition
 from agvviz.fusion.kalman import KalmanFusion, KalmanSettings
 from agvviz.fusion.switching import CameraOnly, MeanCompensation
+
+
+def make_fusion(name: str, anchors_m: dict[str, np.ndarray], tag_z_m: float, kalman_settings=None):
+    """The fusion component called ``name`` (one of :data:`FUSION_NAMES`)."""
+    if name == "camera_only":
+        return CameraOnly()
+    if name == "mean_compensation":
+        return MeanCompensation()
+    if name == "kalman":
+        return KalmanFusion(anchors_m, tag_z_m, kalman_settings or KalmanSettings())
+    raise ValueError(f"unknown fusion {name!r}; valid: {', '.join(FUSION_NAMES)}")
+
 
 __all__ = [
     "FUSION_NAMES",
@@ -23,5 +40,6 @@ __all__ = [
     "KalmanSettings",
     "MeanCompensation",
     "SwitchEvent",
+    "UwbPosition",
     "make_fusion",
 ]

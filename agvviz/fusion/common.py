@@ -1,12 +1,25 @@
-"""Types shared by the fusion components, and :func:`make_fusion`. Numpy only."""
+"""Types shared by the fusion components: what they read (:class:`UwbPosition`) and what they
+return (:class:`FusionStep`, :class:`FusedFix`, :class:`SwitchEvent`). Numpy only."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
 FUSION_NAMES = ("camera_only", "mean_compensation", "kalman")
+
+
+class UwbPosition(Protocol):
+    """A UWB position fix as the fusion components read it: :class:`agvviz.uwb.localize.UwbFix`
+    is one. agvviz.fusion sits beside agvviz.uwb, not above it, so it names the two fields it
+    reads instead of importing the class."""
+
+    #: When the fix was taken (the recording's log time, ns).
+    log_time_ns: int
+    #: (3,) world position of the UWB tag (metres); fusion uses x and y.
+    position_m: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -58,17 +71,3 @@ class FusionStep:
     events: list[SwitchEvent] = field(default_factory=list)
     #: Kalman only: anchor id → True when this range passed the gate.
     range_gate: dict[str, bool] = field(default_factory=dict)
-
-
-def make_fusion(name: str, anchors_m: dict[str, np.ndarray], tag_z_m: float, kalman_settings=None):
-    """The fusion component called ``name`` (one of :data:`FUSION_NAMES`)."""
-    from agvviz.fusion.kalman import KalmanFusion, KalmanSettings
-    from agvviz.fusion.switching import CameraOnly, MeanCompensation
-
-    if name == "camera_only":
-        return CameraOnly()
-    if name == "mean_compensation":
-        return MeanCompensation()
-    if name == "kalman":
-        return KalmanFusion(anchors_m, tag_z_m, kalman_settings or KalmanSettings())
-    raise ValueError(f"unknown fusion {name!r}; valid: {', '.join(FUSION_NAMES)}")

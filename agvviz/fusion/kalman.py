@@ -19,8 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agvviz.fusion.common import FusedFix, FusionStep, SwitchEvent
-from agvviz.uwb.localize import UwbFix
+from agvviz.fusion.common import FusedFix, FusionStep, SwitchEvent, UwbPosition
 
 
 @dataclass(frozen=True)
@@ -150,7 +149,7 @@ class KalmanFusion:
         step.fused = self._fused(log_time_ns)
         return step
 
-    def uwb_fix(self, fix: UwbFix) -> FusionStep:
+    def uwb_fix(self, fix: UwbPosition) -> FusionStep:
         if not self._initialised:
             # No camera yet: start from the first UWB fix (biases unknown).
             self._initialise(fix.log_time_ns, np.asarray(fix.position_m)[:2], 0.3)

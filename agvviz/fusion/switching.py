@@ -20,8 +20,7 @@ from collections import deque
 
 import numpy as np
 
-from agvviz.fusion.common import FusedFix, FusionStep, SwitchEvent
-from agvviz.uwb.localize import UwbFix
+from agvviz.fusion.common import FusedFix, FusionStep, SwitchEvent, UwbPosition
 
 #: Number of fixes of each sensor averaged for the offset (paper 003: three).
 COMPENSATION_FIXES = 3
@@ -35,7 +34,7 @@ class CameraOnly:
             return FusionStep()
         return FusionStep(FusedFix(int(log_time_ns), np.asarray(position_xy_m, float)[:2].copy(), "camera"))
 
-    def uwb_fix(self, fix: UwbFix) -> FusionStep:
+    def uwb_fix(self, fix: UwbPosition) -> FusionStep:
         return FusionStep()
 
     def uwb_range(self, log_time_ns: int, anchor_id: str, range_m: float) -> FusionStep:
@@ -76,7 +75,7 @@ class MeanCompensation:
         self._last_output = xy
         return step
 
-    def uwb_fix(self, fix: UwbFix) -> FusionStep:
+    def uwb_fix(self, fix: UwbPosition) -> FusionStep:
         xy = np.asarray(fix.position_m, dtype=float)[:2].copy()
         step = FusionStep()
         if self._source == "camera" and self._switch_pending:

@@ -27,7 +27,7 @@ Refinement (``refine=``): ``"none"`` — the library's quad fitted to the tag's 
 window, iterations and accuracy OpenCV's ``CORNER_REFINE_SUBPIX`` uses for ArUco markers;
 ``"apriltag"`` — the library's own edge refinement (``refine_edges`` on); ``"ecc"`` — the tag's
 module grid (:func:`apriltag_modules`) aligned to the image from the subpix corners by
-:func:`agvviz.markers.qr.align_symbol_ecc`, falling back to subpix when ECC fails.
+:func:`agvviz.markers.ecc.align_symbol_ecc`, falling back to subpix when ECC fails.
 """
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ import cv2
 import numpy as np
 
 from agvviz.errors import InputError
+from agvviz.markers.ecc import align_symbol_ecc
+from agvviz.markers.types import ArucoDetection
 
 #: OpenCV dictionary name → the AprilTag library's family name.
 APRILTAG_FAMILIES = {
@@ -191,11 +193,8 @@ def _subpix(gray: np.ndarray, corners_px: np.ndarray, n_modules: int) -> np.ndar
 
 def detect_apriltags(gray: np.ndarray, dictionary_name: str, refine: str = "ecc") -> list:
     """Every tag of AprilTag dictionary ``dictionary_name`` in the uint8 gray image, as
-    :class:`agvviz.markers.aruco.ArucoDetection` (corners TL, TR, BR, BL as printed, OpenCV
+    :class:`agvviz.markers.types.ArucoDetection` (corners TL, TR, BR, BL as printed, OpenCV
     pixels, outer corners of the black border), refined by ``refine`` (module docstring)."""
-    from agvviz.markers.aruco import ArucoDetection
-    from agvviz.markers.qr import align_symbol_ecc
-
     if refine not in APRILTAG_REFINE_METHODS:
         raise ValueError(f"unknown refine method {refine!r}; valid: {', '.join(APRILTAG_REFINE_METHODS)}")
     family = apriltag_family(dictionary_name)

@@ -15,7 +15,7 @@ Refinement (``refine=``, :data:`ARUCO_REFINE_METHODS`; ``ecc``, ``subpix`` and `
 the names the QR pipeline uses too):
 
 ``"ecc"``       the marker's own bit pattern (black border included) from the dictionary, aligned
-                to the image by :func:`agvviz.markers.qr.align_symbol_ecc`, started from the
+                to the image by :func:`agvviz.markers.ecc.align_symbol_ecc`, started from the
                 ``"subpix"`` corners; falls back to them when ECC fails (``refine_note`` says why);
 ``"subpix"``    OpenCV's ``CORNER_REFINE_SUBPIX`` (``cornerSubPix`` at each corner);
 ``"contour"``   OpenCV's ``CORNER_REFINE_CONTOUR`` (lines fitted to the marker's contour points);
@@ -29,57 +29,29 @@ docs/refinement.md has each one's accuracy on real photos (``bench/bench_refiner
 
 from __future__ import annotations
 
-from agvviz.errors import InputError
-
 import functools
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from agvviz.geometry import se3
+from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners
 from agvviz.markers.apriltag import (
     APRILTAG_REFINE_METHODS,
-    UNSUPPORTED_APRILTAG,
     apriltag_modules,
     detect_apriltags,
     is_apriltag_dictionary,
 )
-from agvviz.markers.qr import align_symbol_ecc
-
-
-class ArucoError(InputError):
-    """An unknown ArUco dictionary name or a marker id outside the dictionary."""
-
-
-@dataclass
-class ArucoDetection:
-    """One detected marker: its id, refined corners (4, 2) and how they were refined."""
-
-    marker_id: int
-    corners_px: np.ndarray
-    raw_corners_px: np.ndarray
-    refine_method: str
-    refine_ok: bool = True
-    refine_note: str = ""
-
-
-def is_aruco_dictionary(name: str) -> bool:
-    """True when ``name`` is an OpenCV predefined ArUco dictionary (e.g. ``DICT_5X5_50``)."""
-    return isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)
-
-
-@functools.lru_cache(maxsize=8)
-def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
-    """The predefined dictionary called ``name``; :class:`ArucoError` names the valid ones."""
-    if name in UNSUPPORTED_APRILTAG:
-        raise ArucoError(UNSUPPORTED_APRILTAG[name])
-    if not is_aruco_dictionary(name):
-        valid = sorted(
-            n for n in dir(cv2.aruco)
-            if n.startswith("DICT_") and not n.endswith("_CUSTOM") and n not in UNSUPPORTED_APRILTAG
-        )
-        raise ArucoError(f"unknown ArUco dictionary {name!r}; valid: {', '.join(valid)}")
-    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+from agvviz.markers.charuco import (
+    CharucoSpec,
+    charuco_marker_corners,
+    check_board_frame,
+    chessboard_corners_board_m,
+)
+from agvviz.markers.dictionary import aruco_dictionary
+from agvviz.markers.ecc import align_symbol_ecc
+from agvviz.markers.types import ArucoDetection, ArucoError
 
 
 @functools.lru_cache(maxsize=64)
@@ -110,7 +82,7 @@ _OPENCV_REFINEMENT = {
 
 
 #: Largest ECC template resolution for ArUco/AprilTag markers (px per module; QR codes keep
-#: :data:`agvviz.markers.qr.TEMPLATE_PX_PER_MODULE_RANGE`). ECC's cost grows with the template's
+#: :data:`agvviz.markers.ecc.TEMPLATE_PX_PER_MODULE_RANGE`). ECC's cost grows with the template's
 #: pixel count: on 85–127 px DICT_6X6 markers (bench/bench_dense_board.py) a cap of 8 instead of
 #: 12 halves the time per marker (2.2 → 1.0 ms) at the same corner error (0.012 px median);
 #: 6 costs accuracy (0.017 px). Markers below 8 px per module are not affected.
@@ -240,8 +212,6 @@ def parse_aruco_map(marker_map: dict) -> ArucoMap | None:
     that are not 4 finite points x, y, z within :data:`MAX_ABS_CORNER_M` or do not form a
     square's plane.
     """
-    from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners
-
     if not isinstance(marker_map, dict):
         raise ArucoError(f"marker map must be a JSON object, got {type(marker_map).__name__}")
     dictionary = marker_map.get("dictionary")
@@ -296,9 +266,6 @@ BOARD_TOLERANCE_M = 1e-6
 
 def _map_board(entry: object, index: int, dictionary: str, count: int, markers: dict[int, MapMarker]) -> MapBoard:
     """A ``boards`` entry checked against its layout, its pose and the map's markers."""
-    from agvviz.markers.charuco import CharucoSpec, check_board_frame, chessboard_corners_board_m
-    from agvviz.geometry import se3
-
     where = f"marker map: board {index}"
     if not isinstance(entry, dict):
         raise ArucoError(f"{where} must be an object, got {type(entry).__name__}")
@@ -350,8 +317,6 @@ def _map_board(entry: object, index: int, dictionary: str, count: int, markers: 
             stored = None
         if stored is None or stored.shape != corners_m.shape or not np.all(np.abs(stored - corners_m) <= BOARD_TOLERANCE_M):
             raise ArucoError(f"{where}: chessboard_corners_m are not the {len(corners_m)} corners of its layout at its pose")
-    from agvviz.markers.charuco import charuco_marker_corners
-
     expected = charuco_marker_corners(spec.squares_x, spec.squares_y, spec.square_length_m, spec.marker_length_m,
                                       dictionary, list(ids), legacy)
     for marker_id in ids:

@@ -26,7 +26,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from agvviz.markers.aruco import ArucoError
+from agvviz.markers.apriltag import is_apriltag_dictionary, opencv_quarter_turns
+from agvviz.markers.dictionary import aruco_dictionary
+from agvviz.markers.types import ArucoError
 
 #: cornerSubPix half window (px) on the saddles, at most; smaller on boards whose squares are
 #: under 6× this many pixels (the window must stay inside the square's white margin).
@@ -97,8 +99,6 @@ class ChessboardCorners:
 @functools.lru_cache(maxsize=16)
 def opencv_board(spec: CharucoSpec) -> cv2.aruco.CharucoBoard:
     """OpenCV's board of ``spec`` (the one its generator draws)."""
-    from agvviz.markers.aruco import aruco_dictionary
-
     board = cv2.aruco.CharucoBoard(
         (spec.squares_x, spec.squares_y), float(spec.square_length_m), float(spec.marker_length_m),
         aruco_dictionary(spec.dictionary), np.asarray(spec.ids, dtype=np.int32),
@@ -112,8 +112,6 @@ def opencv_board(spec: CharucoSpec) -> cv2.aruco.CharucoBoard:
 def opencv_corner_order(dictionary: str) -> np.ndarray:
     """Index array ``order`` with ``opencv_corners = agvviz_corners[order]`` for one marker
     (identity for ArUco; AprilTag corners turned back by OpenCV's quarter turns)."""
-    from agvviz.markers.apriltag import is_apriltag_dictionary, opencv_quarter_turns
-
     if not is_apriltag_dictionary(dictionary):
         return np.arange(4)
     return (np.arange(4) - opencv_quarter_turns(dictionary)) % 4
@@ -130,9 +128,6 @@ def charuco_marker_corners(
     the printed tags on OpenCV 5.0 (:func:`agvviz.markers.apriltag.opencv_quarter_turns`): their
     corners are re-ordered so that corner 0 is the drawn tag's own top-left, the corner the
     AprilTag detector reports first."""
-    from agvviz.markers.apriltag import is_apriltag_dictionary, opencv_quarter_turns
-    from agvviz.markers.aruco import aruco_dictionary
-
     args = ((squares_x, squares_y), float(square_length_m), float(marker_length_m), aruco_dictionary(dictionary))
     board = cv2.aruco.CharucoBoard(*args, np.asarray(ids, dtype=np.int32)) if ids is not None else cv2.aruco.CharucoBoard(*args)
     if legacy_pattern:

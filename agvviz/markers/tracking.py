@@ -5,7 +5,7 @@ Full detection (:func:`agvviz.markers.qr.detect_qr_codes`) finds and decodes eve
 zxing-cpp, picks each code's template (its module grid) and aligns it by ECC from zxing's
 integer corners. Once a code is known, a :class:`CodeTracker` skips the search and the template
 choice: it predicts the code's corners in the next frame and aligns the same template by ECC
-directly from the prediction, with the same ECC (:func:`agvviz.markers.qr.align_symbol_ecc`,
+directly from the prediction, with the same ECC (:func:`agvviz.markers.ecc.align_symbol_ecc`,
 the same convergence criterion and correlation threshold), so a tracked code's corners are full
 detection's ECC optimum to within ECC's stopping tolerance (a few thousandths of a pixel on
 ``qr_floor``). From a good prediction ECC needs fewer iterations (≈3 against ≈5 from zxing's
@@ -38,8 +38,8 @@ outside). Checks on every other tracked code — any failure makes the frame a k
 detection) and ``fallback_reason`` names the code and the check:
 
 * the prediction and the result are convex and the result lies inside the image;
-* ECC converges with correlation ≥ :data:`~agvviz.markers.qr.ECC_MIN_CORRELATION`;
-* no corner moves more than :data:`~agvviz.markers.qr.MAX_REFINE_SHIFT_MODULES` module from the
+* ECC converges with correlation ≥ :data:`~agvviz.markers.ecc.ECC_MIN_CORRELATION`;
+* no corner moves more than :data:`~agvviz.markers.ecc.MAX_REFINE_SHIFT_MODULES` module from the
   prediction (ECC is not trusted beyond its convergence basin: a whole-module slip of the
   template would otherwise go unnoticed);
 * it is still the same code (:func:`~agvviz.markers.qr.module_agreement` at the new corners):
@@ -75,14 +75,12 @@ import cv2
 import numpy as np
 
 from agvviz.errors import InputError
+from agvviz.markers.ecc import MAX_REFINE_SHIFT_MODULES, align_symbol_ecc, mean_side_px
 from agvviz.markers.qr import (
-    MAX_REFINE_SHIFT_MODULES,
     REFINE_METHODS,
     TEMPLATE_GOOD_CORRELATION,
     QrDetection,
     _is_convex,
-    _mean_side_px,
-    align_symbol_ecc,
     check_gray,
     detect_qr_codes,
     module_agreement,
@@ -348,7 +346,7 @@ def _align(gray: np.ndarray, symbol: np.ndarray, predicted_px: np.ndarray) -> tu
         return None, "ECC corners not convex"
     if not _inside(corners_px, gray.shape):
         return None, "ECC corners outside the image"
-    module_px = _mean_side_px(corners_px) / n
+    module_px = mean_side_px(corners_px) / n
     shift_px = float(np.max(np.linalg.norm(corners_px - predicted_px, axis=1)))
     if shift_px > MAX_REFINE_SHIFT_MODULES * module_px:
         return None, f"ECC moved a corner {shift_px / module_px:.2f} modules from the prediction > {MAX_REFINE_SHIFT_MODULES}"

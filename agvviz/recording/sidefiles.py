@@ -162,7 +162,9 @@ def load_marker_map(path) -> dict:
 
 def marker_map_from_document(document: object) -> dict:
     """:func:`load_marker_map` on an already parsed document; raises ``ValueError``."""
-    from agvviz.markers.aruco import ArucoError, aruco_dictionary, parse_aruco_map
+    from agvviz.markers.aruco import parse_aruco_map
+    from agvviz.markers.dictionary import aruco_dictionary
+    from agvviz.markers.types import ArucoError
 
     if not isinstance(document, dict):
         raise ValueError(f"expected a mapping with 'dictionary' and 'markers', got {type(document).__name__}")
@@ -397,7 +399,7 @@ def _positive_int(board: dict, key: str, where: str, low: int, high: int) -> int
 def _charuco_markers(board: object, where: str, dictionary: str) -> tuple[list[dict], dict]:
     """The board's markers (map entries) and the board's own map entry (its layout, pose and
     chessboard corners in its frame: the ``boards`` of ``agvviz.MarkerMap``)."""
-    from agvviz.markers.aruco import aruco_dictionary
+    from agvviz.markers.dictionary import aruco_dictionary
     from agvviz.markers.charuco import CharucoSpec, charuco_marker_corners, chessboard_corners_board_m
 
     board = _check_keys(board, _BOARD_KEYS, where)

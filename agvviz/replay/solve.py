@@ -34,7 +34,8 @@ from agvviz.replay.detect.stage import (
     SegmentDetector,
     camera_model,
 )
-from agvviz.markers.aruco import ArucoError, ArucoMap, parse_aruco_map
+from agvviz.markers.aruco import ArucoMap, parse_aruco_map
+from agvviz.markers.types import ArucoError
 from agvviz.markers.charuco import chessboard_id, is_chessboard_id
 from agvviz.markers.payload import PayloadError, parse_payload
 from agvviz.recording.contract import (

@@ -57,7 +57,9 @@ from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
 from agvviz.sim import inject as inj
 from agvviz.geometry import euler, se3
-from agvviz.markers.aruco import ArucoError, aruco_dictionary, aruco_modules
+from agvviz.markers.aruco import aruco_modules
+from agvviz.markers.dictionary import aruco_dictionary
+from agvviz.markers.types import ArucoError
 from agvviz.sim.room import placed, roof_code
 from agvviz.sim.trajectory import RoundedRectangleTrack, dead_reckoning, forward_camera_mount, sample_track, track_pose
 

@@ -58,7 +58,8 @@ from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, MAX_UWB_ROUNDS, check_total, setting
 from agvviz.settings import validate as check_fields
-from agvviz.markers.aruco import aruco_dictionary, aruco_modules, is_aruco_dictionary
+from agvviz.markers.aruco import aruco_modules
+from agvviz.markers.dictionary import aruco_dictionary, is_aruco_dictionary
 from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
 from agvviz.sim.render import FloorScene, encode_jpeg

@@ -7,7 +7,7 @@ corner noise, covariance, gauge, flags. Pure math: no files, no Rerun, no printi
    (variance-component estimation, floored at ``sigma_px_floor``) and solve again from there.
 3. Covariance ``σ0²·(JᵀJ)⁻¹`` of the marker, camera and odometry blocks (sparse LU of JᵀJ),
    σ0² = max(1, χ²/dof): never more confident than the stated σ.
-4. Gauge (:meth:`agvviz.evaluation.audit.problem.Problem.gauge_matrix`) on the gauge markers: those seen
+4. Gauge (:meth:`agvviz.evaluation.audit.bundle.Problem.gauge_matrix`) on the gauge markers: those seen
    in ``min_frames`` frames that the start found consistent with their neighbours (when at least
    half are; else all but the grossly wrong ones). Gauge markers seen too little (or whose place
    is not observed) leave the set at once; flagged ones leave one at a time, worst first, and the
@@ -31,12 +31,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import f as f_dist
 
+from agvviz.evaluation.audit.bundle import Problem
 from agvviz.evaluation.audit.problem import (
     CAMERA_GROUPS,
     MARKER_GROUPS,
     AuditData,
     AuditSettings,
-    Problem,
     camera_pose,
     corrected_marker_pose,
     flag_threshold,

@@ -165,7 +165,7 @@ def family_check(prepared, recording_arg: str, frames_per_camera: int = DEFAULT_
     expected = _map_family(marker_map) or QR_FAMILY
     if not prepared.roles.cameras():
         return
-    from agvviz.markers.aruco import is_aruco_dictionary
+    from agvviz.markers.dictionary import is_aruco_dictionary
 
     if expected != QR_FAMILY and not is_aruco_dictionary(expected):
         return  # a map the replay refuses anyway, with its own reason
