@@ -1,9 +1,10 @@
 """The ``agvviz`` console script (also ``python -m agvviz``).
 
-Kept tiny on purpose: :func:`main` installs the signal handlers *before* the command line
-(typer, rich, numpy, Rerun, OpenCV) is imported, so Ctrl-C during start-up, or SIGTERM at any
-time, ends the process with ``error: interrupted`` and exit code 130 — never a traceback — and
-the temporary files of unfinished outputs are removed.
+Kept tiny on purpose: :func:`main` installs the signal handlers (:mod:`agvviz.cli.interrupts`)
+*before* the command line (typer, rich, numpy, Rerun, OpenCV, :mod:`agvviz.cli.main`) is
+imported, so Ctrl-C during start-up, or SIGTERM at any time, ends the process with
+``error: interrupted`` and exit code 130 — never a traceback — and the temporary files of
+unfinished outputs are removed.
 """
 
 from __future__ import annotations
@@ -12,20 +13,8 @@ import os
 import signal
 import sys
 
-EXIT_INTERRUPTED = 130  # = agvviz.errors.EXIT_INTERRUPTED (not imported: start-up stays minimal)
-
-
-#: Set by the signal handler. A KeyboardInterrupt raised inside an extension module's
-#: initialisation comes out as ``ImportError: initialization failed`` (pybind11, seen with
-#: scipy), so "was a signal received?" is asked of this flag, not of the exception's type.
-_signalled = False
-
-
-def _on_signal(signum, frame) -> None:
-    """SIGINT and SIGTERM alike: unwind, remove temporaries, exit 130."""
-    global _signalled
-    _signalled = True
-    raise KeyboardInterrupt
+from agvviz.cli import interrupts
+from agvviz.errors import EXIT_INTERRUPTED
 
 
 def _interrupted(message: bool = True) -> int:
@@ -54,35 +43,12 @@ def _remove_temps() -> None:
         pass
 
 
-def outputs_complete() -> None:
-    """The command's outputs are complete and in place: from now on a signal is ignored rather
-    than ending the process by exit 130 (which would say the outputs failed). Only in the
-    console script; a program calling the CLI in-process keeps its own handlers."""
-    if signal.getsignal(signal.SIGTERM) is _on_signal:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        if signal.getsignal(signal.SIGINT) is _on_signal:
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _unraisable(unraisable) -> None:
-    """After a signal, an object the interrupt left half-built (e.g. a Rerun RecordingStream
-    interrupted in its constructor) may complain from its ``__del__`` while the process unwinds;
-    that is not an error of the command, and must not print a traceback. Otherwise: Python's own
-    report."""
-    if _signalled:
-        return
-    sys.__unraisablehook__(unraisable)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the agvviz command line; returns the exit code."""
-    sys.unraisablehook = _unraisable
-    signal.signal(signal.SIGTERM, _on_signal)
-    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # keep "ignore" (nohup, `&`)
-        signal.signal(signal.SIGINT, _on_signal)
+    interrupts.install()
     try:
         try:
-            from agvviz.cli import app
+            from agvviz.cli.main import app
 
             app(args=argv, prog_name="agvviz")
             code = 0
@@ -94,19 +60,19 @@ def main(argv: list[str] | None = None) -> int:
                 sys.stderr.write(f"{code}\n")
                 code = 1
         except BaseException:  # noqa: BLE001 — only when a signal caused it; otherwise a bug
-            if not _signalled:
+            if not interrupts.signalled:
                 raise
             _remove_temps()
             _interrupted()
         finally:
             _remove_temps()
-        if code == EXIT_INTERRUPTED or _signalled:
+        if code == EXIT_INTERRUPTED or interrupts.signalled:
             _interrupted(message=code != EXIT_INTERRUPTED)  # 130: the CLI printed its line
         # The command is over and its exit code decided: a signal landing while the interpreter
         # shuts down would otherwise end the process *by* that signal (exit -2).
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        if _signalled:  # it landed between the check above and here
+        if interrupts.signalled:  # it landed between the check above and here
             _interrupted()
         return code
     except KeyboardInterrupt:  # a second Ctrl-C / SIGTERM while cleaning up

@@ -25,7 +25,8 @@ import time
 from pathlib import Path
 
 from agvviz import scenarios as scenario_registry
-from agvviz.app.compare import diff, parse_grid, sweep
+from agvviz.app.diff import diff
+from agvviz.app.sweep import parse_grid, sweep
 
 
 def _mb(path: Path) -> str:

@@ -22,7 +22,7 @@ from agvviz.app.audit import AuditSettings
 from agvviz.evaluation.audit.estimate import estimate
 from agvviz.evaluation.audit.problem import AuditData, flag_threshold
 from agvviz.evaluation.audit.synthetic import camera_truth, marker_truth, scene_geometry, simulate, solver
-from agvviz.cli import app
+from agvviz.cli.main import app
 from agvviz.errors import InputError
 from agvviz.recording.sidefiles import load_marker_map, parse_extrinsic
 from agvviz.sim import inject as inj

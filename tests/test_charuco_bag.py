@@ -130,7 +130,7 @@ def replay(tmp_path_factory):
     bag, markers = write_bag_and_board(tmp)
     out = tmp / "run.rrd"
     command = [
-        sys.executable, "-m", "agvviz.cli", "run", str(bag),
+        sys.executable, "-m", "agvviz", "run", str(bag),
         "--markers", str(markers),
         "--calibration", f"{CAM}={CALIBRATION}",
         "--extrinsic", f"{CAM}=0,0,0,0,0,0,1",
@@ -244,7 +244,7 @@ def test_the_photos_in_a_ros1_bag_replay_like_the_ros2_bag(replay, tmp_path):
             writer.write(image_conn, t_ns, store.serialize_ros1(image, "sensor_msgs/msg/CompressedImage"))
     _, markers = write_bag_and_board(tmp_path)
     out = tmp_path / "ros1.rrd"
-    command = [sys.executable, "-m", "agvviz.cli", "run", str(bag), "--markers", str(markers),
+    command = [sys.executable, "-m", "agvviz", "run", str(bag), "--markers", str(markers),
                "--extrinsic", f"{CAM}=0,0,0,0,0,0,1", "--set", "ambiguity=lowest_error", "--out", str(out)]
     done = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, f"{done.stdout}\n{done.stderr}"
@@ -416,7 +416,7 @@ def markers_only_run(tmp_path_factory):
     map_json.write_text(json.dumps(marker_map))
     out = tmp / "run.rrd"
     command = [
-        sys.executable, "-m", "agvviz.cli", "run", str(bag), "--markers", str(map_json),
+        sys.executable, "-m", "agvviz", "run", str(bag), "--markers", str(map_json),
         "--calibration", f"{CAM}={CALIBRATION}", "--extrinsic", f"{CAM}=0,0,0,0,0,0,1",
         "--set", "ambiguity=lowest_error", "--out", str(out),
     ]
@@ -472,7 +472,7 @@ def run_with_board(tmp_path: Path, edit) -> subprocess.CompletedProcess:
     edit(board)
     markers.write_text(yaml.safe_dump(board))
     command = [
-        sys.executable, "-m", "agvviz.cli", "run", str(bag), "--markers", str(markers),
+        sys.executable, "-m", "agvviz", "run", str(bag), "--markers", str(markers),
         "--calibration", f"{CAM}={CALIBRATION}", "--extrinsic", f"{CAM}=0,0,0,0,0,0,1",
         "--out", str(tmp_path / "run.rrd"),
     ]
@@ -505,12 +505,12 @@ def test_audit_reads_the_real_bag_and_finds_the_printed_board_where_it_is(tmp_pa
     test's margin there is small, and a calibration or detector change that shrinks σ will
     show up here first. No calibration structure is left in the corners (the audit's F-test)."""
     from agvviz.app.audit import audit_recording
-    from agvviz.cli import _side_inputs
+    from agvviz.cli.options import side_inputs
     from agvviz.settings import RunSettings
 
     bag, markers = write_bag_and_board(tmp_path)
     settings = RunSettings(ambiguity="lowest_error")
-    side = _side_inputs(markers, [f"{CAM}={CALIBRATION}"], [f"{CAM}=0,0,0,0,0,0,1"], settings.body_frame)
+    side = side_inputs(markers, [f"{CAM}={CALIBRATION}"], [f"{CAM}=0,0,0,0,0,0,1"], settings.body_frame)
     result = audit_recording(bag, settings, side=side, jobs=1, cache_dir=False)
     found = {f.marker_id: f for f in result.estimate.markers}
     assert sorted(found, key=int) == [str(i) for i in range(17)]

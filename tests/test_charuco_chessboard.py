@@ -271,7 +271,7 @@ def test_a_run_with_the_wrong_legacy_flag_gives_no_pose_and_says_why(tmp_path):
         (tmp_path / "board.yaml").write_text(yaml.safe_dump({"dictionary": "DICT_6X6_250", "boards": [board]}))
         out = tmp_path / f"run_{legacy}.rrd"
         done = subprocess.run(
-            [sys.executable, "-m", "agvviz.cli", "run", str(tmp_path / "bag"), "--markers", str(tmp_path / "board.yaml"),
+            [sys.executable, "-m", "agvviz", "run", str(tmp_path / "bag"), "--markers", str(tmp_path / "board.yaml"),
              "--calibration", f"cam={tmp_path / 'calib.yml'}", "--extrinsic", "cam=0,0,0,0,0,0,1",
              "--jobs", "1", "--no-cache", "--out", str(out)],
             capture_output=True, text=True, timeout=600,

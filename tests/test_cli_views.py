@@ -19,7 +19,8 @@ import pytest
 from typer.testing import CliRunner
 
 from agvviz import scenarios as scenario_registry
-from agvviz.cli import app, viewer_url
+from agvviz.cli.main import app
+from agvviz.cli.viewer import viewer_url
 from agvviz.errors import InputError
 from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings

@@ -19,22 +19,11 @@ import pytest
 from typer.testing import CliRunner
 
 from agvviz import scenarios as scenario_registry
-from agvviz.cli import app
+from agvviz.cli.main import app
 from agvviz.app import cluster
-from agvviz.app.compare import (
-    COMPACT_METRICS,
-    CompareError,
-    cameras_of,
-    diff,
-    diff_table,
-    diff_table_title,
-    diff_verdict,
-    fixed_cameras_of,
-    format_p,
-    load_run,
-    parse_grid,
-    sweep,
-)
+from agvviz.app.diff import COMPACT_METRICS, CompareError, diff, diff_table, diff_table_title, diff_verdict, format_p
+from agvviz.app.run_series import cameras_of, fixed_cameras_of, load_run
+from agvviz.app.sweep import parse_grid, sweep
 from agvviz.errors import InputError
 from agvviz.evaluation.comparison import DIRECT, RunSeries, compare_runs
 from agvviz.evaluation.expression import ExpressionError

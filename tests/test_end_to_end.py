@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from agvviz import scenarios as scenario_registry
-from agvviz.cli import app
+from agvviz.cli.main import app
 from agvviz.recording.contract import inspect_recording
 from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings

@@ -9,7 +9,7 @@ from mcap.writer import Writer
 from typer.testing import CliRunner
 
 from agvviz import scenarios as scenario_registry
-from agvviz.cli import app
+from agvviz.cli.main import app
 from agvviz.errors import InputError
 from agvviz.evaluation.error_budget import INTERACTION, error_budget, sources_on
 from agvviz.recording.writer import RecordingWriter

@@ -184,7 +184,7 @@ def test_tum_export_gives_evo_ape_equal_to_agvviz(qr_floor_run, tmp_path, align)
     from evo.core import metrics, sync
     from evo.tools import file_interface
 
-    from agvviz.app.compare import load_run
+    from agvviz.app.run_series import load_run
     from agvviz.evaluation.comparison import run_metrics
 
     written = {w.which: w.path for w in export_run(qr_floor_run, "tum", tmp_path)}

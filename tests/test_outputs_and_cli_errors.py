@@ -26,8 +26,10 @@ from typer.testing import CliRunner
 
 from agvviz.recording import outputs
 from agvviz import scenarios as scenario_registry
-from agvviz.cli import app, exit_for, handle_errors
-from agvviz.app.compare import CompareError, parse_grid, sweep
+from agvviz.cli.common import exit_for, handle_errors
+from agvviz.cli.main import app
+from agvviz.app.diff import CompareError
+from agvviz.app.sweep import parse_grid, sweep
 from agvviz.errors import OutputError
 from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings

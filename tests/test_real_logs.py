@@ -29,7 +29,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from agvviz.cli import app
+from agvviz.cli.main import app
 from agvviz.errors import InputError, RecordingError, RunError
 from agvviz.geometry import se3
 from agvviz.recording.reader import FrameTransformMsg, PoseMsg, iter_messages

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from agvviz.cli import app
+from agvviz.cli.main import app
 from agvviz.errors import RecordingError
 from agvviz.geometry import se3
 from agvviz.recording.contract import format_report, inspect_recording

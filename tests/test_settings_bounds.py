@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from agvviz import scenarios as scenario_registry
-from agvviz.cli import app
+from agvviz.cli.main import app
 from agvviz.errors import InputError
 from agvviz.settings import (
     MAX_FRAMES,

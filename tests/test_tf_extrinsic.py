@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from agvviz.cli import app
+from agvviz.cli.main import app
 from agvviz.errors import RunError
 from agvviz.geometry import se3
 from agvviz.model.frames import REJECT_NO_EXTRINSIC

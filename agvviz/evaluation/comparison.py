@@ -1,7 +1,7 @@
 """Metrics of one run and the paired comparison of two runs. Numpy and scipy only.
 
 A run is given as a :class:`RunSeries` (per-frame arrays, as read back from its ``.rrd`` by
-:mod:`agvviz.app.compare`). Every metric is named ``<quantity>_<statistic>_<unit>`` over the
+:func:`agvviz.app.run_series.load_run`). Every metric is named ``<quantity>_<statistic>_<unit>`` over the
 absolute per-frame values, e.g. ``position_rmse_mm``, ``heading_p95_deg``,
 ``ape_trans_rmse_mm``, ``rpe_rot_median_deg``; plus the counts ``frames``, ``solved``,
 ``rejected``, ``solved_pct`` and, when asked for, ``time_offset_ms``.

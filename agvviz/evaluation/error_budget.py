@@ -207,7 +207,7 @@ def _overrides(module, options: dict, off: list[str]) -> list[str]:
 # -- the budget -----------------------------------------------------------------------------
 def _per_frame(run_path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(frames, time_ns, position error mm with NaN where unsolved) of a run ``.rrd``."""
-    from agvviz.app.compare import load_run
+    from agvviz.app.run_series import load_run
 
     run = load_run(run_path)
     errors = np.where(run.solved, run.errors["position"], np.nan)

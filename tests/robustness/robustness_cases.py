@@ -1020,7 +1020,7 @@ def fault_cases(ws: Workspace, fast: bool = False) -> list[Case]:
             args = ["run", rec, "--out", out] if command == "run" else BASE_RECORD_ARGS + ["--out", out]
             # 130 when the signal lands mid-run; a run is fast enough now (detections cached,
             # 12 frames) that it may land after the .rrd is in place, and then the signal is
-            # ignored and the run ends 0 with its complete output (agvviz.__main__.outputs_complete).
+            # ignored and the run ends 0 with its complete output (agvviz.cli.interrupts.outputs_complete).
             cases.append(Case("faults", f"{label} mid-{command}", args, codes=(130,),
                               expect="error_or_ok" if command == "run" else "error", inputs=[rec], outputs=[out],
                               cwd=d, drive=signal_driver(signum, settle_s=0.1), error_line=False))

@@ -60,7 +60,7 @@ def agvviz_command() -> list[str]:
     script = Path(sys.executable).parent / "agvviz"
     if script.exists():
         return [str(script)]
-    return [sys.executable, "-m", "agvviz.cli"]
+    return [sys.executable, "-m", "agvviz"]
 
 
 def child_env() -> dict[str, str]:
