@@ -27,6 +27,10 @@ closes a cycle is frame 0 (F) of the next one.
 :class:`CorrectionReplay` feeds it from a recording: ``/agv/odometry`` (the navigation),
 ``/agv/ground_truth``, ``/markers/map``, the pipeline's per-camera frames (their marker
 observations) and corner-only ``/markers/corners`` messages.
+
+The values they hand on (:class:`~agvviz.model.correction.FrameSighting`,
+:class:`~agvviz.model.correction.CorrectionEvent`, :class:`~agvviz.model.correction.CorrectionStep`)
+are frozen, in :mod:`agvviz.model.correction`.
 """
 
 from __future__ import annotations

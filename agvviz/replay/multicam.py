@@ -19,7 +19,8 @@ oblique marker.
 
 The chosen frame becomes the *primary* result of the time stamp: its pose is the camera fix.
 For ``combine`` the primary frame's pose, reprojections and errors are replaced by the joint
-solution's, and every other camera's reprojected corners are recomputed from it.
+solution's, and every other camera's reprojected corners are recomputed from it. The outcome
+is a frozen :class:`~agvviz.model.fusion.CameraSelection`.
 """
 
 from __future__ import annotations
