@@ -24,8 +24,9 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from agvviz.evaluation import cnoem_study as cs  # noqa: E402
 from agvviz.geometry import se3  # noqa: E402
+from agvviz.model.studies import GridCell  # noqa: E402
+from agvviz.replay.studies import cnoem_cells as cs  # noqa: E402
 from agvviz.sim import auv  # noqa: E402
 from agvviz.solvers import cnoem  # noqa: E402
 from agvviz.viz.cnoem_report import write_report_rrd  # noqa: E402
@@ -37,7 +38,7 @@ def _run_cell(args):
 
 def grid_section(trials: int, seed: int, workers: int) -> tuple[list[str], dict]:
     """Every cell of the grid, drawn from agvviz.sim.auv on ``workers`` processes; the report is
-    the library's (cnoem_study.report_markdown, the same as `agvviz run` on a grid recording)."""
+    the library's (agvviz.replay.studies.cnoem_cells.report_markdown, the same as `agvviz run` on a grid recording)."""
     cells = auv.grid_cells()
     t0 = time.perf_counter()
     with Pool(workers) as pool:
@@ -48,7 +49,7 @@ def grid_section(trials: int, seed: int, workers: int) -> tuple[list[str], dict]
 
 
 def _window_66(seed: int) -> tuple[cnoem.CornerWindow, np.ndarray]:
-    cell = auv.GridCell(10.0, 0.2, 0.1, 0.5, 1.0)
+    cell = GridCell(10.0, 0.2, 0.1, 0.5, 1.0)
     geometry = auv.cycle_geometry(cell, cycle_distance_m=2.0)
     trial = auv.draw_trial(geometry, 1.0, np.random.default_rng(seed))
     sightings = (trial.sightings * 2)[:66]
@@ -99,7 +100,7 @@ def paper_update_section(trials: int, seed: int) -> list[str]:
         "| --- | --- | --- | --- | --- | --- |",
     ]
     rng = np.random.default_rng(seed + 7)
-    for cell in (auv.GridCell(5.0, 0.2, 0.1, 1.0, 1.0), auv.GridCell(10.0, 0.4, 0.2, 1.0, 1.0), auv.GridCell(15.0, 0.2, 0.1, 1.0, 1.0)):
+    for cell in (GridCell(5.0, 0.2, 0.1, 1.0, 1.0), GridCell(10.0, 0.4, 0.2, 1.0, 1.0), GridCell(15.0, 0.2, 0.1, 1.0, 1.0)):
         g = auv.cycle_geometry(cell)
         e_lm, it_lm, e_p, it_p, ms = [], [], [], [], []
         for _ in range(trials):
@@ -122,7 +123,7 @@ def paper_update_section(trials: int, seed: int) -> list[str]:
 
 
 def sweep_section(trials: int, seed: int) -> list[str]:
-    cell = auv.GridCell(10.0, 0.2, 0.1, 1.0, 1.0)
+    cell = GridCell(10.0, 0.2, 0.1, 1.0, 1.0)
     lines = [
         f"## Error ratio vs frames per cycle and cycle distance (cell {cell.cell_id}, {trials} trials each)",
         "",

@@ -12,6 +12,7 @@ import pytest
 from agvviz import scenarios as scenario_registry
 from agvviz.geometry import se3
 from agvviz.recording.contract import inspect_recording
+from agvviz.model.studies import GridCell
 from agvviz.recording.reader import PoseMsg, iter_messages
 from agvviz.sim import auv
 from agvviz.scenarios import auv_under_ice as scenario
@@ -25,7 +26,7 @@ def test_rig_looks_forward_and_toes_out():
         assert np.sign(axis_agv[0]) == sign and axis_agv[2] == pytest.approx(0.0)
         assert se3.is_rigid(mounts[name])
     # A marker straight ahead is seen by both cameras with its printed face towards them.
-    geometry = auv.cycle_geometry(auv.GridCell(10.0, 0.0, 0.0, 1.0, 1.0))
+    geometry = auv.cycle_geometry(GridCell(10.0, 0.0, 0.0, 1.0, 1.0))
     assert {name for _, name, _, _ in geometry.clean} == {"left", "right"}
     assert len(geometry.T_F_agv) == 16  # 1.5 m at 1 m/s and 10 Hz, F included
 
@@ -135,7 +136,7 @@ def test_images_show_the_markers_under_fluctuating_light(tmp_path):
 
 
 def test_grid_recording_replays_to_the_same_cycles_as_the_generator(tmp_path):
-    from agvviz.evaluation.cnoem_study import trials_from_recording
+    from agvviz.replay.studies.cnoem import trials_from_recording
     from agvviz.solvers.cnoem import CornerWindow, solve_cnoem
 
     path = tmp_path / "grid.mcap"
@@ -143,7 +144,7 @@ def test_grid_recording_replays_to_the_same_cycles_as_the_generator(tmp_path):
     cells = trials_from_recording(iter_messages(path))
     (cell_id, trials), = cells.items()
     assert cell_id == "L10_X0.2L_Y0.1L_v1_s1" and len(trials) == 4
-    geometry = auv.cycle_geometry(auv.GridCell(10.0, 0.2, 0.1, 1.0, 1.0))
+    geometry = auv.cycle_geometry(GridCell(10.0, 0.2, 0.1, 1.0, 1.0))
     rng = np.random.default_rng(8)
     for trial in trials:
         expected = auv.draw_trial(geometry, 1.0, rng)  # the scenario's draws, in order

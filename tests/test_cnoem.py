@@ -9,6 +9,7 @@ import pytest
 
 from agvviz.geometry import se3
 from agvviz.geometry.euler import matrix_from_hpr
+from agvviz.model.studies import GridCell
 from agvviz.sim import auv
 from agvviz.solvers import cnoem, uncertainty, window_baselines
 from agvviz.solvers.bundle import pixel_residuals_and_jacobian, solve_bundle
@@ -19,10 +20,10 @@ from agvviz.solvers.window_crlb import position_bound_m, window_crlb
 # whatever the summation order of the BLAS kernel (see tests/test_geometry.py).
 TOL_UNIT = 256 * np.finfo(float).eps
 
-CELL = auv.GridCell(10.0, 0.2, 0.1, 1.0, 1.0)
+CELL = GridCell(10.0, 0.2, 0.1, 1.0, 1.0)
 
 
-def _trial(seed: int, sigma_px: float = 0.0, cell: auv.GridCell = CELL):
+def _trial(seed: int, sigma_px: float = 0.0, cell: GridCell = CELL):
     geometry = auv.cycle_geometry(cell)
     trial = auv.draw_trial(geometry, sigma_px, np.random.default_rng(seed))
     return trial, CornerWindow.from_sightings(trial.sightings)
@@ -124,7 +125,7 @@ def test_noise_free_solvers_recover_truth_from_the_papers_start_noise(seed):
 
 
 def test_paper_update_lowers_its_cost_monotonically():
-    trial, window = _trial(20, cell=auv.GridCell(5.0, 0.2, 0.1, 1.5, 1.0))
+    trial, window = _trial(20, cell=GridCell(5.0, 0.2, 0.1, 1.5, 1.0))
     start = cnoem.translation_first(window, se3.inverse(trial.T_world_F_nav)[:3, :3])
     sol = cnoem.solve_cnoem(window, trial.T_world_F_nav, update="paper", max_iterations=300)
     assert sol.success and len(sol.iterations) == 302  # given start, translation first, 300 steps
@@ -155,7 +156,7 @@ def test_window_crlb_of_one_sighting_is_the_single_frame_crlb():
 
 
 def test_bundle_rms_meets_the_window_crlb():
-    cell = auv.GridCell(5.0, 0.2, 0.1, 1.5, 1.0)
+    cell = GridCell(5.0, 0.2, 0.1, 1.5, 1.0)
     rng = np.random.default_rng(7)
     geometry = auv.cycle_geometry(cell)
     errors = []
@@ -230,7 +231,7 @@ def test_normal_equations_stay_accurate_far_from_the_world_origin():
 
 def test_multistart_keeps_the_navigation_solution_against_a_marginally_better_mirror():
     # Seed chosen where IPPE's mirror branch converges to a LOWER ray cost ≈14 m from the truth.
-    cell = auv.GridCell(15.0, 0.4, 0.2, 1.5, 1.5)
+    cell = GridCell(15.0, 0.4, 0.2, 1.5, 1.5)
     geometry = auv.cycle_geometry(cell)
     rng = np.random.default_rng(0)
     for _ in range(3):

@@ -11,16 +11,16 @@ import pytest
 
 from agvviz import scenarios as scenario_registry
 from agvviz.errors import RecordingError
-from agvviz.evaluation import cnoem_study
-from agvviz.evaluation.cnoem_study import METHODS
 from agvviz.evaluation.summary_table import summary_rows
-from agvviz.replay.studies.cnoem import is_cnoem_trials_recording, replay_cnoem_trials, study_method
+from agvviz.model.studies import GridCell
+from agvviz.replay.studies import cnoem_cells
+from agvviz.replay.studies.cnoem import is_cnoem_trials_recording, replay_cnoem_trials, study_method, trials_from_recording
+from agvviz.replay.studies.cnoem_cells import METHODS
 from agvviz.replay.studies.monte_carlo import trials_timing
 from agvviz.recording.reader import PoseMsg, ReadReport, RecordedMessage, iter_messages
 from agvviz.recording.source import iter_role_messages, open_recording, resolve_roles, scan
 from agvviz.recording.topics import ROLE_CORNERS
 from agvviz.settings import RunSettings
-from agvviz.sim import auv
 from agvviz.viz import paths
 from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document
 from agvviz.viz.run_logger import RunLogger
@@ -71,8 +71,8 @@ def test_every_trial_is_solved_and_agrees_with_evaluate_trials(grid, outcome):
     assert list(outcome.results) == [CELL] and outcome.methods == METHODS
     assert outcome.trials_per_cell == TRIALS and outcome.trials == TRIALS and not outcome.warnings
     # The same computation as the library on the same data, read back without the role map.
-    (cell_id, trials), = cnoem_study.trials_from_recording(iter_messages(grid[0])).items()
-    direct = cnoem_study.evaluate_trials(auv.GridCell.from_id(cell_id), trials, len(trials), 16)
+    (cell_id, trials), = trials_from_recording(iter_messages(grid[0])).items()
+    direct = cnoem_cells.evaluate_trials(GridCell.from_id(cell_id), trials, len(trials), 16)
     result = outcome.results[CELL]
     assert (result.n_frames, result.n_sightings) == (16, 32)  # 1.5 m at 1 m/s, 10 Hz; both cameras see it
     assert result.crlb_position_m == pytest.approx(direct.crlb_position_m, rel=1e-12)
@@ -144,9 +144,9 @@ def test_noise_free_cell_has_no_bound(tmp_path):
 
 
 def test_paper_ratio_of_the_far_edge_cells():
-    far = auv.GridCell(15.0, 0.4, 0.2, 1.0, 1.0)
-    assert cnoem_study.paper_ratio([far, auv.GridCell(15.0, 0.4, 0.2, 0.5, 1.5)]) == (0.103, "cells L = 15 m, X = 0.4L, Y = 0.2L")
-    assert cnoem_study.paper_ratio([far, auv.GridCell.from_id(CELL)])[0] == 0.217
+    far = GridCell(15.0, 0.4, 0.2, 1.0, 1.0)
+    assert cnoem_cells.paper_ratio([far, GridCell(15.0, 0.4, 0.2, 0.5, 1.5)]) == (0.103, "cells L = 15 m, X = 0.4L, Y = 0.2L")
+    assert cnoem_cells.paper_ratio([far, GridCell.from_id(CELL)])[0] == 0.217
 
 
 def test_study_method_marks_the_run_setting():

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from agvviz.model.correction import FrameSighting
 from agvviz.replay.correct import (
     CorrectionCycle,
     CorrectionError,
     CorrectionReplay,
     CorrectionSettings,
-    FrameSighting,
 )
 from agvviz.geometry import se3
 from agvviz.geometry.euler import matrix_from_hpr

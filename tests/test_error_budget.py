@@ -1,4 +1,4 @@
-"""The error budget (agvviz.evaluation.error_budget, `agvviz budget`): shares against independent
+"""The error budget (agvviz.app.budget and agvviz.evaluation.error_budget, `agvviz budget`): shares against independent
 re-runs, a source without effect, the .rrd, and the errors on bad input."""
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 from agvviz import scenarios as scenario_registry
 from agvviz.cli.main import app
 from agvviz.errors import InputError
-from agvviz.evaluation.error_budget import INTERACTION, error_budget, sources_on
+from agvviz.app.budget import error_budget, sources_on
+from agvviz.evaluation.error_budget import INTERACTION
 from agvviz.recording.writer import RecordingWriter
 from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings

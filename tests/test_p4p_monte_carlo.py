@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from agvviz import scenarios as scenario_registry
-from agvviz.evaluation.monte_carlo import PAPER_FIGURES, checks, collect, evaluate_cell, report_markdown
 from agvviz.recording.contract import inspect_recording
 from agvviz.recording.reader import iter_messages
+from agvviz.replay.studies.monte_carlo import collect
+from agvviz.replay.studies.monte_carlo_cells import PAPER_FIGURES, checks, evaluate_cell, report_markdown
 from agvviz.viz.monte_carlo_report import write_report_rrd
 from agvviz.viz.readback import read_rrd, scalar_series, text_document
 from agvviz.scenarios import p4p_monte_carlo as mc

@@ -10,10 +10,10 @@ import pytest
 
 from agvviz import scenarios as scenario_registry
 from agvviz.errors import RecordingError
-from agvviz.evaluation.monte_carlo import SOLVERS, collect, evaluate_cell
 from agvviz.evaluation.summary import FrameScore, summarize, timing
 from agvviz.evaluation.summary_table import summary_rows
-from agvviz.replay.studies.monte_carlo import is_trials_recording, replay_trials, study_solver, trials_timing
+from agvviz.replay.studies.monte_carlo import collect, is_trials_recording, replay_trials, study_solver, trials_timing
+from agvviz.replay.studies.monte_carlo_cells import SOLVERS, evaluate_cell
 from agvviz.recording.reader import ReadReport, RecordedMessage
 from agvviz.recording.source import iter_role_messages, open_recording, resolve_roles, scan
 from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS

@@ -1,7 +1,7 @@
 """The commands that compare and report on runs and recordings: ``diff`` (two runs), ``sweep``
 (a grid of settings, ranked), ``budget`` (the error budget), ``audit`` (map and calibration) and
 ``export`` (trajectories for other tools); each calls its library function
-(:mod:`agvviz.app.diff`, :mod:`agvviz.app.sweep`, :mod:`agvviz.evaluation.error_budget`,
+(:mod:`agvviz.app.diff`, :mod:`agvviz.app.sweep`, :mod:`agvviz.app.budget`,
 :mod:`agvviz.app.audit`, :mod:`agvviz.app.export`) and prints its result.
 """
 

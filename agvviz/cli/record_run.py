@@ -192,7 +192,7 @@ def _stop_started(progress: Progress) -> None:
 def _budget_hint(scenario: Optional[dict]) -> None:
     """Say that ``run --budget`` can share this run's error out, when the recording has error
     sources on (an agvviz recording under a non-ideal realism profile)."""
-    from agvviz.evaluation.error_budget import sources_on
+    from agvviz.app.budget import sources_on
 
     options = (scenario or {}).get("options") or {}
     try:
@@ -206,8 +206,8 @@ def _budget_hint(scenario: Optional[dict]) -> None:
 
 def error_budget_with_progress(recording: Path, settings: RunSettings, work_dir: Optional[Path],
                                 jobs: Optional[int], cache_dir):
-    """:func:`agvviz.evaluation.error_budget.error_budget` under a progress bar."""
-    from agvviz.evaluation.error_budget import error_budget
+    """:func:`agvviz.app.budget.error_budget` under a progress bar."""
+    from agvviz.app.budget import error_budget
 
     # The bar appears with the first step, so an input refused at once prints only its error.
     progress, task = progress_bar(), None

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agvviz.replay.fuse import FrameSetResult, RangeResult, UwbFixResult
+from agvviz.model.fusion import FrameSetResult, RangeResult, UwbFixResult
 
 
 def error_stats_mm(errors_m) -> dict:
@@ -31,7 +31,7 @@ def error_stats_mm(errors_m) -> dict:
 
 @dataclass
 class FusionStats:
-    """Accumulates :mod:`agvviz.replay.fuse` items; :meth:`summary` reduces them."""
+    """Accumulates the fuse stage's items (:mod:`agvviz.model.fusion`); :meth:`summary` reduces them."""
 
     camera_xy_m: list[float] = field(default_factory=list)
     camera_used: dict[str, int] = field(default_factory=dict)

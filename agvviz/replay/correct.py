@@ -27,13 +27,17 @@ closes a cycle is frame 0 (F) of the next one.
 :class:`CorrectionReplay` feeds it from a recording: ``/agv/odometry`` (the navigation),
 ``/agv/ground_truth``, ``/markers/map``, the pipeline's per-camera frames (their marker
 observations) and corner-only ``/markers/corners`` messages.
+
+The values they hand on (:class:`~agvviz.model.correction.FrameSighting`,
+:class:`~agvviz.model.correction.CorrectionEvent`, :class:`~agvviz.model.correction.CorrectionStep`)
+are frozen, in :mod:`agvviz.model.correction`.
 """
 
 from __future__ import annotations
 
 from agvviz.errors import InputError
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -41,6 +45,7 @@ from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.recording.reader import PoseMsg, RecordedMessage
 from agvviz.replay.sync import SyncState
+from agvviz.model.correction import CorrectionEvent, CorrectionStep, FrameSighting
 from agvviz.model.frames import FrameResult
 from agvviz.solvers import window_baselines
 from agvviz.solvers.bundle import pixel_residuals_and_jacobian, solve_bundle
@@ -82,47 +87,6 @@ class CorrectionSettings:
             raise CorrectionError(f"max_position_sigma_m must be > 0, got {self.max_position_sigma_m}")
         if self.min_sightings < 1:
             raise CorrectionError(f"min_sightings must be ≥ 1, got {self.min_sightings}")
-
-
-@dataclass(frozen=True)
-class FrameSighting:
-    """One marker in one camera image: ``pixels_px`` (P, 2) in the IDEAL image of matrix ``K``."""
-
-    marker_id: str
-    cam_name: str
-    points_world_m: np.ndarray
-    pixels_px: np.ndarray
-    K: np.ndarray
-
-
-@dataclass
-class CorrectionEvent:
-    """A closed cycle.
-
-    reason : "" when a correction was applied, else why not.
-    T_world_F_before / after : the start frame by the (corrected) navigation / by the solver.
-    T_world_G_before / after : the current pose before and after the correction.
-    jump_m : ‖after − before‖ of the current position (0 without a correction).
-    """
-
-    log_time_ns: int
-    cycle_index: int
-    n_frames: int
-    n_sightings: int
-    reason: str
-    T_world_F_before: np.ndarray
-    T_world_F_after: np.ndarray | None
-    T_world_G_before: np.ndarray
-    T_world_G_after: np.ndarray
-    jump_m: float
-    position_sigma_m: float | None = None
-    window: CornerWindow | None = None
-    solution: WindowSolution | None = None
-    frame_times_ns: list[int] = field(default_factory=list)
-
-    @property
-    def applied(self) -> bool:
-        return self.reason == ""
 
 
 class CorrectionCycle:
@@ -179,28 +143,31 @@ class CorrectionCycle:
             T_world_F_before, None, T_world_G_before, T_world_G_before, 0.0, frame_times_ns=list(self.frame_times_ns),
         )
         if len(self.sightings) < self.settings.min_sightings:
-            event.reason = f"{len(self.sightings)} marker sighting(s) in the cycle, need {self.settings.min_sightings}"
+            reason = f"{len(self.sightings)} marker sighting(s) in the cycle, need {self.settings.min_sightings}"
+            event = replace(event, reason=reason)
         else:
             window = CornerWindow.from_sightings(self.sightings)
-            event.window = window
             solution = self._solve(window, T_world_F_before)
-            event.solution = solution
+            event = replace(event, window=window, solution=solution)
             rms = solution.iterations[-1].reproj_rms_px if solution.iterations else float("nan")
             if not solution.success:
-                event.reason = f"solver failed: {solution.reason}"
+                event = replace(event, reason=f"solver failed: {solution.reason}")
             elif not rms <= self.settings.max_reproj_px:
-                event.reason = f"RMS reprojection error {rms:.2f} px above max_reproj_px {self.settings.max_reproj_px:g}"
+                reason = f"RMS reprojection error {rms:.2f} px above max_reproj_px {self.settings.max_reproj_px:g}"
+                event = replace(event, reason=reason)
             elif not (sigma := self._position_sigma_m(window, solution)) <= self.settings.max_position_sigma_m:
-                event.position_sigma_m = sigma
-                event.reason = (
+                reason = (
                     f"position σ {sigma:.3f} m above max_position_sigma_m {self.settings.max_position_sigma_m:g} "
                     "(the window determines F poorly)"
                 )
+                event = replace(event, position_sigma_m=sigma, reason=reason)
             else:
-                event.position_sigma_m = sigma
-                event.T_world_F_after = solution.T_world_F
-                event.T_world_G_after = solution.T_world_F @ T_F_G
-                event.jump_m = float(np.linalg.norm(event.T_world_G_after[:3, 3] - T_world_G_before[:3, 3]))
+                T_world_G_after = solution.T_world_F @ T_F_G
+                jump_m = float(np.linalg.norm(T_world_G_after[:3, 3] - T_world_G_before[:3, 3]))
+                event = replace(
+                    event, position_sigma_m=sigma, T_world_F_after=solution.T_world_F,
+                    T_world_G_after=T_world_G_after, jump_m=jump_m,
+                )
                 self.T_correction = event.T_world_G_after @ se3.inverse(T_world_G_nav)
         self.cycle_index += 1
         self._start_new(T_world_G_nav, log_time_ns)
@@ -228,19 +195,6 @@ class CorrectionCycle:
         if self.settings.solver == "bundle" and solution.success:
             solution = solve_bundle(window, solution.T_world_F, cnoem_start=False)
         return solution
-
-
-@dataclass
-class CorrectionStep:
-    """One frame time of the replay: raw and corrected navigation, truth (if recorded), and the
-    event when a cycle closed here."""
-
-    log_time_ns: int
-    T_world_agv_nav: np.ndarray
-    T_world_agv_corrected: np.ndarray
-    T_world_agv_truth: np.ndarray | None
-    sightings: list[FrameSighting]
-    event: CorrectionEvent | None
 
 
 class CorrectionReplay:

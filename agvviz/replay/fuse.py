@@ -10,81 +10,28 @@ pipeline made of it (or None). It
   through :class:`agvviz.uwb.UwbTracker`, into UWB fixes;
 * feeds camera fixes, UWB fixes and ranges to the fusion component in time order.
 
-It returns what happened as :class:`FrameSetResult`, :class:`RangeResult` and
-:class:`UwbFixResult` items, in time order, for the run logger and the statistics. A frame set
+It returns what happened as :class:`~agvviz.model.fusion.FrameSetResult`,
+:class:`~agvviz.model.fusion.RangeResult` and :class:`~agvviz.model.fusion.UwbFixResult` items, in time order, for the run logger and the statistics. A frame set
 is complete when a message with a later time arrives, so :meth:`FusionReplay.finish` must be
 called after the last message.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from agvviz.fusion import FusionStep, KalmanSettings, make_fusion
-from agvviz.replay.multicam import CameraSelection, select_camera_fix
+from agvviz.model.fusion import FrameSetResult, RangeResult, UwbFixResult
+from agvviz.replay.multicam import select_camera_fix
 from agvviz.recording.reader import FrameTransformMsg, RecordedMessage
 from agvviz.model.frames import FrameResult
 from agvviz.replay.sync import SyncState
 from agvviz.settings import RunSettings
-from agvviz.uwb import RangeRecord, UwbFix, UwbTracker, range_from_timestamps_m
+from agvviz.uwb import RangeRecord, UwbTracker, range_from_timestamps_m
 from agvviz.uwb.localize import predicted_ranges_m
 
 from agvviz.recording.topics import ROLE_UWB_ANCHORS, ROLE_UWB_RANGE  # noqa: E402
 TAG_FRAME = "uwb_tag"
-
-
-@dataclass
-class FrameSetResult:
-    """The frames of one time stamp, the camera fix made of them and what fusion did with it.
-
-    ``scored`` is the frame that stands for the time stamp in statistics and plots: the primary
-    (chosen) frame, or the first frame when no camera solved.
-    """
-
-    frames: list[FrameResult]
-    selection: CameraSelection
-    step: FusionStep
-    camera_available: bool
-    fused_error_m: float | None = None  # 2-D error of step.fused against truth
-
-    @property
-    def scored(self) -> FrameResult:
-        return self.selection.primary if self.selection.primary is not None else self.frames[0]
-
-
-@dataclass
-class RangeResult:
-    """One UWB range: the recorded ``range_m``, eq 1 on its timestamps, ranges predicted from
-    the true pose and from the current estimate, and the Kalman gate's verdict (if any)."""
-
-    log_time_ns: int
-    anchor_id: str
-    range_m: float
-    tof_range_m: float
-    predicted_truth_m: float | None
-    predicted_estimate_m: float | None
-    step: FusionStep
-    camera_available: bool
-    fused_error_m: float | None = None
-
-
-@dataclass
-class UwbFixResult:
-    """One UWB fix, its 2-D error against truth (when known) and what fusion did with it."""
-
-    fix: UwbFix
-    truth_xy_m: np.ndarray | None
-    step: FusionStep
-    camera_available: bool
-    fused_error_m: float | None = None
-
-    @property
-    def error_m(self) -> float | None:
-        if self.truth_xy_m is None:
-            return None
-        return float(np.linalg.norm(self.fix.position_m[:2] - self.truth_xy_m))
 
 
 class FusionReplay:

@@ -19,33 +19,21 @@ oblique marker.
 
 The chosen frame becomes the *primary* result of the time stamp: its pose is the camera fix.
 For ``combine`` the primary frame's pose, reprojections and errors are replaced by the joint
-solution's, and every other camera's reprojected corners are recomputed from it.
+solution's, and every other camera's reprojected corners are recomputed from it. The outcome
+is a frozen :class:`~agvviz.model.fusion.CameraSelection`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME
 from agvviz.geometry import euler, se3
 from agvviz.model.frames import FrameResult
+from agvviz.model.fusion import CameraSelection
 from agvviz.solvers.multi_camera import CAMERA_SELECT, RigView, refine_rig_pose
-
-
-@dataclass
-class CameraSelection:
-    """The outcome of one time stamp: ``primary`` (None when no camera solved), the cameras
-    that solved and those whose corners made the fix (``used``), and the time stamp's
-    ``frames`` as the fix leaves them (a joint fix replaces the primary's pose and errors and
-    every frame's reprojected corners; frames are immutable, so these are new frames)."""
-
-    primary: FrameResult | None
-    solved: list[str] = field(default_factory=list)
-    used: list[str] = field(default_factory=list)
-    note: str = ""
-    frames: list[FrameResult] = field(default_factory=list)
 
 
 def _marker_area_px2(frame: FrameResult) -> float:
@@ -96,7 +84,7 @@ def select_camera_fix(
     if not solved:
         return selection
     best = max(solved, key=_marker_area_px2)
-    selection.primary, selection.used = best, [best.cam_name]
+    selection = replace(selection, primary=best, used=[best.cam_name])
     if (policy == "best" or len(solved) == 1) and not floor:
         return selection
     joined = solved if policy == "combine" else [best]
@@ -115,8 +103,10 @@ def select_camera_fix(
             views.append(RigView(cam.camera.K, se3.inverse(cam.T_agv_cam), points, ideal))
             continue
         if cam is None or cam.T_world_cam is None or any(o.points_frame != AGV_FRAME for o in used):
-            selection.note = "combine needs all cameras on the AGV or all fixed in the world watching markers on the AGV: used best"
-            return selection
+            return replace(
+                selection,
+                note="combine needs all cameras on the AGV or all fixed in the world watching markers on the AGV: used best",
+            )
         ideal = cam.camera.undistort_pixels(np.vstack([o.corners_px for o in used]))
         views.append(RigView(cam.camera.K, se3.inverse(cam.T_world_cam), np.vstack([o.points_world_m for o in used]), ideal))
     try:
@@ -126,8 +116,7 @@ def select_camera_fix(
         else:
             T_world_agv, rms_px = refine_rig_pose(best.T_world_agv, views, planar=floor)
     except ValueError as exc:
-        selection.note = f"joint LM failed ({exc}): used best"
-        return selection
+        return replace(selection, note=f"joint LM failed ({exc}): used best")
     hpr_rad = np.array(euler.hpr_from_matrix(T_world_agv[:3, :3], gimbal_threshold))
     errors = {}
     if best.T_world_agv_truth is not None:
@@ -156,6 +145,5 @@ def select_camera_fix(
             if frame.cam_name == best.cam_name and frame.index == best.index:
                 joint = frame
         frames_out.append(frame)
-    selection.primary, selection.frames = joint, frames_out
-    selection.used = [f.cam_name for f in solved] if policy == "combine" else [best.cam_name]
-    return selection
+    used = [f.cam_name for f in solved] if policy == "combine" else [best.cam_name]
+    return replace(selection, primary=joint, frames=frames_out, used=used)

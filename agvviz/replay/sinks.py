@@ -9,8 +9,9 @@ from typing import Callable
 
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.evaluation.summary import FrameScore, summarize
-from agvviz.replay.correct import CorrectionSettings, CorrectionStats, CorrectionStep
-from agvviz.replay.fuse import FrameSetResult
+from agvviz.model.correction import CorrectionStep
+from agvviz.replay.correct import CorrectionSettings, CorrectionStats
+from agvviz.model.fusion import FrameSetResult
 from agvviz.model.frames import FrameResult
 from agvviz.settings import RunSettings
 from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint

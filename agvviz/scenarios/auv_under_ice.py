@@ -63,6 +63,7 @@ from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.euler import Rx, Ry, Rz, matrix_from_hpr
 from agvviz.markers.aruco import aruco_modules
+from agvviz.model.studies import GridCell
 from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim import auv
@@ -316,7 +317,7 @@ def _record_grid(writer, o: Options, rng: np.random.Generator, progress) -> None
     for name, T in mounts.items():
         writer.write_calibration(name, cam, t0)
     writer.write_tf_static([(AGV_FRAME, camera_frame(n), T) for n, T in mounts.items()], t0)
-    cell = auv.GridCell(o.grid_distance_m, o.grid_lateral_fraction, o.grid_vertical_fraction, o.speed_mps, o.sigma_px)
+    cell = GridCell(o.grid_distance_m, o.grid_lateral_fraction, o.grid_vertical_fraction, o.speed_mps, o.sigma_px)
     geometry = auv.cycle_geometry(cell, frame_rate_hz=o.frame_rate_hz)
     if not geometry.clean:
         raise ValueError(f"grid cell {cell.cell_id}: the marker is never fully in view of either camera")

@@ -18,7 +18,6 @@ front of the camera, and the printed face points at it.
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +25,7 @@ import numpy as np
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.geometry.euler import Rx, Ry, Rz, matrix_from_hpr
+from agvviz.model.studies import CycleTrial, GridCell
 from agvviz.solvers.cnoem import Sighting, euler_params_from_transform, transform_from_euler_params
 
 WIDTH_PX = 1280
@@ -100,36 +100,6 @@ def visible_pixels(
     return px
 
 
-@dataclass(frozen=True)
-class GridCell:
-    """One cell of the paper's Table 3 grid."""
-
-    distance_m: float
-    lateral_fraction: float
-    vertical_fraction: float
-    speed_mps: float
-    sigma_px: float
-
-    @property
-    def cell_id(self) -> str:
-        return (
-            f"L{self.distance_m:g}_X{self.lateral_fraction:g}L_Y{self.vertical_fraction:g}L"
-            f"_v{self.speed_mps:g}_s{self.sigma_px:g}"
-        )
-
-    @classmethod
-    def from_id(cls, cell_id: str) -> "GridCell":
-        """Inverse of :attr:`cell_id`; raises ValueError for text that is not a cell id."""
-        m = re.fullmatch(r"L([\d.]+)_X([\d.]+)L_Y([\d.]+)L_v([\d.]+)_s([\d.]+)", cell_id)
-        if m is None:
-            raise ValueError(f"not a grid cell id: {cell_id!r} (expected e.g. L10_X0.2L_Y0.1L_v1_s1)")
-        return cls(*(float(g) for g in m.groups()))
-
-    @property
-    def on_axis(self) -> bool:
-        return self.lateral_fraction == 0.0 and self.vertical_fraction == 0.0
-
-
 def grid_cells() -> list[GridCell]:
     """All 243 cells of the paper's grid, distance slowest, σ fastest."""
     return [
@@ -178,18 +148,6 @@ def cycle_geometry(
             if px is not None:
                 clean.append((k, name, T_F_cam, px))
     return CycleGeometry(T_F_agv, clean, T_F_marker)
-
-
-@dataclass
-class CycleTrial:
-    """One Monte-Carlo trial: truth, the navigation's start, noisy sightings.
-
-    T_world_F_truth, T_world_F_nav : (4, 4). sightings : noisy sightings (world corners).
-    """
-
-    T_world_F_truth: np.ndarray
-    T_world_F_nav: np.ndarray
-    sightings: list[Sighting]
 
 
 def random_start_frame(rng: np.random.Generator) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Write the CNOEM grid study (:mod:`agvviz.evaluation.cnoem_study`) as a Rerun ``.rrd``.
+"""Write the CNOEM grid study (:mod:`agvviz.replay.studies.cnoem_cells`) as a Rerun ``.rrd``.
 
 Entity tree (timeline ``cell`` = the cell's index in :func:`agvviz.sim.auv.grid_cells`, distance
 slowest, σ fastest)::
@@ -17,7 +17,8 @@ import os
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.evaluation.cnoem_study import METHODS, CellResult
+from agvviz.model.studies import CnoemCellResult
+from agvviz.replay.studies.cnoem_cells import METHODS
 from agvviz.viz.rrd_file import AtomicRrd
 
 COLORS = {
@@ -31,7 +32,7 @@ COLORS = {
 }
 
 
-def write_report_rrd(out_path: str | os.PathLike, results: list[CellResult], report_md: str) -> None:
+def write_report_rrd(out_path: str | os.PathLike, results: list[CnoemCellResult], report_md: str) -> None:
     """Log the study into ``out_path`` (temporary file beside it, renamed when complete)."""
     with AtomicRrd(out_path, recording_id="agvviz-cnoem-study", recording_name="cnoem grid study") as rrd:
         rec = rrd.rec

@@ -42,7 +42,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.replay.correct import CorrectionEvent, CorrectionStep
+from agvviz.model.correction import CorrectionEvent, CorrectionStep
 from agvviz.viz import paths
 from agvviz.viz.run_logger import _trajectory
 from agvviz.viz.style import (

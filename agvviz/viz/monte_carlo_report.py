@@ -1,4 +1,4 @@
-"""Log the p4p_monte_carlo study (:mod:`agvviz.evaluation.monte_carlo`) into a Rerun recording.
+"""Log the p4p_monte_carlo study (:mod:`agvviz.replay.studies.monte_carlo_cells`) into a Rerun recording.
 
 One implementation for both outputs: :func:`log_study` writes the study's entities into a
 recording stream — the run's (:mod:`agvviz.viz.trials_logger`, ``agvviz run`` on a study
@@ -33,7 +33,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.evaluation.monte_carlo import PAPER_FIGURES, SOLVERS, CellResult
+from agvviz.model.studies import CellResult
+from agvviz.replay.studies.monte_carlo_cells import PAPER_FIGURES, SOLVERS
 from agvviz.viz.rrd_file import AtomicRrd
 
 SOLVER_COLORS = {

@@ -24,8 +24,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.replay.studies.cnoem import CnoemTrialsOutcome
-from agvviz.replay.studies.monte_carlo import TrialsOutcome
+from agvviz.model.studies import CnoemTrialsOutcome, TrialsOutcome
 from agvviz.viz import paths
 from agvviz.viz.cnoem_report import COLORS as CNOEM_COLORS
 from agvviz.viz.monte_carlo_report import TIMELINE_TRIAL, log_study, study_blueprint

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
-from agvviz.replay.fuse import FrameSetResult, RangeResult, UwbFixResult
+from agvviz.model.fusion import FrameSetResult, RangeResult, UwbFixResult
 from agvviz.viz import paths
 from agvviz.viz.run_logger import _trajectory
 from agvviz.viz.style import (

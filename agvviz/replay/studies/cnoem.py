@@ -5,32 +5,33 @@ in the same shape.
 A grid recording holds no camera image: calibrations and extrinsics, then per trial (one
 correction cycle of a Table 3 cell) a marker map, the navigation and true poses of every frame
 and the noisy corners of every sighting. The stage reads the cycles back
-(:func:`agvviz.evaluation.cnoem_study.read_grid_recording`), solves each with the study's whole
-method set (:data:`~agvviz.evaluation.cnoem_study.METHODS`: CNOEM from the navigation, CNOEM
+(:func:`read_grid_recording`), solves each with the study's whole method set
+(:data:`~agvviz.replay.studies.cnoem_cells.METHODS`: CNOEM from the navigation, CNOEM
 multi-start, the window bundle adjustment and the single-frame IPPE baselines — a study
 recording exists to compare them, so a run does not solve ``settings.correction`` alone) and
 scores the position of each cycle's start frame F against truth and the multi-frame CRLB
-(:func:`~agvviz.evaluation.cnoem_study.evaluate_trials`). The summary names the method the run's
-correction settings correspond to (:func:`study_method`). No file I/O, no Rerun, no printing.
+(:func:`~agvviz.replay.studies.cnoem_cells.evaluate_trials`). The summary names the method the
+run's correction settings correspond to (:func:`study_method`). No file I/O, no Rerun, no
+printing; the values it hands on are in :mod:`agvviz.model.studies`.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from agvviz.evaluation.statistics import describe
-from agvviz.recording.reader import RecordedMessage
+from agvviz.conventions import AGV_FRAME
+from agvviz.errors import RecordingError
+from agvviz.geometry import se3
+from agvviz.model.studies import CnoemCellResult, CnoemTrialsOutcome, CycleTrial, GridCell, RecordedCell
+from agvviz.recording.reader import CalibrationMsg, PoseMsg, RecordedMessage
 from agvviz.recording.roles import RoleMap
-from agvviz.recording.topics import ROLE_CORNERS
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TF_STATIC, ROLE_TRUTH
+from agvviz.replay.studies.monte_carlo import error_statistics
 from agvviz.settings import RunSettings
-
-if TYPE_CHECKING:
-    from agvviz.evaluation.cnoem_study import CellResult
+from agvviz.solvers.cnoem import Sighting
 
 #: The scenario, and its mode, whose recordings are CNOEM grid studies for this stage.
 CNOEM_TRIALS_SCENARIO = ("auv_under_ice", "grid")
@@ -64,26 +65,6 @@ def study_method(settings: RunSettings) -> str | None:
     return {"cnoem": "cnoem_multistart", "bundle": "bundle"}.get(settings.correction)
 
 
-@dataclass(frozen=True)
-class CnoemTrialsOutcome:
-    """What the stage found. ``summary`` (``{"cnoem_study": {...}}``, JSON-ready, depends only on
-    the recording and the run's correction settings) goes into the run summary; ``solve_s``
-    (wall clock) does not."""
-
-    results: dict[str, CellResult]  # cell id → per-trial errors, CRLB, convergence; recording order
-    trials_per_cell: int  # the largest number of trials of a cell (all equal unless messages were lost)
-    methods: tuple[str, ...]
-    report_markdown: str  # the study report (paper comparison, every cell)
-    summary: dict
-    warnings: tuple[str, ...]  # doubts about the numbers (lost trials or sightings)
-    solve_s: float  # wall time spent solving (s)
-
-    @property
-    def trials(self) -> int:
-        """Trials solved (each by every method)."""
-        return self.summary["cnoem_study"]["trials"]
-
-
 def replay_cnoem_trials(
     messages: Iterable[RecordedMessage],
     settings: RunSettings,
@@ -95,16 +76,16 @@ def replay_cnoem_trials(
     ``progress(trials_done)`` is called after each trial. Raises
     :class:`~agvviz.errors.RecordingError` when the messages hold no trial or a malformed one.
     """
-    from agvviz.evaluation import cnoem_study  # (the solvers and agvviz.sim: only when needed)
+    from agvviz.replay.studies import cnoem_cells  # (the solvers and agvviz.sim: only when needed)
 
-    cells = cnoem_study.read_grid_recording(messages)
+    cells = read_grid_recording(messages)
     t0 = time.perf_counter()
-    results: dict[str, CellResult] = {}
+    results: dict[str, CnoemCellResult] = {}
     done = 0
     for cell_id, recorded in cells.items():
         offset = done
         on_trial = None if progress is None else (lambda k, offset=offset: progress(offset + k))
-        results[cell_id] = cnoem_study.evaluate_trials(
+        results[cell_id] = cnoem_cells.evaluate_trials(
             recorded.cell, recorded.trials, len(recorded.trials), recorded.n_frames, progress=on_trial
         )
         done += len(recorded.trials)
@@ -129,11 +110,11 @@ def replay_cnoem_trials(
         f"# Paper 002 §3.1 simulation study (Table 3) from the recording: {len(results)} "
         f"cell{'s' if len(results) > 1 else ''} × {n_trials} trials"
     )
-    report = cnoem_study.report_markdown(list(results.values()), heading)
+    report = cnoem_cells.report_markdown(list(results.values()), heading)
     return CnoemTrialsOutcome(
         results=results,
         trials_per_cell=trials_per_cell,
-        methods=cnoem_study.METHODS,
+        methods=cnoem_cells.METHODS,
         report_markdown=report,
         summary={"cnoem_study": _summary(results, settings, trials_per_cell, done)},
         warnings=tuple(warnings),
@@ -146,19 +127,19 @@ def _number(value: float | None) -> float | None:
     return float(value) if value is not None and np.isfinite(value) else None
 
 
-def _summary(results: dict[str, CellResult], settings: RunSettings, trials_per_cell: int, trials: int) -> dict:
-    from agvviz.evaluation import cnoem_study
-    from agvviz.evaluation.cnoem_study import METHODS, PAPER_BASELINE
+def _summary(results: dict[str, CnoemCellResult], settings: RunSettings, trials_per_cell: int, trials: int) -> dict:
+    from agvviz.replay.studies import cnoem_cells
+    from agvviz.replay.studies.cnoem_cells import METHODS, PAPER_BASELINE
 
     cells = list(results.values())
-    s = cnoem_study.summarise(cells)
+    s = cnoem_cells.summarise(cells)
     per_method = {}
     for name in METHODS:
         errors_m = np.concatenate([r.errors_m[name] for r in cells])
         ok = errors_m[np.isfinite(errors_m)]
         ratios = np.array([r.rms_m(name) / r.crlb_position_m for r in cells], dtype=float) if len(ok) else np.array([])
         ratios = ratios[np.isfinite(ratios)]
-        error_m = {"mean": float(np.mean(ok)) if len(ok) else None, **describe(ok)}
+        error_m = {"mean": float(np.mean(ok)) if len(ok) else None, **error_statistics(ok)}
         per_method[name] = {
             "failed": int(sum(r.failures(name) for r in cells)),
             "error_m": {k: _number(v) for k, v in error_m.items()},
@@ -167,7 +148,7 @@ def _summary(results: dict[str, CellResult], settings: RunSettings, trials_per_c
                 "max": _number(np.max(ratios)) if len(ratios) else None,
             },
         }
-    paper, scope = cnoem_study.paper_ratio(r.cell for r in cells)
+    paper, scope = cnoem_cells.paper_ratio(r.cell for r in cells)
     bounds_m = [r.crlb_position_m for r in cells]
     return {
         "study": "auv_under_ice grid",
@@ -198,5 +179,106 @@ def _summary(results: dict[str, CellResult], settings: RunSettings, trials_per_c
             "well_conditioned": _number(s.converged_fraction_well),
             "multistart": _number(s.converged_fraction_multistart),
         },
-        "well_conditioned_cells": sum(cnoem_study.well_conditioned(r.cell) for r in cells),
+        "well_conditioned_cells": sum(cnoem_cells.well_conditioned(r.cell) for r in cells),
     }
+
+
+def read_grid_recording(messages: Iterable[RecordedMessage]) -> dict[str, RecordedCell]:
+    """The cycles of an ``auv_under_ice`` ``mode=grid`` recording's messages (role-tagged, file
+    order), grouped by cell id in recording order.
+
+    Each trial starts with its ``/markers/map`` message; its first ``/agv/odometry`` and
+    ``/agv/ground_truth`` poses are F's (navigation, truth); every ``/markers/corners`` message
+    becomes a sighting placed in F through the navigation and the camera's ``/tf_static``
+    extrinsic — the same chain as :class:`agvviz.replay.correct.CorrectionCycle`. Corners are taken as
+    ideal pixels (the scenario's cameras have no distortion). Raises
+    :class:`~agvviz.errors.RecordingError` when the messages hold no trial or a trial that
+    cannot be placed (no calibration or extrinsic for its camera, no pose before its corners, a
+    marker not on the map, malformed corners).
+    """
+    K: dict[str, np.ndarray] = {}
+    T_agv_cam: dict[str, np.ndarray] = {}
+    # per cell id, in recording order: the cell, its trials (truth and navigation at F, the
+    # sightings), its longest trial's frames — the values are built once every message is read
+    grid_cells: dict[str, GridCell] = {}
+    trials: dict[str, list[tuple[np.ndarray, np.ndarray, list[Sighting]]]] = {}
+    n_frames: dict[str, int] = {}
+    corners: dict[str, np.ndarray] = {}
+    nav_F = truth_F = nav_now = None
+    frame_index = -1
+    current: list[Sighting] | None = None  # the current trial's sightings
+    current_cell: str | None = None
+    for m in messages:
+        v = m.value
+        if isinstance(v, CalibrationMsg):
+            K[v.cam_name] = v.camera.K
+        elif isinstance(v, list) and m.role == ROLE_TF_STATIC:
+            for tf in v:
+                if tf.parent_frame == AGV_FRAME and tf.child_frame.startswith("cam_"):
+                    T_agv_cam[tf.child_frame[4:]] = tf.T_parent_child
+        elif m.role == ROLE_MARKER_MAP and isinstance(v, dict):
+            try:
+                corners = {str(e["id"]): np.asarray(e["corners_world_m"], dtype=float) for e in v.get("markers", [])}
+                for marker_id, corners_world_m in corners.items():
+                    if corners_world_m.shape != (4, 3) or not np.all(np.isfinite(corners_world_m)):
+                        raise ValueError(f"marker {marker_id}: corners_world_m must be 4 finite points, got shape {corners_world_m.shape}")
+            except (KeyError, TypeError, ValueError) as exc:
+                raise RecordingError(f"{m.topic} message at {m.time_ns} ns is not a marker map: {_detail(exc)}") from None
+            nav_F = truth_F = current = current_cell = None
+            frame_index = -1
+        elif m.role == ROLE_ODOMETRY and isinstance(v, PoseMsg):
+            nav_now = v.T
+            frame_index += 1
+            if nav_F is None:
+                nav_F = v.T
+            if current_cell is not None:
+                n_frames[current_cell] = max(n_frames[current_cell], frame_index + 1)
+        elif m.role == ROLE_TRUTH and isinstance(v, PoseMsg) and truth_F is None:
+            truth_F = v.T
+        elif m.role == ROLE_CORNERS and isinstance(v, dict):
+            try:
+                cell = GridCell.from_id(str(v["cell"]))
+                cam = str(v["cam_name"])
+                if nav_F is None or truth_F is None:
+                    raise ValueError("no navigation and ground-truth pose of its trial before it")
+                if cam not in K or cam not in T_agv_cam:
+                    raise ValueError(f"camera {cam!r} has no calibration or no /tf_static extrinsic {AGV_FRAME} → cam_{cam}")
+                seen = []
+                for marker in v["markers"]:
+                    marker_id = str(marker["id"])
+                    if marker_id not in corners:
+                        raise ValueError(f"marker {marker_id} is not on the trial's marker map")
+                    pixels_px = np.asarray(marker["corners_px"], dtype=float)
+                    if pixels_px.shape != (4, 2) or not np.all(np.isfinite(pixels_px)):
+                        raise ValueError(f"corners_px must be 4 finite (u, v) pixels, got shape {pixels_px.shape}")
+                    seen.append((marker_id, pixels_px))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise RecordingError(
+                    f"{m.topic} message at {m.time_ns} ns is not an auv_under_ice grid trial: {_detail(exc)}"
+                ) from None
+            if current is None:
+                current, current_cell = [], cell.cell_id
+                grid_cells.setdefault(current_cell, cell)
+                trials.setdefault(current_cell, []).append((truth_F, nav_F, current))
+                n_frames[current_cell] = max(n_frames.get(current_cell, 0), frame_index + 1)
+            T_F_cam = se3.inverse(nav_F) @ nav_now @ T_agv_cam[cam]
+            for marker_id, pixels_px in seen:
+                current.append(Sighting(marker_id, cam, frame_index, corners[marker_id], pixels_px, K[cam], T_F_cam))
+    if not grid_cells:
+        raise RecordingError(
+            "the recording has no corner messages (/markers/corners) of a grid trial: not an auv_under_ice "
+            "mode=grid recording"
+        )
+    return {
+        cell_id: RecordedCell(cell, [CycleTrial(*trial) for trial in trials[cell_id]], n_frames[cell_id])
+        for cell_id, cell in grid_cells.items()
+    }
+
+
+def _detail(exc: Exception) -> str:
+    return f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+
+
+def trials_from_recording(messages: Iterable[RecordedMessage]) -> dict[str, list[CycleTrial]]:
+    """The trials alone of :func:`read_grid_recording`, by cell id."""
+    return {cell_id: recorded.trials for cell_id, recorded in read_grid_recording(messages).items()}

@@ -2,13 +2,14 @@
 
 A study recording holds no camera image: a calibration, then one corner-observation message
 per noisy trial of each cell (a fixed true pose, code, point count and pixel σ). The stage
-collects the cells (:func:`agvviz.evaluation.monte_carlo.collect`), solves every trial with
-the study's whole solver set (:data:`~agvviz.evaluation.monte_carlo.SOLVERS`: a study
-recording exists to compare them, so a run does not solve ``settings.solver`` alone) and scores
-t against truth and the Cramér–Rao bound (:func:`~agvviz.evaluation.monte_carlo.evaluate_cell`,
-LM budget :data:`~agvviz.evaluation.monte_carlo.MC_LM_MAX_ITERATIONS`, not the run's
+reads the cells from the messages (:func:`collect`), solves every trial with the study's whole
+solver set (:data:`~agvviz.replay.studies.monte_carlo_cells.SOLVERS`: a study recording exists
+to compare them, so a run does not solve ``settings.solver`` alone) and scores t against truth
+and the Cramér–Rao bound (:func:`~agvviz.replay.studies.monte_carlo_cells.evaluate_cell`, LM
+budget :data:`~agvviz.replay.studies.monte_carlo_cells.MC_LM_MAX_ITERATIONS`, not the run's
 ``lm_max_iterations``). The summary names the study solver the run's pose-solver settings
-correspond to (:func:`study_solver`). No file I/O, no Rerun, no printing.
+correspond to (:func:`study_solver`). No file I/O, no Rerun, no printing; the values it hands
+on are in :mod:`agvviz.model.studies`.
 
 The other study kind, paper 002's CNOEM grid (``auv_under_ice`` ``mode=grid``), has the same
 shape in :mod:`agvviz.replay.studies.cnoem`; :func:`trials_timing` serves both.
@@ -18,21 +19,17 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from agvviz.evaluation import monte_carlo
-from agvviz.evaluation.monte_carlo import LM_VARIANTS, MC_LM_MAX_ITERATIONS, SOLVERS, CellResult
-from agvviz.evaluation.statistics import describe
-from agvviz.recording.reader import RecordedMessage
+from agvviz.errors import RecordingError
+from agvviz.model.studies import CellResult, CellTrials, CnoemTrialsOutcome, TrialsOutcome
+from agvviz.recording.reader import CalibrationMsg, RecordedMessage
 from agvviz.recording.roles import RoleMap
-from agvviz.recording.topics import ROLE_CORNERS
+from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS
+from agvviz.replay.studies import monte_carlo_cells
+from agvviz.replay.studies.monte_carlo_cells import LM_VARIANTS, MC_LM_MAX_ITERATIONS, SOLVERS
 from agvviz.settings import RunSettings
-
-if TYPE_CHECKING:
-    from agvviz.replay.studies.cnoem import CnoemTrialsOutcome
 
 #: Scenarios whose recordings are Monte-Carlo studies for this stage.
 TRIALS_SCENARIOS = ("p4p_monte_carlo",)
@@ -63,25 +60,50 @@ def study_solver(settings: RunSettings) -> str | None:
     return settings.solver if settings.solver in SOLVERS else None
 
 
-@dataclass(frozen=True)
-class TrialsOutcome:
-    """What the trials stage found. ``summary`` (``{"trials": {...}}``, JSON-ready, depends only
-    on the recording) goes into the run summary; ``solve_s`` (wall clock) does not."""
-
-    K: np.ndarray  # (3, 3) the study camera's matrix
-    results: dict[str, CellResult]  # cell id → statistics, per-trial errors, CRLB; recording order
-    trials_per_cell: int  # the largest number of trials of a cell (all equal unless messages were lost)
-    solvers: tuple[str, ...]
-    report_markdown: str  # the study report (paper comparison, every cell, the checks)
-    checks: dict  # monte_carlo.checks(results)
-    summary: dict
-    warnings: tuple[str, ...]  # doubts about the numbers (unequal trial counts)
-    solve_s: float  # wall time spent solving (s)
-
-    @property
-    def trials(self) -> int:
-        """Trials solved (each by every solver)."""
-        return self.summary["trials"]["trials"]
+def collect(messages: Iterable[RecordedMessage]) -> tuple[np.ndarray, dict[str, CellTrials]]:
+    """(K, cells) from a p4p_monte_carlo recording's messages (file order): the calibration and
+    every corner-observation message (role ``corners``) that carries a ``cell``. Raises
+    :class:`RecordingError` when either is missing or a trial message is malformed."""
+    K = None
+    conditions: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}  # cell id → points, truth, σ
+    pixels: dict[str, list[np.ndarray]] = {}  # cell id → every trial's corners
+    for message in messages:
+        value = message.value
+        if isinstance(value, CalibrationMsg):
+            K = value.camera.K
+        elif message.role == ROLE_CORNERS and isinstance(value, dict) and "cell" in value:
+            try:
+                marker = value["markers"][0]
+                cell_id = str(value["cell"])
+                if cell_id not in conditions:
+                    conditions[cell_id] = (
+                        np.asarray(marker["points_marker_m"], dtype=float),
+                        np.asarray(marker["T_cam_marker_truth"], dtype=float),
+                        float(value["noise_sigma_px"]),
+                    )
+                    pixels[cell_id] = []
+                points_marker_m, T_cam_marker_truth, sigma_px = conditions[cell_id]
+                corners_px = np.asarray(marker["corners_px"], dtype=float)
+                n_points = len(points_marker_m)
+                if n_points < 4 or points_marker_m.shape != (n_points, 3) or T_cam_marker_truth.shape != (4, 4):
+                    raise ValueError("points_marker_m must be (N ≥ 4, 3) and T_cam_marker_truth (4, 4)")
+                if not (sigma_px > 0 and np.isfinite(sigma_px)):
+                    raise ValueError(f"noise_sigma_px must be a positive number, got {sigma_px}")
+                if corners_px.shape != (n_points, 2):
+                    raise ValueError(f"corners_px has shape {corners_px.shape}, the cell's points need ({n_points}, 2)")
+            except (KeyError, IndexError, TypeError, ValueError) as exc:
+                detail = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+                raise RecordingError(
+                    f"{message.topic} message at {message.time_ns} ns is not a p4p_monte_carlo trial: {detail}"
+                ) from None
+            pixels[cell_id].append(corners_px)
+    if K is None:
+        raise RecordingError("the recording has no camera calibration; record it with the p4p_monte_carlo scenario")
+    if not conditions:
+        raise RecordingError(
+            f"the recording has no corner messages ({CORNERS_TOPIC}) with a 'cell': not a p4p_monte_carlo recording"
+        )
+    return K, {cell_id: CellTrials(cell_id, *conditions[cell_id], pixels[cell_id]) for cell_id in conditions}
 
 
 def replay_trials(
@@ -96,12 +118,12 @@ def replay_trials(
     :class:`~agvviz.errors.RecordingError` when the messages hold no calibration, no trial or
     a malformed trial.
     """
-    K, cells = monte_carlo.collect(messages)
+    K, cells = collect(messages)
     t0 = time.perf_counter()
     results: dict[str, CellResult] = {}
     done = 0
     for cell_id, cell in cells.items():
-        results[cell_id] = monte_carlo.evaluate_cell(cell, K, SOLVERS)
+        results[cell_id] = monte_carlo_cells.evaluate_cell(cell, K, SOLVERS)
         done += len(cell.pixels_px)
         if progress is not None:
             progress(done)
@@ -114,13 +136,13 @@ def replay_trials(
             "lost trial messages; each cell's statistics use the trials it has"
         )
     trials_per_cell = counts[-1]
-    checks = monte_carlo.checks(results)
+    checks = monte_carlo_cells.checks(results)
     return TrialsOutcome(
         K=K,
         results=results,
         trials_per_cell=trials_per_cell,
         solvers=SOLVERS,
-        report_markdown=monte_carlo.report_markdown(results, trials_per_cell),
+        report_markdown=monte_carlo_cells.report_markdown(results, trials_per_cell),
         checks=checks,
         summary={"trials": _summary(results, checks, settings, trials_per_cell, done)},
         warnings=tuple(warnings),
@@ -137,6 +159,21 @@ def trials_timing(outcome: TrialsOutcome | CnoemTrialsOutcome, wall_time_s: floa
     return timing
 
 
+def error_statistics(values: np.ndarray) -> dict[str, float | None]:
+    """RMSE, median, 95th percentile and maximum of ``values`` (N,) (already absolute), ``None``
+    each when empty: the statistics a run summary reports (as
+    :func:`agvviz.evaluation.statistics.describe`, which the replay cannot import)."""
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return {name: None for name in ("rmse", "median", "p95", "max")}
+    return {
+        "rmse": float(np.sqrt(np.mean(v**2, axis=-1))),
+        "median": float(np.median(v, axis=-1)),
+        "p95": float(np.percentile(v, 95, axis=-1)),
+        "max": float(np.max(v, axis=-1)),
+    }
+
+
 def _number(value: float) -> float | None:
     """A JSON-ready float: ``None`` for NaN or infinity (no estimate, or no bound)."""
     return float(value) if np.isfinite(value) else None
@@ -148,7 +185,7 @@ def _summary(results: dict[str, CellResult], checks: dict, settings: RunSettings
         errors_m = np.concatenate([r.errors_t_m[name] for r in results.values()])
         ratios = np.array([r.stats[name].rmse_t_m / r.crlb_t_m for r in results.values()], dtype=float)
         ratios = ratios[np.isfinite(ratios)]
-        error_mm = describe(errors_m[np.isfinite(errors_m)] * 1000.0)
+        error_mm = error_statistics(errors_m[np.isfinite(errors_m)] * 1000.0)
         per_solver[name] = {
             "failed": int(sum(r.stats[name].n_failed for r in results.values())),
             "error_mm": {k: _number(v) if v is not None else None for k, v in error_mm.items()},

@@ -1,6 +1,8 @@
-"""Paper 000 §6 Monte-Carlo study: solve every trial of a ``p4p_monte_carlo`` recording with
-every solver, score the marker translation t against truth and the Cramér–Rao bound, and
-write the comparison with the paper's figures 3–15 as markdown. No file I/O.
+"""Paper 000 §6 Monte-Carlo study, one cell at a time: solve every trial of a cell with every
+solver, score the marker translation t against truth and the Cramér–Rao bound, check the
+figures and write the comparison with the paper's figures 3–15 as markdown. Computes on
+values (:mod:`agvviz.model.studies`); the trials stage (:mod:`agvviz.replay.studies.monte_carlo`)
+reads the cells from a recording and calls it.
 
 Quantity scored: t, the marker centre in the camera frame (the paper's t of T_cam_marker).
 Its bound is sqrt(trace) of the CRLB's position block (:func:`uncertainty.position_covariance`
@@ -17,13 +19,9 @@ are counted and left out of the statistics.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Iterable
-
 import numpy as np
 
-from agvviz.errors import RecordingError
-from agvviz.recording.reader import CalibrationMsg, RecordedMessage
+from agvviz.model.studies import CellResult, CellTrials, SolverStats
 from agvviz.solvers import SolverOptions, solve
 from agvviz.solvers import uncertainty
 from agvviz.solvers.ambiguity import ippe_pair
@@ -34,7 +32,6 @@ SOLVERS = ("p4p", "lm", "lm_pixel", "lm_amb", "ippe", "sqpnp")
 #: valley for 50–100 Gauss–Newton steps before the default stopping rule fires; the study
 #: measures accuracy, so they get room (the run setting lm_max_iterations defaults to 50).
 MC_LM_MAX_ITERATIONS = 200
-from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS  # noqa: E402
 
 #: Paper 000 §6 figures with numbers: figure → (cell id, solver, mean t (m), variance of t (m²)).
 #: Figures 9–11 (the SNR sweep of t1, t2, t3) are plots without numbers in the text; their cells
@@ -57,84 +54,6 @@ LM_VARIANTS = ("lm", "lm_pixel", "lm_amb")
 
 #: "Well-conditioned" cells of the issue's target: tilted view, code ≥ 150 px, σ ≤ 1 px.
 WELL_CONDITIONED = {"min_tilt_deg": 1.0, "min_code_px": 150.0, "max_sigma_px": 1.0}
-
-
-@dataclass
-class CellTrials:
-    """All trials of one cell: pixels (T, N, 2), the marker points (N, 3), truth, σ."""
-
-    cell_id: str
-    points_marker_m: np.ndarray
-    T_cam_marker_truth: np.ndarray
-    sigma_px: float
-    pixels_px: list = field(default_factory=list)
-
-
-@dataclass
-class SolverStats:
-    n_ok: int
-    n_failed: int
-    mean_t_m: np.ndarray  # (3,)
-    var_t_m2: np.ndarray  # (3,) sample variance (ddof 1)
-    rmse_t_m: float  # sqrt(mean ‖t̂ − t‖²)
-
-
-@dataclass
-class CellResult:
-    cell_id: str
-    sigma_px: float
-    n_points: int
-    tilt_deg: float
-    code_side_px: float
-    crlb_t_m: float  # sqrt(trace) of the CRLB position block
-    crlb_var_t_m2: np.ndarray  # (3,) diagonal of the CRLB position block
-    stats: dict[str, SolverStats]
-    #: solver → (trials,) ‖t̂ − t‖ of every trial in recording order (m), NaN where it failed.
-    errors_t_m: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-def collect(messages: Iterable[RecordedMessage]) -> tuple[np.ndarray, dict[str, CellTrials]]:
-    """(K, cells) from a p4p_monte_carlo recording's messages (file order): the calibration and
-    every corner-observation message (role ``corners``) that carries a ``cell``. Raises
-    :class:`RecordingError` when either is missing or a trial message is malformed."""
-    K = None
-    cells: dict[str, CellTrials] = {}
-    for message in messages:
-        value = message.value
-        if isinstance(value, CalibrationMsg):
-            K = value.camera.K
-        elif message.role == ROLE_CORNERS and isinstance(value, dict) and "cell" in value:
-            try:
-                marker = value["markers"][0]
-                cell = cells.get(str(value["cell"]))
-                if cell is None:
-                    cell = cells[str(value["cell"])] = CellTrials(
-                        str(value["cell"]),
-                        np.asarray(marker["points_marker_m"], dtype=float),
-                        np.asarray(marker["T_cam_marker_truth"], dtype=float),
-                        float(value["noise_sigma_px"]),
-                    )
-                corners_px = np.asarray(marker["corners_px"], dtype=float)
-                n_points = len(cell.points_marker_m)
-                if n_points < 4 or cell.points_marker_m.shape != (n_points, 3) or cell.T_cam_marker_truth.shape != (4, 4):
-                    raise ValueError("points_marker_m must be (N ≥ 4, 3) and T_cam_marker_truth (4, 4)")
-                if not (cell.sigma_px > 0 and np.isfinite(cell.sigma_px)):
-                    raise ValueError(f"noise_sigma_px must be a positive number, got {cell.sigma_px}")
-                if corners_px.shape != (n_points, 2):
-                    raise ValueError(f"corners_px has shape {corners_px.shape}, the cell's points need ({n_points}, 2)")
-            except (KeyError, IndexError, TypeError, ValueError) as exc:
-                detail = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
-                raise RecordingError(
-                    f"{message.topic} message at {message.time_ns} ns is not a p4p_monte_carlo trial: {detail}"
-                ) from None
-            cell.pixels_px.append(corners_px)
-    if K is None:
-        raise RecordingError("the recording has no camera calibration; record it with the p4p_monte_carlo scenario")
-    if not cells:
-        raise RecordingError(
-            f"the recording has no corner messages ({CORNERS_TOPIC}) with a 'cell': not a p4p_monte_carlo recording"
-        )
-    return K, cells
 
 
 def solve_all(name: str, points: np.ndarray, pixels: np.ndarray, K: np.ndarray) -> np.ndarray:

@@ -1,6 +1,9 @@
-"""Paper 002 §3.1's simulation study (Table 3): CNOEM, the window bundle adjustment and the
-single-frame IPPE baselines on the 243-cell grid, against the multi-frame Cramér–Rao bound.
-No file I/O.
+"""Paper 002 §3.1's simulation study (Table 3), one cell at a time: CNOEM, the window bundle
+adjustment and the single-frame IPPE baselines on the 243-cell grid, against the multi-frame
+Cramér–Rao bound; the grid-level figures and the report. Computes on values
+(:mod:`agvviz.model.studies`): the CNOEM trials stage (:mod:`agvviz.replay.studies.cnoem`)
+reads the cells from a recording and calls it; ``bench/bench_cnoem.py`` draws them
+(:func:`evaluate_cell`).
 
 Quantity scored: the position of the cycle's start frame F in the world (the translation of
 ``T_world_F``), as in the paper ("the distance between each method's result and the true
@@ -24,11 +27,10 @@ as the issue names it, not by a threshold.)
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from agvviz.errors import RecordingError
+from agvviz.model.studies import CnoemCellResult, CnoemSummary, GridCell
 from agvviz.sim import auv
 from agvviz.solvers import window_baselines
 from agvviz.solvers.bundle import solve_bundle
@@ -47,7 +49,7 @@ PAPER_CNOEM_OVER_IPPE_FAR_EDGE = 0.103
 PAPER_BASELINE = "ippe_first"
 
 
-def paper_ratio(cells: Iterable[auv.GridCell]) -> tuple[float, str]:
+def paper_ratio(cells: Iterable[GridCell]) -> tuple[float, str]:
     """(the paper's CNOEM ÷ IPPE mean-error ratio, what it covers) to set beside ``cells``':
     the far-edge figure when every cell is an L = 15 m, X = 0.4L, Y = 0.2L cell, else the
     whole-grid one."""
@@ -57,43 +59,19 @@ def paper_ratio(cells: Iterable[auv.GridCell]) -> tuple[float, str]:
     return PAPER_CNOEM_OVER_IPPE, "the 243-cell grid"
 
 
-def well_conditioned(cell: auv.GridCell) -> bool:
+def well_conditioned(cell: GridCell) -> bool:
     """False for the nearly singular on-axis cells at 10 and 15 m (module docstring)."""
     return not (cell.on_axis and cell.distance_m >= 10.0)
 
 
-@dataclass
-class CellResult:
-    """Statistics of one cell. errors_m[method] : (trials,) position errors, NaN where failed."""
-
-    cell: auv.GridCell
-    n_frames: int
-    n_sightings: int
-    crlb_position_m: float
-    condition: float
-    errors_m: dict[str, np.ndarray]
-    converged_right: np.ndarray
-    converged_right_multistart: np.ndarray
-    cnoem_iterations: np.ndarray
-
-    def mean_m(self, method: str) -> float:
-        return float(np.nanmean(self.errors_m[method]))
-
-    def rms_m(self, method: str) -> float:
-        return float(np.sqrt(np.nanmean(self.errors_m[method] ** 2)))
-
-    def failures(self, method: str) -> int:
-        return int(np.sum(np.isnan(self.errors_m[method])))
-
-
 def evaluate_cell(
-    cell: auv.GridCell,
+    cell: GridCell,
     trials: int,
     seed: int,
     *,
     frame_rate_hz: float = auv.FRAME_RATE_HZ,
     cycle_distance_m: float = auv.CYCLE_DISTANCE_M,
-) -> CellResult:
+) -> CnoemCellResult:
     """Run ``trials`` seeded trials of ``cell`` through every method in :data:`METHODS`."""
     rng = np.random.default_rng(seed)
     geometry = auv.cycle_geometry(cell, frame_rate_hz=frame_rate_hz, cycle_distance_m=cycle_distance_m)
@@ -104,10 +82,10 @@ def evaluate_cell(
 
 
 def evaluate_trials(
-    cell: auv.GridCell, cycle_trials, trials: int, n_frames: int, progress: Callable[[int], None] | None = None
-) -> CellResult:
+    cell: GridCell, cycle_trials, trials: int, n_frames: int, progress: Callable[[int], None] | None = None
+) -> CnoemCellResult:
     """Every method of :data:`METHODS` on ``trials`` given cycles of ``cell`` (generated, or read
-    back from a recording with :func:`read_grid_recording`). ``progress(k)`` is called after
+    back from a recording with :func:`agvviz.replay.studies.cnoem.read_grid_recording`). ``progress(k)`` is called after
     the k-th trial."""
     errors = {m: np.full(trials, np.nan) for m in METHODS}
     right = np.zeros(trials, dtype=bool)
@@ -146,7 +124,7 @@ def evaluate_trials(
                 errors[m][k] = float(np.linalg.norm(T[:3, 3] - truth[:3, 3]))
         if progress is not None:
             progress(k + 1)
-    return CellResult(cell, n_frames, n_sightings, bound, cond, errors, right, right_multi, iters)
+    return CnoemCellResult(cell, n_frames, n_sightings, bound, cond, errors, right, right_multi, iters)
 
 
 def _bound_m(window: CornerWindow, T_world_F_truth: np.ndarray, sigma_px: float) -> float:
@@ -160,42 +138,34 @@ def _bound_m(window: CornerWindow, T_world_F_truth: np.ndarray, sigma_px: float)
         return float("nan")
 
 
-@dataclass
-class Summary:
-    """Grid-level figures (see :func:`summarise`)."""
-
-    ratio_of_means: dict[str, float] = field(default_factory=dict)
-    mean_of_ratios: dict[str, float] = field(default_factory=dict)
-    rms_over_crlb_well: dict[str, float] = field(default_factory=dict)
-    rms_over_crlb_singular: dict[str, float] = field(default_factory=dict)
-    converged_fraction: float = float("nan")
-    converged_fraction_well: float = float("nan")
-    converged_fraction_multistart: float = float("nan")
-    cnoem_failures: int = 0
-
-
-def summarise(results: list[CellResult]) -> Summary:
+def summarise(results: list[CnoemCellResult]) -> CnoemSummary:
     """``ratio_of_means[b]`` = Σ_cells mean error(cnoem) / Σ_cells mean error(b) (the paper's
     "average error is 21.7 % of IPPE's"); ``mean_of_ratios[b]`` the mean over cells of the
     per-cell ratio; RMS ÷ CRLB averaged over the well-conditioned and the singular cells."""
-    s = Summary()
+    ratio_of_means, mean_of_ratios = {}, {}
     for b in METHODS[1:]:
-        s.ratio_of_means[b] = sum(r.mean_m("cnoem") for r in results) / sum(r.mean_m(b) for r in results)
-        s.mean_of_ratios[b] = float(np.mean([r.mean_m("cnoem") / r.mean_m(b) for r in results]))
+        ratio_of_means[b] = sum(r.mean_m("cnoem") for r in results) / sum(r.mean_m(b) for r in results)
+        mean_of_ratios[b] = float(np.mean([r.mean_m("cnoem") / r.mean_m(b) for r in results]))
+    rms_over_crlb_well, rms_over_crlb_singular = {}, {}
     for m in ("cnoem", "cnoem_multistart", "bundle", "ippe_mean_nav"):
         well = [r.rms_m(m) / r.crlb_position_m for r in results if well_conditioned(r.cell)]
         bad = [r.rms_m(m) / r.crlb_position_m for r in results if not well_conditioned(r.cell)]
-        s.rms_over_crlb_well[m] = float(np.mean(well)) if well else float("nan")
-        s.rms_over_crlb_singular[m] = float(np.mean(bad)) if bad else float("nan")
-    s.converged_fraction = float(np.mean(np.concatenate([r.converged_right for r in results])))
+        rms_over_crlb_well[m] = float(np.mean(well)) if well else float("nan")
+        rms_over_crlb_singular[m] = float(np.mean(bad)) if bad else float("nan")
     well_right = [r.converged_right for r in results if well_conditioned(r.cell)]
-    s.converged_fraction_well = float(np.mean(np.concatenate(well_right))) if well_right else float("nan")
-    s.converged_fraction_multistart = float(np.mean(np.concatenate([r.converged_right_multistart for r in results])))
-    s.cnoem_failures = sum(r.failures("cnoem") for r in results)
-    return s
+    return CnoemSummary(
+        ratio_of_means=ratio_of_means,
+        mean_of_ratios=mean_of_ratios,
+        rms_over_crlb_well=rms_over_crlb_well,
+        rms_over_crlb_singular=rms_over_crlb_singular,
+        converged_fraction=float(np.mean(np.concatenate([r.converged_right for r in results]))),
+        converged_fraction_well=float(np.mean(np.concatenate(well_right))) if well_right else float("nan"),
+        converged_fraction_multistart=float(np.mean(np.concatenate([r.converged_right_multistart for r in results]))),
+        cnoem_failures=sum(r.failures("cnoem") for r in results),
+    )
 
 
-def marginal_table(results: list[CellResult], attribute: str) -> list[tuple[float, float, float, float]]:
+def marginal_table(results: list[CnoemCellResult], attribute: str) -> list[tuple[float, float, float, float]]:
     """Rows (value, mean cnoem error, mean ippe_first error, ratio) grouped by a cell attribute."""
     rows = []
     for value in sorted({getattr(r.cell, attribute) for r in results}):
@@ -218,7 +188,7 @@ MARGINALS = (
 )
 
 
-def report_markdown(results: list[CellResult], heading: str) -> str:
+def report_markdown(results: list[CnoemCellResult], heading: str) -> str:
     """The study's report (markdown) over ``results`` under ``heading`` (a markdown heading line
     naming where the trials came from): every method's mean error against CNOEM's and the
     paper's ratio (:func:`paper_ratio`), RMS ÷ CRLB in the well-conditioned and the singular
@@ -278,113 +248,3 @@ def report_markdown(results: list[CellResult], heading: str) -> str:
         )
     lines += ["", "</details>", ""]
     return "\n".join(lines)
-
-
-@dataclass
-class RecordedCell:
-    """One cell's trials read back from a recording; ``n_frames`` the frames (navigation poses)
-    of its longest trial."""
-
-    cell: auv.GridCell
-    trials: list[auv.CycleTrial] = field(default_factory=list)
-    n_frames: int = 0
-
-
-def read_grid_recording(messages) -> dict[str, RecordedCell]:
-    """The cycles of an ``auv_under_ice`` ``mode=grid`` recording's messages (role-tagged, file
-    order), grouped by cell id in recording order.
-
-    Each trial starts with its ``/markers/map`` message; its first ``/agv/odometry`` and
-    ``/agv/ground_truth`` poses are F's (navigation, truth); every ``/markers/corners`` message
-    becomes a sighting placed in F through the navigation and the camera's ``/tf_static``
-    extrinsic — the same chain as :class:`agvviz.replay.correct.CorrectionCycle`. Corners are taken as
-    ideal pixels (the scenario's cameras have no distortion). Raises
-    :class:`~agvviz.errors.RecordingError` when the messages hold no trial or a trial that
-    cannot be placed (no calibration or extrinsic for its camera, no pose before its corners, a
-    marker not on the map, malformed corners).
-    """
-    from agvviz.conventions import AGV_FRAME
-    from agvviz.geometry import se3
-    from agvviz.recording.reader import CalibrationMsg, PoseMsg
-    from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TF_STATIC, ROLE_TRUTH
-    from agvviz.solvers.cnoem import Sighting
-
-    K: dict[str, np.ndarray] = {}
-    T_agv_cam: dict[str, np.ndarray] = {}
-    cells: dict[str, RecordedCell] = {}
-    corners: dict[str, np.ndarray] = {}
-    nav_F = truth_F = nav_now = None
-    frame_index = -1
-    current: auv.CycleTrial | None = None
-    current_cell: RecordedCell | None = None
-    for m in messages:
-        v = m.value
-        if isinstance(v, CalibrationMsg):
-            K[v.cam_name] = v.camera.K
-        elif isinstance(v, list) and m.role == ROLE_TF_STATIC:
-            for tf in v:
-                if tf.parent_frame == AGV_FRAME and tf.child_frame.startswith("cam_"):
-                    T_agv_cam[tf.child_frame[4:]] = tf.T_parent_child
-        elif m.role == ROLE_MARKER_MAP and isinstance(v, dict):
-            try:
-                corners = {str(e["id"]): np.asarray(e["corners_world_m"], dtype=float) for e in v.get("markers", [])}
-                for marker_id, corners_world_m in corners.items():
-                    if corners_world_m.shape != (4, 3) or not np.all(np.isfinite(corners_world_m)):
-                        raise ValueError(f"marker {marker_id}: corners_world_m must be 4 finite points, got shape {corners_world_m.shape}")
-            except (KeyError, TypeError, ValueError) as exc:
-                raise RecordingError(f"{m.topic} message at {m.time_ns} ns is not a marker map: {_detail(exc)}") from None
-            nav_F = truth_F = current = current_cell = None
-            frame_index = -1
-        elif m.role == ROLE_ODOMETRY and isinstance(v, PoseMsg):
-            nav_now = v.T
-            frame_index += 1
-            if nav_F is None:
-                nav_F = v.T
-            if current_cell is not None:
-                current_cell.n_frames = max(current_cell.n_frames, frame_index + 1)
-        elif m.role == ROLE_TRUTH and isinstance(v, PoseMsg) and truth_F is None:
-            truth_F = v.T
-        elif m.role == ROLE_CORNERS and isinstance(v, dict):
-            try:
-                cell = auv.GridCell.from_id(str(v["cell"]))
-                cam = str(v["cam_name"])
-                if nav_F is None or truth_F is None:
-                    raise ValueError("no navigation and ground-truth pose of its trial before it")
-                if cam not in K or cam not in T_agv_cam:
-                    raise ValueError(f"camera {cam!r} has no calibration or no /tf_static extrinsic {AGV_FRAME} → cam_{cam}")
-                seen = []
-                for marker in v["markers"]:
-                    marker_id = str(marker["id"])
-                    if marker_id not in corners:
-                        raise ValueError(f"marker {marker_id} is not on the trial's marker map")
-                    pixels_px = np.asarray(marker["corners_px"], dtype=float)
-                    if pixels_px.shape != (4, 2) or not np.all(np.isfinite(pixels_px)):
-                        raise ValueError(f"corners_px must be 4 finite (u, v) pixels, got shape {pixels_px.shape}")
-                    seen.append((marker_id, pixels_px))
-            except (KeyError, TypeError, ValueError) as exc:
-                raise RecordingError(
-                    f"{m.topic} message at {m.time_ns} ns is not an auv_under_ice grid trial: {_detail(exc)}"
-                ) from None
-            if current is None:
-                current = auv.CycleTrial(truth_F, nav_F, [])
-                current_cell = cells.setdefault(cell.cell_id, RecordedCell(cell))
-                current_cell.trials.append(current)
-                current_cell.n_frames = max(current_cell.n_frames, frame_index + 1)
-            T_F_cam = se3.inverse(nav_F) @ nav_now @ T_agv_cam[cam]
-            for marker_id, pixels_px in seen:
-                current.sightings.append(Sighting(marker_id, cam, frame_index, corners[marker_id], pixels_px, K[cam], T_F_cam))
-    if not cells:
-        raise RecordingError(
-            "the recording has no corner messages (/markers/corners) of a grid trial: not an auv_under_ice "
-            "mode=grid recording"
-        )
-    return cells
-
-
-def _detail(exc: Exception) -> str:
-    return f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
-
-
-def trials_from_recording(messages) -> dict[str, list[auv.CycleTrial]]:
-    """The trials alone of :func:`read_grid_recording`, by cell id."""
-    return {cell_id: recorded.trials for cell_id, recorded in read_grid_recording(messages).items()}
