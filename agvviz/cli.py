@@ -277,7 +277,8 @@ def _run(
 ) -> Path:
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
-    from agvviz.replay.run import NoUsableFrameError, run_recording
+    from agvviz.app.run import run_recording
+    from agvviz.replay.run import NoUsableFrameError
 
     _check_detect_jobs(jobs)
     require_recording_path(recording)  # one line, before a progress bar is drawn

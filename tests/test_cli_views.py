@@ -21,7 +21,7 @@ from typer.testing import CliRunner
 from agvviz import scenarios as scenario_registry
 from agvviz.cli import app, viewer_url
 from agvviz.errors import InputError
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz.readback import document_json, read_rrd
 from agvviz.viz import paths

@@ -29,7 +29,7 @@ from agvviz import scenarios as scenario_registry
 from agvviz.cli import app, exit_for, handle_errors
 from agvviz.app.compare import CompareError, parse_grid, sweep
 from agvviz.errors import OutputError
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz.readback import RrdReadError, read_rrd
 from agvviz.viz.rrd_file import AtomicRrd, looks_complete
