@@ -24,7 +24,7 @@ from agvviz.errors import InputError, RunError
 from agvviz.evaluation.summary import RunStatistics, timing
 from agvviz.recording.reader import ReadReport
 from agvviz.recording.source import require_recording_path
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_UWB_RANGE, image_role
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, image_role
 from agvviz.replay.correct import CorrectionSettings
 from agvviz.replay.fuse import FrameSetResult
 from agvviz.replay.graph import STUDY_CNOEM, STUDY_MONTE_CARLO, Composition
@@ -269,7 +269,7 @@ def run_recording(
         from agvviz.replay.detect.family_scan import family_check
 
         family_check(prepared, str(recording_path))
-    corners_only = not roles.cameras() and ROLE_CORNERS in roles.roles and ROLE_UWB_RANGE not in roles.roles
+    corners_only = not composition.cameras and composition.corners and not composition.uwb
     if corners_only and settings.correction == "none" and study is None:
         raise InputError(
             f"{recording.path.name} holds corner observations and no camera images: only the multi-frame "
@@ -278,8 +278,7 @@ def run_recording(
     # Settings the recording has no data for (or that the other settings switch off) are reset
     # and kept out of the run's name; the manifest names them (settings.inapplicable).
     ignored = {} if study is not None else inapplicable(
-        settings, has_uwb=ROLE_UWB_RANGE in roles.roles, has_odometry=ROLE_ODOMETRY in roles.roles,
-        n_cameras=len(roles.cameras()),
+        settings, has_uwb=composition.uwb, has_odometry=composition.odometry, n_cameras=len(composition.cameras),
     )
     ignored_settings = {name: {"value": getattr(settings, name), "reason": why} for name, why in ignored.items()}
     settings = without(settings, ignored)

@@ -1,4 +1,4 @@
-"""Replay: recording messages → per-frame results (a generator). No I/O of its own.
+"""The solve stage: recording messages (and their detections) → per-frame results. No I/O of its own.
 
 For every camera frame: decode → undistort (when the camera has distortion) → detect and
 decode QR codes → refine corners → parse each payload strictly → solve the pose of the
@@ -12,6 +12,10 @@ frame (``image_invalid``), an image whose size is not its calibration's
 (``calibration_size_mismatch``), a QR payload that disagrees with the recording's marker map
 (``payload_map_mismatch``). Recording-level findings (:class:`TimeChecks`) are left for the
 caller's summary (:meth:`Replay.warnings`).
+
+Which detected codes can give a pose (payloads, map, boards) is :mod:`agvviz.replay.candidates`;
+this module keeps the per-frame pipeline around it — camera state, the largest code's solve,
+the joint solve and the scoring — whose steps share the frame's draft (~600 lines).
 """
 
 from __future__ import annotations
