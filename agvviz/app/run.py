@@ -206,6 +206,7 @@ def _run_study(
             warnings=run_warnings(list(stats.study_outcome.warnings), read_report),
         )
         logger.log_summary(summary)
+        sink.close()
     return RunOutcome(
         out_path=out_path, summary=summary, manifest=manifest, read_report=read_report,
         timing=trials_timing(stats.study_outcome, time.perf_counter() - t_start),
@@ -350,6 +351,7 @@ def run_recording(
         if error_budget is not None:
             logger.log_error_budget(error_budget)
         logger.log_summary(summary)
+        sinks.close()
     return RunOutcome(
         out_path=out_path,
         summary=summary,
