@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from agvviz import scenarios as scenario_registry
-from agvviz.replay.solve import replay
+from agvviz.replay.graph import replay
 from agvviz.recording.reader import iter_messages
 from agvviz.settings import RunSettings
 

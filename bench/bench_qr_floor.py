@@ -25,9 +25,9 @@ import numpy as np
 from agvviz import scenarios as scenario_registry
 from agvviz.evaluation import FrameScore
 from agvviz.geometry.plane import square_points_marker
-from agvviz.replay.solve import replay
+from agvviz.replay.graph import replay
 from agvviz.recording.reader import CompressedFrame, iter_messages, CalibrationMsg
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 
 

@@ -54,7 +54,7 @@ def uwb_room_small_run(tmp_path_factory):
     """(recording, outcome) of ``UWB_ROOM_SMALL`` (seed 4) replayed with fusion=mean_compensation.
     Read only: tests must not modify the recording or the run's .rrd."""
     from agvviz import scenarios as scenario_registry
-    from agvviz.replay.run import run_recording
+    from agvviz.app.run import run_recording
     from agvviz.settings import RunSettings
 
     tmp = tmp_path_factory.mktemp("uwb_room_small")

@@ -53,7 +53,7 @@ from agvviz.recording.reader import (
     iter_messages,
 )
 from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_PAYLOAD
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 
 REAL_PHOTO = Path(__file__).resolve().parents[2] / "shared" / "data" / "zxing_qrcode" / "qrcode-2" / "31.png"

@@ -22,7 +22,7 @@ from agvviz import scenarios as scenario_registry
 from agvviz.cli.main import app
 from agvviz.cli.viewer import viewer_url
 from agvviz.errors import InputError
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz.readback import document_json, read_rrd
 from agvviz.viz import paths

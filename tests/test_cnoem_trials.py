@@ -248,7 +248,7 @@ def test_run_on_a_grid_recording_solves_every_trial(grid, tmp_path):
     import subprocess
     import sys
 
-    from agvviz.replay.run import run_recording
+    from agvviz.app.run import run_recording
 
     done, totals = [], []
     outcome = run_recording(

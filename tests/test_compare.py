@@ -27,7 +27,7 @@ from agvviz.app.sweep import parse_grid, sweep
 from agvviz.errors import InputError
 from agvviz.evaluation.comparison import DIRECT, RunSeries, compare_runs
 from agvviz.evaluation.expression import ExpressionError
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz import overlay, paths
 from agvviz.viz.readback import (

@@ -129,7 +129,7 @@ def test_correction_replay_beats_the_drifting_navigation(route_recording, solver
 
 
 def test_agvviz_run_with_correction_writes_the_window_and_events(route_recording, tmp_path):
-    from agvviz.replay.run import run_recording
+    from agvviz.app.run import run_recording
     from agvviz.settings import RunSettings
     from agvviz.viz import correction_logger as cl
     from agvviz.viz.readback import _rows, read_rrd, scalar_series, text_logs

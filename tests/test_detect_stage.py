@@ -22,7 +22,8 @@ from agvviz.replay.detect.stage import DetectParams, SegmentDetector, detection_
 from agvviz.replay.detect.pool import DetectionFeed
 from agvviz.replay.solve import Replay
 from agvviz.recording.reader import iter_messages
-from agvviz.replay.run import detect_recording, prepare, run_recording
+from agvviz.app.run import run_recording
+from agvviz.replay.run import detect_recording, prepare
 from agvviz.settings import RunSettings
 
 # 4 s at 10 Hz = 40 frames: several segments of the default keyframe interval (10).

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 from agvviz import scenarios as scenario_registry
 from agvviz.cli.main import app
 from agvviz.recording.contract import inspect_recording
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz.readback import document_json, points2d, read_rrd, scalar_series

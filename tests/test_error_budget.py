@@ -14,7 +14,7 @@ from agvviz.errors import InputError
 from agvviz.app.budget import error_budget, sources_on
 from agvviz.evaluation.error_budget import INTERACTION
 from agvviz.recording.writer import RecordingWriter
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz import budget_logger, paths
 from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document

@@ -167,7 +167,7 @@ def test_mcap_without_the_sdk_names_the_extra(run, tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def qr_floor_run(tmp_path_factory):
     from agvviz import scenarios as scenario_registry
-    from agvviz.replay.run import run_recording
+    from agvviz.app.run import run_recording
     from agvviz.settings import RunSettings
 
     tmp = tmp_path_factory.mktemp("evo")
@@ -219,7 +219,7 @@ def runs_with_and_without_truth(tmp_path_factory):
     from mcap.writer import Writer
 
     from agvviz import scenarios as scenario_registry
-    from agvviz.replay.run import run_recording
+    from agvviz.app.run import run_recording
     from agvviz.settings import RunSettings
 
     tmp = tmp_path_factory.mktemp("no_truth")

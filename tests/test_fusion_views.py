@@ -9,7 +9,7 @@ import pytest
 import rerun.blueprint as rrb
 
 from agvviz import scenarios as scenario_registry
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz import correction_logger as cl
 from agvviz.viz import paths, uwb_logger as ul

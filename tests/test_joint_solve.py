@@ -205,7 +205,7 @@ def test_marker_checks_match_their_definitions_marker_by_marker():
 
 
 def _replay_codes(codes, **settings):
-    from agvviz.replay.solve import replay
+    from agvviz.replay.graph import replay
     from agvviz.settings import RunSettings
     from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
     from tests.test_pipeline import CAMERA, T_AGV_CAM, T_WORLD_AGV, _frame, _static_messages
@@ -265,7 +265,7 @@ def test_replay_keeps_the_largest_code_when_the_markers_fit_no_common_pose():
     common pose within max_reproj_px = 1 px (they disagree as a group). The frame keeps the
     largest code's own pose — paper 000's answer — instead of losing the frame, and says why."""
     from agvviz.geometry import PinholeCamera
-    from agvviz.replay.solve import replay
+    from agvviz.replay.graph import replay
     from agvviz.recording.reader import CalibrationMsg, FrameTransformMsg
     from agvviz.settings import RunSettings
     from agvviz.sim.render import FloorScene, encode_jpeg, render_frame

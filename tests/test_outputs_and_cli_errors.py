@@ -31,7 +31,7 @@ from agvviz.cli.main import app
 from agvviz.app.diff import CompareError
 from agvviz.app.sweep import parse_grid, sweep
 from agvviz.errors import OutputError
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz.readback import RrdReadError, read_rrd
 from agvviz.viz.rrd_file import AtomicRrd, looks_complete

@@ -24,7 +24,7 @@ from agvviz.model.frames import (
     REJECT_PAYLOAD,
     REJECT_REPROJECTION,
 )
-from agvviz.replay.solve import replay
+from agvviz.replay.graph import replay
 from agvviz.settings import RunSettings
 from agvviz.sim.qr_texture import make_floor_code, qr_symbol_modules
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame

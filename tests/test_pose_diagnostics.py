@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from agvviz.geometry import se3
-from agvviz.replay.solve import replay
+from agvviz.replay.graph import replay
 from agvviz.recording.reader import PoseMsg
 from agvviz.settings import RunSettings, SettingsError, apply_overrides
 from agvviz.viz import paths

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from agvviz import scenarios as scenario_registry
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 from agvviz.scenarios import ScenarioError
 from agvviz.settings import RunSettings
 

@@ -35,7 +35,8 @@ from agvviz.geometry import se3
 from agvviz.recording.reader import FrameTransformMsg, PoseMsg, iter_messages
 from agvviz.recording.source import open_recording, scan
 from agvviz.recording.contract import inspect_recording
-from agvviz.replay.run import SideInputs, prepare, replay_frames, run_recording
+from agvviz.app.run import run_recording
+from agvviz.replay.run import SideInputs, prepare, replay_frames
 from agvviz.settings import RunSettings
 
 rosbags = pytest.importorskip("rosbags", reason="rosbags (test extra) not installed")

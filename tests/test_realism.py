@@ -310,7 +310,7 @@ def test_typical_world_costs_millimetres_not_centimetres(tmp_path):
     the separation does not depend on the frame count — seed 0 gives ideal 0.34 / typical
     2.5 mm at 5 frames and 0.25 / 2.2 mm at 10. Both bounds keep their margins (typical ≈7×
     ideal, 10 mm ≈4× typical); a wrong unit or sign is as wrong on 5 frames as on 10."""
-    from agvviz.replay.run import run_recording
+    from agvviz.app.run import run_recording
     from agvviz.settings import RunSettings
 
     errors = {}

@@ -23,7 +23,8 @@ from agvviz.cli.main import app
 from agvviz.errors import RunError
 from agvviz.geometry import se3
 from agvviz.model.frames import REJECT_NO_EXTRINSIC
-from agvviz.replay.run import SideInputs, prepare, replay_frames, run_recording
+from agvviz.app.run import run_recording
+from agvviz.replay.run import SideInputs, prepare, replay_frames
 from agvviz.settings import RunSettings
 
 foxglove = pytest.importorskip("foxglove", reason="foxglove-sdk (test extra) not installed")

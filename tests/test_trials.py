@@ -28,7 +28,7 @@ TRIALS = 3
 CELLS = ("crlb_tilt30_h0.2667_z2_s0.25_n4", "crlb_tilt30_h0.2667_z2_s0.5_n8", "crlb_tilt30_h0.2667_z2_s1_n4")
 import subprocess
 import sys
-from agvviz.replay.run import run_recording
+from agvviz.app.run import run_recording
 
 
 def _roles_and_scenario(path):

@@ -1,18 +1,20 @@
-"""Recording → :class:`~agvviz.evaluation.audit.problem.AuditData`, through the run's own stages.
+"""Recording → :class:`~agvviz.evaluation.audit.problem.AuditData`, through the run's own graph.
 
 The recording is opened and primed exactly as ``agvviz run`` does (:func:`agvviz.replay.run.prepare`:
-role map, side files, calibration, extrinsics, odometry, marker map); every frame's corners come
-from the detect stage and its Parquet cache (:mod:`agvviz.replay.detect.cache`, shared with
-``run``: an audit after a run detects nothing), and the solve stage (:class:`agvviz.replay.solve.Replay`)
-parses the payloads, checks them against the map and names each observation's marker. Nothing
-of detection, payload or map parsing is done here again.
+role map, side files, calibration, extrinsics, odometry, marker map) and the replay graph runs
+its detect and solve stages (:func:`agvviz.replay.run.run_graph`, ``until="solve"``): every
+frame's corners come from the detect stage and its Parquet cache (:mod:`agvviz.replay.detect.cache`,
+shared with ``run``: an audit after a run detects nothing), and the solve stage parses the
+payloads, checks them against the map and names each observation's marker. The
+:class:`AuditCollector` sink gathers what the graph hands it (frames, detections, cameras);
+nothing of detection, payload or map parsing is done here again.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -22,7 +24,7 @@ from agvviz.errors import InputError, RecordingError
 from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners, quad_area_px2
 from agvviz.recording.source import require_recording_path
 from agvviz.recording.reader import ReadReport
-from agvviz.recording.source import iter_role_messages
+from agvviz.replay.sinks import NullSink
 from agvviz.settings import RunSettings
 
 
@@ -42,6 +44,49 @@ class Collected:
     cameras: dict = field(default_factory=dict)  # name -> PinholeCamera (the calibration in use)
 
 
+class AuditCollector(NullSink):
+    """The audit's sink: per frame index, its stamp, first solved pose, ground truth and the
+    observations of markers fixed in the world (camera, marker id, detected corners px, world
+    corners); the latest cameras. ``progress(frames_done)`` per solved frame."""
+
+    def __init__(self, progress: Callable[[int], None] | None = None):
+        self.progress = progress
+        self.frames: dict[int, dict] = {}
+        self.cameras: Mapping = {}
+        self._done = 0
+
+    def cameras_changed(self, cameras: Mapping) -> None:
+        self.cameras = cameras
+
+    def solved(self, result, detections) -> None:
+        self._done += 1
+        if self.progress is not None:
+            self.progress(self._done)
+        frame = self.frames.setdefault(result.index, {"t_ns": result.log_time_ns, "obs": [], "pose": None})
+        if result.T_world_agv is not None and frame["pose"] is None:
+            frame["pose"] = result.T_world_agv
+        frame.setdefault("truth", result.T_world_agv_truth)
+        if detections is None or not result.observations:
+            return
+        codes = list(detections.codes)
+        for obs in result.observations:
+            if obs.points_frame != WORLD_FRAME:
+                continue  # a marker on the vehicle: no placement in the world to audit
+            match = None
+            for det in codes:
+                if det.kind == "qr" and obs.payload and det.text == obs.payload:
+                    match = det
+                elif det.kind == "aruco" and str(det.aruco_id) == obs.marker_id:
+                    match = det
+                if match is not None:
+                    break
+            if match is None:
+                continue
+            codes.remove(match)
+            frame["obs"].append((result.cam_name, obs.marker_id, np.asarray(match.corners_px[:4], float),
+                                 np.asarray(obs.points_world_m[:4], float)))
+
+
 def collect(
     recording_path: Path,
     settings: RunSettings,
@@ -57,58 +102,27 @@ def collect(
 
     Raises :class:`RecordingError` / :class:`InputError` (one line) for a recording without
     usable frames, camera or detections."""
-    from agvviz.replay import run as runner
+    from agvviz.replay.run import detection_plan, prepare, run_graph
 
     recording_path = require_recording_path(recording_path)
-    prepared = runner.prepare(recording_path, settings, topics, roles_file, side)
+    prepared = prepare(recording_path, settings, topics, roles_file, side)
     if not prepared.usable_cameras:
         causes = "; ".join(prepared.causes) or "no camera images"
         raise RecordingError(f"{recording_path.name}: no camera whose frames an audit can use: {causes}")
     recording, replay = prepared.recording, prepared.replay
     sha = recording.sha256()
-    plan = runner._detection_feed(prepared, sha, side, jobs, cache_dir)
+    plan = detection_plan(prepared, sha, side, jobs, cache_dir)
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    frames: dict[int, dict] = {}
-    done = 0
-    with plan.feed as feed:
-        stream = iter_role_messages(recording, prepared.roles, prepared.time_source, read_report)
-        for message, detections in feed.annotate(stream):
-            result = replay.feed(message, detections)
-            if result is None:
-                continue
-            done += 1
-            if progress is not None:
-                progress(done)
-            frame = frames.setdefault(result.index, {"t_ns": result.log_time_ns, "obs": [], "pose": None})
-            if result.T_world_agv is not None and frame["pose"] is None:
-                frame["pose"] = result.T_world_agv
-            frame.setdefault("truth", result.T_world_agv_truth)
-            if detections is None or not result.observations:
-                continue
-            codes = list(detections.codes)
-            for obs in result.observations:
-                if obs.points_frame != WORLD_FRAME:
-                    continue  # a marker on the vehicle: no placement in the world to audit
-                match = None
-                for det in codes:
-                    if det.kind == "qr" and obs.payload and det.text == obs.payload:
-                        match = det
-                    elif det.kind == "aruco" and str(det.aruco_id) == obs.marker_id:
-                        match = det
-                    if match is not None:
-                        break
-                if match is None:
-                    continue
-                codes.remove(match)
-                frame["obs"].append((result.cam_name, obs.marker_id, np.asarray(match.corners_px[:4], float),
-                                     np.asarray(obs.points_world_m[:4], float)))
+    collector = AuditCollector(progress)
+    run_graph(prepared, settings, collector, read_report, detection=plan, until="solve")
+    frames = collector.frames
     plan.store(read_report)
     warnings = list(read_report.problems) + list(plan.problems)
     marker_map = replay.ctx.marker_map
     # cameras on the vehicle with a calibration
     cam_names, K, T_agv_cam, cameras = [], [], [], {}
     for name in prepared.usable_cameras:
-        cam = replay.ctx.cameras.get(name)
+        cam = collector.cameras.get(name)
         if cam is None or cam.camera is None:
             continue
         if cam.T_agv_cam is None:

@@ -113,7 +113,7 @@ def error_budget(
     """
     from agvviz import scenarios as scenario_registry
     from agvviz.recording.source import open_recording
-    from agvviz.replay.run import run_recording
+    from agvviz.app.run import run_recording
 
     recording_path = Path(recording_path)
     scenario = _scenario_of(recording_path)

@@ -236,7 +236,7 @@ def run_task(
     """Worker: replay one setting, reusing its group's detections (from the cache)."""
     import cv2
 
-    from agvviz.replay.run import run_recording
+    from agvviz.app.run import run_recording
 
     cv2.setNumThreads(1)  # one thread per worker: the workers already fill the CPUs
     reporter = _Reporter(topic, stop_name, unit)
@@ -280,7 +280,7 @@ def _start_method() -> str:
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return "spawn"
-    multiprocessing.forkserver.set_forkserver_preload(["distributed", "agvviz.replay.run"])  # no effect once it runs
+    multiprocessing.forkserver.set_forkserver_preload(["distributed", "agvviz.app.run"])  # no effect once it runs
     with _signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"
@@ -291,7 +291,7 @@ def _ignore_signal(signum, frame) -> None:
 
 
 def _import_replay() -> None:
-    import agvviz.replay.run  # noqa: F401
+    import agvviz.app.run  # noqa: F401
 
 
 def dask_setup(worker) -> None:

@@ -124,7 +124,8 @@ def _run(
 ) -> Path:
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
-    from agvviz.replay.run import NoUsableFrameError, run_recording
+    from agvviz.app.run import run_recording
+    from agvviz.replay.run import NoUsableFrameError
 
     check_detect_jobs(jobs)
     require_recording_path(recording)  # one line, before a progress bar is drawn

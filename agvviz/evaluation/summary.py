@@ -1,19 +1,28 @@
-"""Run statistics from per-frame results: counts, rejections, errors against truth, timing.
+"""Run statistics and the run summary: counts, rejections, errors against truth, timing.
 
-Pure numpy; the pipeline's :class:`~agvviz.model.frames.FrameResult` s are reduced to small
-:class:`FrameScore` records as they stream past, so memory does not grow with images.
-:func:`summarize` depends only on the data (it is stored in the run ``.rrd``, which must be
-reproducible); :func:`timing` holds the wall-clock figures, which are printed, never stored.
+:class:`RunStatistics` is the graph's statistics sink (:class:`agvviz.replay.sinks.Sink`): the
+pipeline's :class:`~agvviz.model.frames.FrameResult` s are reduced to small :class:`FrameScore`
+records as they stream past, so memory does not grow with images; UWB fusion, correction and a
+study's outcome are counted beside them. :meth:`RunStatistics.summary` is the one place a run's
+summary is assembled (it is stored in the run ``.rrd`` and printed by ``agvviz run``).
+:func:`summarize` depends only on the data (the ``.rrd`` must be reproducible); :func:`timing`
+holds the wall-clock figures, which are printed, never stored.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
+from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.model.frames import FrameResult
+from agvviz.replay.correct import CorrectionStats
+from agvviz.replay.fuse import FrameSetResult
+from agvviz.replay.sinks import GraphOutcome, NullSink
+from agvviz.settings import RunSettings
 
 
 @dataclass(frozen=True)
@@ -94,3 +103,75 @@ def timing(scores: list[FrameScore], wall_time_s: float | None = None) -> dict:
         result["wall_time_s"] = float(wall_time_s)
         result["frames_per_s"] = len(scores) / wall_time_s
     return result
+
+
+class RunStatistics(NullSink):
+    """The statistics sink: every scored frame (the fuse stage's scored frame of each time
+    stamp, and frames scored on their own), rejections, UWB fusion, correction steps and a
+    study's outcome. ``progress(frames_done)`` is called per scored frame."""
+
+    def __init__(self, settings: RunSettings, progress: Callable[[int], None] | None = None):
+        self.settings = settings
+        self.progress = progress
+        self.scores: list[FrameScore] = []
+        self.rejections: dict[str, list] = {}  # reason -> [count, first detail]
+        self.fusion_stats = FusionStats()
+        self.correction_stats = CorrectionStats()
+        self.study_outcome = None
+        self.outcome = GraphOutcome()
+
+    def frame(self, frame: FrameResult) -> None:
+        self._score(frame)
+
+    def fused(self, item, uwb) -> None:
+        if isinstance(item, FrameSetResult):
+            self._score(item.scored)
+        if uwb is not None:
+            self.fusion_stats.add(item)
+
+    def corrected(self, step) -> None:
+        self.correction_stats.add(step)
+
+    def study(self, outcome) -> None:
+        self.study_outcome = outcome
+
+    def finished(self, outcome: GraphOutcome) -> None:
+        self.outcome = outcome  # whether UWB was tracked, whether the correct stage ran
+
+    def _score(self, frame: FrameResult) -> None:
+        self.scores.append(FrameScore.of(frame))
+        if frame.rejected is not None:
+            self.rejections.setdefault(frame.rejected, [0, frame.reject_detail or ""])[0] += 1
+        if self.progress is not None:
+            self.progress(len(self.scores))
+
+    def summary(
+        self,
+        *,
+        recording_damage: list[str],
+        warnings: list[str],
+        detection: dict | None = None,
+        truth: dict | None = None,
+        error_budget: dict | None = None,
+    ) -> dict:
+        """The run summary (stored in the ``.rrd``, printed by the CLI). A study's: its own
+        summary, the recording's damage and the warnings. A camera or correction run's: the
+        frame statistics (none for a correction run without camera frames), ``fusion`` with
+        UWB, ``correction`` when the correct stage ran, then ``recording_damage``,
+        ``detection``, ``warnings``, ``truth`` and, when given, ``error_budget``."""
+        if self.study_outcome is not None:
+            return {**self.study_outcome.summary, "recording_damage": list(recording_damage), "warnings": list(warnings)}
+        settings = self.settings
+        has_uwb, corrected = self.outcome.has_uwb, self.outcome.corrected
+        summary = summarize(self.scores) if self.scores or not corrected else {}
+        if has_uwb:
+            summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **self.fusion_stats.summary()}
+        if corrected:
+            summary["correction"] = {"solver": settings.correction, **self.correction_stats.summary()}
+        summary["recording_damage"] = list(recording_damage)
+        summary["detection"] = detection
+        summary["warnings"] = list(warnings)
+        summary["truth"] = truth
+        if error_budget is not None:
+            summary["error_budget"] = error_budget
+        return summary

@@ -1,28 +1,24 @@
-"""Library API behind ``agvviz run``: replay a recording and write the run ``.rrd``.
+"""The library run: prepare a recording, run the replay graph over it into given sinks, detect only.
 
-The CLI stays a thin layer over :func:`run_recording`, which returns values and prints nothing.
+:func:`prepare` opens and scans a recording, resolves its role map and fills the sync stage
+(shared by ``run``, ``inspect`` and the audit); :func:`detection_plan` is the detect stage's
+feed (worker pool or cache); :func:`run_graph` drives :class:`agvviz.replay.graph.ReplayGraph`
+over the recording into the sinks it is given; :func:`replay_frames` and
+:func:`detect_recording` are the solve-only and detect-only runs. The application run (the
+manifest, the ``.rrd`` and its sinks, the summary) is :func:`agvviz.app.run.run_recording`.
 """
 
 from __future__ import annotations
 
-import hashlib
-import time
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
 
-from agvviz import __version__
 from agvviz.conventions import camera_frame
 from agvviz.errors import InputError, OutputError, RunError
-from agvviz.evaluation.summary import timing
-from agvviz.replay.detect import cache as detect_cache
-from agvviz.replay.detect.pool import DetectionFeed, default_jobs
-from agvviz.replay.graph import ReplayGraph
-from agvviz.replay.sinks import RunSinks
-from agvviz.replay.solve import Replay
+from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC, FrameResult
 from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
 from agvviz.recording.reader import DATA_SECTION_CRC_PROBLEM, CalibrationMsg, FrameTransformMsg, ReadReport
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
@@ -35,48 +31,13 @@ from agvviz.recording.source import (
     resolve_roles,
     scan,
 )
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
-from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC, FrameResult
-from agvviz.settings import RunSettings, as_dict, inapplicable, without
-from agvviz.viz.run_logger import RunLogger
-
-
-@dataclass
-class RunOutcome:
-    """What a run wrote: ``summary`` and ``manifest`` are stored in the ``.rrd``; ``timing``
-    (wall-clock figures, see :func:`agvviz.evaluation.summary.timing`) is not, so the same
-    recording and settings always give an equal ``.rrd``."""
-
-    out_path: Path
-    summary: dict
-    manifest: dict
-    read_report: ReadReport
-    timing: dict
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def default_run_path(recording_path: Path, settings: RunSettings) -> Path:
-    path = Path(recording_path)
-    name = path.name if path.is_dir() else path.stem
-    return Path("runs") / f"{name}-{settings.label()}.rrd"
-
-
-def _markers_from_map(marker_map: dict) -> list[tuple[str, np.ndarray]]:
-    markers = []
-    for m in marker_map.get("markers", []):
-        if m.get("frame", "world") != "world":
-            continue  # a marker on the AGV (paper 003) has no fixed place in the world
-        corners = np.asarray(m.get("corners_world_m", []), dtype=float)
-        if corners.shape == (4, 3) and np.all(np.isfinite(corners)):
-            markers.append((str(m.get("id")), corners))
-    return markers
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
+from agvviz.replay.detect import cache as detect_cache
+from agvviz.replay.detect.pool import DetectionFeed, default_jobs
+from agvviz.replay.graph import Composition, GraphOutcome, ReplayGraph
+from agvviz.replay.sinks import NullSink, Sink
+from agvviz.replay.solve import Replay
+from agvviz.settings import RunSettings
 
 
 def run_warnings(replay_warnings: list[str], read_report: ReadReport) -> list[str]:
@@ -229,7 +190,7 @@ class NoUsableFrameError(RunError):
         self.causes = list(causes)
 
 
-def _unusable_run_error(recording: Recording, rejections: dict[str, list], causes: list[str]) -> RunError:
+def unusable_run_error(recording: Recording, rejections: dict[str, list], causes: list[str]) -> RunError:
     """The error of a run whose frames could none be used: one line per cause
     (``rejections``: reason → [count, first detail])."""
     lines = list(causes)
@@ -281,7 +242,7 @@ class DetectionPlan:
         return list(self.problems) + ([self.feed.cache_mismatch] if self.feed.cache_mismatch else [])
 
 
-def _detection_inputs(prepared: "Prepared", side: SideInputs | None) -> dict:
+def detection_inputs(prepared: "Prepared", side: SideInputs | None) -> dict:
     """Everything besides the recording's bytes and the detect parameters that decides which
     frames are detected with which calibration (the cache key's inputs)."""
     side = side or SideInputs()
@@ -305,17 +266,20 @@ def _detection_inputs(prepared: "Prepared", side: SideInputs | None) -> dict:
     }
 
 
-def _detection_feed(
+def detection_plan(
     prepared: "Prepared", recording_sha256: str, side: SideInputs | None, jobs: int | None,
     cache_dir: Path | None | bool,
 ) -> DetectionPlan:
+    """The detect stage of a run of ``prepared``: the cache entry of its recording
+    (``recording_sha256``) and detection settings, read when it is there (``cache_dir``: None
+    the default folder, False no cache), else a worker pool of at most ``jobs`` processes."""
     params = prepared.replay.detect_params
     cache_path = None
     cached = None
     if cache_dir is not False:
         folder = Path(cache_dir) if cache_dir not in (None, True) else detect_cache.default_cache_dir()
         cache_path = detect_cache.entry_path(
-            folder, recording_sha256, detect_cache.cache_key(params, _detection_inputs(prepared, side))
+            folder, recording_sha256, detect_cache.cache_key(params, detection_inputs(prepared, side))
         )
         cached = detect_cache.load(cache_path)
     # Worker processes take a while to start: not worth it for a few segments of work.
@@ -328,44 +292,30 @@ def _detection_feed(
     return DetectionPlan(feed, cache_path, cached is not None)
 
 
-def _run_trials(
-    prepared: Prepared, settings: RunSettings, out_path: Path, inputs: list[Path], manifest: dict,
-    recording_id: str, progress: Callable[[int], None] | None, on_total: Callable[[int], None] | None,
-    study: str = "monte_carlo",
-) -> RunOutcome:
-    """Run a study recording: a Monte-Carlo study (``study="monte_carlo"``,
-    :func:`agvviz.replay.studies.monte_carlo.is_trials_recording`; every trial solved by every study solver)
-    or a CNOEM grid study (``study="cnoem"``, :func:`agvviz.replay.studies.cnoem.is_cnoem_trials_recording`;
-    every cycle solved by every study method); the error series and report logged beside the
-    manifest and summary. ``progress(trials_done)`` as trials are solved, ``on_total(trials)`` once."""
-    from agvviz.replay.studies.cnoem import replay_cnoem_trials
-    from agvviz.replay.studies.monte_carlo import replay_trials, trials_timing
-    from agvviz.viz.trials_logger import cnoem_trials_blueprint, log_cnoem_trials, log_trials, trials_blueprint
-
-    replay_study, log_study, study_blueprint, trial_role = {  # trial_role: one message per trial
-        "monte_carlo": (replay_trials, log_trials, trials_blueprint, ROLE_CORNERS),
-        "cnoem": (replay_cnoem_trials, log_cnoem_trials, cnoem_trials_blueprint, ROLE_MARKER_MAP),
-    }[study]
-    if on_total is not None and trial_role in prepared.roles.roles:
-        on_total(prepared.scan.topics[prepared.roles.roles[trial_role]].count)
-    read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    t_start = time.perf_counter()
-    with RunLogger(out_path, recording_name=manifest["recording_name"], recording_id=recording_id, inputs=inputs) as logger:
-        logger.log_manifest(manifest)
-        messages = iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, read_report)
-        trials = replay_study(messages, settings, progress=progress)
-        log_study(logger.stream, trials)
-        summary = {
-            **trials.summary,
-            "recording_damage": list(read_report.problems),
-            "warnings": run_warnings(list(trials.warnings), read_report),
-        }
-        logger.blueprint = study_blueprint(trials)
-        logger.log_summary(summary)
-    return RunOutcome(
-        out_path=out_path, summary=summary, manifest=manifest, read_report=read_report,
-        timing=trials_timing(trials, time.perf_counter() - t_start),
+def run_graph(
+    prepared: Prepared,
+    settings: RunSettings,
+    sinks: Sink,
+    read_report: ReadReport,
+    *,
+    composition: Composition | None = None,
+    detection: DetectionPlan | None = None,
+    progress: Callable[[int], None] | None = None,
+    until: str = "correct",
+) -> GraphOutcome:
+    """Run the graph over ``prepared`` (its messages read once more, in file order, problems
+    into ``read_report``) into ``sinks``: the stages its ``composition``
+    (:meth:`Composition.of`) and ``settings`` call for, up to ``until``; ``detection`` the
+    detect stage's plan (None: the solve stage detects in process); ``progress`` a study's
+    ``progress(trials_done)``."""
+    if composition is None:
+        composition = Composition.of(prepared.recording, prepared.roles, studies=until == "correct")
+    graph = ReplayGraph.compose(
+        composition, settings, prepared.replay, sinks,
+        detect=detection.feed if detection is not None else None, progress=progress, until=until,
     )
+    messages = iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, read_report)
+    return graph.run(messages)
 
 
 def recording_start_ns(prepared: Prepared) -> int | None:
@@ -376,159 +326,6 @@ def recording_start_ns(prepared: Prepared) -> int | None:
         return None
     firsts = [prepared.scan.first_ns[t] for t in prepared.roles.role_of() if t in prepared.scan.first_ns]
     return min(firsts) if firsts else None
-
-
-def run_recording(
-    recording_path: Path,
-    settings: RunSettings,
-    out_path: Path | None = None,
-    progress: Callable[[int], None] | None = None,
-    *,
-    topics: dict[str, str] | None = None,
-    roles_file: Path | None = None,
-    side: SideInputs | None = None,
-    on_total: Callable[[int], None] | None = None,
-    jobs: int | None = None,
-    cache_dir: Path | None | bool = None,
-    error_budget=None,
-) -> RunOutcome:
-    """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
-    and write the run to ``out_path``.
-
-    ``topics`` (role → topic, ``--topic``) and ``roles_file`` (``--roles``) override the
-    inferred role map; ``side`` holds side-file values. ``progress(frames_done)`` is called
-    after every frame, ``on_total(frames)`` once the number of frames is known. Returns the
-    run summary and manifest (both also stored in the ``.rrd``) and the wall-clock timing
-    (not stored). Raises :class:`RunError` — and writes nothing — when the recording has no
-    camera image or none of its frames can be used, one line per cause.
-
-    ``jobs`` detection worker processes (default: one per CPU; 1 = detect in this process);
-    ``cache_dir`` the detection cache folder (None: :func:`agvviz.replay.detect.cache.default_cache_dir`,
-    False: no cache). Neither changes the run's results.
-
-    ``error_budget`` (an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this recording
-    under these settings, from :func:`agvviz.evaluation.error_budget.error_budget`) goes into
-    the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
-    in the ``.rrd`` (:mod:`agvviz.viz.budget_logger`), with a layout that shows them.
-    """
-    recording_path = require_recording_path(recording_path)
-    if out_path is not None and Path(out_path).suffix != ".rrd":
-        raise RunError(f"output must be a .rrd file, got {out_path}")
-    # OutputError when out_path is the recording (also through a link; for a bag directory,
-    # any of its files) or cannot be written.
-    from agvviz.recording import outputs
-
-    inputs = [recording_path] + (sorted(recording_path.iterdir()) if recording_path.is_dir() else [])
-    if out_path is not None:
-        out_path = Path(out_path)
-        outputs.prepare_output(out_path, inputs=inputs)
-    prepared = prepare(recording_path, settings, topics, roles_file, side)
-    recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
-    if not prepared.can_run:
-        raise _unusable_run_error(recording, {}, prepared.causes)
-    from agvviz.replay.studies.cnoem import is_cnoem_trials_recording
-    from agvviz.replay.studies.monte_carlo import is_trials_recording  # (scipy.stats: only when needed)
-
-    # A study recording goes to its trials stage, not the camera or correction replay.
-    study = (
-        "monte_carlo" if is_trials_recording(recording.scenario, roles)
-        else "cnoem" if is_cnoem_trials_recording(recording.scenario, roles)
-        else None
-    )
-    if study is None and roles.cameras():
-        # frames of a marker family the run cannot use (no map, or another map's family): one
-        # line naming the family and what to run next, before any work (issue 23)
-        from agvviz.replay.detect.family_scan import family_check
-
-        family_check(prepared, str(recording_path))
-    corners_only = not roles.cameras() and ROLE_CORNERS in roles.roles and ROLE_UWB_RANGE not in roles.roles
-    if corners_only and settings.correction == "none" and study is None:
-        raise InputError(
-            f"{recording.path.name} holds corner observations and no camera images: only the multi-frame "
-            "correction replays them; give --set correction=cnoem (or correction=bundle)"
-        )
-    # Settings the recording has no data for (or that the other settings switch off) are reset
-    # and kept out of the run's name; the manifest names them (settings.inapplicable).
-    ignored = {} if study is not None else inapplicable(
-        settings, has_uwb=ROLE_UWB_RANGE in roles.roles, has_odometry=ROLE_ODOMETRY in roles.roles,
-        n_cameras=len(roles.cameras()),
-    )
-    ignored_settings = {name: {"value": getattr(settings, name), "reason": why} for name, why in ignored.items()}
-    settings = without(settings, ignored)
-    if out_path is None:
-        out_path = default_run_path(recording_path, settings)
-        outputs.prepare_output(out_path, inputs=inputs)
-    if on_total is not None:
-        on_total(max((prepared.scan.topics[roles.roles[image_role(c)]].count for c in roles.cameras()), default=0))
-
-    recording_sha256 = recording.sha256()
-    scenario = recording.scenario
-    scenario_name = scenario["name"] if scenario else recording.name
-    recording_name = f"{scenario_name}-{settings.label()}"
-    recording_id = str(
-        uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz:{recording_sha256}:{sorted(as_dict(settings).items())}")
-    )
-    # Only what is the same for every identical run: the file name, not the path it was
-    # given by (the sha256 identifies the content).
-    manifest = {
-        "agvviz_version": __version__,
-        "recording": recording_path.name,
-        "recording_sha256": recording_sha256,
-        "scenario": scenario,
-        "settings": as_dict(settings),
-        "ignored_settings": ignored_settings,
-        "recording_name": recording_name,
-        "roles": dict(sorted(roles.roles.items())),
-        "unplaced_topics": dict(sorted(roles.unplaced.items())),
-        "body_frame": prepared.body_frame,
-        "time_source": prepared.time_source,
-        "side_files": (side or SideInputs()).describe(),
-    }
-
-    if study is not None:  # a Monte-Carlo or CNOEM grid study: its trials stage
-        return _run_trials(prepared, settings, out_path, inputs, manifest, recording_id, progress, on_total, study)
-
-    read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    detection = _detection_feed(prepared, recording_sha256, side, jobs, cache_dir)
-    with RunLogger(
-        out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs,
-        recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px,
-    ) as logger:
-        logger.log_manifest(manifest)
-        if replay.ctx.marker_map is not None:
-            logger.log_world_static(_markers_from_map(replay.ctx.marker_map))
-        sinks = RunSinks(logger, settings, replay.ctx.cameras, progress)
-        graph = ReplayGraph.compose(settings, detection.feed, replay, sinks)
-        t_start = time.perf_counter()
-        graph.run(iter_role_messages(recording, roles, prepared.time_source, read_report))
-        wall_time_s = time.perf_counter() - t_start
-        scores = sinks.scores
-        has_uwb = graph.fuse.has_uwb
-        correction_only = graph.correct is not None and not scores  # corner observations, no frame
-        if not scores and not correction_only and not has_uwb:
-            lines = prepared.causes + read_report.problems[-5:] or ["the image topics hold no decodable frame"]
-            raise NoUsableFrameError(
-                f"no camera frame of {recording.path.name} could be read; no .rrd written: " + "; ".join(lines), lines
-            )
-        if scores and all(s.rejected in UNUSABLE_REJECTIONS for s in scores):
-            raise _unusable_run_error(recording, sinks.rejections, prepared.causes)
-        summary = sinks.summary(has_uwb)
-        summary["recording_damage"] = list(read_report.problems)
-        detection.store(read_report)
-        summary["detection"] = detection.summary()
-        summary["warnings"] = run_warnings(replay.warnings() + prepared.causes + detection.warnings(), read_report)
-        summary["truth"] = replay.truth_status()
-        if error_budget is not None:
-            summary["error_budget"] = error_budget.summary()
-            logger.log_error_budget(error_budget)
-        logger.log_summary(summary)
-    return RunOutcome(
-        out_path=out_path,
-        summary=summary,
-        manifest=manifest,
-        read_report=read_report,
-        timing={**timing(scores, wall_time_s), **detection.timing()},
-    )
 
 
 def replay_frames(
@@ -544,10 +341,8 @@ def replay_frames(
     what benches and tests compare frame by frame. Raises like :func:`prepare`."""
     prepared = prepare(require_recording_path(recording_path), settings, topics, roles_file, side)
     report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    for message in iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report):
-        result = prepared.replay.feed(message)
-        if result is not None:
-            yield result
+    graph = ReplayGraph(prepared.replay, until="solve")
+    yield from graph.frames(iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report))
 
 
 def detect_recording(
@@ -566,24 +361,31 @@ def detect_recording(
     every later run whose detection settings are equal
     (:func:`agvviz.replay.detect.stage.detection_settings`) only solves. A no-op when the cache holds
     them already. Returns ``{"source": "cache" | "detected", "frames": n, "cache": path}``;
-    raises like :func:`run_recording` on a recording it cannot read."""
+    raises like :func:`agvviz.app.run.run_recording` on a recording it cannot read."""
     recording_path = require_recording_path(recording_path)
     prepared = prepare(recording_path, settings, topics, roles_file, side)
     if not prepared.can_run:
-        raise _unusable_run_error(prepared.recording, {}, prepared.causes)
-    plan = _detection_feed(prepared, prepared.recording.sha256(), side, jobs, cache_dir if cache_dir is not None else None)
+        raise unusable_run_error(prepared.recording, {}, prepared.causes)
+    plan = detection_plan(prepared, prepared.recording.sha256(), side, jobs, cache_dir if cache_dir is not None else None)
     if plan.from_cache:
         return {"source": "cache", "frames": len(plan.feed.cached), "cache": str(plan.cache_path)}
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    frames = 0
-    with plan.feed as feed:
-        stream = iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, read_report)
-        for _, detections in feed.annotate(stream):
-            if detections is not None:
-                frames += 1
-                if progress is not None:
-                    progress(frames)
+    count = _DetectedCount(progress)
+    run_graph(prepared, settings, count, read_report, detection=plan, until="detect")
     plan.store(read_report)
     if plan.problems:
         raise OutputError(plan.problems[0])
-    return {"source": "detected", "frames": frames, "cache": str(plan.cache_path)}
+    return {"source": "detected", "frames": count.frames, "cache": str(plan.cache_path)}
+
+
+class _DetectedCount(NullSink):
+    """The detect-only run's sink: counts the frames detected, ``progress(frames)`` per frame."""
+
+    def __init__(self, progress: Callable[[int], None] | None):
+        self.progress = progress
+        self.frames = 0
+
+    def detected(self, detections) -> None:
+        self.frames += 1
+        if self.progress is not None:
+            self.progress(self.frames)

@@ -1,127 +1,143 @@
-"""Sinks: the graph's last stage — the run's ``.rrd`` (through the loggers of :mod:`agvviz.viz`),
-its statistics and its summary. Nothing here decides anything about a pose; it records what the
-stages before it decided.
+"""The sink protocol: the callbacks :class:`agvviz.replay.graph.ReplayGraph` makes to whatever
+records a run — the ``.rrd`` logger, the statistics and summary, the audit's collector, a
+detect-only count. Sinks are handed values (frozen camera snapshots, stage outputs), never a
+stage object; they decide nothing about a pose. The concrete sinks live above the replay
+(:mod:`agvviz.app.run`, :mod:`agvviz.evaluation.summary`, :mod:`agvviz.app.audit_collect`).
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from dataclasses import dataclass
+from typing import Any, Mapping, Protocol, Sequence
 
-from agvviz.evaluation.fusion_summary import FusionStats
-from agvviz.evaluation.summary import FrameScore, summarize
-from agvviz.model.correction import CorrectionStep
-from agvviz.replay.correct import CorrectionSettings, CorrectionStats
-from agvviz.model.fusion import FrameSetResult
+import numpy as np
+
 from agvviz.model.frames import FrameResult
-from agvviz.settings import RunSettings
-from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint
-from agvviz.viz.run_logger import RunLogger
-from agvviz.viz.uwb_blueprint import uwb_blueprint
-from agvviz.viz.uwb_logger import FusionLogger
+from agvviz.replay.detect.stage import FrameDetections
+from agvviz.replay.sync import CameraState
 
 
-#: Every this many frames the ``.rrd`` stream is flushed (waiting until Rerun has written what
-#: was logged). Without it Rerun's file sink queues data faster than it writes, and a run's
-#: peak memory grows with its length (measured: 2000 frames of images alone 274 MiB against
-#: 203 MiB for 200; flushed every 20 frames, 206 against 211).
-RRD_FLUSH_EVERY_FRAMES = 25  # not RunLogger.FLUSH_EVERY_FRAMES: that batches columns, this waits for the file
+@dataclass(frozen=True)
+class UwbSetup:
+    """The UWB installation the fuse stage tracks with, handed with each fused item once it
+    is known: anchor id → position (m, world), and the tag's height above the body origin."""
+
+    anchors_m: Mapping[str, np.ndarray]
+    tag_z_m: float | None
 
 
-class RunSinks:
-    """Everything a run writes and counts, fed by :class:`agvviz.graph.ReplayGraph`.
+@dataclass(frozen=True)
+class GraphOutcome:
+    """What a graph run found besides what its sinks were handed."""
 
-    ``cameras`` is the sync stage's camera state (calibration and extrinsic per camera, read
-    to log each camera once both are known); ``progress(frames_done)`` is called per scored
-    frame.
-    """
+    has_uwb: bool = False  # the fuse stage started UWB tracking (anchors and tag mount known)
+    corrected: bool = False  # the correct stage ran
 
-    def __init__(
-        self,
-        logger: RunLogger,
-        settings: RunSettings,
-        cameras: dict,
-        progress: Callable[[int], None] | None = None,
-    ):
-        self.logger = logger
-        self.settings = settings
-        self.cameras = cameras
-        self.progress = progress
-        self.scores: list[FrameScore] = []
-        self.rejections: dict[str, list] = {}  # reason -> [count, first detail]
-        self.fusion_logger = FusionLogger(logger.stream, recording_start_ns=logger.recording_start_ns)
-        self.fusion_stats = FusionStats()
-        self.correction_logger = (
-            CorrectionLogger(
-                logger.stream, recording_start_ns=logger.recording_start_ns, cameras=cameras,
-                max_reproj_px=settings.max_reproj_px, max_position_sigma_m=CorrectionSettings.max_position_sigma_m,
-            )
-            if settings.correction != "none" else None
-        )
-        self.correction_stats = CorrectionStats()
-        self._cameras_logged: set[str] = set()
 
-    # -- per message ----------------------------------------------------------------------------
-    def cameras_changed(self) -> None:
-        """Log each camera once both its calibration and its extrinsic are known."""
-        for cam_name, cam in self.cameras.items():
-            if cam.camera is None or cam_name in self._cameras_logged:
-                continue
-            if cam.T_agv_cam is not None:
-                self.logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
-            elif cam.T_world_cam is not None:
-                self.logger.log_fixed_camera_static(cam_name, cam.camera, cam.T_world_cam)
-            else:
-                continue
-            self._cameras_logged.add(cam_name)
+
+class Sink(Protocol):
+    """What the graph calls, in file order. A sink implements every callback; :class:`NullSink`
+    is a base whose callbacks do nothing."""
+
+    def cameras_changed(self, cameras: Mapping[str, CameraState]) -> None:
+        """The cameras' calibration and extrinsic changed (first call: before any message)."""
+
+    def detected(self, detections: FrameDetections) -> None:
+        """A frame's detect-stage output (detect-only graphs)."""
+
+    def solved(self, frame: FrameResult, detections: FrameDetections | None) -> None:
+        """Every solve-stage result, with the detections it was solved from (None: detected in
+        the solve stage itself)."""
 
     def frame(self, frame: FrameResult) -> None:
         """A frame logged and scored on its own (one that could not be placed in time)."""
-        self.logger.log_frame(frame)
-        self._score(frame)
 
-    def fused(self, item, fusion) -> None:
-        """An output of the fuse stage: a time stamp's frames (the scored one and the other
-        cameras' views), a UWB range or fix."""
-        if isinstance(item, FrameSetResult):
-            self.logger.log_frame(item.scored)
-            for other in item.frames:
-                if other is not item.scored:
-                    self.logger.log_camera_view(other)
-            self._score(item.scored)
-        if fusion.has_uwb:
-            if not self.fusion_logger.anchor_ids:
-                self.fusion_logger.log_anchors(fusion.anchors_m, fusion.tag_z_m, list(self.cameras))
-            self.fusion_logger.log(item)
-            self.fusion_stats.add(item)
+    def fused(self, item: Any, uwb: UwbSetup | None) -> None:
+        """An output of the fuse stage: a time stamp's frames (:class:`~agvviz.replay.fuse.FrameSetResult`),
+        a UWB range or fix; ``uwb`` once UWB tracking has started."""
 
-    def corrected(self, step: CorrectionStep) -> None:
-        self.correction_logger.log(step)
-        self.correction_stats.add(step)
+    def corrected(self, step: Any) -> None:
+        """A correct-stage step (:class:`~agvviz.replay.correct.CorrectionStep`)."""
 
-    def _score(self, frame: FrameResult) -> None:
-        self.scores.append(FrameScore.of(frame))
-        if len(self.scores) % RRD_FLUSH_EVERY_FRAMES == 0:
-            self.logger.stream.flush()  # bounded memory: see RRD_FLUSH_EVERY_FRAMES
-        if frame.rejected is not None:
-            self.rejections.setdefault(frame.rejected, [0, frame.reject_detail or ""])[0] += 1
-        if self.progress is not None:
-            self.progress(len(self.scores))
+    def study(self, outcome: Any) -> None:
+        """A study's outcome (every trial solved and scored)."""
 
-    # -- at the end -----------------------------------------------------------------------------
-    def summary(self, has_uwb: bool) -> dict:
-        """The run summary of what was fed (the caller adds damage, detection and warnings) and
-        the layout that fits the run's kind."""
-        settings = self.settings
-        # A corner-only correction run has no camera frames: no frame statistics to claim.
-        summary = summarize(self.scores) if self.scores or self.correction_logger is None else {}
-        if has_uwb:
-            summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **self.fusion_stats.summary()}
-            fixed = {name for name, cam in self.cameras.items() if cam.T_agv_cam is None}
-            self.logger.blueprint = uwb_blueprint(
-                self.logger.cam_names, fixed, self.fusion_logger.anchor_ids,
-                zoom_cams=self.logger.zoom_cams, error_range_mm=self.fusion_logger.error_range_mm(),
-            )
-        if self.correction_logger is not None:
-            summary["correction"] = {"solver": settings.correction, **self.correction_stats.summary()}
-            self.logger.blueprint = correction_blueprint(sorted(self.cameras))
-        return summary
+    def finished(self, outcome: GraphOutcome) -> None:
+        """Every message went through the stages (the graph's last call)."""
+
+    def close(self) -> None:
+        """The run is over (called by whoever made the sink, after the graph ran)."""
+
+
+class NullSink:
+    """A sink that ignores every callback: the base of sinks that listen to a few."""
+
+    def cameras_changed(self, cameras: Mapping[str, CameraState]) -> None:
+        pass
+
+    def detected(self, detections: FrameDetections) -> None:
+        pass
+
+    def solved(self, frame: FrameResult, detections: FrameDetections | None) -> None:
+        pass
+
+    def frame(self, frame: FrameResult) -> None:
+        pass
+
+    def fused(self, item: Any, uwb: UwbSetup | None) -> None:
+        pass
+
+    def corrected(self, step: Any) -> None:
+        pass
+
+    def study(self, outcome: Any) -> None:
+        pass
+
+    def finished(self, outcome: GraphOutcome) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class FanOut:
+    """Several sinks as one: each callback goes to every sink, in the given order."""
+
+    def __init__(self, sinks: Sequence[Sink]):
+        self.sinks = tuple(sinks)
+
+    def cameras_changed(self, cameras: Mapping[str, CameraState]) -> None:
+        for sink in self.sinks:
+            sink.cameras_changed(cameras)
+
+    def detected(self, detections: FrameDetections) -> None:
+        for sink in self.sinks:
+            sink.detected(detections)
+
+    def solved(self, frame: FrameResult, detections: FrameDetections | None) -> None:
+        for sink in self.sinks:
+            sink.solved(frame, detections)
+
+    def frame(self, frame: FrameResult) -> None:
+        for sink in self.sinks:
+            sink.frame(frame)
+
+    def fused(self, item: Any, uwb: UwbSetup | None) -> None:
+        for sink in self.sinks:
+            sink.fused(item, uwb)
+
+    def corrected(self, step: Any) -> None:
+        for sink in self.sinks:
+            sink.corrected(step)
+
+    def study(self, outcome: Any) -> None:
+        for sink in self.sinks:
+            sink.study(outcome)
+
+    def finished(self, outcome: GraphOutcome) -> None:
+        for sink in self.sinks:
+            sink.finished(outcome)
+
+    def close(self) -> None:
+        for sink in self.sinks:
+            sink.close()

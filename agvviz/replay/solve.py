@@ -1,4 +1,4 @@
-"""Replay: recording messages → per-frame results (a generator). No I/O of its own.
+"""The solve stage: recording messages (and their detections) → per-frame results. No I/O of its own.
 
 For every camera frame: decode → undistort (when the camera has distortion) → detect and
 decode QR codes → refine corners → parse each payload strictly → solve the pose of the
@@ -12,113 +12,66 @@ frame (``image_invalid``), an image whose size is not its calibration's
 (``calibration_size_mismatch``), a QR payload that disagrees with the recording's marker map
 (``payload_map_mismatch``). Recording-level findings (:class:`TimeChecks`) are left for the
 caller's summary (:meth:`Replay.warnings`).
+
+Which detected codes can give a pose (payloads, map, boards) is :mod:`agvviz.replay.candidates`;
+this module keeps the per-frame pipeline around it — camera state, the largest code's solve,
+the joint solve and the scoring — whose steps share the frame's draft (~600 lines).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Iterable, Iterator
+from types import MappingProxyType
+from typing import Iterable, Mapping
 
-import cv2
 import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import PinholeCamera, euler, se3
-from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners, quad_area_px2
-from agvviz.replay.detect.stage import (
-    CodeDetection,
-    DetectParams,
-    FrameDetections,
-    FrameJob,
-    SegmentDetector,
-    camera_model,
-)
+from agvviz.geometry.plane import quad_area_px2
 from agvviz.markers.aruco import ArucoMap, parse_aruco_map
 from agvviz.markers.types import ArucoError
-from agvviz.markers.charuco import chessboard_id, is_chessboard_id
-from agvviz.markers.payload import PayloadError, parse_payload
-from agvviz.recording.contract import (
-    IMAGE_FORMATS,
-    REJECT_MAP_MISMATCH,
-    REJECT_TIME,
-    TimeChecks,
-    payload_map_problem,
-    qr_map_of,
-    unmapped_tolerance_m,
-)
-from agvviz.recording.reader import (
-    CalibrationMsg,
-    CompressedFrame,
-    FrameTransformMsg,
-    RecordedMessage,
-)
-from agvviz.recording.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
+from agvviz.markers.charuco import is_chessboard_id
 from agvviz.model.frames import (
-    REJECT_DECODE,
     REJECT_GEOMETRY,
     REJECT_NO_CALIBRATION,
     REJECT_NO_EXTRINSIC,
-    REJECT_NO_MARKER,
-    REJECT_PAYLOAD,
     REJECT_REPROJECTION,
     REJECT_SOLVER,
     FrameDraft,
     FrameResult,
     freeze,
-    MarkerObservation,
 )
+from agvviz.recording.contract import IMAGE_FORMATS, REJECT_TIME, TimeChecks, qr_map_of, unmapped_tolerance_m
+from agvviz.recording.reader import CalibrationMsg, CompressedFrame, FrameTransformMsg, RecordedMessage
+from agvviz.recording.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
+from agvviz.replay.candidates import REASON_RANK, aruco_candidates, qr_candidates
+from agvviz.replay.detect.stage import DetectParams, FrameDetections, FrameJob, SegmentDetector, camera_model
 from agvviz.replay.diagnostics import PoseDiagnostics
 from agvviz.settings import RunSettings
 from agvviz.solvers import SolverOptions, SolveResult, solve
 from agvviz.solvers.joint import MarkerView, solve_joint
 from agvviz.solvers.planar import PlanarPrior
-from agvviz.replay.sync import SyncState
-
-#: When no code of a frame is usable, the frame's reason is the first of these its codes had.
-_REASON_RANK = {
-    r: i for i, r in enumerate((REJECT_MAP_MISMATCH, REJECT_PAYLOAD, REJECT_GEOMETRY, REJECT_DECODE, REJECT_NO_MARKER))
-}
-
-
-@dataclass
-class _Camera:
-    """What the replay knows about one camera: calibration, extrinsics, undistortion maps."""
-
-    camera: PinholeCamera | None = None
-    calibration_problem: str = ""  # why the last calibration of this camera was refused
-    T_agv_cam: np.ndarray | None = None  # T_body_cam (the body frame is a setting)
-    T_world_cam: np.ndarray | None = None  # a camera fixed in the world (paper 003's wall cameras)
-    calibration: CalibrationMsg | None = None  # the message ``camera`` came from
-    extrinsic_problem: str = ""  # why neither extrinsic is known
-
+from agvviz.replay.sync import CameraState, SyncState
 
 @dataclass
 class ReplayContext:
     """State gathered from non-image messages while streaming (static and latest values)."""
 
-    cameras: dict[str, _Camera] = field(default_factory=dict)
+    #: camera name -> its state; a state is frozen and replaced when it changes (then
+    #: ``cameras_version`` counts up), so a copy of the dict is a snapshot
+    cameras: dict[str, CameraState] = field(default_factory=dict)
+    cameras_version: int = 0
     marker_map: dict | None = None  # the marker map in use (side file or recording)
     aruco_map: ArucoMap | None = None  # from /markers/map when it names an ArUco dictionary
     marker_map_problem: str = ""  # why /markers/map was refused, for the rejection detail
     qr_map: dict[str, np.ndarray] = field(default_factory=dict)  # QR id -> world corners (4, 3)
     unmapped_tolerance_m: float = 0.0  # see agvviz.recording.contract.payload_map_problem
 
-    def camera(self, cam_name: str) -> _Camera:
-        return self.cameras.setdefault(cam_name, _Camera())
-
-
-def _module_to_marker(points_module: np.ndarray, n_modules: int, vertices_marker_m: np.ndarray) -> np.ndarray:
-    """Marker-frame points (M, 3) of QR module coordinates (M, 2) (x right, y down from the
-    symbol's TL corner), through the projective map of the module square onto the marker's
-    vertices TL, TR, BR, BL (exact for any planar quadrilateral the payload describes)."""
-    n = float(n_modules)
-    H = cv2.getPerspectiveTransform(
-        np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=np.float32),
-        vertices_marker_m[:4, :2].astype(np.float32),
-    ).astype(float)
-    xy = cv2.perspectiveTransform(points_module.reshape(1, -1, 2).astype(float), H).reshape(-1, 2)
-    return np.c_[xy, np.zeros(len(xy))]
+    def cameras_snapshot(self) -> Mapping[str, CameraState]:
+        """The cameras as they are now (a read-only copy: later changes do not show in it)."""
+        return MappingProxyType(dict(self.cameras))
 
 
 def _path_px(camera: PinholeCamera, path: list, points_marker_m: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -133,13 +86,6 @@ def _path_px(camera: PinholeCamera, path: list, points_marker_m: np.ndarray) -> 
             projected.append(np.full((len(points_marker_m), 2), np.nan))
     return tuple(projected)
 
-
-def _ideal_to_image_px(camera: PinholeCamera, ideal_px: np.ndarray) -> np.ndarray:
-    """Pixels of the undistorted (ideal) image → pixels of the recorded (distorted) image."""
-    if not camera.has_distortion:
-        return ideal_px.copy()
-    xy = camera.without_distortion().pixels_to_normalized_distorted(ideal_px)
-    return camera.normalized_to_pixels(camera.distort_normalized(xy))
 
 
 class Replay:
@@ -412,23 +358,26 @@ class Replay:
             self._update_camera(cam_name, frame_id, t_ns, keep_extrinsic=True)
 
     def _update_camera(self, cam_name: str, frame_id: str, t_ns: int | None, keep_extrinsic: bool = False) -> None:
-        """Calibration and extrinsic of one camera at ``t_ns`` for an image in ``frame_id``."""
-        cam = self.ctx.camera(cam_name)
+        """Calibration and extrinsic of one camera at ``t_ns`` for an image in ``frame_id``
+        (its :class:`CameraState` replaced when either changed)."""
+        old = self.ctx.cameras.get(cam_name)
+        cam = old if old is not None else CameraState()
         calib = self.sync.calibration_at(cam_name, t_ns if t_ns is not None else -(2**62))
         if calib is not cam.calibration:
-            cam.calibration = calib
             if calib is None:
-                cam.camera = None
+                cam = replace(cam, calibration=None, camera=None)
             else:
-                self._set_calibration(cam, calib)
+                model = camera_model(calib)  # shared with the detect stage
+                cam = replace(cam, calibration=calib, camera=model.camera, calibration_problem=model.problem)
         T_body_cam, T_world_cam, why = self.sync.extrinsic(cam_name, frame_id, t_ns)
-        if T_body_cam is None and T_world_cam is None and keep_extrinsic:
-            return
-        cam.T_agv_cam, cam.T_world_cam, cam.extrinsic_problem = T_body_cam, T_world_cam, why
-
-    def _set_calibration(self, cam: _Camera, calib: CalibrationMsg) -> None:
-        model = camera_model(calib)  # shared with the detect stage
-        cam.camera, cam.calibration_problem = model.camera, model.problem
+        if not (T_body_cam is None and T_world_cam is None and keep_extrinsic) and not (
+            _same_pose(cam.T_agv_cam, T_body_cam) and _same_pose(cam.T_world_cam, T_world_cam)
+            and cam.extrinsic_problem == why
+        ):
+            cam = replace(cam, T_agv_cam=T_body_cam, T_world_cam=T_world_cam, extrinsic_problem=why)
+        if cam is not old:
+            self.ctx.cameras[cam_name] = cam
+            self.ctx.cameras_version += 1
 
     # -- one frame ------------------------------------------------------------------------
     def process_frame(
@@ -492,124 +441,20 @@ class Replay:
             return self._reject(result, *detections.reject)
         camera = cam.camera
         if self.ctx.aruco_map is not None:
-            candidates, problems = self._aruco_candidates(detections.codes, camera, result, detections.chessboards)
+            candidates, problems = aruco_candidates(
+                self.ctx.aruco_map, detections.codes, camera, result, detections.chessboards, self.chessboards_not_used
+            )
         else:
-            candidates, problems = self._qr_candidates(detections.codes, camera, result)
+            candidates, problems = qr_candidates(
+                self.ctx.qr_map, self.ctx.unmapped_tolerance_m, detections.codes, camera, result
+            )
         if not candidates:
             # The reason of a code that was read and refused outranks one that was not read.
-            reason = min((r for r, _ in problems), key=lambda r: _REASON_RANK.get(r, len(_REASON_RANK)))
+            reason = min((r for r, _ in problems), key=lambda r: REASON_RANK.get(r, len(REASON_RANK)))
             return self._reject(result, reason, "; ".join(d for _, d in problems))
         return self._solve_candidates(cam, candidates, result)
 
-    def _aruco_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameDraft,
-                          chessboards: tuple = ()):
-        """ArUco markers of the map among the detected codes: (candidates, problems) as in
-        :meth:`_qr_candidates`; a marker id the map does not list is a problem, not a pose.
-        The saddle corners of each ChArUco board in view are one more candidate, named
-        :func:`chessboard_id` (for the joint solve only: never the largest marker); a board
-        whose saddles were not used says why in the frame's ``marker_note``."""
-        aruco_map = self.ctx.aruco_map
-        candidates, problems = [], []
-        for det in codes:
-            if det.kind != "aruco":
-                continue
-            marker = aruco_map.markers.get(det.aruco_id)
-            if marker is None:
-                problems.append((REJECT_PAYLOAD, f"ArUco id {det.aruco_id} is not in the marker map"))
-                continue
-            observation = MarkerObservation(
-                marker_id=str(det.aruco_id),
-                payload="",
-                corners_px=_ideal_to_image_px(camera, det.corners_px),
-                points_world_m=marker.corners_m,
-                points_frame=marker.frame,
-            )
-            result.observations.append(observation)
-            candidates.append((observation, det.corners_px, marker.points_marker_m, marker.frame, marker.T_frame_marker))
-        notes = []
-        for found in chessboards:
-            if found.note:
-                notes.append(found.note)
-            if len(found.corner_ids) == 0 and "not used" in found.note:  # not: too few markers in view
-                name = chessboard_id(found.board_index)
-                count, first = self.chessboards_not_used.get(name, (0, found.note))
-                self.chessboards_not_used[name] = (count + 1, first)
-            if not 0 <= found.board_index < len(aruco_map.boards) or len(found.corner_ids) == 0:
-                continue
-            board = aruco_map.boards[found.board_index]
-            ids = np.asarray(found.corner_ids, dtype=int)
-            ideal = np.asarray(found.corners_px, dtype=float)
-            observation = MarkerObservation(
-                marker_id=chessboard_id(found.board_index),
-                payload="",
-                corners_px=_ideal_to_image_px(camera, ideal),
-                points_world_m=board.corners_m[ids],
-                points_frame=board.frame,
-            )
-            result.observations.append(observation)
-            candidates.append((observation, ideal, board.points_board_m[ids], board.frame, board.T_frame_board))
-        result.marker_note = "; ".join(notes)
-        misplaced = [found for found in chessboards if found.misplaced_ids]
-        if misplaced:
-            # A board seen unlike its description (a wrong legacy_pattern, ids or squares): its
-            # markers would give a pose off by whole squares. The frame is refused.
-            return [], [(REJECT_MAP_MISMATCH, found.note) for found in misplaced]
-        if not candidates and not problems:
-            problems.append((REJECT_NO_MARKER, f"no {aruco_map.dictionary} marker found"))
-        return candidates, problems
-
-    def _qr_candidates(self, codes: tuple[CodeDetection, ...], camera: PinholeCamera, result: FrameDraft):
-        """The detected QR codes whose payload parses and agrees with the marker map.
-
-        Returns ``(candidates, problems)``: candidates are (observation, ideal corners px,
-        marker-frame points, frame of the marker, ``T_frame_marker``); problems are
-        (reject reason, detail) of every code that could not be used.
-        """
-        codes = [c for c in codes if c.kind == "qr"]
-        if not codes:
-            return [], [(REJECT_NO_MARKER, "no QR code found")]
-        candidates = []
-        problems = []
-        for det in codes:
-            if not det.decoded:
-                problems.append((REJECT_DECODE, "a QR code was found but not decoded"))
-                continue
-            try:
-                # Bytes that are not UTF-8 text go to the strict parser too, which refuses them.
-                payload = parse_payload(det.text if det.text is not None else det.payload_bytes)
-                T_world_marker, points_marker_m = marker_frame_from_corners(payload.points_world_m)
-            except PayloadError as exc:
-                problems.append((REJECT_PAYLOAD, f"payload refused: {exc}"))
-                continue
-            except DegenerateGeometryError as exc:
-                problems.append((REJECT_GEOMETRY, f"payload geometry: {exc}"))
-                continue
-            map_problem = payload_map_problem(
-                payload.marker_id, payload.points_world_m, self.ctx.qr_map, self.ctx.unmapped_tolerance_m
-            )
-            if map_problem is not None:
-                problems.append((REJECT_MAP_MISMATCH, f"payload refused: {map_problem}"))
-                continue
-            # The 4 vertices are measured in the image; edge midpoints (if the payload carries
-            # them) have no image measurement of their own (a point of the fitted homography
-            # adds no information). feature_points=finder adds the finder-pattern corners,
-            # each measured on its own by the detect stage (agvviz.markers.qr.finder_corners).
-            ideal_px, points_m = det.corners_px, points_marker_m[:4]
-            if det.finder_px is not None:
-                ideal_px = np.vstack([ideal_px, det.finder_px])
-                points_m = np.vstack([points_m, _module_to_marker(det.finder_modules, det.n_modules, points_m)])
-            observation = MarkerObservation(
-                marker_id=payload.marker_id,
-                payload=det.text,
-                corners_px=_ideal_to_image_px(camera, ideal_px),
-                points_world_m=se3.transform_points(T_world_marker, points_m)
-                if len(points_m) > 4 else payload.points_world_m[:4],
-            )
-            result.observations.append(observation)
-            candidates.append((observation, ideal_px, points_m, WORLD_FRAME, T_world_marker))
-        return candidates, problems
-
-    def _solve_candidates(self, cam: _Camera, candidates: list, result: FrameDraft) -> FrameResult:
+    def _solve_candidates(self, cam: CameraState, candidates: list, result: FrameDraft) -> FrameResult:
         """Pose of the largest candidate (the run's solver and ambiguity rule); with
         ``markers=all`` and more markers fixed in the same frame, one LM over all their corners
         started from it (:func:`agvviz.solvers.joint.solve_joint`, which leaves out markers that
@@ -733,6 +578,10 @@ class Replay:
         return result
 
 
+def _same_pose(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    return a is b or (a is not None and b is not None and np.array_equal(a, b))
+
+
 def _notes(*notes: str) -> str:
     return "; ".join(n for n in notes if n)
 
@@ -765,11 +614,3 @@ def agv_pose_from_marker(
         f"{'on the AGV' if T_agv_cam is not None else 'fixed in the world'} says nothing about the AGV"
     )
 
-
-def replay(messages: Iterable[RecordedMessage], settings: RunSettings) -> Iterator[FrameResult]:
-    """Per-frame results of replaying ``messages`` (in recording order) under ``settings``."""
-    engine = Replay(settings)
-    for message in messages:
-        result = engine.feed(message)
-        if result is not None:
-            yield result

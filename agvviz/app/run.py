@@ -1,0 +1,361 @@
+"""``agvviz run`` as a library call: replay a recording and write the run ``.rrd``.
+
+:func:`run_recording` checks the output, prepares the recording (:func:`agvviz.replay.run.prepare`),
+builds the manifest and the recording id, plans the detect stage and its cache, runs the replay
+graph (:func:`agvviz.replay.run.run_graph`) into the run's sinks — the ``.rrd``
+(:class:`RrdSink`, :class:`StudyRrdSink`) and the statistics
+(:class:`agvviz.evaluation.summary.RunStatistics`, which assembles the summary) — and turns a
+run without a usable frame into one error. It returns values and prints nothing; the CLI prints
+:meth:`RunOutcome.summary_rows`.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Mapping
+
+import numpy as np
+
+from agvviz import __version__
+from agvviz.errors import InputError, RunError
+from agvviz.evaluation.summary import RunStatistics, timing
+from agvviz.recording.reader import ReadReport
+from agvviz.recording.source import require_recording_path
+from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, image_role
+from agvviz.replay.correct import CorrectionSettings
+from agvviz.replay.fuse import FrameSetResult
+from agvviz.replay.graph import STUDY_CNOEM, STUDY_MONTE_CARLO, Composition
+from agvviz.replay.run import (
+    UNUSABLE_REJECTIONS,
+    NoUsableFrameError,
+    Prepared,
+    SideInputs,
+    detection_plan,
+    prepare,
+    recording_start_ns,
+    run_graph,
+    run_warnings,
+    unusable_run_error,
+)
+from agvviz.replay.sinks import FanOut, NullSink
+from agvviz.settings import RunSettings, as_dict, inapplicable, without
+from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint
+from agvviz.viz.run_logger import RunLogger
+from agvviz.viz.uwb_blueprint import uwb_blueprint
+from agvviz.viz.uwb_logger import FusionLogger
+
+#: Every this many frames the ``.rrd`` stream is flushed (waiting until Rerun has written what
+#: was logged). Without it Rerun's file sink queues data faster than it writes, and a run's
+#: peak memory grows with its length (measured: 2000 frames of images alone 274 MiB against
+#: 203 MiB for 200; flushed every 20 frames, 206 against 211).
+RRD_FLUSH_EVERY_FRAMES = 25  # not RunLogger.FLUSH_EVERY_FRAMES: that batches columns, this waits for the file
+
+
+@dataclass
+class RunOutcome:
+    """What a run wrote: ``summary`` and ``manifest`` are stored in the ``.rrd``; ``timing``
+    (wall-clock figures, see :func:`agvviz.evaluation.summary.timing`) is not, so the same
+    recording and settings always give an equal ``.rrd``."""
+
+    out_path: Path
+    summary: dict
+    manifest: dict
+    read_report: ReadReport
+    timing: dict
+
+    def summary_rows(self) -> list[tuple[str, str]]:
+        """The summary table ``agvviz run`` prints: (metric, value) rows of the summary and the
+        timing; the summary's ``recording_damage`` and ``warnings`` are printed below it."""
+        from agvviz.evaluation.summary_table import summary_rows
+
+        return summary_rows(self.summary, self.timing)
+
+
+def default_run_path(recording_path: Path, settings: RunSettings) -> Path:
+    path = Path(recording_path)
+    name = path.name if path.is_dir() else path.stem
+    return Path("runs") / f"{name}-{settings.label()}.rrd"
+
+
+def _markers_from_map(marker_map: dict) -> list[tuple[str, np.ndarray]]:
+    markers = []
+    for m in marker_map.get("markers", []):
+        if m.get("frame", "world") != "world":
+            continue  # a marker on the AGV (paper 003) has no fixed place in the world
+        corners = np.asarray(m.get("corners_world_m", []), dtype=float)
+        if corners.shape == (4, 3) and np.all(np.isfinite(corners)):
+            markers.append((str(m.get("id")), corners))
+    return markers
+
+
+class RrdSink(NullSink):
+    """A camera, UWB or correction run's ``.rrd``: cameras once calibration and extrinsic are
+    known, every frame, UWB fusion (:class:`~agvviz.viz.uwb_logger.FusionLogger`), correction
+    steps (:class:`~agvviz.viz.correction_logger.CorrectionLogger`), and at :meth:`close` the
+    layout that fits the run's kind."""
+
+    def __init__(self, logger: RunLogger, settings: RunSettings):
+        self.logger = logger
+        self.settings = settings
+        self.cameras: dict = {}  # the latest snapshot (the correction logger reads it)
+        self.frames_scored = 0
+        self.fusion_logger = FusionLogger(logger.stream, recording_start_ns=logger.recording_start_ns)
+        self.correction_logger = (
+            CorrectionLogger(
+                logger.stream, recording_start_ns=logger.recording_start_ns, cameras=self.cameras,
+                max_reproj_px=settings.max_reproj_px, max_position_sigma_m=CorrectionSettings.max_position_sigma_m,
+            )
+            if settings.correction != "none" else None
+        )
+        self._cameras_logged: set[str] = set()
+
+    def cameras_changed(self, cameras: Mapping) -> None:
+        """Log each camera once both its calibration and its extrinsic are known."""
+        self.cameras.clear()
+        self.cameras.update(cameras)
+        for cam_name, cam in cameras.items():
+            if cam.camera is None or cam_name in self._cameras_logged:
+                continue
+            if cam.T_agv_cam is not None:
+                self.logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
+            elif cam.T_world_cam is not None:
+                self.logger.log_fixed_camera_static(cam_name, cam.camera, cam.T_world_cam)
+            else:
+                continue
+            self._cameras_logged.add(cam_name)
+
+    def frame(self, frame) -> None:
+        self.logger.log_frame(frame)
+        self._scored()
+
+    def fused(self, item, uwb) -> None:
+        if isinstance(item, FrameSetResult):
+            self.logger.log_frame(item.scored)
+            for other in item.frames:
+                if other is not item.scored:
+                    self.logger.log_camera_view(other)
+            self._scored()
+        if uwb is not None:
+            if not self.fusion_logger.anchor_ids:
+                self.fusion_logger.log_anchors(uwb.anchors_m, uwb.tag_z_m, list(self.cameras))
+            self.fusion_logger.log(item)
+
+    def corrected(self, step) -> None:
+        self.correction_logger.log(step)
+
+    def _scored(self) -> None:
+        self.frames_scored += 1
+        if self.frames_scored % RRD_FLUSH_EVERY_FRAMES == 0:
+            self.logger.stream.flush()  # bounded memory: see RRD_FLUSH_EVERY_FRAMES
+
+    def finished(self, outcome) -> None:
+        """The layout that fits the run's kind (shipped when the logger closes)."""
+        if outcome.has_uwb:
+            fixed = {name for name, cam in self.cameras.items() if cam.T_agv_cam is None}
+            self.logger.blueprint = uwb_blueprint(
+                self.logger.cam_names, fixed, self.fusion_logger.anchor_ids,
+                zoom_cams=self.logger.zoom_cams, error_range_mm=self.fusion_logger.error_range_mm(),
+            )
+        if self.correction_logger is not None:
+            self.logger.blueprint = correction_blueprint(sorted(self.cameras))
+
+
+class StudyRrdSink(NullSink):
+    """A study run's ``.rrd``: its error series, report and layout."""
+
+    def __init__(self, logger: RunLogger, study: str):
+        from agvviz.viz.trials_logger import cnoem_trials_blueprint, log_cnoem_trials, log_trials, trials_blueprint
+
+        self.logger = logger
+        self._log, self._blueprint = {
+            STUDY_MONTE_CARLO: (log_trials, trials_blueprint),
+            STUDY_CNOEM: (log_cnoem_trials, cnoem_trials_blueprint),
+        }[study]
+
+    def study(self, outcome) -> None:
+        self._log(self.logger.stream, outcome)
+        self.logger.blueprint = self._blueprint(outcome)
+
+
+def _run_study(
+    prepared: Prepared, composition: Composition, settings: RunSettings, out_path: Path, inputs: list[Path],
+    manifest: dict, recording_id: str, progress: Callable[[int], None] | None,
+    on_total: Callable[[int], None] | None,
+) -> RunOutcome:
+    """Run a study recording: a Monte-Carlo study (every trial solved by every study solver)
+    or a CNOEM grid study (every cycle solved by every study method); the error series and
+    report logged beside the manifest and summary. ``progress(trials_done)`` as trials are
+    solved, ``on_total(trials)`` once."""
+    from agvviz.replay.studies.monte_carlo import trials_timing
+
+    trial_role = {STUDY_MONTE_CARLO: ROLE_CORNERS, STUDY_CNOEM: ROLE_MARKER_MAP}[composition.study]  # one message per trial
+    if on_total is not None and trial_role in prepared.roles.roles:
+        on_total(prepared.scan.topics[prepared.roles.roles[trial_role]].count)
+    read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    t_start = time.perf_counter()
+    with RunLogger(out_path, recording_name=manifest["recording_name"], recording_id=recording_id, inputs=inputs) as logger:
+        logger.log_manifest(manifest)
+        stats = RunStatistics(settings)
+        sink = FanOut([StudyRrdSink(logger, composition.study), stats])
+        run_graph(prepared, settings, sink, read_report, composition=composition, progress=progress)
+        summary = stats.summary(
+            recording_damage=read_report.problems,
+            warnings=run_warnings(list(stats.study_outcome.warnings), read_report),
+        )
+        logger.log_summary(summary)
+        sink.close()
+    return RunOutcome(
+        out_path=out_path, summary=summary, manifest=manifest, read_report=read_report,
+        timing=trials_timing(stats.study_outcome, time.perf_counter() - t_start),
+    )
+
+
+def run_recording(
+    recording_path: Path,
+    settings: RunSettings,
+    out_path: Path | None = None,
+    progress: Callable[[int], None] | None = None,
+    *,
+    topics: dict[str, str] | None = None,
+    roles_file: Path | None = None,
+    side: SideInputs | None = None,
+    on_total: Callable[[int], None] | None = None,
+    jobs: int | None = None,
+    cache_dir: Path | None | bool = None,
+    error_budget=None,
+) -> RunOutcome:
+    """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
+    and write the run to ``out_path``.
+
+    ``topics`` (role → topic, ``--topic``) and ``roles_file`` (``--roles``) override the
+    inferred role map; ``side`` holds side-file values. ``progress(frames_done)`` is called
+    after every frame, ``on_total(frames)`` once the number of frames is known. Returns the
+    run summary and manifest (both also stored in the ``.rrd``) and the wall-clock timing
+    (not stored). Raises :class:`RunError` — and writes nothing — when the recording has no
+    camera image or none of its frames can be used, one line per cause.
+
+    ``jobs`` detection worker processes (default: one per CPU; 1 = detect in this process);
+    ``cache_dir`` the detection cache folder (None: :func:`agvviz.replay.detect.cache.default_cache_dir`,
+    False: no cache). Neither changes the run's results.
+
+    ``error_budget`` (an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this recording
+    under these settings, from :func:`agvviz.evaluation.error_budget.error_budget`) goes into
+    the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
+    in the ``.rrd`` (:mod:`agvviz.viz.budget_logger`), with a layout that shows them.
+    """
+    recording_path = require_recording_path(recording_path)
+    if out_path is not None and Path(out_path).suffix != ".rrd":
+        raise RunError(f"output must be a .rrd file, got {out_path}")
+    # OutputError when out_path is the recording (also through a link; for a bag directory,
+    # any of its files) or cannot be written.
+    from agvviz.recording import outputs
+
+    inputs = [recording_path] + (sorted(recording_path.iterdir()) if recording_path.is_dir() else [])
+    if out_path is not None:
+        out_path = Path(out_path)
+        outputs.prepare_output(out_path, inputs=inputs)
+    prepared = prepare(recording_path, settings, topics, roles_file, side)
+    recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
+    if not prepared.can_run:
+        raise unusable_run_error(recording, {}, prepared.causes)
+    # A study recording goes to its study stage, not the camera or correction replay.
+    composition = Composition.of(recording, roles)
+    study = composition.study
+    if study is None and roles.cameras():
+        # frames of a marker family the run cannot use (no map, or another map's family): one
+        # line naming the family and what to run next, before any work (issue 23)
+        from agvviz.replay.detect.family_scan import family_check
+
+        family_check(prepared, str(recording_path))
+    corners_only = not composition.cameras and composition.corners and not composition.uwb
+    if corners_only and settings.correction == "none" and study is None:
+        raise InputError(
+            f"{recording.path.name} holds corner observations and no camera images: only the multi-frame "
+            "correction replays them; give --set correction=cnoem (or correction=bundle)"
+        )
+    # Settings the recording has no data for (or that the other settings switch off) are reset
+    # and kept out of the run's name; the manifest names them (settings.inapplicable).
+    ignored = {} if study is not None else inapplicable(
+        settings, has_uwb=composition.uwb, has_odometry=composition.odometry, n_cameras=len(composition.cameras),
+    )
+    ignored_settings = {name: {"value": getattr(settings, name), "reason": why} for name, why in ignored.items()}
+    settings = without(settings, ignored)
+    if out_path is None:
+        out_path = default_run_path(recording_path, settings)
+        outputs.prepare_output(out_path, inputs=inputs)
+    if on_total is not None:
+        on_total(max((prepared.scan.topics[roles.roles[image_role(c)]].count for c in roles.cameras()), default=0))
+
+    recording_sha256 = recording.sha256()
+    scenario = recording.scenario
+    scenario_name = scenario["name"] if scenario else recording.name
+    recording_name = f"{scenario_name}-{settings.label()}"
+    recording_id = str(
+        uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz:{recording_sha256}:{sorted(as_dict(settings).items())}")
+    )
+    # Only what is the same for every identical run: the file name, not the path it was
+    # given by (the sha256 identifies the content).
+    manifest = {
+        "agvviz_version": __version__,
+        "recording": recording_path.name,
+        "recording_sha256": recording_sha256,
+        "scenario": scenario,
+        "settings": as_dict(settings),
+        "ignored_settings": ignored_settings,
+        "recording_name": recording_name,
+        "roles": dict(sorted(roles.roles.items())),
+        "unplaced_topics": dict(sorted(roles.unplaced.items())),
+        "body_frame": prepared.body_frame,
+        "time_source": prepared.time_source,
+        "side_files": (side or SideInputs()).describe(),
+    }
+
+    if study is not None:  # a Monte-Carlo or CNOEM grid study: its study stage
+        return _run_study(prepared, composition, settings, out_path, inputs, manifest, recording_id, progress, on_total)
+
+    read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
+    with RunLogger(
+        out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs,
+        recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px,
+    ) as logger:
+        logger.log_manifest(manifest)
+        if replay.ctx.marker_map is not None:
+            logger.log_world_static(_markers_from_map(replay.ctx.marker_map))
+        rrd = RrdSink(logger, settings)
+        stats = RunStatistics(settings, progress)
+        sinks = FanOut([rrd, stats])
+        t_start = time.perf_counter()
+        graph = run_graph(prepared, settings, sinks, read_report, composition=composition, detection=detection)
+        wall_time_s = time.perf_counter() - t_start
+        scores = stats.scores
+        correction_only = graph.corrected and not scores  # corner observations, no frame
+        if not scores and not correction_only and not graph.has_uwb:
+            lines = prepared.causes + read_report.problems[-5:] or ["the image topics hold no decodable frame"]
+            raise NoUsableFrameError(
+                f"no camera frame of {recording.path.name} could be read; no .rrd written: " + "; ".join(lines), lines
+            )
+        if scores and all(s.rejected in UNUSABLE_REJECTIONS for s in scores):
+            raise unusable_run_error(recording, stats.rejections, prepared.causes)
+        detection.store(read_report)
+        summary = stats.summary(
+            recording_damage=read_report.problems,
+            detection=detection.summary(),
+            warnings=run_warnings(replay.warnings() + prepared.causes + detection.warnings(), read_report),
+            truth=replay.truth_status(),
+            error_budget=error_budget.summary() if error_budget is not None else None,
+        )
+        if error_budget is not None:
+            logger.log_error_budget(error_budget)
+        logger.log_summary(summary)
+        sinks.close()
+    return RunOutcome(
+        out_path=out_path,
+        summary=summary,
+        manifest=manifest,
+        read_report=read_report,
+        timing={**timing(scores, wall_time_s), **detection.timing()},
+    )
