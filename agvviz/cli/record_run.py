@@ -101,15 +101,16 @@ def run_help() -> str:
     )
 
 
-def _print_summary(summary: dict, timing: dict, title: str) -> None:
-    from agvviz.evaluation.summary_table import summary_rows
-
-    table = Table(title=title, title_justify="left")
+def _print_summary(outcome) -> None:
+    """The run's summary table (the rows the library built, :meth:`RunOutcome.summary_rows`),
+    then its recording damage and warnings."""
+    table = Table(title=f"run {outcome.manifest['recording_name']}", title_justify="left")
     table.add_column("metric")
     table.add_column("value", justify="right")
-    for metric, value in summary_rows(summary, timing):
+    for metric, value in outcome.summary_rows():
         table.add_row(metric, value)
     console.print(table)
+    summary = outcome.summary
     for problem in summary.get("recording_damage", []):
         err_console.print(f"[yellow]recording damage:[/] {escape(problem)}")
     for warning in summary.get("warnings", []):
@@ -176,7 +177,7 @@ def _run(
     for name, item in outcome.manifest.get("ignored_settings", {}).items():
         text = f" {name}={item['value']} does not apply: {item['reason']}; ignored (not in the run name)"
         err_console.print(Text.assemble(("warning:", "yellow"), text), soft_wrap=True, highlight=False)
-    _print_summary(outcome.summary, outcome.timing, f"run {outcome.manifest['recording_name']}")
+    _print_summary(outcome)
     if error_budget is None:
         _budget_hint(outcome.manifest.get("scenario"))
     console.print(f"run written: [bold]{outcome.out_path}[/]")
