@@ -340,7 +340,8 @@ def _run_trials(
     manifest and summary. ``progress(trials_done)`` as trials are solved, ``on_total(trials)`` once."""
     from agvviz.replay.studies.cnoem import replay_cnoem_trials
     from agvviz.replay.studies.monte_carlo import replay_trials, trials_timing
-    from agvviz.viz.trials_logger import cnoem_trials_blueprint, log_cnoem_trials, log_trials, trials_blueprint
+    from agvviz.viz.blueprints import cnoem_trials_blueprint, trials_blueprint
+    from agvviz.viz.log_studies import log_cnoem_trials, log_trials
 
     replay_study, log_study, study_blueprint, trial_role = {  # trial_role: one message per trial
         "monte_carlo": (replay_trials, log_trials, trials_blueprint, ROLE_CORNERS),
@@ -409,7 +410,7 @@ def run_recording(
     ``error_budget`` (an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this recording
     under these settings, from :func:`agvviz.evaluation.error_budget.error_budget`) goes into
     the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
-    in the ``.rrd`` (:mod:`agvviz.viz.budget_logger`), with a layout that shows them.
+    in the ``.rrd`` (:mod:`agvviz.viz.log_budget`), with a layout that shows them.
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":

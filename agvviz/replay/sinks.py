@@ -13,10 +13,10 @@ from agvviz.replay.correct import CorrectionSettings, CorrectionStats, Correctio
 from agvviz.replay.fuse import FrameSetResult
 from agvviz.model.frames import FrameResult
 from agvviz.settings import RunSettings
-from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint
+from agvviz.viz.blueprints import correction_blueprint, uwb_blueprint
+from agvviz.viz.log_correction import CorrectionLogger
+from agvviz.viz.log_uwb import FusionLogger
 from agvviz.viz.run_logger import RunLogger
-from agvviz.viz.uwb_blueprint import uwb_blueprint
-from agvviz.viz.uwb_logger import FusionLogger
 
 
 #: Every this many frames the ``.rrd`` stream is flushed (waiting until Rerun has written what
