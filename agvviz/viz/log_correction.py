@@ -33,7 +33,9 @@ images; with corners only the same 2D space holds the corners alone). Window cor
 solver's ideal pixels, drawn through the camera's distortion so they sit on the image.
 
 Iteration data go out with ``send_columns`` (an iteration TimeColumn), never with
-``set_time("cnoem_iter")`` + log, which would leak the iteration onto later logs.
+``set_time("cnoem_iter")`` + log, which would leak the iteration onto later logs. The entity
+paths are in :mod:`agvviz.viz.paths` (``CORRECTION_*``); the layout is
+:func:`agvviz.viz.blueprints.correction_blueprint`.
 """
 
 from __future__ import annotations

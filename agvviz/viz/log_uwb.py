@@ -11,6 +11,8 @@ items come from :class:`agvviz.replay.fuse.FusionReplay`. Everything is stamped 
                                   compensated, Kalman), logged when it changes
 ``errors/uwb_position_mm``        Scalars: 2-D error of each UWB fix (mm)
 ``errors/fused_position_mm``      Scalars: 2-D error of each fused output (mm)
+
+The layout is :func:`agvviz.viz.blueprints.uwb_blueprint`.
 """
 
 from __future__ import annotations
