@@ -12,7 +12,6 @@ from agvviz import scenarios as scenario_registry
 from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings
 from agvviz.viz import blueprints, paths
-from agvviz.viz import log_uwb as ul
 from agvviz.viz.blueprints import uwb_blueprint
 from agvviz.viz.readback import _rows, read_rrd, scalar_series
 

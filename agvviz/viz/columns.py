@@ -17,6 +17,8 @@ from agvviz.viz import paths
 #: (frame index, log_time_ns, elapsed seconds) of one log.
 Stamp = tuple[int, int, float]
 
+_STRIP2D_TYPE = rr.components.LineStrip2DBatch._ARROW_DATATYPE
+
 
 class Columns:
     """Per-frame data held until :meth:`flush`, then sent as one column chunk per entity:
@@ -203,9 +205,6 @@ def _bar_chart_columns(rows) -> list[rr.ComponentColumn]:
     tensors = pa.StructArray.from_arrays([shape, names, buffer], fields=list(data_type)).cast(data_type)
     return [rr.ComponentColumn(rr.BarChart.descriptor_values(), ArrowBatch(tensors))]
 
-
-
-_STRIP2D_TYPE = rr.components.LineStrip2DBatch._ARROW_DATATYPE
 
 
 #: Builders of per-frame archetype columns, by the ``kind`` given to :meth:`Columns.row`.
