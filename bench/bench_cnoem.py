@@ -29,7 +29,7 @@ from agvviz.model.studies import GridCell  # noqa: E402
 from agvviz.replay.studies import cnoem_cells as cs  # noqa: E402
 from agvviz.sim import auv  # noqa: E402
 from agvviz.solvers import cnoem  # noqa: E402
-from agvviz.viz.cnoem_report import write_report_rrd  # noqa: E402
+from agvviz.viz.log_studies import write_cnoem_report_rrd  # noqa: E402
 
 def _run_cell(args):
     index, cell, trials, seed = args
@@ -192,7 +192,7 @@ def main() -> None:
     os.replace(tmp, path)
     print(f"report: {path}")
     if not args.skip_grid:
-        write_report_rrd(path.with_suffix(".rrd"), grid["results"], "\n".join(lines))
+        write_cnoem_report_rrd(path.with_suffix(".rrd"), grid["results"], "\n".join(lines))
         print(f"report: {path.with_suffix('.rrd')}")
 
 

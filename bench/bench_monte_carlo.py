@@ -19,7 +19,7 @@ from agvviz import scenarios as scenario_registry
 from agvviz.replay.studies.monte_carlo import replay_trials
 from agvviz.recording.reader import iter_messages
 from agvviz.settings import RunSettings
-from agvviz.viz.monte_carlo_report import write_report_rrd
+from agvviz.viz.log_studies import write_monte_carlo_report_rrd
 
 
 def main() -> None:
@@ -46,7 +46,7 @@ def main() -> None:
     tmp = md_path.with_name(f".{md_path.name}.tmp")
     tmp.write_text(outcome.report_markdown)
     os.replace(tmp, md_path)
-    write_report_rrd(md_path.with_suffix(".rrd"), outcome.results, outcome.report_markdown)
+    write_monte_carlo_report_rrd(md_path.with_suffix(".rrd"), outcome.results, outcome.report_markdown)
     summary = outcome.checks
     print(f"report: {md_path} and {md_path.with_suffix('.rrd')}")
     print(f"well-conditioned cells: {summary['well_conditioned_cells']}; max RMSE/CRLB: {summary['max_rmse_over_crlb']}")

@@ -1,5 +1,5 @@
 """The CNOEM trials stage (agvviz.replay.studies.cnoem) on tiny auv_under_ice mode=grid recordings,
-its sink (agvviz.viz.trials_logger) and its rows of the summary table
+its sink (agvviz.viz.log_studies) and its rows of the summary table
 (agvviz.evaluation.summary_table)."""
 
 from __future__ import annotations
@@ -24,7 +24,9 @@ from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document
 from agvviz.viz.run_logger import RunLogger
-from agvviz.viz.trials_logger import CNOEM_REPORT, cnoem_trial_errors, cnoem_trials_blueprint, log_cnoem_trials
+from agvviz.viz.blueprints import cnoem_trials_blueprint
+from agvviz.viz.log_studies import log_cnoem_trials
+from agvviz.viz.paths import CNOEM_REPORT, cnoem_trial_errors
 
 TRIALS = 3
 CELL = "L10_X0.2L_Y0.1L_v1_s1"  # the scenario's default cell

@@ -29,7 +29,7 @@ from agvviz.evaluation.comparison import DIRECT, RunSeries, compare_runs
 from agvviz.evaluation.expression import ExpressionError
 from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
-from agvviz.viz import overlay, paths
+from agvviz.viz import blueprints, overlay, paths
 from agvviz.viz.readback import (
     encoded_images,
     points2d,
@@ -94,7 +94,7 @@ def test_sweep_overlay_holds_every_successful_run(swept):
         np.testing.assert_array_equal(frames, run_frames)
         np.testing.assert_allclose(values, run_values, rtol=1e-12)
         assert f"world/trajectory/{key}" in contents.entity_paths
-    assert "lm-refine=subpix" not in text_document(contents, overlay.REPORT)
+    assert "lm-refine=subpix" not in text_document(contents, paths.COMPARE_REPORT)
 
 
 def test_diff_of_a_run_with_itself_is_zero_and_not_significant(swept):
@@ -160,7 +160,7 @@ def test_diff_overlay_contents(swept, tmp_path):
     # The Δ plot's zero line spans it, and its title gives the sign convention.
     zero_frames, zero = scalar_series(contents, "delta/position_mm/zero")
     assert zero_frames.tolist() == [common[0], common[-1]] and zero.tolist() == [0.0, 0.0]
-    assert overlay.delta_view_name("position_mm") == "Δ |position error| = B − A [mm]: positive = B worse"
+    assert blueprints.delta_view_name("position_mm") == "Δ |position error| = B − A [mm]: positive = B worse"
     # Each run's position error, magnified by the stated factor, drawn from the truth position
     # (both runs solved every matched frame here: B's frames are A's).
     run_a, run_b = load_run(a_path), load_run(b_path)
@@ -180,7 +180,7 @@ def test_diff_overlay_contents(swept, tmp_path):
     # A's images, byte for byte, on the same frames; the report is the diff table.
     images = encoded_images(contents, f"image/{CAM}")
     assert images == encoded_images(a, paths.image(CAM))
-    assert "position_rmse_mm" in text_document(contents, overlay.REPORT)
+    assert "position_rmse_mm" in text_document(contents, paths.COMPARE_REPORT)
     # Without images the overlay is a fraction of the size.
     small = diff(a_path, b_path, overlay_path=tmp_path / "small.rrd", images=False).overlay_path
     assert small.stat().st_size < out.stat().st_size / 5

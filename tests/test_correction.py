@@ -131,7 +131,7 @@ def test_correction_replay_beats_the_drifting_navigation(route_recording, solver
 def test_agvviz_run_with_correction_writes_the_window_and_events(route_recording, tmp_path):
     from agvviz.app.run import run_recording
     from agvviz.settings import RunSettings
-    from agvviz.viz import correction_logger as cl
+    from agvviz.viz import paths
     from agvviz.viz.readback import _rows, read_rrd, scalar_series, text_logs
 
     out = tmp_path / "run.rrd"
@@ -140,15 +140,15 @@ def test_agvviz_run_with_correction_writes_the_window_and_events(route_recording
     assert summary["cycles"] == 8 and summary["corrections_applied"] >= 6
     assert summary["corrected_rmse_m"] < summary["nav_rmse_m"]
     contents = read_rrd(out)
-    for entity in (cl.TRAJECTORY_TRUTH, cl.TRAJECTORY_NAV, cl.TRAJECTORY_CORRECTED, cl.WINDOW_CAMERAS,
-                   cl.image_observed("left"), cl.image_theoretical("right"), cl.COST_PER_ITERATION):
+    for entity in (paths.CORRECTION_TRAJECTORY_TRUTH, paths.CORRECTION_TRAJECTORY_NAV, paths.CORRECTION_TRAJECTORY_CORRECTED, paths.CORRECTION_WINDOW_CAMERAS,
+                   paths.correction_observed("left"), paths.correction_theoretical("right"), paths.CORRECTION_COST_PER_ITERATION):
         assert entity in contents.entity_paths, entity
-    logs = text_logs(contents, cl.EVENTS_CORRECTIONS)
+    logs = text_logs(contents, paths.EVENTS_CORRECTIONS)
     assert len(logs) == 8 and sum("correction jump" in text for _, _, text in logs) == summary["corrections_applied"]
-    iters, costs = scalar_series(contents, cl.COST, timeline=cl.TIMELINE_CNOEM_ITER)
+    iters, costs = scalar_series(contents, paths.CORRECTION_COST, timeline=paths.TIMELINE_CNOEM_ITER)
     assert iters.min() == 0 and np.all(np.isfinite(costs))
     # The iteration timeline must not leak onto per-frame data.
-    assert all(row.get(cl.TIMELINE_CNOEM_ITER) is None for row in _rows(contents, cl.ERROR_CORRECTED_MM, "Scalars:scalars"))
+    assert all(row.get(paths.TIMELINE_CNOEM_ITER) is None for row in _rows(contents, paths.ERROR_CORRECTED_MM, "Scalars:scalars"))
     # Theoretical corners: one batch per iteration on cnoem_iter, the last on the observed ones.
-    rows = _rows(contents, cl.image_theoretical("left"), "Points2D:positions")
-    assert rows and all(row.get(cl.TIMELINE_CNOEM_ITER) is not None for row in rows)
+    rows = _rows(contents, paths.correction_theoretical("left"), "Points2D:positions")
+    assert rows and all(row.get(paths.TIMELINE_CNOEM_ITER) is not None for row in rows)

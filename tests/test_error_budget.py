@@ -16,7 +16,7 @@ from agvviz.evaluation.error_budget import INTERACTION
 from agvviz.recording.writer import RecordingWriter
 from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
-from agvviz.viz import budget_logger, paths
+from agvviz.viz import log_budget, paths
 from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document
 
 #: A tiny qr_floor: 5 frames, small images every one of which is solved under typical.
@@ -89,16 +89,16 @@ def test_source_without_effect_has_no_share(budget):
     assert np.all(np.nan_to_num(slip.delta_mm) == 0.0)
 
 def test_budget_rrd(budget, tmp_path):
-    out = budget_logger.write_budget_rrd(tmp_path / "budget.rrd", budget)
+    out = log_budget.write_budget_rrd(tmp_path / "budget.rrd", budget)
     contents = read_rrd(out)
-    md = text_document(contents, budget_logger.TABLE)
+    md = text_document(contents, paths.BUDGET_TABLE)
     assert "| calibration |" in md and INTERACTION in md
-    frames, values = scalar_series(contents, budget_logger.series("calibration"))
+    frames, values = scalar_series(contents, paths.budget_series("calibration"))
     calibration = next(s for s in budget.sources if s.source == "calibration")
     assert np.allclose(np.sort(values), np.sort(calibration.position_error_off_mm[np.isfinite(calibration.position_error_off_mm)]))
-    _, on = scalar_series(contents, budget_logger.series("all_on"))
+    _, on = scalar_series(contents, paths.budget_series("all_on"))
     assert len(on) == budget.solved_all
-    assert budget_logger.SHARES in contents.entity_paths
+    assert paths.BUDGET_SHARES in contents.entity_paths
 
 @pytest.fixture(scope="module")
 def one_source(tmp_path_factory):
@@ -133,11 +133,11 @@ def test_run_with_budget(one_source, tmp_path):
     # The only source on: switching it off is the all-off world, so its RMSE off is the floor.
     assert calibration["rmse_off_mm"] == budget["floor_rmse_mm"]
     assert calibration["share"] == pytest.approx((rmse_all**2 - calibration["rmse_off_mm"]**2) / rmse_all**2, abs=1e-12)
-    assert "| calibration |" in text_document(contents, budget_logger.TABLE)
-    frames, on = scalar_series(contents, budget_logger.series("all_on"))
+    assert "| calibration |" in text_document(contents, paths.BUDGET_TABLE)
+    frames, on = scalar_series(contents, paths.budget_series("all_on"))
     run_frames, run_errors = scalar_series(contents, paths.ERROR_POSITION_MM)
     assert list(frames) == list(run_frames) and np.allclose(on, run_errors)
-    assert budget_logger.SHARES in contents.entity_paths
+    assert paths.BUDGET_SHARES in contents.entity_paths
 
 def test_run_budget_refusals(one_source, tmp_path):
     ideal = tmp_path / "ideal.mcap"

@@ -11,10 +11,9 @@ import rerun.blueprint as rrb
 from agvviz import scenarios as scenario_registry
 from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
-from agvviz.viz import correction_logger as cl
-from agvviz.viz import paths, uwb_logger as ul
+from agvviz.viz import blueprints, paths
+from agvviz.viz.blueprints import uwb_blueprint
 from agvviz.viz.readback import _rows, read_rrd, scalar_series
-from agvviz.viz.uwb_blueprint import uwb_blueprint
 
 
 @pytest.fixture(scope="module")
@@ -88,27 +87,27 @@ def _shows_something(view, entity_paths: set[str]) -> bool:
 
 def test_correction_series_are_on_elapsed_named_and_in_mm(correction_run):
     c = correction_run
-    _check_elapsed(c, (cl.ERROR_NAV_MM, cl.ERROR_CORRECTED_MM, cl.CYCLE_REPROJ_RMS_PX))
-    assert _series_name(c, cl.ERROR_CORRECTED_MM, "SeriesLines") == "corrected [mm]"
-    assert _series_name(c, cl.ERROR_NAV_MM, "SeriesLines") == "navigation (uncorrected) [mm]"
-    assert "max_reproj_px" in _series_name(c, cl.CYCLE_MAX_REPROJ_PX, "SeriesLines")
-    assert _series_name(c, cl.COST, "SeriesLines") != _series_name(c, cl.REPROJ_RMS_PX, "SeriesLines")
+    _check_elapsed(c, (paths.ERROR_NAV_MM, paths.ERROR_CORRECTED_MM, paths.CORRECTION_CYCLE_REPROJ_RMS_PX))
+    assert _series_name(c, paths.ERROR_CORRECTED_MM, "SeriesLines") == "corrected [mm]"
+    assert _series_name(c, paths.ERROR_NAV_MM, "SeriesLines") == "navigation (uncorrected) [mm]"
+    assert "max_reproj_px" in _series_name(c, paths.CORRECTION_CYCLE_MAX_REPROJ_PX, "SeriesLines")
+    assert _series_name(c, paths.CORRECTION_COST, "SeriesLines") != _series_name(c, paths.CORRECTION_REPROJ_RMS_PX, "SeriesLines")
     # Errors in mm: the drift of a few seconds is tens of mm, not hundredths.
-    _, nav_mm = scalar_series(c, cl.ERROR_NAV_MM)
+    _, nav_mm = scalar_series(c, paths.ERROR_NAV_MM)
     assert 1.0 < nav_mm.max() < 1000.0
 
 
 def test_correction_layout_rides_on_the_vehicle_and_every_view_has_content(correction_run):
-    blueprint = cl.correction_blueprint(["left", "right"])
+    blueprint = blueprints.correction_blueprint(["left", "right"])
     views = _views(blueprint)
     assert len(views) >= 10
     for view in views:
         assert _shows_something(view, correction_run.entity_paths), view.name
     world = next(v for v in views if str(v.name).startswith("3D"))
-    assert str(world.origin).strip("/") == cl.AGV_CORRECTED
+    assert str(world.origin).strip("/") == paths.CORRECTION_AGV_CORRECTED
     # The solver's iterations are in a tab of their own: the run's views never need cnoem_iter.
     tabs = blueprint.root_container
-    assert [str(t.name) for t in tabs.contents] == ["correction run", f"solver iterations (timeline {cl.TIMELINE_CNOEM_ITER})"]
+    assert [str(t.name) for t in tabs.contents] == ["correction run", f"solver iterations (timeline {paths.TIMELINE_CNOEM_ITER})"]
 
 
 def test_uwb_series_are_on_elapsed_named_and_categories_are_states(uwb_run):

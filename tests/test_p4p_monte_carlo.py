@@ -13,7 +13,7 @@ from agvviz.recording.contract import inspect_recording
 from agvviz.recording.reader import iter_messages
 from agvviz.replay.studies.monte_carlo import collect
 from agvviz.replay.studies.monte_carlo_cells import PAPER_FIGURES, checks, evaluate_cell, report_markdown
-from agvviz.viz.monte_carlo_report import write_report_rrd
+from agvviz.viz.log_studies import write_monte_carlo_report_rrd
 from agvviz.viz.readback import read_rrd, scalar_series, text_document
 from agvviz.scenarios import p4p_monte_carlo as mc
 
@@ -66,7 +66,7 @@ def test_evaluation_report_and_rrd(study, tmp_path):
     report = report_markdown(results, 4)
     assert "| crlb_tilt30_h0.2667_z2_s0.25_n4 |" in report and "## Checks" in report
     out = tmp_path / "report.rrd"
-    write_report_rrd(out, results, report)
+    write_monte_carlo_report_rrd(out, results, report)
     contents = read_rrd(out)
     assert text_document(contents, "mc/report") == report
     sigma_mpx, ratio = scalar_series(contents, "mc/crlb/tilt30_h0.2667_z2_n4/rmse_over_crlb/lm", timeline="sigma_mpx")

@@ -95,7 +95,7 @@ def test_new_entities_read_back_from_the_rrd(messages, tmp_path):
     assert [(frame, level) for frame, level, _ in logs] == [(1, "WARN")] and "flipped" in logs[0][2]
     assert paths.AGV_CAMERA_POSITION_COV in contents.entity_paths
     # The mirror pose is drawn only on frames where it is a real contender.
-    from agvviz.viz.run_logger import GHOST_MAX_AMBIGUITY_RATIO
+    from agvviz.viz.log_uncertainty import GHOST_MAX_AMBIGUITY_RATIO
 
     contenders = [f for f in frames if f.ambiguity_ratio is not None and f.ambiguity_ratio < GHOST_MAX_AMBIGUITY_RATIO
                   and f.T_world_agv_ghost is not None]

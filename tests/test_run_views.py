@@ -19,13 +19,9 @@ from agvviz.geometry.camera import PinholeCamera
 from agvviz.model.frames import REJECT_NO_MARKER, REJECT_REPROJECTION, FrameResult, LmIteration, MarkerObservation
 from agvviz.viz import paths
 from agvviz.viz.readback import _rows, read_rrd, scalar_series, text_document, document_json, transforms
-from agvviz.viz.run_logger import (
-    FLUSH_EVERY_FRAMES,
-    GHOST_MAX_AMBIGUITY_RATIO,
-    ZOOM_MIN_CROP_PX,
-    ZOOM_SIDE_PX,
-    RunLogger,
-)
+from agvviz.viz.log_frames import ZOOM_MIN_CROP_PX, ZOOM_SIDE_PX
+from agvviz.viz.log_uncertainty import GHOST_MAX_AMBIGUITY_RATIO
+from agvviz.viz.run_logger import FLUSH_EVERY_FRAMES, RunLogger
 
 CAM = "front"
 T0_NS = 1_700_000_000_000_000_000

@@ -1,5 +1,5 @@
 """The trials stage (agvviz.replay.studies.monte_carlo) on a tiny p4p_monte_carlo recording, its sink
-(agvviz.viz.trials_logger) and the kind-aware summary table (agvviz.evaluation.summary_table)."""
+(agvviz.viz.log_studies) and the kind-aware summary table (agvviz.evaluation.summary_table)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,8 @@ from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document
 from agvviz.viz.run_logger import RunLogger
-from agvviz.viz.trials_logger import log_trials, trials_blueprint
+from agvviz.viz.blueprints import trials_blueprint
+from agvviz.viz.log_studies import log_trials
 
 TRIALS = 3
 #: Three well-conditioned CRLB cells (tilted 30°, code ≈ 417 px, σ ≤ 1 px), one with 8 points.

@@ -13,7 +13,7 @@ from agvviz.recording.contract import inspect_recording
 from agvviz.solvers.multi_camera import RigView, refine_rig_pose
 from agvviz.viz import paths
 from agvviz.viz.readback import _rows, document_json, read_rrd, scalar_series, text_logs
-from agvviz.viz.uwb_logger import NO_CAMERA
+from agvviz.viz.log_uwb import NO_CAMERA
 
 # 3 s at 5 Hz (15 time stamps × 4 cameras), cameras blocked from 1.0 s to 2.0 s: recorded and
 # replayed once per session by conftest.uwb_room_small_run (test_fusion_views uses it too).

@@ -40,7 +40,8 @@ from agvviz.viz.readback import (
     text_document,
     text_logs,
 )
-from agvviz.viz.run_logger import RunLogError, RunLogger
+from agvviz.viz.log_frames import RunLogError
+from agvviz.viz.run_logger import RunLogger
 
 N_FRAMES = 20
 CAM = "front"

@@ -133,7 +133,7 @@ def default_paths(recording: Path, out: Path | None) -> dict[str, Path]:
 
 
 def write_outputs(result: AuditResult, paths: dict[str, Path], which: str = "flagged") -> dict[str, Path]:
-    """Write the ``.rrd`` (:mod:`agvviz.viz.audit_logger`), the corrected marker map (YAML, the
+    """Write the ``.rrd`` (:mod:`agvviz.viz.log_audit`), the corrected marker map (YAML, the
     ``which`` markers moved, :func:`agvviz.evaluation.audit.report.corrected_marker_map`) and the extrinsic
     option file (one ``CAM=x,y,z,qx,qy,qz,qw`` line per camera: the estimate for a flagged camera,
     the recorded value otherwise), each atomically and never over an input."""
@@ -141,13 +141,13 @@ def write_outputs(result: AuditResult, paths: dict[str, Path], which: str = "fla
 
     from agvviz.recording import outputs
     from agvviz.evaluation.audit import report
-    from agvviz.viz.audit_logger import write_audit_rrd
+    from agvviz.viz.log_audit import write_audit_rrd
 
     inputs = [result.recording] + (sorted(result.recording.iterdir()) if result.recording.is_dir() else [])
     written = {}
     for key in ("rrd", "markers", "extrinsic"):
         outputs.prepare_output(paths[key], inputs=inputs)
-    written["rrd"] = write_audit_rrd(paths["rrd"], result)
+    written["rrd"] = write_audit_rrd(paths["rrd"], result, recording_key(result))
     if result.collected.marker_map is not None:
         corrected, moved = report.corrected_marker_map(result.collected.marker_map, result.estimate, which)
         header = (f"# agvviz audit of {result.recording.name}: marker map with {len(moved)} marker(s) moved to their "

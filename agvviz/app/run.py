@@ -3,7 +3,7 @@
 :func:`run_recording` checks the output, prepares the recording (:func:`agvviz.replay.run.prepare`),
 builds the manifest and the recording id, plans the detect stage and its cache, runs the replay
 graph (:func:`agvviz.replay.run.run_graph`) into the run's sinks — the ``.rrd``
-(:class:`RrdSink`, :class:`StudyRrdSink`) and the statistics
+(:class:`agvviz.viz.run_sinks.RrdSink`, :class:`~agvviz.viz.run_sinks.StudyRrdSink`) and the statistics
 (:class:`agvviz.evaluation.summary.RunStatistics`, which assembles the summary) — and turns a
 run without a usable frame into one error. It returns values and prints nothing; the CLI prints
 :meth:`RunOutcome.summary_rows`.
@@ -15,7 +15,7 @@ import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Callable
 
 import numpy as np
 
@@ -25,8 +25,6 @@ from agvviz.evaluation.summary import RunStatistics, timing
 from agvviz.recording.reader import ReadReport
 from agvviz.recording.source import require_recording_path
 from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, image_role
-from agvviz.replay.correct import CorrectionSettings
-from agvviz.replay.fuse import FrameSetResult
 from agvviz.replay.graph import STUDY_CNOEM, STUDY_MONTE_CARLO, Composition
 from agvviz.replay.run import (
     UNUSABLE_REJECTIONS,
@@ -40,19 +38,10 @@ from agvviz.replay.run import (
     run_warnings,
     unusable_run_error,
 )
-from agvviz.replay.sinks import FanOut, NullSink
+from agvviz.replay.sinks import FanOut
 from agvviz.settings import RunSettings, as_dict, inapplicable, without
-from agvviz.viz.correction_logger import CorrectionLogger, correction_blueprint
 from agvviz.viz.run_logger import RunLogger
-from agvviz.viz.uwb_blueprint import uwb_blueprint
-from agvviz.viz.uwb_logger import FusionLogger
-
-#: Every this many frames the ``.rrd`` stream is flushed (waiting until Rerun has written what
-#: was logged). Without it Rerun's file sink queues data faster than it writes, and a run's
-#: peak memory grows with its length (measured: 2000 frames of images alone 274 MiB against
-#: 203 MiB for 200; flushed every 20 frames, 206 against 211).
-RRD_FLUSH_EVERY_FRAMES = 25  # not RunLogger.FLUSH_EVERY_FRAMES: that batches columns, this waits for the file
-
+from agvviz.viz.run_sinks import RrdSink, StudyRrdSink
 
 @dataclass
 class RunOutcome:
@@ -89,95 +78,6 @@ def _markers_from_map(marker_map: dict) -> list[tuple[str, np.ndarray]]:
         if corners.shape == (4, 3) and np.all(np.isfinite(corners)):
             markers.append((str(m.get("id")), corners))
     return markers
-
-
-class RrdSink(NullSink):
-    """A camera, UWB or correction run's ``.rrd``: cameras once calibration and extrinsic are
-    known, every frame, UWB fusion (:class:`~agvviz.viz.uwb_logger.FusionLogger`), correction
-    steps (:class:`~agvviz.viz.correction_logger.CorrectionLogger`), and at :meth:`close` the
-    layout that fits the run's kind."""
-
-    def __init__(self, logger: RunLogger, settings: RunSettings):
-        self.logger = logger
-        self.settings = settings
-        self.cameras: dict = {}  # the latest snapshot (the correction logger reads it)
-        self.frames_scored = 0
-        self.fusion_logger = FusionLogger(logger.stream, recording_start_ns=logger.recording_start_ns)
-        self.correction_logger = (
-            CorrectionLogger(
-                logger.stream, recording_start_ns=logger.recording_start_ns, cameras=self.cameras,
-                max_reproj_px=settings.max_reproj_px, max_position_sigma_m=CorrectionSettings.max_position_sigma_m,
-            )
-            if settings.correction != "none" else None
-        )
-        self._cameras_logged: set[str] = set()
-
-    def cameras_changed(self, cameras: Mapping) -> None:
-        """Log each camera once both its calibration and its extrinsic are known."""
-        self.cameras.clear()
-        self.cameras.update(cameras)
-        for cam_name, cam in cameras.items():
-            if cam.camera is None or cam_name in self._cameras_logged:
-                continue
-            if cam.T_agv_cam is not None:
-                self.logger.log_camera_static(cam_name, cam.camera, cam.T_agv_cam)
-            elif cam.T_world_cam is not None:
-                self.logger.log_fixed_camera_static(cam_name, cam.camera, cam.T_world_cam)
-            else:
-                continue
-            self._cameras_logged.add(cam_name)
-
-    def frame(self, frame) -> None:
-        self.logger.log_frame(frame)
-        self._scored()
-
-    def fused(self, item, uwb) -> None:
-        if isinstance(item, FrameSetResult):
-            self.logger.log_frame(item.scored)
-            for other in item.frames:
-                if other is not item.scored:
-                    self.logger.log_camera_view(other)
-            self._scored()
-        if uwb is not None:
-            if not self.fusion_logger.anchor_ids:
-                self.fusion_logger.log_anchors(uwb.anchors_m, uwb.tag_z_m, list(self.cameras))
-            self.fusion_logger.log(item)
-
-    def corrected(self, step) -> None:
-        self.correction_logger.log(step)
-
-    def _scored(self) -> None:
-        self.frames_scored += 1
-        if self.frames_scored % RRD_FLUSH_EVERY_FRAMES == 0:
-            self.logger.stream.flush()  # bounded memory: see RRD_FLUSH_EVERY_FRAMES
-
-    def finished(self, outcome) -> None:
-        """The layout that fits the run's kind (shipped when the logger closes)."""
-        if outcome.has_uwb:
-            fixed = {name for name, cam in self.cameras.items() if cam.T_agv_cam is None}
-            self.logger.blueprint = uwb_blueprint(
-                self.logger.cam_names, fixed, self.fusion_logger.anchor_ids,
-                zoom_cams=self.logger.zoom_cams, error_range_mm=self.fusion_logger.error_range_mm(),
-            )
-        if self.correction_logger is not None:
-            self.logger.blueprint = correction_blueprint(sorted(self.cameras))
-
-
-class StudyRrdSink(NullSink):
-    """A study run's ``.rrd``: its error series, report and layout."""
-
-    def __init__(self, logger: RunLogger, study: str):
-        from agvviz.viz.trials_logger import cnoem_trials_blueprint, log_cnoem_trials, log_trials, trials_blueprint
-
-        self.logger = logger
-        self._log, self._blueprint = {
-            STUDY_MONTE_CARLO: (log_trials, trials_blueprint),
-            STUDY_CNOEM: (log_cnoem_trials, cnoem_trials_blueprint),
-        }[study]
-
-    def study(self, outcome) -> None:
-        self._log(self.logger.stream, outcome)
-        self.logger.blueprint = self._blueprint(outcome)
 
 
 def _run_study(
@@ -244,7 +144,7 @@ def run_recording(
     ``error_budget`` (an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this recording
     under these settings, from :func:`agvviz.evaluation.error_budget.error_budget`) goes into
     the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
-    in the ``.rrd`` (:mod:`agvviz.viz.budget_logger`), with a layout that shows them.
+    in the ``.rrd`` (:mod:`agvviz.viz.log_budget`), with a layout that shows them.
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":

@@ -196,7 +196,7 @@ def budget(
 
     `agvviz run RECORDING --budget` puts the same budget into the run's summary and .rrd.
     """
-    from agvviz.viz.budget_logger import write_budget_rrd
+    from agvviz.viz.log_budget import write_budget_rrd
 
     settings = apply_overrides(RunSettings(), list(set_))
     out = out or Path("runs") / f"{recording.stem}-budget.rrd"

@@ -2,7 +2,7 @@
 
 Produced by :class:`agvviz.replay.correct.CorrectionCycle` and
 :class:`agvviz.replay.correct.CorrectionReplay`, read by the correction logger
-(:mod:`agvviz.viz.correction_logger`) and the run statistics. Frozen: each is built complete.
+(:mod:`agvviz.viz.log_correction`) and the run statistics. Frozen: each is built complete.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The fuse stage's values (paper 003): a time stamp's camera fix, one UWB range, one UWB fix.
 
 Produced by :class:`agvviz.replay.fuse.FusionReplay` (and :func:`agvviz.replay.multicam.select_camera_fix`
-for :class:`CameraSelection`), read by the UWB logger (:mod:`agvviz.viz.uwb_logger`) and the
+for :class:`CameraSelection`), read by the UWB logger (:mod:`agvviz.viz.log_uwb`) and the
 fusion statistics (:mod:`agvviz.evaluation.fusion_summary`). Frozen: each is built complete.
 """
 

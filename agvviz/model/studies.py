@@ -10,8 +10,8 @@ Two study kinds, each a recording without camera images that a run solves trial 
   :class:`CnoemCellResult` per cell, :class:`CnoemSummary` over cells,
   :class:`CnoemTrialsOutcome` for the run.
 
-Read by the study logger (:mod:`agvviz.viz.trials_logger`), the study reports
-(:mod:`agvviz.viz.monte_carlo_report`, :mod:`agvviz.viz.cnoem_report`) and the benches.
+Read by the study logger (:mod:`agvviz.viz.log_studies`), the study reports
+(the same module's report writers) and the benches.
 Frozen: each is built complete.
 """
 

@@ -42,42 +42,14 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 from agvviz.viz import paths
+from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_blueprint
+from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
 from agvviz.viz.readback import read_rrd
 from agvviz.viz.rrd_file import AtomicRrd
-from agvviz.viz.run_logger import (
-    COLOR_DETECTED,
-    COLOR_TRUTH,
-    DETECTED_RADIUS,
-    REPROJECTED_RADIUS,
-)
+from agvviz.viz.style import COLOR_DETECTED, COLOR_TRUTH, color_of
 
-IMAGE_ROOT = "image"
-ERRORS_ROOT = "errors"
-DELTA_ROOT = "delta"
-ERROR_VECTOR_ROOT = "world/error"
-ERROR_PATH_ROOT = "world/error_path"
-REPORT = "compare/report"
-TRUTH_POSE = "world/agv/truth"
-TRUTH_TRAJECTORY = "world/trajectory/truth"
-
-#: Per-frame quantities drawn, with their axis label (the unit is part of the key).
-ERROR_LABELS = {
-    "position_mm": "position error [mm]",
-    "heading_deg": "heading error [deg]",
-    "pitch_deg": "pitch error [deg]",
-    "roll_deg": "roll error [deg]",
-    "reproj_px": "reprojection RMS [px]",
-}
-#: Run colours in order, with their names for view titles. The first two (a diff's A and B)
-#: stand out from the truth green, the blue markers and the white codes of the images.
-PALETTE = (
-    (255, 140, 0), (255, 0, 200), (30, 144, 255), (240, 220, 60),
-    (170, 110, 255), (0, 200, 180), (230, 60, 60), (160, 230, 120),
-)
-PALETTE_NAMES = ("orange", "magenta", "blue", "yellow", "violet", "teal", "red", "light green")
 #: The per-frame Δ series and its zero line.
 COLOR_DELTA = (235, 235, 235)
 COLOR_ZERO = (130, 130, 130)
@@ -135,14 +107,6 @@ class OverlayTruth:
     frames: np.ndarray
     time_ns: np.ndarray
     T_world_agv: np.ndarray
-
-
-def color_of(index: int) -> tuple[int, int, int]:
-    return PALETTE[index % len(PALETTE)]
-
-
-def color_name(index: int) -> str:
-    return PALETTE_NAMES[index % len(PALETTE_NAMES)]
 
 
 @dataclass(frozen=True)
@@ -224,11 +188,6 @@ def error_magnification(error_vectors_m: list[np.ndarray], target_m: float = ERR
     return step * decade
 
 
-def format_magnification(factor: float) -> str:
-    """``200.0`` → ``"×200"``."""
-    return f"×{factor:g}"
-
-
 def _send_error_vectors(
     rec: rr.RecordingStream, clock: _Clock, run: OverlayRun, index: int, magnification: float
 ) -> None:
@@ -237,7 +196,7 @@ def _send_error_vectors(
     rows, errors_m = position_errors_m(run)
     if len(rows) == 0:
         return
-    entity = f"{ERROR_VECTOR_ROOT}/{run.key}"
+    entity = paths.overlay_error_vector(run.key)
     rec.send_columns(
         entity,
         indexes=clock.indexes(run.frames[rows], run.time_ns[rows]),
@@ -253,19 +212,19 @@ def _send_error_vectors(
     )
     # The name at the arrow's tip: the runs' arrows share their origin, their tips differ.
     rec.send_columns(
-        f"{entity}/tip",
+        paths.overlay_error_tip(run.key),
         indexes=clock.indexes(run.frames[rows], run.time_ns[rows]),
         columns=rr.Points3D.columns(positions=run.T_truth[rows, :3, 3] + errors_m * magnification),
     )
     rec.log(
-        f"{entity}/tip",
+        paths.overlay_error_tip(run.key),
         rr.Points3D.from_fields(
             colors=color_of(index), radii=rr.Radius.ui_points(1.0), labels=[name], show_labels=True
         ),
         static=True,
     )
     rec.log(
-        f"{ERROR_PATH_ROOT}/{run.key}",
+        paths.overlay_error_path(run.key),
         rr.LineStrips3D([run.T_truth[rows, :3, 3] + errors_m * magnification], colors=color_of(index),
                         radii=rr.Radius.ui_points(1.0), labels=[name], show_labels=False),
         static=True,
@@ -291,111 +250,6 @@ def _check(runs: list[OverlayRun]) -> None:
             raise OverlayError(f"run {run.key}: unknown error series {sorted(unknown)}; known: {sorted(ERROR_LABELS)}")
 
 
-def delta_view_name(key: str) -> str:
-    """Title of a Δ plot, with its sign convention: ``Δ |position error| = B − A [mm];
-    positive = B worse``."""
-    quantity, unit = ERROR_LABELS[key].split(" [")
-    return f"Δ |{quantity}| = B − A [{unit}: positive = B worse"
-
-
-#: Eye of the close-up, in the truth AGV's body frame (the view's origin, so it moves and turns
-#: with the AGV): about 2 m away, behind-left and above.
-FOLLOW_EYE_POSITION_M = (-0.9, -1.3, 1.1)
-
-
-def _eye(truth: OverlayTruth | None) -> rrb.EyeControls3D | None:
-    """A view from the south-west, above, that frames the whole truth trajectory."""
-    if truth is None or len(truth.T_world_agv) == 0:
-        return None
-    positions = truth.T_world_agv[:, :3, 3]
-    low, high = positions.min(axis=0), positions.max(axis=0)
-    center = (low + high) / 2.0
-    extent = max(float(np.max(high - low)), 2.0)
-    return rrb.EyeControls3D(
-        position=center + np.array([-0.35, -0.9, 0.9]) * extent,
-        look_target=center,
-        eye_up=(0.0, 0.0, 1.0),
-    )
-
-
-def overlay_blueprint(
-    runs: list[OverlayRun],
-    cam_names: list[str],
-    deltas: list[str],
-    truth: OverlayTruth | None = None,
-    magnification: float | None = None,
-    fixed_cams: set[str] | frozenset[str] = frozenset(),
-) -> rrb.Blueprint:
-    """Default layout: 3D trajectories (with each run's magnified error arrows when
-    ``magnification`` is given, and a close-up that follows the truth AGV) and the image with
-    every run's corners on top; error plots of all runs (and the per-frame differences, with a
-    zero line) with the comparison report below. Opens paused, on the ``frame`` timeline.
-    ``fixed_cams``: cameras fixed in the world (wall cameras), named so in their views."""
-    if len(runs) <= 2:
-        colors = ", ".join(f"{r.label} {color_name(i)}" for i, r in enumerate(runs))
-    else:
-        colors = "each run in its colour of the plot legends"
-    views = [rrb.Spatial3DView(origin="world", name=f"world: truth green, {colors}", eye_controls=_eye(truth))]
-    if magnification is not None:
-        factor = format_magnification(magnification)
-        arrows = ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
-        views = [
-            rrb.Spatial3DView(
-                origin="world", name=f"whole run, errors {factor}: truth green, {arrows}", eye_controls=_eye(truth),
-                # The runs' own paths lie on the truth; their paths with errors magnified show the difference.
-                contents=[
-                    "+ $origin/**", *[f"- /world/trajectory/{r.key}" for r in runs], f"- /{ERROR_VECTOR_ROOT}/**"
-                ],
-            ),
-            # Origin on the truth AGV: the view follows it (the world moves around it).
-            rrb.Spatial3DView(
-                origin=TRUTH_POSE, name=f"at the AGV: error {factor} = (estimate − truth) {factor}, {arrows}",
-                eye_controls=rrb.EyeControls3D(
-                    position=FOLLOW_EYE_POSITION_M, look_target=(0.0, 0.0, 0.0), eye_up=(0.0, 0.0, 1.0)
-                ),
-                contents=[f"+ /{paths.WORLD}/**", *[f"- /world/agv/{r.key}/marker" for r in runs]],
-            ),
-        ]
-    if cam_names:
-        images = [
-            rrb.Spatial2DView(
-                origin=f"{IMAGE_ROOT}/{cam}",
-                name=f"{'wall camera' if cam in fixed_cams else 'camera'} {cam}: detected cyan, reprojected " + (
-                    ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
-                    if len(runs) <= 2 else "in each run's colour"),
-            )
-            for cam in cam_names
-        ]
-        views.append(images[0] if len(images) == 1 else rrb.Tabs(*images))
-    shares = {1: [1.0], 2: [0.5, 0.5], 3: [0.4, 0.3, 0.3]}[len(views)]
-    top = views[0] if len(views) == 1 else rrb.Horizontal(*views, column_shares=shares)
-    legend = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.RightTop)
-    error_views = [
-        rrb.TimeSeriesView(origin=f"{ERRORS_ROOT}/{key}", name=label, plot_legend=legend)
-        for key, label in ERROR_LABELS.items()
-    ]
-    if deltas:  # a diff: each run's errors, and their difference B − A
-        plots = [
-            rrb.Tabs(*error_views),
-            rrb.Tabs(*[
-                rrb.TimeSeriesView(origin=f"{DELTA_ROOT}/{key}", name=delta_view_name(key), plot_legend=legend)
-                for key in deltas
-            ]),
-        ]
-        shares = [0.3, 0.3, 0.4]
-    else:
-        plots = [error_views[0], rrb.Tabs(*error_views[1:])]
-        shares = [0.22, 0.22, 0.56]
-    bottom = rrb.Horizontal(*plots, rrb.TextDocumentView(origin=REPORT, name="comparison"), column_shares=shares)
-    return rrb.Blueprint(
-        rrb.Vertical(top, bottom, row_shares=[0.58, 0.42]),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_FRAME, play_state="paused"),
-        auto_views=False,
-    )
-
-
 def write_overlay(
     out_path: str | os.PathLike,
     *,
@@ -419,7 +273,7 @@ def write_overlay(
     recording_name : str
         Shown in the viewer, e.g. ``diff qr_floor-lm vs qr_floor-p4p``.
     runs : list of OverlayRun
-        Drawn in this order and colour (:data:`PALETTE`).
+        Drawn in this order and colour (:data:`agvviz.viz.style.PALETTE`).
     truth : OverlayTruth, optional
     source : path, optional
         Run ``.rrd`` (the first run's) whose marker map is copied, and the images and
@@ -457,24 +311,24 @@ def write_overlay(
             _copy_from_source(rec, store, cam_names, fixed_cams)
             rrd.check()
         if truth is not None:
-            _send_transforms(rec, clock, TRUTH_POSE, truth.frames, truth.time_ns, truth.T_world_agv)
+            _send_transforms(rec, clock, paths.AGV_TRUTH, truth.frames, truth.time_ns, truth.T_world_agv)
         for index, run in enumerate(runs):
             solved = np.all(np.isfinite(run.T_est.reshape(len(run.T_est), 16)), axis=1)
             _send_transforms(
-                rec, clock, f"world/agv/{run.key}", run.frames[solved], run.time_ns[solved], run.T_est[solved]
+                rec, clock, paths.overlay_agv(run.key), run.frames[solved], run.time_ns[solved], run.T_est[solved]
             )
             if magnification is not None:
                 _send_error_vectors(rec, clock, run, index, magnification)
             for key, values in run.errors.items():
-                _send_scalars(rec, clock, f"{ERRORS_ROOT}/{key}/{run.key}", run.frames, run.time_ns, values)
+                _send_scalars(rec, clock, paths.overlay_error(key, run.key), run.frames, run.time_ns, values)
             if store is not None:
                 for cam in cam_names:
                     _send_corners(
-                        rec, clock, f"{IMAGE_ROOT}/{cam}/{run.key}", run.frames, run.time_ns,
+                        rec, clock, paths.overlay_reprojected(cam, run.key), run.frames, run.time_ns,
                         run.reprojected.get(cam, {}), color_of(index),
                     )
         for key, (frames, time_ns, values) in deltas.items():
-            _send_scalars(rec, clock, f"{DELTA_ROOT}/{key}", frames, time_ns, values)
+            _send_scalars(rec, clock, paths.overlay_delta(key), frames, time_ns, values)
             _send_zero_line(rec, clock, key, frames, time_ns)
         rrd.commit(overlay_blueprint(
             runs, cam_names if store is not None else [], list(deltas), truth, magnification, fixed_cams
@@ -487,7 +341,7 @@ def _send_zero_line(rec: rr.RecordingStream, clock: _Clock, key: str, frames, ti
     if len(frames) == 0:
         return
     ends = [0, len(frames) - 1]
-    _send_scalars(rec, clock, f"{DELTA_ROOT}/{key}/zero", np.asarray(frames)[ends], np.asarray(time_ns)[ends],
+    _send_scalars(rec, clock, paths.overlay_delta_zero(key), np.asarray(frames)[ends], np.asarray(time_ns)[ends],
                   np.zeros(2))
 
 
@@ -514,18 +368,18 @@ def _log_static(
     deltas: list[str],
 ) -> None:
     rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    rec.log(REPORT, rr.TextDocument(report_markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+    rec.log(paths.COMPARE_REPORT, rr.TextDocument(report_markdown, media_type=rr.MediaType.MARKDOWN), static=True)
     if truth is not None and len(truth.T_world_agv):
         rec.log(
-            TRUTH_TRAJECTORY,
+            paths.TRAJECTORY_TRUTH,
             # Wider than the runs' lines, so it shows as a green rim where they lie on it.
             rr.LineStrips3D([truth.T_world_agv[:, :3, 3]], colors=COLOR_TRUTH, radii=rr.Radius.ui_points(4.0),
                             labels=["truth"], show_labels=False),
             static=True,
         )
-        rec.log(TRUTH_POSE, rr.TransformAxes3D(AXIS_LENGTH_M), static=True)
+        rec.log(paths.AGV_TRUTH, rr.TransformAxes3D(AXIS_LENGTH_M), static=True)
         rec.log(
-            f"{TRUTH_POSE}/body",
+            paths.AGV_TRUTH_BODY,
             rr.Boxes3D(half_sizes=[TRUTH_BODY_HALF_SIZES_M], centers=[(0.0, 0.0, 0.1)], colors=COLOR_TRUTH,
                        radii=rr.Radius.ui_points(1.0), fill_mode="majorwireframe"),  # arrows show inside
             static=True,
@@ -535,32 +389,32 @@ def _log_static(
         solved = np.all(np.isfinite(run.T_est.reshape(len(run.T_est), 16)), axis=1)
         if np.any(solved):
             rec.log(
-                f"world/trajectory/{run.key}",
+                paths.overlay_trajectory(run.key),
                 rr.LineStrips3D([run.T_est[solved, :3, 3]], colors=color, radii=rr.Radius.ui_points(1.5),
                                 labels=[run.label], show_labels=False),
                 static=True,
             )
-        rec.log(f"world/agv/{run.key}", rr.TransformAxes3D(AXIS_LENGTH_M), static=True)
+        rec.log(paths.overlay_agv(run.key), rr.TransformAxes3D(AXIS_LENGTH_M), static=True)
         rec.log(
-            f"world/agv/{run.key}/marker",
+            paths.overlay_agv_marker(run.key),
             rr.Points3D([(0.0, 0.0, 0.25)], colors=color, radii=rr.Radius.ui_points(6.0),
                         labels=[run.label], show_labels=False),
             static=True,
         )
         for key in ERROR_LABELS:
             rec.log(
-                f"{ERRORS_ROOT}/{key}/{run.key}",
+                paths.overlay_error(key, run.key),
                 rr.SeriesLines(names=run.label, colors=color, widths=1.5),
                 static=True,
             )
     for key in deltas:
         rec.log(
-            f"{DELTA_ROOT}/{key}",
+            paths.overlay_delta(key),
             rr.SeriesLines(names="Δ = B − A (positive: B worse)", colors=COLOR_DELTA, widths=1.5),
             static=True,
         )
         rec.log(
-            f"{DELTA_ROOT}/{key}/zero",
+            paths.overlay_delta_zero(key),
             rr.SeriesLines(names="0 = no difference", colors=COLOR_ZERO, widths=1.0),
             static=True,
         )
@@ -577,16 +431,16 @@ def _copy_from_source(
         rec.send_chunks(
             store.stream()
             .filter(content=f"/{paths.image(cam, cam in fixed_cams)}", is_static=False)
-            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{IMAGE_ROOT}/{cam}"))
+            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_image(cam)}"))
         )
         rec.send_chunks(
             store.stream()
             .filter(content=f"/{paths.detected(cam, cam in fixed_cams)}", is_static=False,
                     components="Points2D:positions")
-            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{IMAGE_ROOT}/{cam}/detected"))
+            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_detected(cam)}"))
         )
         rec.log(
-            f"{IMAGE_ROOT}/{cam}/detected",
+            paths.overlay_detected(cam),
             rr.Points2D.from_fields(colors=COLOR_DETECTED, radii=DETECTED_RADIUS, draw_order=10.0),
             static=True,
         )

@@ -1,4 +1,7 @@
-"""Entity paths and timeline names of a run ``.rrd`` — one tree for every run.
+"""Entity paths and timeline names of every ``.rrd`` agvviz writes — the only module that spells them.
+
+Every logger and every blueprint (:mod:`agvviz.viz.blueprints`) takes its entity paths from here
+(``tests/test_viz_paths.py`` fails on an entity-path literal anywhere else in ``agvviz/``).
 
 Every run uses the same tree so that two runs overlay in one viewer and diff column by
 column. Transforms in Rerun are hierarchical, so the truth pose and the camera-pipeline
@@ -38,6 +41,8 @@ the camera is).
 """
 
 from __future__ import annotations
+
+import re
 
 from agvviz.conventions import camera_frame
 
@@ -139,6 +144,21 @@ def zoom(cam_name: str) -> str:
     return f"{ZOOM}/{camera_frame(cam_name)}"
 
 
+def zoom_image(cam_name: str) -> str:
+    """The crop around ``cam_name``'s smallest code (EncodedImage)."""
+    return f"{zoom(cam_name)}/image"
+
+
+def zoom_detected(cam_name: str) -> str:
+    """The detected corners in the crop's pixels (Points2D)."""
+    return f"{zoom_image(cam_name)}/detected"
+
+
+def zoom_reprojected(cam_name: str) -> str:
+    """The reprojected corners in the crop's pixels (Points2D)."""
+    return f"{zoom_image(cam_name)}/reprojected"
+
+
 # -- UWB and camera–UWB fusion (paper 003) ----------------------------------------------------
 #: World-fixed cameras: ``world/cameras/cam_<name>`` (Transform3D T_world_cam + Pinhole, static).
 FIXED_CAMERAS = "world/cameras"
@@ -157,20 +177,29 @@ FUSION_CAMERA_USED = "fusion/camera_used"  # StateChange: camera used ('none': n
 UWB_RANGE_KINDS = ("measured", "predicted_truth", "predicted_estimate", "gated")
 
 
+UWB_RANGE = "uwb/range"
+UWB_GATE = "uwb/gate"
+
+
+def uwb_ranges(anchor_id: str) -> str:
+    """``uwb/range/<anchor>``: parent of the range series of one anchor (:func:`uwb_range`)."""
+    return f"{UWB_RANGE}/{anchor_id}"
+
+
 def uwb_range(anchor_id: str, kind: str) -> str:
     """``uwb/range/<anchor>/<kind>`` Scalars, kind one of :data:`UWB_RANGE_KINDS` (m); "gated"
     repeats the measured range of every range a gate (residual or Kalman) removed."""
-    return f"uwb/range/{anchor_id}/{kind}"
+    return f"{uwb_ranges(anchor_id)}/{kind}"
 
 
 def uwb_gate(anchor_id: str) -> str:
     """``uwb/gate/<anchor>`` Scalars per UWB fix: 1 the range was used, 0 the gate removed it."""
-    return f"uwb/gate/{anchor_id}"
+    return f"{UWB_GATE}/{anchor_id}"
 
 
 # -- pose uncertainty and planar ambiguity ----------------------------------------------------
 #: Ellipsoids3D under the estimated AGV pose (AGV frame): the 3σ position covariance
-#: magnified by a power of ten chosen per run (``run_logger.COV_DRAWN_HALF_AXIS_M``; the label
+#: magnified by a power of ten chosen per run (``log_uncertainty.COV_DRAWN_HALF_AXIS_M``; the label
 #: gives it), drawn above the body; cleared when none.
 AGV_CAMERA_POSITION_COV = "world/agv/camera/position_cov"
 #: Transform3D T_world_agv of the rejected ambiguity candidate (the ghost) + its body box.
@@ -184,7 +213,7 @@ SOLVER_AMBIGUITY_RATIO = "solver/ambiguity_ratio"  # Scalars: IPPE rms(other)/rm
 EVENTS_FLIPS = "events/flips"  # TextLog (WARN): frames whose pose flipped branch
 
 
-# -- agvviz audit (agvviz/viz/audit_logger.py) ------------------------------------------------------
+# -- agvviz audit (agvviz/viz/log_audit.py) ---------------------------------------------------------
 #: ``agvviz audit``'s .rrd: the report, the map as recorded and as estimated, the solved vehicle
 #: path and camera mounting, and per-marker corner residuals (timelines ``frame`` and ``time``).
 AUDIT_REPORT = "audit/report"  # TextDocument (static): the audit table as markdown
@@ -197,8 +226,9 @@ AUDIT_TRAJECTORY_START = "world/audit/trajectory/start"  # LineStrips3D (static)
 AUDIT_TRAJECTORY_TRUTH = "world/audit/trajectory/truth"  # LineStrips3D (static): ground truth, when recorded
 AUDIT_AGV = "world/audit/agv"  # Transform3D per frame: the solved vehicle pose
 AUDIT_RESIDUALS = "audit/residuals"  # parent of the per-marker corner residual series
-AUDIT_ODOMETRY_XY_MM = "audit/odometry/xy_mm"  # Scalars per frame: odometry step residual (mm)
-AUDIT_ODOMETRY_HEADING_DEG = "audit/odometry/heading_deg"  # Scalars per frame: heading step residual (deg)
+AUDIT_ODOMETRY = "audit/odometry"  # parent of the odometry step residual series
+AUDIT_ODOMETRY_XY_MM = f"{AUDIT_ODOMETRY}/xy_mm"  # Scalars per frame: odometry step residual (mm)
+AUDIT_ODOMETRY_HEADING_DEG = f"{AUDIT_ODOMETRY}/heading_deg"  # Scalars per frame: heading step residual (deg)
 
 
 def audit_camera(cam_name: str, which: str) -> str:
@@ -207,7 +237,194 @@ def audit_camera(cam_name: str, which: str) -> str:
     return f"{AUDIT_AGV}/{camera_frame(cam_name)}/{which}"
 
 
+def audit_camera_label(cam_name: str, which: str) -> str:
+    """``world/audit/agv/cam_<name>/<which>/label``: Points3D (static), the camera's labelled dot."""
+    return f"{audit_camera(cam_name, which)}/label"
+
+
 def audit_marker_residual(marker_id: str) -> str:
     """``audit/residuals/<marker>``: Scalars per frame, RMS corner residual (px) of the marker."""
     safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in str(marker_id))
     return f"{AUDIT_RESIDUALS}/{safe}"
+
+
+# -- paper 002's correction cycle (agvviz/viz/log_correction.py) ----------------------------------
+#: CNOEM solver iteration (sequence timeline, only on the window's iteration columns).
+TIMELINE_CNOEM_ITER = "cnoem_iter"
+CORRECTION_WORLD = "world/correction"  # parent of the correction run's 3D entities
+#: LineStrips3D: true, raw navigation and corrected navigation trajectories.
+CORRECTION_TRAJECTORY_TRUTH = f"{CORRECTION_WORLD}/trajectory/truth"
+CORRECTION_TRAJECTORY_NAV = f"{CORRECTION_WORLD}/trajectory/nav"
+CORRECTION_TRAJECTORY_CORRECTED = f"{CORRECTION_WORLD}/trajectory/corrected"
+#: Transform3D T_world_agv of the current poses, each with a ``body`` box (:func:`correction_body`).
+CORRECTION_AGV_TRUTH = f"{CORRECTION_WORLD}/agv/truth"
+CORRECTION_AGV_NAV = f"{CORRECTION_WORLD}/agv/nav"
+CORRECTION_AGV_CORRECTED = f"{CORRECTION_WORLD}/agv/corrected"
+CORRECTION_WINDOW_CAMERAS = f"{CORRECTION_WORLD}/window/cameras"  # Points3D: the last window's cameras
+CORRECTION_WINDOW_RAYS = f"{CORRECTION_WORLD}/window/rays"  # LineStrips3D: the closing frame's sight lines
+CORRECTION_COST = "correction/cost"  # Scalars per iteration (cnoem_iter)
+CORRECTION_REPROJ_RMS_PX = "correction/reproj_rms_px"  # Scalars per iteration (cnoem_iter)
+CORRECTION_COST_PER_ITERATION = "correction/cost_per_iteration"  # BarChart of the last cycle
+CORRECTION_REPROJ_RMS_PX_PER_ITERATION = "correction/reproj_rms_px_per_iteration"  # BarChart of the last cycle
+CORRECTION_CYCLE_REPROJ_RMS_PX = "correction/cycle/reproj_rms_px"  # Scalars per closed cycle
+CORRECTION_CYCLE_MAX_REPROJ_PX = "correction/cycle/max_reproj_px"  # Scalars per frame: the gate's limit
+CORRECTION_CYCLE_POSITION_SIGMA_MM = "correction/cycle/position_sigma_mm"  # Scalars per closed cycle
+CORRECTION_CYCLE_MAX_POSITION_SIGMA_MM = "correction/cycle/max_position_sigma_mm"  # Scalars per frame: the limit
+ERROR_NAV_MM = "errors/nav_position_mm"  # Scalars per frame: navigation error vs truth
+ERROR_CORRECTED_MM = "errors/corrected_position_mm"  # Scalars per frame: corrected error vs truth
+ERROR_CORRECTION_JUMP_MM = "errors/correction_jump_mm"  # Scalars per applied correction
+EVENTS_CORRECTIONS = "events/corrections"  # TextLog per closed cycle with the jump
+
+
+def correction_body(agv_entity: str) -> str:
+    """The body box under one of the correction run's vehicle poses."""
+    return f"{agv_entity}/body"
+
+
+def correction_observed(cam_name: str) -> str:
+    """Points2D: the last window's measured corners on the image of ``cam_name``."""
+    return f"{image(cam_name)}/window_observed"
+
+
+def correction_theoretical(cam_name: str) -> str:
+    """Points2D per CNOEM iteration (``cnoem_iter``): the window's solved corners."""
+    return f"{image(cam_name)}/window_theoretical"
+
+
+def correction_border(cam_name: str) -> str:
+    """Boxes2D (static): the image outline of ``cam_name``."""
+    return f"{image(cam_name)}/border"
+
+
+# -- error budget (agvviz/viz/log_budget.py) --------------------------------------------------------
+BUDGET = "budget"
+BUDGET_TABLE = f"{BUDGET}/table"  # TextDocument (static): the budget as a markdown table
+BUDGET_SHARES = f"{BUDGET}/shares_pct"  # BarChart (static): share of the position error (%)
+#: Series names of the recording's own error (every source on) and of the floor (all off).
+BUDGET_ALL_ON = "all_on"
+BUDGET_ALL_OFF = "all_off"
+
+
+def budget_series_relative(source: str, what: str = "position_error_mm") -> str:
+    """``<source>/<what>`` below :data:`BUDGET` (``/`` in a source name becomes ``_``)."""
+    return f"{source.replace('/', '_')}/{what}"
+
+
+def budget_series(source: str, what: str = "position_error_mm") -> str:
+    """``budget/<source>/<what>``: Scalars per frame, ``what`` is ``position_error_mm`` or ``delta_mm``."""
+    return f"{BUDGET}/{budget_series_relative(source, what)}"
+
+
+# -- studies: p4p Monte-Carlo and CNOEM grid (agvviz/viz/log_studies.py) ------------------------------
+#: Trial index within its cell (sequence timeline).
+TIMELINE_TRIAL = "trial"
+#: The paper cells' SNR (dB) and the CRLB cells' σ in milli-pixels (sequence timelines).
+TIMELINE_SNR_DB = "snr_db"
+TIMELINE_SIGMA_MPX = "sigma_mpx"
+#: The CNOEM grid report's cell index (sequence timeline).
+TIMELINE_CELL = "cell"
+MC_REPORT = "mc/report"  # TextDocument (static): the Monte-Carlo report
+MC_PAPER = "mc/paper"  # mc/paper/h<h>_z<z>_n<N>: the paper cells of one geometry, over snr_db
+MC_CRLB = "mc/crlb"  # mc/crlb/tilt<t>_h<h>_z<z>_n<N>: the CRLB cells of one geometry, over sigma_mpx
+MC_FIG9_11 = f"{MC_PAPER}/h0.2667_z2_n4"  # the paper cells of figures 9–11
+#: Ids of the Monte-Carlo study's paper and CRLB cells (:mod:`agvviz.replay.studies.monte_carlo_cells`).
+MC_PAPER_CELL = re.compile(r"paper_h(?P<h>[\d.]+)_z(?P<z>[\d.]+)_snr(?P<snr>\d+)_n(?P<n>\d)")
+MC_CRLB_CELL = re.compile(r"crlb_tilt(?P<tilt>[\d.]+)_h(?P<h>[\d.]+)_z(?P<z>[\d.]+)_s(?P<s>[\d.]+)_n(?P<n>\d)")
+
+
+def mc_trial_errors(cell_id: str) -> str:
+    """``mc/trials/<cell>/error_mm``: one Scalars child per solver (and ``crlb``) over ``trial``."""
+    return f"mc/trials/{cell_id}/error_mm"
+
+
+def mc_paper_group(cell_id: str) -> str | None:
+    """The group of paper cell ``cell_id`` (``mc/paper/h<h>_z<z>_n<N>``); None: not a paper cell."""
+    m = MC_PAPER_CELL.fullmatch(cell_id)
+    return f"{MC_PAPER}/h{m['h']}_z{m['z']}_n{m['n']}" if m else None
+
+
+def mc_crlb_group(cell_id: str) -> str | None:
+    """The group of CRLB cell ``cell_id`` (``mc/crlb/tilt<t>_h<h>_z<z>_n<N>``); None: not a CRLB cell."""
+    m = MC_CRLB_CELL.fullmatch(cell_id)
+    return f"{MC_CRLB}/tilt{m['tilt']}_h{m['h']}_z{m['z']}_n{m['n']}" if m else None
+
+
+CNOEM_REPORT = "cnoem/report"  # TextDocument (static): the CNOEM study report
+CNOEM_MEAN_ERROR_M = "cnoem/mean_error_m"  # Scalars per cell, one child per method
+CNOEM_RATIO_TO_IPPE_FIRST = "cnoem/ratio_to_ippe_first"  # Scalars per cell
+CNOEM_RMS_OVER_CRLB = "cnoem/rms_over_crlb"  # Scalars per cell, one child per method
+CNOEM_CRLB_M = "cnoem/crlb_m"  # Scalars per cell: the CRLB position bound (m)
+
+
+def cnoem_trial_errors(cell_id: str) -> str:
+    """``cnoem/trials/<cell>/error_m``: one Scalars child per method (and ``crlb``) over ``trial``."""
+    return f"cnoem/trials/{cell_id}/error_m"
+
+
+# -- overlay of several runs: agvviz diff / sweep (agvviz/viz/overlay.py) ----------------------------
+OVERLAY_IMAGE = "image"  # image/<cam>: the first run's image; image/<cam>/<key>: a run's reprojection
+OVERLAY_ERRORS = "errors"  # errors/<quantity>/<key>: Scalars per frame
+OVERLAY_DELTA = "delta"  # delta/<quantity>: B − A; delta/<quantity>/zero: the zero line
+OVERLAY_ERROR_VECTORS = "world/error"  # world/error/<key>: Arrows3D, the magnified position error
+OVERLAY_ERROR_PATHS = "world/error_path"  # world/error_path/<key>: LineStrips3D (static)
+COMPARE_REPORT = "compare/report"  # TextDocument (static): the comparison table
+AGV = "world/agv"
+TRAJECTORY = "world/trajectory"
+
+
+def overlay_agv(key: str) -> str:
+    """``world/agv/<key>``: Transform3D per solved frame of run ``key``."""
+    return f"{AGV}/{key}"
+
+
+def overlay_agv_marker(key: str) -> str:
+    """``world/agv/<key>/marker``: the run's position marker."""
+    return f"{overlay_agv(key)}/marker"
+
+
+def overlay_trajectory(key: str) -> str:
+    """``world/trajectory/<key>``: LineStrips3D, the whole estimated trajectory of run ``key``."""
+    return f"{TRAJECTORY}/{key}"
+
+
+def overlay_error_vector(key: str) -> str:
+    """``world/error/<key>``: Arrows3D per frame; ``<entity>/tip`` its tip (:func:`overlay_error_tip`)."""
+    return f"{OVERLAY_ERROR_VECTORS}/{key}"
+
+
+def overlay_error_tip(key: str) -> str:
+    return f"{overlay_error_vector(key)}/tip"
+
+
+def overlay_error_path(key: str) -> str:
+    return f"{OVERLAY_ERROR_PATHS}/{key}"
+
+
+def overlay_image(cam_name: str) -> str:
+    """``image/<cam>``: the first run's image of ``cam_name`` (copied)."""
+    return f"{OVERLAY_IMAGE}/{cam_name}"
+
+
+def overlay_detected(cam_name: str) -> str:
+    return f"{overlay_image(cam_name)}/detected"
+
+
+def overlay_reprojected(cam_name: str, key: str) -> str:
+    return f"{overlay_image(cam_name)}/{key}"
+
+
+def overlay_errors(quantity: str) -> str:
+    """``errors/<quantity>``: parent of every run's series of ``quantity``."""
+    return f"{OVERLAY_ERRORS}/{quantity}"
+
+
+def overlay_error(quantity: str, key: str) -> str:
+    return f"{overlay_errors(quantity)}/{key}"
+
+
+def overlay_delta(quantity: str) -> str:
+    return f"{OVERLAY_DELTA}/{quantity}"
+
+
+def overlay_delta_zero(quantity: str) -> str:
+    return f"{overlay_delta(quantity)}/zero"

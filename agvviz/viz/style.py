@@ -54,3 +54,22 @@ LEGEND = {
     COLOR_REPROJECTED: "reprojected corners",
     COLOR_REJECTED: "rejected",
 }
+
+#: The runs of an overlay (``agvviz diff``, ``sweep``) in order, with their names for view
+#: titles. The first two (a diff's A and B) stand out from the truth green, the blue markers and
+#: the white codes of the images.
+PALETTE = (
+    (255, 140, 0), (255, 0, 200), (30, 144, 255), (240, 220, 60),
+    (170, 110, 255), (0, 200, 180), (230, 60, 60), (160, 230, 120),
+)
+PALETTE_NAMES = ("orange", "magenta", "blue", "yellow", "violet", "teal", "red", "light green")
+
+
+def color_of(index: int) -> tuple[int, int, int]:
+    """The colour of an overlay's run ``index``."""
+    return PALETTE[index % len(PALETTE)]
+
+
+def color_name(index: int) -> str:
+    """The name of :func:`color_of` ``(index)`` for view titles."""
+    return PALETTE_NAMES[index % len(PALETTE_NAMES)]

@@ -1,4 +1,5 @@
-"""Write an audit (:mod:`agvviz.app.audit`) into an ``.rrd`` of its own.
+"""Write an audit (:mod:`agvviz.app.audit`) into an ``.rrd`` of its own; its layout is
+:func:`agvviz.viz.blueprints.audit_blueprint`.
 
 Entity tree (:mod:`agvviz.viz.paths`, block "agvviz audit"; timelines ``frame`` and ``time``)::
 
@@ -27,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 from agvviz.viz import paths, style
+from agvviz.viz.blueprints import audit_blueprint
 from agvviz.viz.rrd_file import AtomicRrd
 
 #: Width of flagged outlines vs the others (m).
@@ -99,7 +100,7 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
             entity = paths.audit_camera(c.cam_name, which)
             rec.log(entity, rr.Transform3D(translation=T_agv_cam[:3, 3], mat3x3=T_agv_cam[:3, :3]), static=True)
             rec.log(entity, rr.TransformAxes3D(0.3), static=True)
-            rec.log(f"{entity}/label", rr.Points3D([[0, 0, 0]], colors=color, radii=0.03, labels=[f"{c.cam_name} {which}"],
+            rec.log(paths.audit_camera_label(c.cam_name, which), rr.Points3D([[0, 0, 0]], colors=color, radii=0.03, labels=[f"{c.cam_name} {which}"],
                                                    show_labels=False), static=True)
     frames = col.frame_index
     stamps = data.stamps_ns
@@ -137,30 +138,13 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
             _send_scalars(rec, paths.AUDIT_ODOMETRY_HEADING_DEG, frames[pairs + 1], stamps[pairs + 1], r_psi)
 
 
-def audit_blueprint(result) -> rrb.Blueprint:
-    """The 3D map (recorded vs estimated) beside the report and the residual plots."""
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial3DView(origin=paths.WORLD, name="map: mapped (blue) vs estimated (red: flagged); "
-                              "path: solved (magenta), start (orange), truth (green)"),
-            rrb.Vertical(
-                rrb.TextDocumentView(origin=paths.AUDIT_REPORT, name="audit"),
-                rrb.TimeSeriesView(origin=paths.AUDIT_RESIDUALS, name="corner residual per marker (px RMS)"),
-                rrb.TimeSeriesView(origin="audit/odometry", name="odometry step residuals (mm, deg)"),
-            ),
-        ),
-        collapse_panels=True,
-    )
-
-
-def write_audit_rrd(out_path: str | os.PathLike, result) -> Path:
-    """Write ``result`` to ``out_path`` (temporary file beside it, renamed when complete)."""
-    from agvviz.app.audit import recording_key
-
+def write_audit_rrd(out_path: str | os.PathLike, result, recording_key: str) -> Path:
+    """Write ``result`` to ``out_path`` (temporary file beside it, renamed when complete);
+    ``recording_key`` (the recording's hash and the audit settings) pins the recording id."""
     inputs = [result.recording] + (sorted(result.recording.iterdir()) if result.recording.is_dir() else [])
     with AtomicRrd(
         out_path,
-        recording_id=str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-audit:{recording_key(result)}")),
+        recording_id=str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-audit:{recording_key}")),
         recording_name=f"{result.collected.recording_name} audit",
         inputs=inputs,
     ) as rrd:

@@ -1,4 +1,4 @@
-"""Log UWB ranging, UWB fixes, the camera choice and camera–UWB fusion into a run ``.rrd``.
+"""The UWB modality of a run ``.rrd``: UWB ranging, UWB fixes, the camera choice and camera–UWB fusion.
 
 Entities are in :mod:`agvviz.viz.paths` (the "UWB and camera–UWB fusion" section) and below;
 items come from :class:`agvviz.replay.fuse.FusionReplay`. Everything is stamped with
@@ -11,6 +11,8 @@ items come from :class:`agvviz.replay.fuse.FusionReplay`. Everything is stamped 
                                   compensated, Kalman), logged when it changes
 ``errors/uwb_position_mm``        Scalars: 2-D error of each UWB fix (mm)
 ``errors/fused_position_mm``      Scalars: 2-D error of each fused output (mm)
+
+The layout is :func:`agvviz.viz.blueprints.uwb_blueprint`.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import rerun as rr
 
 from agvviz.model.fusion import FrameSetResult, RangeResult, UwbFixResult
 from agvviz.viz import paths
-from agvviz.viz.run_logger import _trajectory
+from agvviz.viz.log_frames import trajectory
 from agvviz.viz.style import (
     COLOR_ANCHOR,
     COLOR_CAMERA,
@@ -178,7 +180,7 @@ class FusionLogger:
         position = fix.position_m
         rec.log(paths.AGV_UWB, rr.Transform3D(translation=[position[0], position[1], 0.0]))
         self._uwb_xyz.append(np.array([position[0], position[1], 0.0]))
-        rec.log(paths.TRAJECTORY_UWB, _trajectory(self._uwb_xyz, COLOR_UWB))
+        rec.log(paths.TRAJECTORY_UWB, trajectory(self._uwb_xyz, COLOR_UWB))
         if np.isfinite(fix.gdop):
             rec.log(paths.UWB_GDOP, rr.Scalars(float(fix.gdop)))
         if item.error_m is not None:
@@ -206,7 +208,7 @@ class FusionLogger:
         xy = step.fused.position_xy_m
         rec.log(paths.AGV_FUSED, rr.Transform3D(translation=[xy[0], xy[1], 0.0]))
         self._fused_xyz.append(np.array([xy[0], xy[1], 0.0]))
-        rec.log(paths.TRAJECTORY_FUSED, _trajectory(self._fused_xyz, COLOR_FUSED))
+        rec.log(paths.TRAJECTORY_FUSED, trajectory(self._fused_xyz, COLOR_FUSED))
         if step.fused.source != self._source:
             rec.log(paths.FUSION_SOURCE, rr.StateChange(state=step.fused.source))
             self._source = step.fused.source

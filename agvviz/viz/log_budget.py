@@ -1,4 +1,5 @@
-"""Log an error budget (:mod:`agvviz.evaluation.error_budget`) into an ``.rrd``.
+"""Log an error budget (:mod:`agvviz.evaluation.error_budget`) into an ``.rrd``; its layout is
+:func:`agvviz.viz.blueprints.budget_blueprint`.
 
 Written into a budget ``.rrd`` of its own (``agvviz budget``) or into the run's ``.rrd``
 (``agvviz run --budget``, :meth:`agvviz.viz.run_logger.RunLogger.log_error_budget`).
@@ -28,24 +29,12 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
-from agvviz.evaluation.error_budget import INTERACTION, ErrorBudget
+from agvviz.evaluation.error_budget import ErrorBudget
 from agvviz.viz import paths
+from agvviz.viz.blueprints import budget_blueprint
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.timelines import elapsed_s
-
-ROOT = "budget"
-TABLE = f"{ROOT}/table"
-SHARES = f"{ROOT}/shares_pct"
-ALL_ON = "all_on"
-ALL_OFF = "all_off"
-
-
-def series(source: str, what: str = "position_error_mm") -> str:
-    """The entity of ``source``'s per-frame ``what`` (``position_error_mm`` or ``delta_mm``)."""
-    return f"{ROOT}/{source.replace('/', '_')}/{what}"
-
 
 def _send(rec: rr.RecordingStream, entity: str, time_ns: np.ndarray, values: np.ndarray,
           frame_of: dict[int, int], start_ns: int) -> None:
@@ -69,55 +58,20 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns:
     ``elapsed`` timeline counts from ``recording_start_ns`` (a run's own start; None: the
     budget's first frame)."""
     start_ns = int(recording_start_ns) if recording_start_ns is not None else int(min(budget.time_ns, default=0))
-    rec.log(TABLE, rr.TextDocument(budget.markdown(), media_type=rr.MediaType.MARKDOWN), static=True)
+    rec.log(paths.BUDGET_TABLE, rr.TextDocument(budget.markdown(), media_type=rr.MediaType.MARKDOWN), static=True)
     shares = [s.share for s in budget.sources] + [budget.interaction]
     values = np.array([100.0 * v if np.isfinite(v) else 0.0 for v in shares], dtype=float)
-    rec.log(SHARES, rr.BarChart(values, abscissa=np.arange(len(values), dtype=float)), static=True)
+    rec.log(paths.BUDGET_SHARES, rr.BarChart(values, abscissa=np.arange(len(values), dtype=float)), static=True)
     # frames are numbered by the recording's run; a counterfactual frame is placed at the
     # recording's frame with the same stamp (a dropped frame has none and is left out).
     frame_of = {int(t): int(f) for t, f in zip(budget.time_ns, budget.frames)}
-    _send(rec, series(ALL_ON), budget.time_ns, budget.position_error_all_mm, frame_of, start_ns)
+    _send(rec, paths.budget_series(paths.BUDGET_ALL_ON), budget.time_ns, budget.position_error_all_mm, frame_of, start_ns)
     if budget.floor_rmse_mm is not None and len(budget.time_ns):
         ends = np.array([budget.time_ns[0], budget.time_ns[-1]])
-        _send(rec, series(ALL_OFF), ends, np.full(2, budget.floor_rmse_mm), frame_of, start_ns)
+        _send(rec, paths.budget_series(paths.BUDGET_ALL_OFF), ends, np.full(2, budget.floor_rmse_mm), frame_of, start_ns)
     for s in budget.sources:
-        _send(rec, series(s.source), s.time_ns, s.position_error_off_mm, frame_of, start_ns)
-        _send(rec, series(s.source, "delta_mm"), budget.time_ns, s.delta_mm, frame_of, start_ns)
-
-
-def table_view() -> rrb.TextDocumentView:
-    """The budget's markdown table."""
-    return rrb.TextDocumentView(origin=TABLE, name="error budget")
-
-
-def shares_view(sources: list[str]) -> rrb.BarChartView:
-    """The bar chart of shares, its bars named in the title (the table names them too)."""
-    return rrb.BarChartView(origin=SHARES, name=f"share of the position error (%): {', '.join(list(sources) + [INTERACTION])}")
-
-
-def errors_view(sources: list[str]) -> rrb.TimeSeriesView:
-    """Per-frame position error with every source on, every source off, and each source off."""
-    names = [ALL_ON, ALL_OFF] + list(sources)
-    return rrb.TimeSeriesView(origin=ROOT, contents=[f"$origin/{n.replace('/', '_')}/position_error_mm" for n in names],
-                              name="position error (mm): all on, all off, each source off")
-
-
-def deltas_view(sources: list[str]) -> rrb.TimeSeriesView:
-    """Per-frame error all on − error with each source off: when a source costs what it costs."""
-    return rrb.TimeSeriesView(origin=ROOT, contents=[f"$origin/{s.replace('/', '_')}/delta_mm" for s in sources],
-                              name="error all on − error source off (mm)")
-
-
-def budget_blueprint(budget: ErrorBudget) -> rrb.Blueprint:
-    """Table and bar chart beside the per-frame errors (all on, each source off) and deltas."""
-    sources = [s.source for s in budget.sources]
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(table_view(), shares_view(sources)),
-            rrb.Vertical(errors_view(sources), deltas_view(sources)),
-        ),
-        collapse_panels=True,
-    )
+        _send(rec, paths.budget_series(s.source), s.time_ns, s.position_error_off_mm, frame_of, start_ns)
+        _send(rec, paths.budget_series(s.source, "delta_mm"), budget.time_ns, s.delta_mm, frame_of, start_ns)
 
 
 def write_budget_rrd(out_path: str | os.PathLike, budget: ErrorBudget) -> Path:

@@ -1,0 +1,779 @@
+"""Every viewer layout (Rerun blueprint) agvviz ships inside an ``.rrd`` — one module for all of them.
+
+Builders, by the file they lay out:
+
+- a run: :func:`default_blueprint` (camera runs), :func:`uwb_blueprint` (UWB and fusion, paper
+  003), :func:`correction_blueprint` (the correction cycle, paper 002), :func:`trials_blueprint`
+  (a p4p Monte-Carlo study run), :func:`cnoem_trials_blueprint` (a CNOEM grid study run); the
+  error budget's views join the default layout of ``agvviz run --budget``;
+- ``agvviz budget``: :func:`budget_blueprint`; ``agvviz audit``: :func:`audit_blueprint`;
+  ``agvviz diff`` / ``sweep``: :func:`overlay_blueprint`;
+- the studies' own report files: :func:`study_blueprint` (Monte-Carlo) and
+  :func:`cnoem_report_blueprint` (CNOEM grid).
+
+Views take their origins from :mod:`agvviz.viz.paths` only. The module is longer than ~600 lines
+on purpose: it holds the ten layouts side by side (each a single function that reads top to
+bottom like its sketch), so a new view is added in one place; splitting it by layout would
+bring back a blueprint file per logger.
+
+The default run layout::
+
+    ┌──────────────────────────────┬──────────────────────────────────────┐
+    │ 3D world, following the      │ camera image: corners, ids, LM path  │
+    │ estimated AGV (markers,      │ (one tab per camera; zoom on a small │
+    │ truth vs estimate, ghost,    │  code beside it)                     │
+    │ ellipsoid, trajectories)     ├──────────────────────────────────────┤
+    │                              │ this frame's solve (text) + LM tabs  │
+    ├──────────────┬───────────────┼─────────────┬────────────────────────┤
+    │ position err │ heading err   │ reproj RMS  │ summary (terminal      │
+    │ (+ rejected) │ (tabs: pitch, │ + threshold │ table) / rejections /  │
+    │              │  roll)        │ (tabs)      │ manifest / flips       │
+    └──────────────┴───────────────┴─────────────┴────────────────────────┘
+
+Every plot has its legend; the time panel of a run is on ``elapsed`` (seconds since the
+recording's start).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import rerun.blueprint as rrb
+
+from agvviz.evaluation.error_budget import INTERACTION, ErrorBudget
+from agvviz.model.studies import CellResult
+from agvviz.replay.studies.monte_carlo_cells import PAPER_FIGURES
+from agvviz.viz import paths
+from agvviz.viz.style import (
+    COLOR_CAMERA,
+    COLOR_CORRECTED,
+    COLOR_FUSED,
+    COLOR_NAV,
+    COLOR_TRUTH,
+    COLOR_UWB,
+    LEGEND,
+    color_name,
+)
+
+_LEGEND = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.LeftTop)
+
+
+def _error_view(entities: list[str], name: str) -> rrb.TimeSeriesView:
+    """Time series of ``entities`` with the rejected-frame markers along the zero line."""
+    return rrb.TimeSeriesView(
+        origin="/",
+        contents=[f"/{e}" for e in [*entities, paths.ERROR_REJECTED]],
+        name=name,
+        plot_legend=_LEGEND,
+    )
+
+
+#: Where the eye of a 3D view that follows the vehicle starts, from the vehicle's first
+#: position (world metres: behind-left and above, so the body, the ellipsoid above it and the
+#: codes the camera sees are all in view).
+EYE_OFFSET_M = (-2.5, -2.5, 2.2)
+
+
+def world_3d_view(
+    name: str,
+    cam_names: list[str],
+    fixed_cams: set[str] = frozenset(),
+    track: str | None = None,
+    start_m: tuple[float, float, float] | None = None,
+) -> rrb.Spatial3DView:
+    """The 3D world view; ``track``: an entity the eye follows (e.g. the estimated AGV), from
+    EYE_OFFSET_M off ``start_m`` (its first position). The 2D overlays of the images (corners,
+    ids, LM path: UI-point sizes that would swamp the small frustum images) stay in the 2D
+    image views."""
+    excluded = [f"- /{e}" for c in cam_names for e in paths.image_overlays(c, c in fixed_cams)]
+    eye = None
+    if track is not None:
+        start = None if start_m is None else [float(v) for v in start_m]
+        eye = rrb.EyeControls3D(
+            tracking_entity=f"/{track}",
+            look_target=start,
+            position=None if start is None else [a + b for a, b in zip(start, EYE_OFFSET_M)],
+        )
+    return rrb.Spatial3DView(origin=paths.WORLD, name=name, contents=["+ $origin/**", *excluded], eye_controls=eye)
+
+
+def image_view(cam_name: str, fixed: bool = False) -> rrb.Spatial2DView:
+    """The recorded image of ``cam_name`` with its corners, code ids and LM path."""
+    return rrb.Spatial2DView(
+        origin=paths.image(cam_name, fixed),
+        name=f"camera {cam_name}: detected corners (cyan), reprojected (magenta), LM path (white)",
+    )
+
+
+def zoom_view(cam_name: str) -> rrb.Spatial2DView:
+    """The crop around ``cam_name``'s smallest code (logged only while a code is small)."""
+    return rrb.Spatial2DView(
+        origin=paths.zoom_image(cam_name),
+        name=f"camera {cam_name} zoomed on its smallest code: detected (cyan), reprojected (magenta)",
+    )
+
+
+def _lm_panel(lm_iterates: bool) -> rrb.Container | rrb.View:
+    """The frame's solve in words and, for an iterating solver, its iterations (log10 bars)."""
+    text = rrb.TextDocumentView(origin=paths.LM_THIS_FRAME, name="solver, this frame")
+    if not lm_iterates:
+        return text
+    bars = rrb.Tabs(
+        rrb.BarChartView(
+            origin=paths.LM_LOG10_COST_PER_ITERATION,
+            name="log10 LM cost per iteration (this frame)",
+            plot_legend=rrb.PlotLegend(visible=False),
+        ),
+        rrb.BarChartView(
+            origin=paths.LM_LOG10_DAMPING_PER_ITERATION,
+            name="log10 LM damping λ per iteration",
+            plot_legend=rrb.PlotLegend(visible=False),
+        ),
+        rrb.BarChartView(
+            origin=paths.LM_LOG10_STEP_NORM_PER_ITERATION,
+            name="log10 LM step norm per trial step",
+            plot_legend=rrb.PlotLegend(visible=False),
+        ),
+        rrb.TimeSeriesView(
+            origin="/", contents=[f"/{paths.LM_ITERATIONS}"], name="LM trial steps per frame", plot_legend=_LEGEND
+        ),
+        active_tab=0,
+    )
+    return rrb.Vertical(text, bars, row_shares=[0.3, 0.7])
+
+
+def default_blueprint(
+    cam_names: list[str],
+    *,
+    fixed_cams: set[str] = frozenset(),
+    zoom_cams: list[str] = (),
+    lm_iterates: bool = True,
+    has_rejections: bool = False,
+    has_threshold: bool = False,
+    ghost_max_ratio: float | None = None,
+    cov_scale: float | None = None,
+    start_m: tuple[float, float, float] | None = None,
+    budget_sources: list[str] | None = None,
+) -> rrb.Blueprint:
+    """Build the default layout for a run with cameras ``cam_names`` (fits 1600×1000).
+
+    ``zoom_cams`` had a small code (a zoomed view beside their image); ``lm_iterates``: the
+    solver iterated on some frame (else the solver panel is its text alone); ``has_rejections``
+    puts the rejection log under the summary; ``has_threshold``: the reprojection plot has
+    its ``max_reproj_px`` line; ``ghost_max_ratio`` and ``cov_scale`` are named in the 3D
+    view's title; the 3D view follows the estimated AGV from its first position ``start_m``.
+    ``budget_sources``: the run holds an error budget of these sources (``run --budget``): its
+    table is the active document and its chart and series are tabs beside the position error.
+    """
+    image_views = []
+    for cam_name in cam_names:
+        view = image_view(cam_name, cam_name in fixed_cams)
+        if cam_name in zoom_cams:
+            view = rrb.Horizontal(view, zoom_view(cam_name), column_shares=[0.6, 0.4])
+        image_views.append(view)
+    if not image_views:
+        image_panel = rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary")
+    elif len(image_views) == 1:
+        image_panel = image_views[0]
+    else:
+        image_panel = rrb.Tabs(*image_views)
+    title = ["world: truth (green), camera estimate (orange)"]
+    if ghost_max_ratio is not None:
+        title.append(f"IPPE mirror pose (violet) when ambiguity ratio < {ghost_max_ratio:g}")
+    if cov_scale is not None:
+        title.append(f"position 3σ ×{cov_scale:g} (above the body)")
+    world_view = world_3d_view(", ".join(title), cam_names, fixed_cams, track=paths.AGV_CAMERA, start_m=start_m)
+    documents = rrb.Tabs(
+        rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
+        rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        rrb.TextLogView(origin=paths.EVENTS_FLIPS, name="flips"),
+        *([budget_table_view()] if budget_sources is not None else []),
+        active_tab=0 if budget_sources is None else 3,
+    )
+    if has_rejections:
+        documents = rrb.Vertical(
+            documents, rrb.TextLogView(origin=paths.EVENTS_REJECTIONS, name="rejections"), row_shares=[0.62, 0.38]
+        )
+    reprojection = [paths.ERROR_REPROJ_RMS_PX] + ([paths.ERROR_REPROJ_THRESHOLD_PX] if has_threshold else [])
+    top = rrb.Horizontal(
+        world_view,
+        rrb.Vertical(image_panel, _lm_panel(lm_iterates), row_shares=[0.6, 0.4]) if lm_iterates
+        else rrb.Vertical(image_panel, _lm_panel(lm_iterates), row_shares=[0.85, 0.15]),
+        column_shares=[0.52, 0.48],
+    )
+    position = _error_view([paths.ERROR_POSITION_MM], "position error [mm]")
+    if budget_sources is not None:
+        position = rrb.Tabs(
+            position,
+            budget_shares_view(budget_sources),
+            budget_deltas_view(budget_sources),
+            budget_errors_view(budget_sources),
+            active_tab=0,
+        )
+    bottom = rrb.Horizontal(
+        position,
+        rrb.Tabs(
+            _error_view([paths.ERROR_HEADING_DEG], "heading error [deg]"),
+            _error_view([paths.ERROR_PITCH_DEG], "pitch error [deg]"),
+            _error_view([paths.ERROR_ROLL_DEG], "roll error [deg]"),
+            active_tab=0,
+        ),
+        rrb.Tabs(
+            _error_view(reprojection, "reprojection RMS [px]" + (" vs max_reproj_px" if has_threshold else "")),
+            *([_error_view([paths.ERROR_REPROJ_RMS_PX], "reprojection RMS [px], detail")] if has_threshold else []),
+            _error_view([paths.ERROR_POSITION_OVER_CRLB], "position error ÷ CRLB"),
+            _error_view([paths.ERROR_NEES], "NEES (6 = consistent)"),
+            _error_view([paths.SOLVER_AMBIGUITY_RATIO], "IPPE ambiguity ratio"),
+            active_tab=0,
+        ),
+        documents,
+        column_shares=[0.25, 0.23, 0.22, 0.30],
+    )
+    return rrb.Blueprint(
+        rrb.Vertical(top, bottom, row_shares=[0.62, 0.38]),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_ELAPSED),
+        auto_views=False,
+    )
+
+
+# -- UWB and camera–UWB fusion (paper 003) -----------------------------------------------------
+#
+#     ┌───────────────────────────────┬──────────────────────────────────────────┐
+#     │ 3D world: room, wall cameras, │ per camera (2×2): the code zoomed in     │
+#     │ anchors, truth / camera / UWB │ (small codes), the full image in a tab;  │
+#     │ / fused trajectories          │ detected (cyan), reprojected (magenta)   │
+#     ├──────────────────────┬────────┴───────────┬──────────────────────────────┤
+#     │ ranges per anchor    │ camera fix error   │ camera used / fused from     │
+#     │ (2×2, legends):      │ [mm]               │ (state lanes)                │
+#     │ measured, expected   ├────────────────────┼──────────────────────────────┤
+#     │ from truth / fused,  │ UWB and fused      │ switches / gates / GDOP /    │
+#     │ gated (×)            │ error [mm]         │ summary / manifest           │
+#     └──────────────────────┴────────────────────┴──────────────────────────────┘
+
+def uwb_blueprint(
+    cam_names: list[str],
+    fixed_cams: set[str],
+    anchor_ids: list[str],
+    zoom_cams: list[str] = (),
+    error_range_mm: float | None = None,
+) -> rrb.Blueprint:
+    """Layout for a run with cameras ``cam_names`` (``fixed_cams`` fixed in the world) and
+    UWB anchors ``anchor_ids``. ``zoom_cams``: cameras with a zoomed view of their small code
+    (:attr:`RunLogger.zoom_cams`), shown first; ``error_range_mm``: top of the UWB/fused error
+    plot's y axis (:meth:`FusionLogger.error_range_mm`; None: fit all data)."""
+    cameras = [_camera_panel(c, c in fixed_cams, c in zoom_cams) for c in cam_names]
+    if not cameras:
+        image_panel = rrb.Spacer()
+    elif len(cameras) == 1:
+        image_panel = cameras[0]
+    else:
+        image_panel = rrb.Grid(*cameras, grid_columns=2)
+    world = world_3d_view(
+        f"3D: {LEGEND[COLOR_TRUTH]} (green), {LEGEND[COLOR_CAMERA]} (orange), {LEGEND[COLOR_UWB]} (blue), "
+        f"{LEGEND[COLOR_FUSED]} (yellow); UWB anchors",
+        cam_names,
+        fixed_cams,
+    )
+    ranges = rrb.Grid(
+        *[
+            rrb.TimeSeriesView(
+                origin="/",
+                contents=[f"/{paths.uwb_ranges(a)}/**"],
+                name=f"range to anchor {a} [m]",
+                plot_legend=rrb.PlotLegend(visible=True),
+            )
+            for a in anchor_ids
+        ],
+        grid_columns=2,
+    )
+    camera_error = rrb.TimeSeriesView(
+        origin="/",
+        contents=[f"/{paths.ERROR_POSITION_MM}", f"/{paths.ERROR_REJECTED}"],
+        name="camera fix error [mm] (gaps: no camera solved)",
+        plot_legend=rrb.PlotLegend(visible=True),
+    )
+    clamp = "" if error_range_mm is None else f" (axis ≤ {error_range_mm:.0f})"
+    fused_error = rrb.TimeSeriesView(
+        origin="/",
+        contents=[f"/{paths.ERROR_UWB_POSITION_MM}", f"/{paths.ERROR_FUSED_POSITION_MM}"],
+        name="UWB, fused error [mm]" + clamp,
+        plot_legend=rrb.PlotLegend(visible=True),
+        axis_y=None if error_range_mm is None else rrb.ScalarAxis(range=(0.0, error_range_mm)),
+    )
+    states = rrb.StateTimelineView(
+        origin="/",
+        contents=[f"/{paths.FUSION_CAMERA_USED}", f"/{paths.FUSION_SOURCE}"],
+        name="camera used · fused estimate from",
+    )
+    log_columns = rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_ELAPSED], text_log_columns=["body"])
+    documents = rrb.Tabs(
+        rrb.TextLogView(origin=paths.EVENTS_FUSION, name="switches", columns=log_columns),
+        rrb.TextLogView(origin=paths.EVENTS_UWB_GATE, name="gates", columns=log_columns),
+        rrb.TimeSeriesView(origin=paths.UWB_GDOP, name="GDOP", plot_legend=rrb.PlotLegend(visible=False)),
+        rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
+        rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        active_tab=0,
+    )
+    top = rrb.Horizontal(world, image_panel, column_shares=[0.45, 0.55])
+    bottom = rrb.Horizontal(
+        ranges,
+        rrb.Vertical(camera_error, fused_error),
+        rrb.Vertical(states, documents, row_shares=[0.4, 0.6]),
+        column_shares=[0.38, 0.27, 0.35],
+    )
+    return rrb.Blueprint(
+        rrb.Vertical(top, bottom, row_shares=[0.52, 0.48]),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_ELAPSED),
+        auto_views=False,
+    )
+
+
+def _camera_panel(cam_name: str, fixed: bool, zoomed: bool) -> rrb.View | rrb.Container:
+    """The zoomed code (when the camera had a small one) with the full image in a second tab."""
+    full = image_view(cam_name, fixed)
+    if not zoomed:
+        return full
+    return rrb.Tabs(zoom_view(cam_name), full, active_tab=0)
+
+
+# -- the correction cycle (paper 002) ------------------------------------------------------------
+#: The 3D view's eye in the corrected vehicle's frame (beside, behind and above it) and the point
+#: it looks at (ahead of it), m: the view rides along with the vehicle.
+CORRECTION_EYE_POSITION_AGV_M = (3.0, -7.0, 3.0)
+CORRECTION_EYE_TARGET_AGV_M = (0.0, 3.0, 0.0)
+
+
+def correction_blueprint(cam_names: list[str]) -> rrb.Blueprint:
+    """Layout of a run with ``correction`` (time panel on ``elapsed``)::
+
+        tab "correction run"
+        ┌────────────────────────────────────┬─────────────────────────────────┐
+        │ 3D: markers, truth / navigation /  │ per camera: the image (when     │
+        │ corrected vehicles + trajectories, │ recorded), this frame's corners │
+        │ last window's cameras and rays;    │ and the last window's observed  │
+        │ the eye follows the corrected AUV  │ / solved corners                │
+        ├──────────────┬──────────────┬──────┴───────────┬─────────────────────┤
+        │ error vs     │ corrected    │ closed cycles:   │ corrections log /   │
+        │ truth [mm]   │ error [mm]   │ RMS, σ vs limits │ summary / manifest  │
+        └──────────────┴──────────────┴──────────────────┴─────────────────────┘
+        tab "solver iterations (cnoem_iter)": the window's corners per camera and the last
+        cycle's cost and RMS per iteration; scrub the ``cnoem_iter`` timeline to watch the
+        theoretical corners converge.
+
+    The 3D view's origin is the corrected vehicle, so its eye (behind, beside and above it,
+    :data:`CORRECTION_EYE_POSITION_AGV_M`) rides along: the vehicle stays in frame at every time.
+    """
+    world = rrb.Spatial3DView(
+        origin=paths.CORRECTION_AGV_CORRECTED,
+        name=f"3D: {LEGEND[COLOR_TRUTH]} (green), {LEGEND[COLOR_NAV]} (red), {LEGEND[COLOR_CORRECTED]} (magenta); "
+        "last window's camera positions and closing sight lines (orange)",
+        contents=[f"+ /{paths.MARKERS}/**", f"+ /{paths.CORRECTION_WORLD}/**"],
+        eye_controls=rrb.EyeControls3D(
+            position=CORRECTION_EYE_POSITION_AGV_M, look_target=CORRECTION_EYE_TARGET_AGV_M, eye_up=[0.0, 0.0, 1.0]
+        ),
+    )
+    cameras = [
+        rrb.Spatial2DView(
+            origin=paths.image(c),
+            name=f"camera {c}: window corners observed (white), solved (orange); detected (cyan)",
+            contents=["+ $origin/**", f"- {paths.lm_iteration(c)}", f"- {paths.lm_path(c)}"],
+        )
+        for c in cam_names
+    ]
+    errors = rrb.TimeSeriesView(
+        origin="/", contents=[f"/{paths.ERROR_NAV_MM}", f"/{paths.ERROR_CORRECTED_MM}", f"/{paths.ERROR_CORRECTION_JUMP_MM}"],
+        name="position error vs truth [mm]", plot_legend=rrb.PlotLegend(visible=True),
+    )
+    corrected = rrb.TimeSeriesView(
+        origin="/", contents=[f"/{paths.ERROR_CORRECTED_MM}", f"/{paths.ERROR_CORRECTION_JUMP_MM}"],
+        name="corrected error [mm] (zoomed in)", plot_legend=rrb.PlotLegend(visible=True),
+    )
+    cycles = rrb.Tabs(
+        rrb.TimeSeriesView(
+            origin="/", contents=[f"/{paths.CORRECTION_CYCLE_REPROJ_RMS_PX}", f"/{paths.CORRECTION_CYCLE_MAX_REPROJ_PX}"],
+            name="closed cycles: window RMS [px]", plot_legend=rrb.PlotLegend(visible=True),
+        ),
+        rrb.TimeSeriesView(
+            origin="/", contents=[f"/{paths.CORRECTION_CYCLE_POSITION_SIGMA_MM}", f"/{paths.CORRECTION_CYCLE_MAX_POSITION_SIGMA_MM}"],
+            name="closed cycles: position σ [mm]", plot_legend=rrb.PlotLegend(visible=True),
+        ),
+        active_tab=0,
+    )
+    documents = rrb.Tabs(
+        rrb.TextLogView(
+            origin=paths.EVENTS_CORRECTIONS, name="corrections (one line per cycle)",
+            columns=rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_ELAPSED], text_log_columns=["body"]),
+        ),
+        rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
+        rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        active_tab=0,
+    )
+    top = rrb.Horizontal(world, rrb.Vertical(*cameras) if cameras else rrb.Spacer(), column_shares=[0.58, 0.42])
+    bottom = rrb.Horizontal(errors, corrected, cycles, documents, column_shares=[0.25, 0.22, 0.22, 0.31])
+    run_tab = rrb.Vertical(top, bottom, row_shares=[0.6, 0.4], name="correction run")
+    iteration_cameras = [
+        rrb.Spatial2DView(
+            origin=paths.image(c),
+            name=f"camera {c}, last window: observed (white), theoretical at the iteration (orange)",
+            contents=[f"+ {paths.correction_observed(c)}", f"+ {paths.correction_theoretical(c)}", f"+ {paths.correction_border(c)}"],
+        )
+        for c in cam_names
+    ]
+    solver = rrb.Vertical(
+        rrb.BarChartView(origin=paths.CORRECTION_COST_PER_ITERATION, name="last cycle: window cost per iteration",
+                         plot_legend=rrb.PlotLegend(visible=False)),
+        rrb.BarChartView(origin=paths.CORRECTION_REPROJ_RMS_PX_PER_ITERATION, name="last cycle: reprojection RMS [px] per iteration",
+                         plot_legend=rrb.PlotLegend(visible=False)),
+    )
+    iterations_tab = rrb.Horizontal(
+        rrb.Vertical(*iteration_cameras) if iteration_cameras else rrb.Spacer(), solver,
+        column_shares=[0.6, 0.4], name=f"solver iterations (timeline {paths.TIMELINE_CNOEM_ITER})",
+    )
+    return rrb.Blueprint(
+        rrb.Tabs(run_tab, iterations_tab, active_tab=0),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_ELAPSED),
+        auto_views=False,
+    )
+
+
+# -- error budget (agvviz budget, agvviz run --budget) --------------------------------------------
+def budget_table_view() -> rrb.TextDocumentView:
+    """The budget's markdown table."""
+    return rrb.TextDocumentView(origin=paths.BUDGET_TABLE, name="error budget")
+
+
+def budget_shares_view(sources: list[str]) -> rrb.BarChartView:
+    """The bar chart of shares, its bars named in the title (the table names them too)."""
+    return rrb.BarChartView(origin=paths.BUDGET_SHARES, name=f"share of the position error (%): {', '.join(list(sources) + [INTERACTION])}")
+
+
+def budget_errors_view(sources: list[str]) -> rrb.TimeSeriesView:
+    """Per-frame position error with every source on, every source off, and each source off."""
+    names = [paths.BUDGET_ALL_ON, paths.BUDGET_ALL_OFF] + list(sources)
+    return rrb.TimeSeriesView(origin=paths.BUDGET, contents=[f"$origin/{paths.budget_series_relative(n)}" for n in names],
+                              name="position error (mm): all on, all off, each source off")
+
+
+def budget_deltas_view(sources: list[str]) -> rrb.TimeSeriesView:
+    """Per-frame error all on − error with each source off: when a source costs what it costs."""
+    return rrb.TimeSeriesView(origin=paths.BUDGET, contents=[f"$origin/{paths.budget_series_relative(s, 'delta_mm')}" for s in sources],
+                              name="error all on − error source off (mm)")
+
+
+def budget_blueprint(budget: ErrorBudget) -> rrb.Blueprint:
+    """Table and bar chart beside the per-frame errors (all on, each source off) and deltas."""
+    sources = [s.source for s in budget.sources]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(budget_table_view(), budget_shares_view(sources)),
+            rrb.Vertical(budget_errors_view(sources), budget_deltas_view(sources)),
+        ),
+        collapse_panels=True,
+    )
+
+
+# -- agvviz audit ------------------------------------------------------------------------------------
+def audit_blueprint(result) -> rrb.Blueprint:
+    """The 3D map (recorded vs estimated) beside the report and the residual plots."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin=paths.WORLD, name="map: mapped (blue) vs estimated (red: flagged); "
+                              "path: solved (magenta), start (orange), truth (green)"),
+            rrb.Vertical(
+                rrb.TextDocumentView(origin=paths.AUDIT_REPORT, name="audit"),
+                rrb.TimeSeriesView(origin=paths.AUDIT_RESIDUALS, name="corner residual per marker (px RMS)"),
+                rrb.TimeSeriesView(origin=paths.AUDIT_ODOMETRY, name="odometry step residuals (mm, deg)"),
+            ),
+        ),
+        collapse_panels=True,
+    )
+
+
+# -- overlay of several runs (agvviz diff, agvviz sweep) ----------------------------------------------
+#: Per-frame quantities an overlay draws, with their axis label (the unit is part of the key).
+ERROR_LABELS = {
+    "position_mm": "position error [mm]",
+    "heading_deg": "heading error [deg]",
+    "pitch_deg": "pitch error [deg]",
+    "roll_deg": "roll error [deg]",
+    "reproj_px": "reprojection RMS [px]",
+}
+
+
+def format_magnification(factor: float) -> str:
+    """``200.0`` → ``"×200"``."""
+    return f"×{factor:g}"
+
+
+def delta_view_name(key: str) -> str:
+    """Title of a Δ plot, with its sign convention: ``Δ |position error| = B − A [mm];
+    positive = B worse``."""
+    quantity, unit = ERROR_LABELS[key].split(" [")
+    return f"Δ |{quantity}| = B − A [{unit}: positive = B worse"
+
+
+#: Eye of the close-up, in the truth AGV's body frame (the view's origin, so it moves and turns
+#: with the AGV): about 2 m away, behind-left and above.
+OVERLAY_FOLLOW_EYE_POSITION_M = (-0.9, -1.3, 1.1)
+
+
+def _overlay_eye(truth) -> rrb.EyeControls3D | None:
+    """A view from the south-west, above, that frames the whole truth trajectory."""
+    if truth is None or len(truth.T_world_agv) == 0:
+        return None
+    positions = truth.T_world_agv[:, :3, 3]
+    low, high = positions.min(axis=0), positions.max(axis=0)
+    center = (low + high) / 2.0
+    extent = max(float(np.max(high - low)), 2.0)
+    return rrb.EyeControls3D(
+        position=center + np.array([-0.35, -0.9, 0.9]) * extent,
+        look_target=center,
+        eye_up=(0.0, 0.0, 1.0),
+    )
+
+
+def overlay_blueprint(
+    runs: list,
+    cam_names: list[str],
+    deltas: list[str],
+    truth=None,
+    magnification: float | None = None,
+    fixed_cams: set[str] | frozenset[str] = frozenset(),
+) -> rrb.Blueprint:
+    """Default layout: 3D trajectories (with each run's magnified error arrows when
+    ``magnification`` is given, and a close-up that follows the truth AGV) and the image with
+    every run's corners on top; error plots of all runs (and the per-frame differences, with a
+    zero line) with the comparison report below. Opens paused, on the ``frame`` timeline.
+    ``fixed_cams``: cameras fixed in the world (wall cameras), named so in their views."""
+    if len(runs) <= 2:
+        colors = ", ".join(f"{r.label} {color_name(i)}" for i, r in enumerate(runs))
+    else:
+        colors = "each run in its colour of the plot legends"
+    views = [rrb.Spatial3DView(origin=paths.WORLD, name=f"world: truth green, {colors}", eye_controls=_overlay_eye(truth))]
+    if magnification is not None:
+        factor = format_magnification(magnification)
+        arrows = ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
+        views = [
+            rrb.Spatial3DView(
+                origin=paths.WORLD, name=f"whole run, errors {factor}: truth green, {arrows}", eye_controls=_overlay_eye(truth),
+                # The runs' own paths lie on the truth; their paths with errors magnified show the difference.
+                contents=[
+                    "+ $origin/**", *[f"- /{paths.overlay_trajectory(r.key)}" for r in runs], f"- /{paths.OVERLAY_ERROR_VECTORS}/**"
+                ],
+            ),
+            # Origin on the truth AGV: the view follows it (the world moves around it).
+            rrb.Spatial3DView(
+                origin=paths.AGV_TRUTH, name=f"at the AGV: error {factor} = (estimate − truth) {factor}, {arrows}",
+                eye_controls=rrb.EyeControls3D(
+                    position=OVERLAY_FOLLOW_EYE_POSITION_M, look_target=(0.0, 0.0, 0.0), eye_up=(0.0, 0.0, 1.0)
+                ),
+                contents=[f"+ /{paths.WORLD}/**", *[f"- /{paths.overlay_agv_marker(r.key)}" for r in runs]],
+            ),
+        ]
+    if cam_names:
+        images = [
+            rrb.Spatial2DView(
+                origin=paths.overlay_image(cam),
+                name=f"{'wall camera' if cam in fixed_cams else 'camera'} {cam}: detected cyan, reprojected " + (
+                    ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
+                    if len(runs) <= 2 else "in each run's colour"),
+            )
+            for cam in cam_names
+        ]
+        views.append(images[0] if len(images) == 1 else rrb.Tabs(*images))
+    shares = {1: [1.0], 2: [0.5, 0.5], 3: [0.4, 0.3, 0.3]}[len(views)]
+    top = views[0] if len(views) == 1 else rrb.Horizontal(*views, column_shares=shares)
+    legend = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.RightTop)
+    error_views = [
+        rrb.TimeSeriesView(origin=paths.overlay_errors(key), name=label, plot_legend=legend)
+        for key, label in ERROR_LABELS.items()
+    ]
+    if deltas:  # a diff: each run's errors, and their difference B − A
+        plots = [
+            rrb.Tabs(*error_views),
+            rrb.Tabs(*[
+                rrb.TimeSeriesView(origin=paths.overlay_delta(key), name=delta_view_name(key), plot_legend=legend)
+                for key in deltas
+            ]),
+        ]
+        shares = [0.3, 0.3, 0.4]
+    else:
+        plots = [error_views[0], rrb.Tabs(*error_views[1:])]
+        shares = [0.22, 0.22, 0.56]
+    bottom = rrb.Horizontal(*plots, rrb.TextDocumentView(origin=paths.COMPARE_REPORT, name="comparison"), column_shares=shares)
+    return rrb.Blueprint(
+        rrb.Vertical(top, bottom, row_shares=[0.58, 0.42]),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_FRAME, play_state="paused"),
+        auto_views=False,
+    )
+
+
+# -- studies: p4p Monte-Carlo and CNOEM grid ---------------------------------------------------------
+#: Monte-Carlo cells whose error-against-trial plot gets a tab of its own (the others: change a
+#: view's origin).
+MC_MAX_FEATURED_CELLS = 8
+#: Which tab a Monte-Carlo layout opens on, and the timeline it needs.
+MC_TAB_TIMELINES = {"trials": paths.TIMELINE_TRIAL, "figures": paths.TIMELINE_SNR_DB, "crlb": paths.TIMELINE_SIGMA_MPX}
+#: The multi-frame methods, plotted against the bound apart from the (much worse) IPPE baselines.
+CNOEM_WINDOW_METHODS = ("cnoem", "cnoem_multistart", "bundle")
+#: Cells whose error-against-trial plots get a tab of their own (the others: change a view's origin).
+CNOEM_MAX_FEATURED_CELLS = 8
+
+
+def mc_featured_cells(results: dict[str, CellResult]) -> list[str]:
+    """The cells whose error-against-trial plot the layout shows: the cells of the paper's
+    figures present in ``results``, then the others in recording order, at most
+    :data:`MC_MAX_FEATURED_CELLS`."""
+    figure_cells = [cid for cid, *_ in PAPER_FIGURES.values() if cid in results]
+    ordered = list(dict.fromkeys(figure_cells + list(results)))
+    return ordered[:MC_MAX_FEATURED_CELLS]
+
+
+def mc_default_tab(results: dict[str, CellResult]) -> str:
+    """The tab a study file opens on: the paper's figures when it has paper cells, else the CRLB
+    cells, else the trials."""
+    if any(paths.mc_paper_group(cid) for cid in results):
+        return "figures"
+    if any(paths.mc_crlb_group(cid) for cid in results):
+        return "crlb"
+    return "trials"
+
+
+def study_blueprint(
+    results: dict[str, CellResult], *, active: str = "trials", documents: tuple[tuple[str, str], ...] = ()
+) -> rrb.Blueprint:
+    """The study's layout; ``active`` is the tab it opens on (trials, figures or crlb; its
+    timeline is selected), ``documents`` extra (origin, name) text documents beside the report
+    (a run's summary and manifest)."""
+    if active not in MC_TAB_TIMELINES:
+        raise ValueError(f"unknown tab {active!r}; valid: {', '.join(MC_TAB_TIMELINES)}")
+    trial_views = [
+        rrb.TimeSeriesView(
+            origin=paths.mc_trial_errors(cid), name=f"{cid}: ‖t̂ − t‖ (mm) per trial, CRLB (grey)",
+            plot_legend=rrb.PlotLegend(visible=True),
+        )
+        for cid in mc_featured_cells(results)
+    ]
+    texts = [rrb.TextDocumentView(origin=paths.MC_REPORT, name="report")]
+    texts += [rrb.TextDocumentView(origin=origin, name=name) for origin, name in documents]
+    tabs = {
+        "trials": rrb.Horizontal(
+            rrb.Tabs(*trial_views) if trial_views else rrb.Spacer(),
+            rrb.Tabs(*texts),
+            column_shares=[0.6, 0.4],
+            name="trials (timeline trial)",
+        )
+    }
+    if any(paths.mc_paper_group(cid) for cid in results):
+        tabs["figures"] = rrb.Vertical(
+            rrb.Horizontal(
+                *[
+                    rrb.TimeSeriesView(origin=f"{paths.MC_FIG9_11}/t{i}_mean", name=f"fig {8 + i}: mean t{i} (m) vs SNR dB, h 0.2667 z 2 N 4")
+                    for i in (1, 2, 3)
+                ]
+            ),
+            rrb.Horizontal(
+                rrb.TimeSeriesView(origin=f"{paths.MC_FIG9_11}/rmse_mm", name="RMSE of t (mm) vs SNR dB, and the CRLB"),
+                rrb.TimeSeriesView(origin=f"{paths.MC_FIG9_11}/rmse_over_crlb", name="RMSE ÷ CRLB vs SNR dB, h 0.2667 z 2 N 4"),
+                rrb.TextDocumentView(origin=paths.MC_REPORT, name="report"),
+            ),
+            name="paper figures 9–11 (timeline snr_db)",
+        )
+    crlb_groups = list(dict.fromkeys(g for cid in results if (g := paths.mc_crlb_group(cid))))
+    if crlb_groups:
+        tabs["crlb"] = rrb.Grid(
+            *[
+                rrb.TimeSeriesView(origin=f"{g}/rmse_over_crlb", name=f"{g.split('/')[-1]}: RMSE ÷ CRLB vs σ (mpx)")
+                for g in crlb_groups
+            ],
+            name="CRLB cells (timeline sigma_mpx)",
+        )
+    if active not in tabs:
+        active = "trials"
+    names = list(tabs)
+    return rrb.Blueprint(
+        rrb.Tabs(*tabs.values(), active_tab=names.index(active)),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=MC_TAB_TIMELINES[active]),
+        auto_views=False,
+    )
+
+
+def trials_blueprint(outcome) -> rrb.Blueprint:
+    """The layout of a Monte-Carlo study run (``outcome``: its
+    :class:`~agvviz.model.studies.TrialsOutcome`): error against trial of the featured
+    cells (timeline ``trial``), the report, summary and manifest; the paper figures and CRLB
+    cells in tabs of their own."""
+    return study_blueprint(
+        outcome.results,
+        active="trials",
+        documents=((paths.RUN_SUMMARY, "summary"), (paths.RUN_MANIFEST, "manifest")),
+    )
+
+
+def cnoem_trials_blueprint(outcome) -> rrb.Blueprint:
+    """The layout of a CNOEM grid study run (``outcome``: its
+    :class:`~agvviz.model.studies.CnoemTrialsOutcome`): per featured cell (the first
+    :data:`CNOEM_MAX_FEATURED_CELLS`), the
+    multi-frame methods' error against trial with the CRLB above all methods' (the IPPE
+    baselines' errors are metres, the window methods' decimetres); the report, summary and
+    manifest beside them; timeline ``trial``."""
+    cell_views = []
+    for cell_id in list(outcome.results)[:CNOEM_MAX_FEATURED_CELLS]:
+        origin = paths.cnoem_trial_errors(cell_id)
+        cell_views.append(
+            rrb.Vertical(
+                rrb.TimeSeriesView(
+                    origin=origin, contents=[f"$origin/{m}" for m in (*CNOEM_WINDOW_METHODS, "crlb")],
+                    name=f"{cell_id}: multi-frame methods, position error of F (m) per trial, CRLB (grey)",
+                    plot_legend=rrb.PlotLegend(visible=True),
+                ),
+                rrb.TimeSeriesView(
+                    origin=origin, name=f"{cell_id}: every method, position error of F (m) per trial",
+                    plot_legend=rrb.PlotLegend(visible=True),
+                ),
+                name=cell_id,
+            )
+        )
+    texts = [rrb.TextDocumentView(origin=paths.CNOEM_REPORT, name="report")]
+    texts += [
+        rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
+        rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+    ]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Tabs(*cell_views) if cell_views else rrb.Spacer(),
+            rrb.Tabs(*texts),
+            column_shares=[0.6, 0.4],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_TRIAL),
+        auto_views=False,
+    )
+
+
+def cnoem_report_blueprint() -> rrb.Blueprint:
+    """The CNOEM grid study's own ``.rrd`` (:func:`agvviz.viz.log_studies.write_cnoem_report_rrd`):
+    the per-cell series beside the report, on timeline ``cell``."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=f"/{paths.CNOEM_MEAN_ERROR_M}", name="mean position error of F [m] per cell"),
+                rrb.TimeSeriesView(origin=f"/{paths.CNOEM_RATIO_TO_IPPE_FIRST}", name="CNOEM ÷ IPPE per cell (paper: 0.217 overall)"),
+                rrb.TimeSeriesView(origin=f"/{paths.CNOEM_RMS_OVER_CRLB}", name="RMS ÷ multi-frame CRLB per cell"),
+            ),
+            rrb.TextDocumentView(origin=f"/{paths.CNOEM_REPORT}", name="report"),
+            column_shares=[0.55, 0.45],
+        ),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_CELL),
+        auto_views=False,
+    )

@@ -1,0 +1,572 @@
+"""The frames of a run in its ``.rrd``: the marker map and cameras (static), each frame's image,
+detected and reprojected corners, code ids, the zoom on a small code, the codes seen in 3D, the
+truth and estimated poses and trajectories, and the error series with the rejections.
+
+:class:`FrameLogger` is one of the modality loggers a :class:`agvviz.viz.run_logger.RunLogger`
+holds (beside :mod:`agvviz.viz.log_lm` and :mod:`agvviz.viz.log_uncertainty`); per-frame values go
+through the run's :class:`agvviz.viz.columns.Columns`. The image is logged per frame (it is large)
+from its bytes without an archetype.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pyarrow as pa
+import rerun as rr
+
+from agvviz.errors import RunError
+from agvviz.geometry.camera import PinholeCamera
+from agvviz.markers.charuco import is_chessboard_id
+from agvviz.model.frames import FrameResult
+from agvviz.viz import paths
+from agvviz.viz.columns import ArrowBatch, Columns, Stamp
+from agvviz.viz.style import (
+    COLOR_CAMERA,
+    COLOR_DETECTED,
+    COLOR_HEADING,
+    COLOR_MARKER,
+    COLOR_MARKER_FILL,
+    COLOR_OBSERVED,
+    COLOR_PITCH,
+    COLOR_REJECTED,
+    COLOR_REPROJECTED,
+    COLOR_ROLL,
+    COLOR_STALE,
+    COLOR_THRESHOLD,
+    COLOR_TRUTH,
+)
+
+#: Media type of each ``FrameResult.image_format``.
+MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
+#: Nominal AGV body drawn around the body frame (half sizes x, y, z in m; centre on the
+#: floor-origin's vertical). A visual marker only: the recording does not carry a body size.
+AGV_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
+AGV_BODY_CENTER_M = (0.0, 0.0, 0.10)
+AGV_AXIS_LENGTH_M = 0.5
+#: Distance of the image plane drawn in the camera frustum (m).
+FRUSTUM_IMAGE_PLANE_M = 0.4
+#: Point radii in the image view (UI points, so they keep their size when zooming).
+DETECTED_RADIUS = rr.Radius.ui_points(5.0)
+REPROJECTED_RADIUS = rr.Radius.ui_points(2.5)
+LM_ITERATION_RADIUS = rr.Radius.ui_points(2.0)
+#: A trajectory is redrawn every frame from at most this many of its points (evenly spread,
+#: first and newest always kept), so logging cost per frame stays bounded on long runs.
+MAX_TRAJECTORY_POINTS = 400
+#: A code whose longest detected edge is shorter than this fraction of the image width (a code a
+#: few UI points wide in an image panel) also gets a zoomed view: a crop of the recorded image
+#: around it, ZOOM_CROP_CODE_SIDES code sides wide (at least ZOOM_MIN_CROP_PX), so a ≈15 px
+#: code fills its own panel.
+ZOOM_CODE_BELOW_FRACTION = 0.05
+#: Every crop is resized to this side (nearest neighbour: pixels stay visible as blocks), so
+#: the zoomed image keeps one size (the viewer refuses a stream of images changing size).
+ZOOM_SIDE_PX = 256
+ZOOM_CROP_CODE_SIDES = 3.0
+ZOOM_MIN_CROP_PX = 32
+
+#: Per-frame error series: (entity, legend name, colour).
+FRAME_SERIES = (
+    (paths.ERROR_POSITION_MM, "position error [mm] (camera estimate)", COLOR_CAMERA),
+    (paths.ERROR_HEADING_DEG, "heading error [deg]", COLOR_HEADING),
+    (paths.ERROR_PITCH_DEG, "pitch error [deg]", COLOR_PITCH),
+    (paths.ERROR_ROLL_DEG, "roll error [deg]", COLOR_ROLL),
+    (paths.ERROR_REPROJ_RMS_PX, "reprojection RMS [px]", COLOR_REPROJECTED),
+)
+
+
+class RunLogError(RunError):
+    """Input the run logger cannot log (wrong shape, unknown image format, used after save)."""
+
+
+_BLOB_TYPE = rr.components.BlobBatch._ARROW_DATATYPE
+_BLOB_DESCRIPTOR = rr.EncodedImage.descriptor_blob()
+_MEDIA_TYPE_BATCHES: dict[str, rr.DescribedComponentBatch] = {}
+
+
+def _media_type_batch(media_type: str) -> rr.DescribedComponentBatch:
+    """``EncodedImage:media_type`` = ``media_type`` (built once per media type)."""
+    batch = _MEDIA_TYPE_BATCHES.get(media_type)
+    if batch is None:
+        batch = _MEDIA_TYPE_BATCHES[media_type] = rr.DescribedComponentBatch(
+            rr.components.MediaTypeBatch([media_type]), rr.EncodedImage.descriptor_media_type()
+        )
+    return batch
+
+
+class Track:
+    """Positions (m) appended one per frame into a growing array (no list → array per frame)."""
+
+    def __init__(self):
+        self._xyz = np.zeros((256, 3))
+        self._n = 0
+
+    def append(self, position_m: np.ndarray) -> None:
+        if self._n == len(self._xyz):
+            self._xyz = np.concatenate([self._xyz, np.zeros_like(self._xyz)])
+        self._xyz[self._n] = position_m
+        self._n += 1
+
+    def __len__(self) -> int:
+        return self._n
+
+    def array(self) -> np.ndarray:
+        return self._xyz[: self._n]
+
+
+
+class FrameLogger:
+    """Logs the static world and cameras and, per frame, images, corners, poses, trajectories and
+    errors into ``rec``; per-frame values into ``columns``. ``max_reproj_px``: the run's setting,
+    drawn as a threshold line on the reprojection plot (None: no line)."""
+
+    def __init__(self, rec: rr.RecordingStream, columns: Columns, max_reproj_px: float | None = None):
+        self._rec = rec
+        self._columns = columns
+        self.max_reproj_px = max_reproj_px
+        self._cam_names: list[str] = []
+        self._image_width_px: dict[str, int] = {}
+        #: Cameras fixed in the world (paper 003's wall cameras).
+        self.fixed_cams: set[str] = set()
+        self._trajectory_truth_m = Track()
+        self._trajectory_camera_m = Track()
+        # What the previous frame left drawn, so a state is logged only when it changes.
+        self._camera_body_label: str | None = None  # None: not drawn yet; "": solved
+        self._zoomed: set[str] = set()  # cameras whose zoom shows a crop now
+        # What the run held, for the layout.
+        self._zoom_cams: set[str] = set()
+        #: Frames rejected so far.
+        self.rejected_frames = 0
+        #: The first estimated pose T_world_agv (the 3D view starts there); None: none yet.
+        self.first_pose: np.ndarray | None = None
+
+    @property
+    def cam_names(self) -> list[str]:
+        return list(self._cam_names)
+
+    @property
+    def zoom_cams(self) -> list[str]:
+        """Cameras that had a small code at least once (they have a zoomed view)."""
+        return sorted(self._zoom_cams)
+
+    # -- static content --------------------------------------------------------------------
+    def log_styles(self) -> None:
+        """The world's axes and the static styles of the frame entities."""
+        rec = self._rec
+        rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        for entity, name, color in FRAME_SERIES:
+            rec.log(entity, rr.SeriesLines(names=name, colors=color, widths=1.5), static=True)
+        if self.max_reproj_px is not None:
+            rec.log(
+                paths.ERROR_REPROJ_THRESHOLD_PX,
+                rr.SeriesLines(
+                    names=f"max_reproj_px = {self.max_reproj_px:g} px (above: frame rejected)",
+                    colors=COLOR_THRESHOLD,
+                    widths=1.0,
+                ),
+                static=True,
+            )
+        rec.log(
+            paths.ERROR_REJECTED,
+            rr.SeriesPoints(
+                names="rejected frame (reasons: rejections log)",
+                colors=COLOR_REJECTED,
+                markers=rr.components.MarkerShape.Cross,
+                marker_sizes=4.0,
+            ),
+            static=True,
+        )
+        for entity in (paths.AGV_TRUTH, paths.AGV_CAMERA):
+            rec.log(entity, rr.TransformAxes3D(AGV_AXIS_LENGTH_M), static=True)
+        rec.log(paths.AGV_TRUTH_BODY, agv_body(COLOR_TRUTH, "truth"), static=True)
+        rec.log(paths.TRAJECTORY_TRUTH, rr.LineStrips3D.from_fields(colors=COLOR_TRUTH, radii=rr.Radius.ui_points(2.0)), static=True)
+        rec.log(paths.TRAJECTORY_CAMERA, rr.LineStrips3D.from_fields(colors=COLOR_CAMERA, radii=rr.Radius.ui_points(2.0)), static=True)
+        rec.log(
+            paths.MARKERS_SEEN,
+            rr.LineStrips3D.from_fields(colors=COLOR_DETECTED, radii=rr.Radius.ui_points(3.0), show_labels=True),
+            static=True,
+        )
+
+    def _log_camera_styles(self, cam_name: str, fixed: bool) -> None:
+        """Static colours, sizes and draw order of the per-frame 2D entities of ``cam_name``."""
+        rec = self._rec
+        for entity, color, radius, order, labels in (
+            (paths.detected(cam_name, fixed), COLOR_DETECTED, DETECTED_RADIUS, 10.0, False),
+            (paths.reprojected(cam_name, fixed), COLOR_REPROJECTED, REPROJECTED_RADIUS, 11.0, False),
+            (paths.lm_iteration(cam_name, fixed), COLOR_OBSERVED, LM_ITERATION_RADIUS, 12.0, False),
+            (paths.marker_ids(cam_name, fixed), COLOR_DETECTED, rr.Radius.ui_points(1.0), 13.0, True),
+            (paths.zoom_detected(cam_name), COLOR_DETECTED, DETECTED_RADIUS, 10.0, False),
+            (paths.zoom_reprojected(cam_name), COLOR_REPROJECTED, REPROJECTED_RADIUS, 11.0, False),
+        ):
+            rec.log(
+                entity,
+                rr.Points2D.from_fields(colors=color, radii=radius, draw_order=order, show_labels=labels),
+                static=True,
+            )
+        rec.log(
+            paths.lm_path(cam_name, fixed),
+            rr.LineStrips2D.from_fields(colors=COLOR_OBSERVED, radii=rr.Radius.ui_points(1.0), draw_order=9.0),
+            static=True,
+        )
+
+    def log_world_static(self, markers: list[tuple[str, np.ndarray]]) -> None:
+        """Log the marker map: outlines with an id label and faint faces (static).
+
+        Parameters
+        ----------
+        markers : list of (marker_id, corners_world_m)
+            ``corners_world_m`` (4, 3) in world metres, order TL, TR, BR, BL.
+        """
+        if not markers:
+            return
+        ids = [str(marker_id) for marker_id, _ in markers]
+        corners = [
+            as_array(c, (4, 3), f"corners_world_m of marker {marker_id!r}") for marker_id, c in markers
+        ]
+        outlines = [np.vstack([c, c[:1]]) for c in corners]  # closed loop TL→TR→BR→BL→TL
+        self._rec.log(
+            paths.MARKERS,
+            rr.LineStrips3D(outlines, colors=COLOR_MARKER, labels=ids, radii=rr.Radius.ui_points(1.5)),
+            static=True,
+        )
+        vertices = np.concatenate(corners, axis=0)
+        quads = np.arange(len(corners))[:, None] * 4
+        triangles = np.concatenate([quads + [0, 1, 2], quads + [0, 2, 3]], axis=0)
+        self._rec.log(
+            paths.MARKERS_FILL,
+            rr.Mesh3D(
+                vertex_positions=vertices,
+                triangle_indices=triangles,
+                vertex_colors=np.tile(COLOR_MARKER_FILL, (len(vertices), 1)),
+            ),
+            static=True,
+        )
+
+    def log_camera_static(self, cam_name: str, camera: PinholeCamera, T_agv_cam: np.ndarray) -> None:
+        """Log camera ``cam_name``: extrinsic ``T_agv_cam`` and its Pinhole (static).
+
+        The camera hangs under the estimated AGV pose, so its frustum shows where the
+        pipeline places the camera. The Pinhole ignores lens distortion (Rerun draws an
+        ideal pinhole); the recorded image and corners stay in distorted pixels.
+
+        Parameters
+        ----------
+        cam_name : str
+            Camera name (entity ``cam_<name>``).
+        camera : PinholeCamera
+            Intrinsics ``K`` and image size; the size must be known (> 0).
+        T_agv_cam : (4, 4) array
+            Camera pose in the AGV body frame.
+        """
+        if camera.width_px <= 0 or camera.height_px <= 0:
+            raise RunLogError(
+                f"camera {cam_name!r} has no image size ({camera.width_px}×{camera.height_px} px): "
+                "log the camera with the width/height from its calibration"
+            )
+        T_agv_cam = as_transform(T_agv_cam, f"T_agv_cam of camera {cam_name!r}")
+        entity = paths.camera(cam_name)
+        self._rec.log(entity, transform3d(T_agv_cam), static=True)
+        self._rec.log(entity, _pinhole(camera), static=True)
+        self._log_camera_styles(cam_name, fixed=False)
+        self._image_width_px[cam_name] = int(camera.width_px)
+        if cam_name not in self._cam_names:
+            self._cam_names.append(cam_name)
+
+    def log_fixed_camera_static(self, cam_name: str, camera: PinholeCamera, T_world_cam: np.ndarray) -> None:
+        """Log camera ``cam_name`` fixed in the world (paper 003): ``T_world_cam`` and its
+        Pinhole under ``world/cameras`` (static); its images and corners go there too."""
+        T_world_cam = as_transform(T_world_cam, f"T_world_cam of camera {cam_name!r}")
+        entity = paths.camera(cam_name, fixed=True)
+        self._rec.log(entity, transform3d(T_world_cam), static=True)
+        self._rec.log(entity, _pinhole(camera), static=True)
+        self._log_camera_styles(cam_name, fixed=True)
+        self._image_width_px[cam_name] = int(camera.width_px)
+        self.fixed_cams.add(cam_name)
+        if cam_name not in self._cam_names:
+            self._cam_names.append(cam_name)
+
+    # -- per frame -------------------------------------------------------------------------
+    def log_image(self, frame: FrameResult) -> None:
+        if not frame.image_bytes:
+            return  # corner-only recordings carry no image
+        # What rr.EncodedImage(contents=..., media_type=...) logs, without building the
+        # archetype: the blob wraps the bytes without a copy, the media type is built once.
+        data = pa.py_buffer(frame.image_bytes)
+        blob = pa.ListArray.from_arrays(
+            pa.array([0, data.size], type=pa.int32()),
+            pa.Array.from_buffers(pa.uint8(), data.size, [None, data]),
+            type=_BLOB_TYPE,
+        )
+        self._rec.log(
+            paths.image(frame.cam_name, frame.cam_name in self.fixed_cams),
+            [rr.DescribedComponentBatch(ArrowBatch(blob), _BLOB_DESCRIPTOR), _media_type_batch(MEDIA_TYPES[frame.image_format])],
+        )
+
+    def log_corners(self, frame: FrameResult, stamp: Stamp) -> None:
+        """Detected and reprojected corners, each code's id at its centre, and the zoomed view
+        of a small code. Empty batches on frames without corners, so the previous frame's
+        points vanish."""
+        detected, detected_ids, reprojected, reprojected_ids, centres = [], [], [], [], []
+        for obs in frame.observations:
+            corners = np.asarray(obs.corners_px, dtype=float)
+            detected.append(corners)
+            # A ChArUco board's saddles carry their own label (board<k>:chessboard).
+            detected_ids += [obs.marker_id] * len(corners)
+            centres.append((corners if is_chessboard_id(obs.marker_id) else corners[:4]).mean(axis=0))
+            if obs.reprojected_px is not None:
+                reproj = np.asarray(obs.reprojected_px, dtype=float)
+                reprojected.append(reproj)
+                reprojected_ids += [obs.marker_id] * len(reproj)
+        fixed = frame.cam_name in self.fixed_cams
+        row = self._columns.row
+        row(
+            paths.detected(frame.cam_name, fixed), "points2d", stamp,
+            np.concatenate(detected) if detected else np.zeros((0, 2)), detected_ids,
+        )
+        row(
+            paths.reprojected(frame.cam_name, fixed), "points2d", stamp,
+            np.concatenate(reprojected) if reprojected else np.zeros((0, 2)), reprojected_ids,
+        )
+        row(
+            paths.marker_ids(frame.cam_name, fixed), "points2d", stamp,
+            np.array(centres) if centres else np.zeros((0, 2)),
+            [f"id {obs.marker_id}" for obs in frame.observations],
+        )
+        self.log_zoom(frame)
+
+    def log_zoom(self, frame: FrameResult) -> None:
+        """A crop of the image around the smallest code when it is under ZOOM_CODE_BELOW_FRACTION
+        of the image width (a camera logged without its size is never zoomed)."""
+        cam = frame.cam_name
+        below_px = ZOOM_CODE_BELOW_FRACTION * self._image_width_px.get(cam, 0)
+        small = []  # (longest edge, observation) of the codes under the threshold
+        if below_px > 0 and frame.image_bytes:
+            for obs in frame.observations:
+                if is_chessboard_id(obs.marker_id):
+                    continue  # saddles, not a code's outline
+                edge_px = _longest_edge_px(np.asarray(obs.corners_px, float)[:4])
+                if edge_px < below_px:
+                    small.append((edge_px, obs))
+        crop = None
+        if small:
+            _, obs = min(small, key=lambda edge_obs: edge_obs[0])
+            crop = _crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
+        root = paths.zoom(cam)
+        if crop is None:
+            if cam in self._zoomed:
+                self._rec.log(root, rr.Clear(recursive=True))
+                self._zoomed.discard(cam)
+            return
+        png, origin_px, px_per_image_px = crop
+        obs_points = [(np.asarray(o.corners_px, float), o.reprojected_px) for o in frame.observations]
+        detected = (np.concatenate([c for c, _ in obs_points]) - origin_px) * px_per_image_px
+        reprojected = [np.asarray(r, float) for _, r in obs_points if r is not None]
+        rec = self._rec
+        rec.log(paths.zoom_image(cam), rr.EncodedImage(contents=png, media_type="image/png"))
+        rec.log(paths.zoom_detected(cam), rr.Points2D(detected))
+        rec.log(
+            paths.zoom_reprojected(cam),
+            rr.Points2D(
+                (np.concatenate(reprojected) - origin_px) * px_per_image_px if reprojected else np.zeros((0, 2))
+            ),
+        )
+        self._zoomed.add(cam)
+        self._zoom_cams.add(cam)
+
+    def log_markers_seen(self, frame: FrameResult, stamp: Stamp) -> None:
+        """The outline and id of every code of this frame in 3D (world-fixed codes only)."""
+        outlines, labels = [], []
+        for obs in frame.observations:
+            if obs.points_frame != "world":
+                continue
+            corners = np.asarray(obs.points_world_m, dtype=float)
+            corners = _outline_of_points(corners) if is_chessboard_id(obs.marker_id) else corners[:4]
+            outlines.append(np.vstack([corners, corners[:1]]))
+            used = (
+                " (used)" if obs.marker_id in (frame.used_marker_ids or (frame.used_marker_id,))
+                else " (left out)" if obs.marker_id in frame.excluded_marker_ids else ""
+            )
+            labels.append(f"id {obs.marker_id}{used}")
+        self._columns.row(paths.MARKERS_SEEN, "strips3d", stamp, outlines, labels)
+
+    def log_poses(self, frame: FrameResult, stamp: Stamp) -> None:
+        rec = self._rec
+        if frame.T_world_agv_truth is not None:
+            T_truth = np.asarray(frame.T_world_agv_truth, dtype=float)
+            self._columns.transform(paths.AGV_TRUTH, stamp, T_truth)
+            self._trajectory_truth_m.append(T_truth[:3, 3])
+            self._columns.row(paths.TRAJECTORY_TRUTH, "strip3d", stamp, _thinned(self._trajectory_truth_m.array()))
+        if frame.solved:
+            T_est = np.asarray(frame.T_world_agv, dtype=float)
+            if self.first_pose is None:
+                self.first_pose = T_est
+            self._columns.transform(paths.AGV_CAMERA, stamp, T_est)
+            if self._camera_body_label != "":
+                rec.log(paths.AGV_CAMERA_BODY, agv_body(COLOR_CAMERA))
+                self._camera_body_label = ""
+            self._trajectory_camera_m.append(T_est[:3, 3])
+            self._columns.row(paths.TRAJECTORY_CAMERA, "strip3d", stamp, _thinned(self._trajectory_camera_m.array()))
+        else:
+            # The estimate entity keeps its last pose; grey it so a stale pose is not mistaken
+            # for this frame's answer.
+            stale = "no estimate yet" if not self._trajectory_camera_m else "last estimate"
+            label = f"rejected: {frame.rejected} ({stale})"
+            if label != self._camera_body_label:
+                rec.log(paths.AGV_CAMERA_BODY, agv_body(COLOR_STALE, label))
+                self._camera_body_label = label
+
+    def log_errors(self, frame: FrameResult, stamp: Stamp) -> None:
+        columns = self._columns
+        for entity, value in (
+            (paths.ERROR_POSITION_MM, None if frame.position_error_m is None else 1000.0 * frame.position_error_m),
+            (paths.ERROR_HEADING_DEG, frame.heading_error_deg),
+            (paths.ERROR_PITCH_DEG, frame.pitch_error_deg),
+            (paths.ERROR_ROLL_DEG, frame.roll_error_deg),
+            (paths.ERROR_REPROJ_RMS_PX, frame.reproj_rms_px),
+        ):
+            if value is not None:
+                columns.scalar(entity, stamp, value)
+            elif not frame.solved:
+                columns.gap(entity, stamp)  # the line breaks at a rejected frame
+        if self.max_reproj_px is not None:
+            columns.scalar(paths.ERROR_REPROJ_THRESHOLD_PX, stamp, self.max_reproj_px)
+        if not frame.solved:
+            self.rejected_frames += 1
+            columns.scalar(paths.ERROR_REJECTED, stamp, 0.0)
+            detail = f" — {frame.reject_detail}" if frame.reject_detail else ""
+            self._rec.log(
+                paths.EVENTS_REJECTIONS,
+                rr.TextLog(
+                    f"frame {frame.index} ({frame.cam_name}): {frame.rejected}{detail}",
+                    level=rr.TextLogLevel.WARN,
+                ),
+            )
+
+
+def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
+    """The nominal AGV body box; labelled only when it needs explaining (stale pose)."""
+    return rr.Boxes3D(
+        half_sizes=[AGV_BODY_HALF_SIZES_M],
+        centers=[AGV_BODY_CENTER_M],
+        colors=color,
+        labels=[label] if label else [],  # empty clears a previous stale label
+        radii=rr.Radius.ui_points(1.5),
+    )
+
+
+def _longest_edge_px(corners_px: np.ndarray) -> float:
+    """Longest edge of a code's outline (TL, TR, BR, BL) in pixels."""
+    return float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
+
+
+def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float] | None:
+    """PNG of a square crop of the image centred on the code, resized to ZOOM_SIDE_PX; the
+    crop's top-left pixel and the zoom's pixels per image pixel. None when the image does not
+    decode."""
+    image = cv2.imdecode(np.frombuffer(image_bytes, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return None
+    height, width = image.shape[:2]
+    side = int(max(ZOOM_MIN_CROP_PX, math.ceil(ZOOM_CROP_CODE_SIDES * _longest_edge_px(corners_px))))
+    centre = corners_px.mean(axis=0)
+    x0 = int(np.clip(round(centre[0] - side / 2), 0, max(width - side, 0)))
+    y0 = int(np.clip(round(centre[1] - side / 2), 0, max(height - side, 0)))
+    crop = image[y0 : y0 + side, x0 : x0 + side]
+    if crop.shape[0] != crop.shape[1]:  # an image smaller than the crop: pad it square
+        side = max(crop.shape[:2])
+        crop = cv2.copyMakeBorder(crop, 0, side - crop.shape[0], 0, side - crop.shape[1], cv2.BORDER_CONSTANT)
+    zoomed = cv2.resize(crop, (ZOOM_SIDE_PX, ZOOM_SIDE_PX), interpolation=cv2.INTER_NEAREST)
+    ok, png = cv2.imencode(".png", zoomed)
+    if not ok:
+        return None
+    return png.tobytes(), np.array([x0, y0], dtype=float), ZOOM_SIDE_PX / side
+
+
+def _thinned(positions_m: list[np.ndarray] | np.ndarray) -> np.ndarray:
+    """At most MAX_TRAJECTORY_POINTS of ``positions_m``, evenly spread, first and last kept."""
+    n = len(positions_m)
+    if n <= MAX_TRAJECTORY_POINTS and isinstance(positions_m, np.ndarray):
+        return positions_m.copy()
+    keep = np.unique(np.linspace(0, n - 1, min(n, MAX_TRAJECTORY_POINTS)).round().astype(int))
+    if isinstance(positions_m, np.ndarray):
+        return positions_m[keep]
+    return np.array([positions_m[i] for i in keep])
+
+
+def _pinhole(camera: PinholeCamera) -> rr.Pinhole:
+    """The frustum of ``camera`` (an ideal pinhole: Rerun does not draw lens distortion)."""
+    return rr.Pinhole(
+        image_from_camera=camera.K,
+        resolution=[camera.width_px, camera.height_px],
+        camera_xyz=rr.ViewCoordinates.RDF,
+        image_plane_distance=FRUSTUM_IMAGE_PLANE_M,
+        color=COLOR_CAMERA,
+    )
+
+
+def _outline_of_points(points_m: np.ndarray) -> np.ndarray:
+    """The convex hull (in their plane) of coplanar 3-D points: a board's saddles seen."""
+    centre = points_m.mean(axis=0)
+    if len(points_m) < 3:
+        return points_m
+    _, _, Vt = np.linalg.svd(points_m - centre)
+    uv = ((points_m - centre) @ Vt[:2].T).astype(np.float32)
+    hull = cv2.convexHull(uv, returnPoints=False).ravel()
+    return points_m[hull]
+
+
+def check_frame(frame: FrameResult) -> None:
+    """Raise RunLogError if ``frame`` cannot be logged as it is."""
+    where = f"frame {frame.index}"
+    if frame.image_format not in MEDIA_TYPES:
+        raise RunLogError(
+            f"{where}: image_format {frame.image_format!r} is not one of {sorted(MEDIA_TYPES)}"
+        )
+    for obs in frame.observations:
+        as_array(obs.corners_px, (-1, 2), f"{where}: corners_px of marker {obs.marker_id!r}")
+        if obs.reprojected_px is not None:
+            as_array(obs.reprojected_px, (-1, 2), f"{where}: reprojected_px of marker {obs.marker_id!r}")
+    if frame.T_world_agv_truth is not None:
+        as_transform(frame.T_world_agv_truth, f"{where}: T_world_agv_truth")
+    if frame.T_world_agv_ghost is not None:
+        as_transform(frame.T_world_agv_ghost, f"{where}: T_world_agv_ghost")
+    if frame.position_cov_world_m2 is not None:
+        as_array(frame.position_cov_world_m2, (3, 3), f"{where}: position_cov_world_m2")
+    if frame.solved:
+        if frame.T_world_agv is None:
+            raise RunLogError(f"{where} is solved (rejected is None) but has no T_world_agv")
+        as_transform(frame.T_world_agv, f"{where}: T_world_agv")
+
+
+def as_array(value, shape: tuple[int, int], what: str) -> np.ndarray:
+    """``value`` as a finite float array of ``shape`` (-1 = any length), else RunLogError."""
+    a = np.asarray(value, dtype=float)
+    if a.ndim != 2 or any(want not in (-1, got) for want, got in zip(shape, a.shape)):
+        raise RunLogError(f"{what} must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise RunLogError(f"{what} contains NaN or inf")
+    return a
+
+
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def as_transform(T, what: str) -> np.ndarray:
+    T = as_array(T, (4, 4), what)
+    # np.allclose(T[3], [0, 0, 0, 1]) (rtol 1e-5, atol 1e-8) for finite T, without its overhead
+    if not np.all(np.abs(T[3] - _LAST_ROW) <= 1e-8 + 1e-5 * _LAST_ROW):
+        raise RunLogError(f"{what} is not a homogeneous transform (last row {T[3].tolist()})")
+    return T
+
+
+def transform3d(T_parent_child: np.ndarray) -> rr.Transform3D:
+    """Transform3D placing the child entity at ``T_parent_child`` in its parent."""
+    return rr.Transform3D(translation=T_parent_child[:3, 3], mat3x3=T_parent_child[:3, :3])
+
+
+def trajectory(positions_m: list[np.ndarray], color: tuple[int, int, int]) -> rr.LineStrips3D:
+    """The trajectory so far, thinned to at most MAX_TRAJECTORY_POINTS (first and last kept)."""
+    return rr.LineStrips3D([_thinned(positions_m)], colors=color, radii=rr.Radius.ui_points(2.0))
+
+

@@ -1,0 +1,201 @@
+"""The studies in an ``.rrd``: a study run's trials (``agvviz run`` on a p4p Monte-Carlo or CNOEM
+grid recording, into the :class:`~agvviz.viz.run_logger.RunLogger`'s stream) and the studies' own
+report files (``bench/bench_monte_carlo.py``, ``bench/bench_cnoem.py``).
+
+p4p Monte-Carlo (:mod:`agvviz.replay.studies.monte_carlo`, :mod:`agvviz.replay.studies.monte_carlo_cells`):
+one implementation for both outputs, :func:`log_study` (timelines: ``trial`` = trial index within
+its cell; ``snr_db`` for the paper cells; ``sigma_mpx`` = σ in milli-pixels for the CRLB cells)::
+
+    mc/report                                      TextDocument: the markdown report (static)
+    mc/trials/<cell>/error_mm/<solver>             Scalars over trial: ‖t̂ − t‖ (mm) of each
+                                                   trial (failed solves left out)
+    mc/trials/<cell>/error_mm/crlb                 Scalars at the first and last trial: the
+                                                   cell's CRLB (sqrt trace, mm), a flat line
+    mc/paper/h<h>_z<z>_n<N>/t<i>_mean/<solver>     Scalars: mean of t_i (m) over snr_db
+    mc/paper/h<h>_z<z>_n<N>/rmse_mm/<solver>|crlb  Scalars: RMSE of t and its CRLB (mm)
+    mc/paper/h<h>_z<z>_n<N>/rmse_over_crlb/<solver>   Scalars: RMSE ÷ CRLB over snr_db
+    mc/crlb/tilt<t>_h<h>_z<z>_n<N>/rmse_over_crlb/<solver>   Scalars over sigma_mpx
+
+CNOEM grid run (:mod:`agvviz.replay.studies.cnoem`), timeline ``trial`` = the trial's index within
+its cell::
+
+    cnoem/report                                TextDocument: the study report (static)
+    cnoem/trials/<cell>/error_m/<method>        Scalars over trial: position error of F (m) of
+                                                each trial (failed solves left out)
+    cnoem/trials/<cell>/error_m/crlb            Scalars at the first and last trial: the cell's
+                                                multi-frame CRLB position bound (m), a flat line
+
+CNOEM grid report file (:mod:`agvviz.replay.studies.cnoem_cells`), timeline ``cell`` = the cell's index
+in :func:`agvviz.sim.auv.grid_cells` (distance slowest, σ fastest)::
+
+    cnoem/report                          TextDocument: the markdown report (static)
+    cnoem/mean_error_m/<method>           Scalars: mean position error of F per cell (m)
+    cnoem/ratio_to_ippe_first             Scalars: cnoem mean ÷ ippe_first mean per cell
+    cnoem/rms_over_crlb/<method>          Scalars: RMS ÷ multi-frame CRLB per cell
+    cnoem/crlb_m                          Scalars: the cell's CRLB position bound (m)
+
+The layouts are :func:`agvviz.viz.blueprints.study_blueprint`, ``trials_blueprint``,
+``cnoem_trials_blueprint`` and ``cnoem_report_blueprint``.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import rerun as rr
+
+from agvviz.model.studies import CellResult, CnoemCellResult, CnoemTrialsOutcome, TrialsOutcome
+from agvviz.replay.studies.cnoem_cells import METHODS as CNOEM_METHODS
+from agvviz.replay.studies.monte_carlo_cells import SOLVERS
+from agvviz.viz import paths
+from agvviz.viz.blueprints import cnoem_report_blueprint, mc_default_tab, study_blueprint
+from agvviz.viz.rrd_file import AtomicRrd
+
+SOLVER_COLORS = {
+    "p4p": (60, 120, 255),
+    "lm": (230, 40, 40),
+    "lm_pixel": (255, 160, 0),
+    "lm_amb": (0, 220, 220),
+    "ippe": (40, 200, 90),
+    "sqpnp": (200, 120, 255),
+    "crlb": (230, 230, 230),
+}
+CNOEM_COLORS = {
+    "cnoem": (230, 40, 40),
+    "cnoem_multistart": (255, 120, 120),
+    "bundle": (255, 160, 0),
+    "ippe_first": (40, 200, 90),
+    "ippe_first_nav": (60, 120, 255),
+    "ippe_mean_nav": (200, 120, 255),
+    "crlb": (230, 230, 230),
+}
+
+
+# -- p4p Monte-Carlo ---------------------------------------------------------------------------
+def log_study(rec: rr.RecordingStream, results: dict[str, CellResult], report_md: str) -> None:
+    """Log the report, every trial's error and the per-cell figures into ``rec``.
+
+    Per-trial data go out with ``send_columns`` (a ``trial`` TimeColumn), so the trial
+    timeline never leaks onto later logs; the per-cell figures are logged at ``snr_db`` /
+    ``sigma_mpx`` with the stream's time reset before and after.
+    """
+    rec.log(paths.MC_REPORT, rr.TextDocument(report_md, media_type=rr.MediaType.MARKDOWN), static=True)
+    for cid, r in results.items():
+        base = paths.mc_trial_errors(cid)
+        n_trials = 0
+        for name, errors_m in r.errors_t_m.items():
+            errors_mm = np.asarray(errors_m, dtype=float) * 1000.0
+            n_trials = max(n_trials, len(errors_mm))
+            ok = np.flatnonzero(np.isfinite(errors_mm))
+            rec.log(
+                f"{base}/{name}",
+                rr.SeriesPoints(names=name, colors=SOLVER_COLORS.get(name, (200, 200, 200)), marker_sizes=2.0),
+                static=True,
+            )
+            if len(ok):
+                rec.send_columns(
+                    f"{base}/{name}",
+                    indexes=[rr.TimeColumn(paths.TIMELINE_TRIAL, sequence=ok)],
+                    columns=rr.Scalars.columns(scalars=errors_mm[ok]),
+                )
+        if n_trials:
+            rec.log(f"{base}/crlb", rr.SeriesLines(names="crlb", colors=SOLVER_COLORS["crlb"], widths=2.0), static=True)
+            rec.send_columns(
+                f"{base}/crlb",
+                indexes=[rr.TimeColumn(paths.TIMELINE_TRIAL, sequence=[0, n_trials - 1])],
+                columns=rr.Scalars.columns(scalars=np.full(2, r.crlb_t_m * 1000.0)),
+            )
+
+    styled: set[str] = set()
+
+    def scalar(entity: str, value: float, series: str) -> None:
+        if entity not in styled:
+            rec.log(entity, rr.SeriesLines(names=series, colors=SOLVER_COLORS[series], widths=2.0), static=True)
+            styled.add(entity)
+        rec.log(entity, rr.Scalars(float(value)))
+
+    for cid, r in results.items():
+        rec.reset_time()
+        group = paths.mc_paper_group(cid)
+        if group is not None:
+            rec.set_time(paths.TIMELINE_SNR_DB, sequence=int(paths.MC_PAPER_CELL.fullmatch(cid)["snr"]))
+            for name in SOLVERS:
+                s = r.stats[name]
+                for i in range(3):
+                    scalar(f"{group}/t{i + 1}_mean/{name}", s.mean_t_m[i], name)
+                scalar(f"{group}/rmse_mm/{name}", s.rmse_t_m * 1000.0, name)
+                scalar(f"{group}/rmse_over_crlb/{name}", s.rmse_t_m / r.crlb_t_m, name)
+            scalar(f"{group}/rmse_mm/crlb", r.crlb_t_m * 1000.0, "crlb")
+            continue
+        group = paths.mc_crlb_group(cid)
+        if group is not None:
+            rec.set_time(paths.TIMELINE_SIGMA_MPX, sequence=int(round(float(paths.MC_CRLB_CELL.fullmatch(cid)["s"]) * 1000)))
+            for name in SOLVERS:
+                scalar(f"{group}/rmse_over_crlb/{name}", r.stats[name].rmse_t_m / r.crlb_t_m, name)
+    rec.reset_time()
+
+
+def write_monte_carlo_report_rrd(out_path: str | os.PathLike, results: dict[str, CellResult], report_md: str) -> None:
+    """Write the study as an ``.rrd`` of its own (temporary file beside it, renamed when
+    complete), opening on the paper's figures (:func:`~agvviz.viz.blueprints.mc_default_tab`)."""
+    with AtomicRrd(out_path, recording_id="agvviz-p4p-monte-carlo", recording_name="p4p_monte_carlo report") as rrd:
+        log_study(rrd.rec, results, report_md)
+        rrd.commit(study_blueprint(results, active=mc_default_tab(results)))
+
+
+def log_trials(stream: rr.RecordingStream, outcome: TrialsOutcome) -> None:
+    """Log ``outcome``'s error series, per-cell figures and report markdown into ``stream``
+    (the :class:`~agvviz.viz.run_logger.RunLogger`'s, beside its manifest and summary)."""
+    log_study(stream, outcome.results, outcome.report_markdown)
+
+
+# -- CNOEM grid ----------------------------------------------------------------------------------
+def log_cnoem_trials(stream: rr.RecordingStream, outcome: CnoemTrialsOutcome) -> None:
+    """Log ``outcome``'s report and every trial's error series into ``stream`` (the
+    :class:`~agvviz.viz.run_logger.RunLogger`'s). Per-trial data go out with ``send_columns``
+    (a ``trial`` TimeColumn), so the trial timeline never leaks onto later logs."""
+    stream.log(paths.CNOEM_REPORT, rr.TextDocument(outcome.report_markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+    for cell_id, r in outcome.results.items():
+        base = paths.cnoem_trial_errors(cell_id)
+        n_trials = 0
+        for method in outcome.methods:
+            errors_m = np.asarray(r.errors_m[method], dtype=float)
+            n_trials = max(n_trials, len(errors_m))
+            ok = np.flatnonzero(np.isfinite(errors_m))
+            stream.log(f"{base}/{method}", rr.SeriesPoints(names=method, colors=CNOEM_COLORS[method], marker_sizes=2.0), static=True)
+            if len(ok):
+                stream.send_columns(
+                    f"{base}/{method}",
+                    indexes=[rr.TimeColumn(paths.TIMELINE_TRIAL, sequence=ok)],
+                    columns=rr.Scalars.columns(scalars=errors_m[ok]),
+                )
+        if n_trials and np.isfinite(r.crlb_position_m):
+            stream.log(f"{base}/crlb", rr.SeriesLines(names="crlb", colors=CNOEM_COLORS["crlb"], widths=2.0), static=True)
+            stream.send_columns(
+                f"{base}/crlb",
+                indexes=[rr.TimeColumn(paths.TIMELINE_TRIAL, sequence=[0, n_trials - 1])],
+                columns=rr.Scalars.columns(scalars=np.full(2, r.crlb_position_m)),
+            )
+
+
+def write_cnoem_report_rrd(out_path: str | os.PathLike, results: list[CnoemCellResult], report_md: str) -> None:
+    """Log the study into ``out_path`` (temporary file beside it, renamed when complete)."""
+    with AtomicRrd(out_path, recording_id="agvviz-cnoem-study", recording_name="cnoem grid study") as rrd:
+        rec = rrd.rec
+        rec.log(paths.CNOEM_REPORT, rr.TextDocument(report_md, media_type=rr.MediaType.MARKDOWN), static=True)
+        for m in CNOEM_METHODS:
+            rec.log(f"{paths.CNOEM_MEAN_ERROR_M}/{m}", rr.SeriesLines(names=m, colors=CNOEM_COLORS[m], widths=1.5), static=True)
+        for m in ("cnoem", "bundle"):
+            rec.log(f"{paths.CNOEM_RMS_OVER_CRLB}/{m}", rr.SeriesLines(names=m, colors=CNOEM_COLORS[m], widths=1.5), static=True)
+        rec.log(paths.CNOEM_RATIO_TO_IPPE_FIRST, rr.SeriesLines(names="cnoem ÷ ippe_first", colors=CNOEM_COLORS["cnoem"]), static=True)
+        rec.log(paths.CNOEM_CRLB_M, rr.SeriesLines(names="CRLB position bound [m]", colors=CNOEM_COLORS["crlb"]), static=True)
+        for index, r in enumerate(results):
+            rec.set_time(paths.TIMELINE_CELL, sequence=index)
+            for m in CNOEM_METHODS:
+                rec.log(f"{paths.CNOEM_MEAN_ERROR_M}/{m}", rr.Scalars(r.mean_m(m)))
+            for m in ("cnoem", "bundle"):
+                rec.log(f"{paths.CNOEM_RMS_OVER_CRLB}/{m}", rr.Scalars(r.rms_m(m) / r.crlb_position_m))
+            rec.log(paths.CNOEM_RATIO_TO_IPPE_FIRST, rr.Scalars(r.mean_m("cnoem") / r.mean_m("ippe_first")))
+            rec.log(paths.CNOEM_CRLB_M, rr.Scalars(r.crlb_position_m))
+        rrd.commit(cnoem_report_blueprint())
