@@ -15,7 +15,9 @@ caller's summary (:meth:`Replay.warnings`).
 
 Which detected codes can give a pose (payloads, map, boards) is :mod:`agvviz.replay.candidates`;
 this module keeps the per-frame pipeline around it — camera state, the largest code's solve,
-the joint solve and the scoring — whose steps share the frame's draft (~600 lines).
+the joint solve and the scoring.
+Longer than 600 lines because those steps share one frame's draft: split further, each would
+pass the draft and the camera state back and forth.
 """
 
 from __future__ import annotations

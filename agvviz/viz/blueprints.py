@@ -11,8 +11,8 @@ Builders, by the file they lay out:
 - the studies' own report files: :func:`study_blueprint` (Monte-Carlo) and
   :func:`cnoem_report_blueprint` (CNOEM grid).
 
-Views take their origins from :mod:`agvviz.viz.paths` only. The module is longer than ~600 lines
-on purpose: it holds the ten layouts side by side (each a single function that reads top to
+Views take their origins from :mod:`agvviz.viz.paths` only.
+Longer than 600 lines because it holds the ten layouts side by side (each a single function that reads top to
 bottom like its sketch), so a new view is added in one place; splitting it by layout would
 bring back a blueprint file per logger.
 
