@@ -41,17 +41,12 @@ from agvviz.recording.contract import (
     inspect_recording,
     payload_map_problem,
 )
-from agvviz.recording.reader import (
-    RecordingError,
-    DATA_SECTION_CRC_PROBLEM,
-    MAX_IMAGE_SIDE_PX,
-    CalibrationMsg,
-    CompressedFrame,
-    FrameTransformMsg,
-    ReadReport,
-    RecordedMessage,
-    iter_messages,
-)
+from agvviz.errors import RecordingError
+from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg, RecordedMessage
+from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
+from agvviz.recording.raw import ReadReport
+from agvviz.recording.reader import iter_messages
+from agvviz.recording.values import MAX_IMAGE_SIDE_PX
 from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_PAYLOAD
 from agvviz.replay.run import run_recording
 from agvviz.settings import RunSettings
@@ -391,7 +386,7 @@ def test_duplicated_messages_are_dropped(base, base_run, tmp_path):
 
 def _chunked(tmp_path):
     """8 images of 400 kB at log times 0..7 ns in several 1 MiB chunks; (path, chunk indexes)."""
-    from agvviz.recording import RecordingWriter
+    from agvviz.recording.writer import RecordingWriter
 
     rng = np.random.default_rng(3)
     path = tmp_path / "chunks.mcap"

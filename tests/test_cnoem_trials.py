@@ -16,9 +16,11 @@ from agvviz.evaluation.cnoem_study import METHODS
 from agvviz.evaluation.summary_table import summary_rows
 from agvviz.replay.studies.cnoem import is_cnoem_trials_recording, replay_cnoem_trials, study_method
 from agvviz.replay.studies.monte_carlo import trials_timing
-from agvviz.recording.reader import PoseMsg, ReadReport, RecordedMessage, iter_messages
+from agvviz.model.messages import PoseMsg, RecordedMessage
+from agvviz.recording.raw import ReadReport
+from agvviz.recording.reader import iter_messages
 from agvviz.recording.source import iter_role_messages, open_recording, resolve_roles, scan
-from agvviz.recording.topics import ROLE_CORNERS
+from agvviz.model.topics import ROLE_CORNERS
 from agvviz.settings import RunSettings
 from agvviz.sim import auv
 from agvviz.viz import paths

@@ -14,9 +14,10 @@ from agvviz.evaluation.monte_carlo import SOLVERS, collect, evaluate_cell
 from agvviz.evaluation.summary import FrameScore, summarize, timing
 from agvviz.evaluation.summary_table import summary_rows
 from agvviz.replay.studies.monte_carlo import is_trials_recording, replay_trials, study_solver, trials_timing
-from agvviz.recording.reader import ReadReport, RecordedMessage
+from agvviz.model.messages import RecordedMessage
+from agvviz.recording.raw import ReadReport
 from agvviz.recording.source import iter_role_messages, open_recording, resolve_roles, scan
-from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS
+from agvviz.model.topics import CORNERS_TOPIC, ROLE_CORNERS
 from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document

@@ -21,7 +21,7 @@ from agvviz.conventions import WORLD_FRAME
 from agvviz.errors import InputError, RecordingError
 from agvviz.geometry.plane import DegenerateGeometryError, marker_frame_from_corners, quad_area_px2
 from agvviz.recording.source import require_recording_path
-from agvviz.recording.reader import ReadReport
+from agvviz.recording.raw import ReadReport
 from agvviz.recording.source import iter_role_messages
 from agvviz.settings import RunSettings
 

@@ -305,8 +305,8 @@ def read_grid_recording(messages) -> dict[str, RecordedCell]:
     """
     from agvviz.conventions import AGV_FRAME
     from agvviz.geometry import se3
-    from agvviz.recording.reader import CalibrationMsg, PoseMsg
-    from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TF_STATIC, ROLE_TRUTH
+    from agvviz.model.messages import CalibrationMsg, PoseMsg
+    from agvviz.model.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TF_STATIC, ROLE_TRUTH
     from agvviz.solvers.cnoem import Sighting
 
     K: dict[str, np.ndarray] = {}

@@ -23,7 +23,7 @@ from typing import Iterable
 import numpy as np
 
 from agvviz.errors import RecordingError
-from agvviz.recording.reader import CalibrationMsg, RecordedMessage
+from agvviz.model.messages import CalibrationMsg, RecordedMessage
 from agvviz.solvers import SolverOptions, solve
 from agvviz.solvers import uncertainty
 from agvviz.solvers.ambiguity import ippe_pair
@@ -34,7 +34,7 @@ SOLVERS = ("p4p", "lm", "lm_pixel", "lm_amb", "ippe", "sqpnp")
 #: valley for 50–100 Gauss–Newton steps before the default stopping rule fires; the study
 #: measures accuracy, so they get room (the run setting lm_max_iterations defaults to 50).
 MC_LM_MAX_ITERATIONS = 200
-from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS  # noqa: E402
+from agvviz.model.topics import CORNERS_TOPIC, ROLE_CORNERS  # noqa: E402
 
 #: Paper 000 §6 figures with numbers: figure → (cell id, solver, mean t (m), variance of t (m²)).
 #: Figures 9–11 (the SNR sweep of t1, t2, t3) are plots without numbers in the text; their cells

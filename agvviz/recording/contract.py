@@ -27,22 +27,13 @@ import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import PinholeCamera
-from agvviz.recording.reader import (
-    MAX_IMAGE_SIDE_PX,
-    CalibrationMsg,
-    CompressedFrame,
-    FrameTransformMsg,
-    MessageDecodeError,
-    PoseMsg,
-    RawMetadata,
-    ReadReport,
-    decode,
-    image_size_problem,
-    iter_raw,
-    parse_scenario_metadata,
-)
+from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg, PoseMsg
+from agvviz.recording.formats import by_name, decode
+from agvviz.recording.mcap_stream import parse_scenario_metadata
+from agvviz.recording.raw import MessageDecodeError, RawMetadata, ReadReport
+from agvviz.recording.values import MAX_IMAGE_SIDE_PX, image_size_problem
 from agvviz.recording.schemas import SCENARIO_METADATA, SCHEMAS
-from agvviz.recording.topics import (
+from agvviz.model.topics import (
     CAMERA_TOPIC_RE,
     CORNERS_TOPIC,
     GROUND_TRUTH_TOPIC,
@@ -373,7 +364,7 @@ class InspectReport:
     damage: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # worth knowing, not a violation
     native: bool = True  # an agvviz recording (the contract's naming applies)
-    kind: str = "mcap"  # "mcap" | "rosbag2" | "rosbag1"
+    kind: str = "mcap"  # the format's NAME (agvviz.recording.formats): "mcap" | "rosbag2" | "rosbag1"
     files: list[str] = field(default_factory=list)
     bag_message_count: int | None = None  # rosbag2 metadata.yaml
     bag_topic_counts: dict[str, int] = field(default_factory=dict)
@@ -418,7 +409,7 @@ def inspect_recording(path, roles=None, time_source: str = "auto") -> InspectRep
     when not given) and a missing ``agvviz.scenario`` record is a note. Image time checks use
     the time a run uses (``time_source``: ``header`` stamps or ``log`` times; ``auto`` as a run).
 
-    Raises :class:`agvviz.recording.reader.RecordingError` when the path is missing or not a
+    Raises :class:`agvviz.errors.RecordingError` when the path is missing or not a
     recording.
     """
     from agvviz.recording.source import open_recording, resolve_roles, scan
@@ -634,11 +625,7 @@ def _format_ns(t_ns: int | None, start_ns: int | None = None) -> str:
 
 def format_report(report: InspectReport) -> str:
     """Plain multi-line text: topics, cameras, transforms, scenario, then the verdict."""
-    lines = [f"recording: {report.path}" + (
-        f" (rosbag2 directory: {', '.join(report.files)})" if report.kind == "rosbag2"
-        else f" (ROS 1 bag{'s' if len(report.files) > 1 else ''}: {', '.join(report.files)})" if report.kind == "rosbag1"
-        else ""
-    )]
+    lines = [f"recording: {report.path}" + by_name(report.kind).describe(report.files)]
     if report.bag_message_count is not None:
         lines.append(f"metadata.yaml: {report.bag_message_count} messages in {len(report.bag_topic_counts)} topic(s)")
     span = _span(report.start_ns, report.end_ns) if report.start_ns is not None else "no messages"

@@ -24,14 +24,14 @@ import numpy as np
 
 from agvviz.fusion import FusionStep, KalmanSettings, make_fusion
 from agvviz.replay.multicam import CameraSelection, select_camera_fix
-from agvviz.recording.reader import FrameTransformMsg, RecordedMessage
+from agvviz.model.messages import FrameTransformMsg, RecordedMessage
 from agvviz.model.frames import FrameResult
 from agvviz.replay.sync import SyncState
 from agvviz.settings import RunSettings
 from agvviz.uwb import RangeRecord, UwbFix, UwbTracker, range_from_timestamps_m
 from agvviz.uwb.localize import predicted_ranges_m
 
-from agvviz.recording.topics import ROLE_UWB_ANCHORS, ROLE_UWB_RANGE  # noqa: E402
+from agvviz.model.topics import ROLE_UWB_ANCHORS, ROLE_UWB_RANGE  # noqa: E402
 TAG_FRAME = "uwb_tag"
 
 

@@ -29,7 +29,7 @@ from agvviz.replay.fuse import FusionReplay
 from agvviz.replay.sinks import RunSinks
 from agvviz.replay.solve import Replay
 from agvviz.recording.contract import REJECT_TIME
-from agvviz.recording.reader import CalibrationMsg, RecordedMessage
+from agvviz.model.messages import CalibrationMsg, RecordedMessage
 from agvviz.settings import RunSettings
 
 

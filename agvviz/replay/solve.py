@@ -46,13 +46,8 @@ from agvviz.recording.contract import (
     qr_map_of,
     unmapped_tolerance_m,
 )
-from agvviz.recording.reader import (
-    CalibrationMsg,
-    CompressedFrame,
-    FrameTransformMsg,
-    RecordedMessage,
-)
-from agvviz.recording.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
+from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg, RecordedMessage
+from agvviz.model.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
 from agvviz.model.frames import (
     REJECT_DECODE,
     REJECT_GEOMETRY,
@@ -149,7 +144,7 @@ class Replay:
     map), then :meth:`feed` with the messages in file order; calibration and transforms then
     apply to every frame whatever order the file holds them in, and truth is interpolated at
     each image's stamp. Fed without :meth:`prime`, a frame knows what came before it.
-    Messages are dispatched on their role (:mod:`agvviz.recording.topics`).
+    Messages are dispatched on their role (:mod:`agvviz.model.topics`).
     """
 
     def __init__(self, settings: RunSettings, body_frame: str = AGV_FRAME, world_frame: str = WORLD_FRAME):

@@ -41,7 +41,8 @@ from agvviz.geometry import PinholeCamera
 from agvviz.geometry.homography import floor_homography
 from agvviz.geometry.plane import DegenerateGeometryError
 from agvviz.recording.contract import REJECT_IMAGE, frame_problem
-from agvviz.recording.reader import CalibrationMsg, image_size_problem
+from agvviz.model.messages import CalibrationMsg
+from agvviz.recording.values import image_size_problem
 from agvviz.model.frames import REJECT_DECODE
 from agvviz.settings import RunSettings
 

@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from agvviz.evaluation.statistics import describe
-from agvviz.recording.reader import RecordedMessage
+from agvviz.model.messages import RecordedMessage
 from agvviz.recording.roles import RoleMap
-from agvviz.recording.topics import ROLE_CORNERS
+from agvviz.model.topics import ROLE_CORNERS
 from agvviz.settings import RunSettings
 
 if TYPE_CHECKING:

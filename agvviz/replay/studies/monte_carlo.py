@@ -26,9 +26,9 @@ import numpy as np
 from agvviz.evaluation import monte_carlo
 from agvviz.evaluation.monte_carlo import LM_VARIANTS, MC_LM_MAX_ITERATIONS, SOLVERS, CellResult
 from agvviz.evaluation.statistics import describe
-from agvviz.recording.reader import RecordedMessage
+from agvviz.model.messages import RecordedMessage
 from agvviz.recording.roles import RoleMap
-from agvviz.recording.topics import ROLE_CORNERS
+from agvviz.model.topics import ROLE_CORNERS
 from agvviz.settings import RunSettings
 
 if TYPE_CHECKING:
