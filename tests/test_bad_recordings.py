@@ -30,17 +30,14 @@ from agvviz.geometry import PinholeCamera, se3
 from agvviz.markers import qr
 from agvviz.markers.qr import detect_qr_codes
 from agvviz.replay.solve import Replay
-from agvviz.recording.contract import (
+from agvviz.model.frames import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_MAP_MISMATCH, REJECT_TIME
+from agvviz.recording.checks import (
     PAYLOAD_MAP_TOLERANCE_M,
-    REJECT_CALIBRATION_SIZE,
-    REJECT_IMAGE,
-    REJECT_MAP_MISMATCH,
-    REJECT_TIME,
     frame_problem,
     image_header_size,
-    inspect_recording,
     payload_map_problem,
 )
+from agvviz.recording.contract import inspect_recording
 from agvviz.errors import RecordingError
 from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg, RecordedMessage
 from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM

@@ -8,6 +8,10 @@ cannot tell a side file from a recorded message:
 * :func:`load_calibration` → :class:`~agvviz.model.messages.CalibrationMsg`;
 * :func:`parse_extrinsic` → :class:`~agvviz.model.messages.FrameTransformMsg`.
 
+Length (≈660 lines, over the ~600 guide): the three loaders share their parsing helpers and
+their error style (numbers, poses, YAML/JSON reading, :class:`SideFileError`); split apart, the
+calibration and extrinsic loaders would import the marker-map loader's private helpers.
+
 Every problem raises :class:`SideFileError` (an :class:`~agvviz.errors.InputError`, exit code 2)
 whose message is one line naming the file (or the option) and what is wrong.
 
@@ -336,7 +340,7 @@ def _aruco_marker(entry: object, where: str, dictionary: str, count: int) -> dic
 
 def _qr_marker(entry: object, where: str) -> dict:
     from agvviz.markers.payload import PayloadError, parse_payload
-    from agvviz.recording.contract import PAYLOAD_MAP_TOLERANCE_M
+    from agvviz.recording.checks import PAYLOAD_MAP_TOLERANCE_M
 
     entry = _check_keys(entry, _MARKER_KEYS, where)
     frame = _frame(entry, where)

@@ -28,7 +28,7 @@ from agvviz.replay.detect.pool import DetectionFeed
 from agvviz.replay.fuse import FusionReplay
 from agvviz.replay.sinks import RunSinks
 from agvviz.replay.solve import Replay
-from agvviz.recording.contract import REJECT_TIME
+from agvviz.model.frames import REJECT_TIME
 from agvviz.model.messages import CalibrationMsg, RecordedMessage
 from agvviz.settings import RunSettings
 

@@ -23,13 +23,11 @@ from agvviz.replay.detect.pool import DetectionFeed, default_jobs
 from agvviz.replay.graph import ReplayGraph
 from agvviz.replay.sinks import RunSinks
 from agvviz.replay.solve import Replay
-from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
 from agvviz.model.messages import CalibrationMsg, FrameTransformMsg
 from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
-from agvviz.recording.raw import ReadReport
+from agvviz.recording.raw import ReadReport, Recording
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import (
-    Recording,
     Scan,
     iter_role_messages,
     open_recording,
@@ -38,7 +36,14 @@ from agvviz.recording.source import (
     scan,
 )
 from agvviz.model.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
-from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC, FrameResult
+from agvviz.model.frames import (
+    REJECT_CALIBRATION_SIZE,
+    REJECT_IMAGE,
+    REJECT_NO_CALIBRATION,
+    REJECT_NO_EXTRINSIC,
+    REJECT_TIME,
+    FrameResult,
+)
 from agvviz.settings import RunSettings, as_dict, inapplicable, without
 from agvviz.viz.run_logger import RunLogger
 

@@ -37,10 +37,8 @@ from agvviz.replay.detect.stage import (
 from agvviz.markers.aruco import ArucoError, ArucoMap, parse_aruco_map
 from agvviz.markers.charuco import chessboard_id, is_chessboard_id
 from agvviz.markers.payload import PayloadError, parse_payload
-from agvviz.recording.contract import (
+from agvviz.recording.checks import (
     IMAGE_FORMATS,
-    REJECT_MAP_MISMATCH,
-    REJECT_TIME,
     TimeChecks,
     payload_map_problem,
     qr_map_of,
@@ -51,12 +49,14 @@ from agvviz.model.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
 from agvviz.model.frames import (
     REJECT_DECODE,
     REJECT_GEOMETRY,
+    REJECT_MAP_MISMATCH,
     REJECT_NO_CALIBRATION,
     REJECT_NO_EXTRINSIC,
     REJECT_NO_MARKER,
     REJECT_PAYLOAD,
     REJECT_REPROJECTION,
     REJECT_SOLVER,
+    REJECT_TIME,
     FrameDraft,
     FrameResult,
     freeze,
