@@ -22,7 +22,7 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg, PoseMsg
 from agvviz.recording.images import compressed_format
-from agvviz.recording.mcap_stream import iter_raw, read_file_header
+from agvviz.recording.mcap_stream import iter_raw, read_file_header  # noqa: F401 — iter_raw is this format's
 from agvviz.recording.raw import MessageDecodeError, RawMessage, Recording
 from agvviz.recording.schemas import SCHEMAS, validate_payload
 from agvviz.recording.values import calibration, cam_name, matrix_from_pose, raw_frame

@@ -26,7 +26,7 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
 from agvviz.errors import RecordingError
-from agvviz.recording.mcap_stream import iter_raw, read_file_header
+from agvviz.recording.mcap_stream import iter_raw, read_file_header  # noqa: F401 — iter_raw is this format's
 from agvviz.recording.raw import MessageDecodeError, RawMessage, Recording
 from agvviz.recording.ros_messages import DECODED_TYPES, ros_value
 
