@@ -51,7 +51,7 @@ import numpy as np
 
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.replay.detect.stage import DetectParams, FrameJob, SegmentDetector, detect_segment
-from agvviz.recording.reader import CalibrationMsg
+from agvviz.model.messages import CalibrationMsg
 
 DICTIONARY = "DICT_6X6_250"
 COLUMNS, ROWS = 8, 4
@@ -177,7 +177,7 @@ def measure(refine: str, frames: list[tuple[np.ndarray, bytes, dict, np.ndarray]
 
 
 def write_recording(path: str, frames) -> None:
-    from agvviz.recording import RecordingWriter
+    from agvviz.recording.writer import RecordingWriter
 
     _, corners_m, _ = board_canvas()
     marker_map = {
@@ -280,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def print_whole_run(recording: str, runs: int, jobs: int) -> int:
-    from agvviz.recording import CompressedFrame, iter_messages
+    from agvviz.model.messages import CompressedFrame
+    from agvviz.recording.reader import iter_messages
 
     n_frames = sum(isinstance(m.value, CompressedFrame) for m in iter_messages(recording))
     print(f"`agvviz run {os.path.basename(recording)} --no-cache --jobs {jobs}`, {n_frames} frames, whole process, "

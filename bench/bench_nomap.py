@@ -36,7 +36,7 @@ def _data_dir() -> Path:
 
 
 def big_map(n: int) -> None:
-    from agvviz.recording.contract import payload_map_problem, qr_map_of, unmapped_tolerance_m
+    from agvviz.recording.checks import payload_map_problem, qr_map_of, unmapped_tolerance_m
 
     rng = np.random.default_rng(23)
     centres = np.column_stack([rng.uniform(0, 2000, n), rng.uniform(0, 2000, n), np.zeros(n)])

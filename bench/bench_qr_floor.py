@@ -26,7 +26,8 @@ from agvviz import scenarios as scenario_registry
 from agvviz.evaluation import FrameScore
 from agvviz.geometry.plane import square_points_marker
 from agvviz.replay.graph import replay
-from agvviz.recording.reader import CompressedFrame, iter_messages, CalibrationMsg
+from agvviz.model.messages import CompressedFrame, CalibrationMsg
+from agvviz.recording.reader import iter_messages
 from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
 

@@ -441,7 +441,8 @@ def bare_loop(recording: Path) -> None:
     import cv2
     import numpy as np
 
-    from agvviz.recording.reader import CalibrationMsg, CompressedFrame, iter_messages
+    from agvviz.model.messages import CalibrationMsg, CompressedFrame
+    from agvviz.recording.reader import iter_messages
 
     h = CODE_SIZE_M / 2
     object_points = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
@@ -468,7 +469,8 @@ def floor_loop(recording: Path, out: Path) -> None:
     reader and log its bytes as an EncodedImage into ``out`` (no detection, solve or other entity)."""
     import rerun as rr
 
-    from agvviz.recording.reader import CompressedFrame, iter_messages
+    from agvviz.model.messages import CompressedFrame
+    from agvviz.recording.reader import iter_messages
 
     rec = rr.RecordingStream("agvviz-floor", recording_id="floor")
     rec.save(str(out))

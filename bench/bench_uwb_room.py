@@ -31,7 +31,8 @@ from agvviz import scenarios as scenario_registry
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.replay.fuse import FusionReplay
 from agvviz.replay.solve import Replay
-from agvviz.recording.reader import CompressedFrame, RecordedMessage, iter_messages
+from agvviz.model.messages import CompressedFrame, RecordedMessage
+from agvviz.recording.reader import iter_messages
 from agvviz.settings import RunSettings
 
 RESOLUTIONS = ((1280, 1024), (640, 480), (320, 240))

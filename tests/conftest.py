@@ -85,7 +85,8 @@ def qr_small_content(qr_small) -> dict:
     """What ``qr_small`` holds, decoded by agvviz's reader: ``images`` [(log time, JPEG bytes)],
     ``calibration`` (camera), ``T_agv_cam``, ``truth`` and ``odometry`` [(log time, T)],
     ``marker_map``. Read only."""
-    from agvviz.recording.reader import CalibrationMsg, CompressedFrame, FrameTransformMsg, PoseMsg, iter_messages
+    from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg, PoseMsg
+    from agvviz.recording.reader import iter_messages
 
     out = {"images": [], "truth": [], "odometry": []}
     for m in iter_messages(qr_small):

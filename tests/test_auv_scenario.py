@@ -13,7 +13,8 @@ from agvviz import scenarios as scenario_registry
 from agvviz.geometry import se3
 from agvviz.recording.contract import inspect_recording
 from agvviz.model.studies import GridCell
-from agvviz.recording.reader import PoseMsg, iter_messages
+from agvviz.model.messages import PoseMsg
+from agvviz.recording.reader import iter_messages
 from agvviz.sim import auv
 from agvviz.scenarios import auv_under_ice as scenario
 

@@ -30,28 +30,20 @@ from agvviz.geometry import PinholeCamera, se3
 from agvviz.markers import qr
 from agvviz.markers.qr import detect_qr_codes
 from agvviz.replay.solve import Replay
-from agvviz.recording.contract import (
+from agvviz.model.frames import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_MAP_MISMATCH, REJECT_TIME
+from agvviz.recording.checks import (
     PAYLOAD_MAP_TOLERANCE_M,
-    REJECT_CALIBRATION_SIZE,
-    REJECT_IMAGE,
-    REJECT_MAP_MISMATCH,
-    REJECT_TIME,
     frame_problem,
     image_header_size,
-    inspect_recording,
     payload_map_problem,
 )
-from agvviz.recording.reader import (
-    RecordingError,
-    DATA_SECTION_CRC_PROBLEM,
-    MAX_IMAGE_SIDE_PX,
-    CalibrationMsg,
-    CompressedFrame,
-    FrameTransformMsg,
-    ReadReport,
-    RecordedMessage,
-    iter_messages,
-)
+from agvviz.recording.contract import inspect_recording
+from agvviz.errors import RecordingError
+from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg, RecordedMessage
+from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
+from agvviz.recording.raw import ReadReport
+from agvviz.recording.reader import iter_messages
+from agvviz.recording.values import MAX_IMAGE_SIDE_PX
 from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_PAYLOAD
 from agvviz.app.run import run_recording
 from agvviz.settings import RunSettings
@@ -391,7 +383,7 @@ def test_duplicated_messages_are_dropped(base, base_run, tmp_path):
 
 def _chunked(tmp_path):
     """8 images of 400 kB at log times 0..7 ns in several 1 MiB chunks; (path, chunk indexes)."""
-    from agvviz.recording import RecordingWriter
+    from agvviz.recording.writer import RecordingWriter
 
     rng = np.random.default_rng(3)
     path = tmp_path / "chunks.mcap"

@@ -17,9 +17,11 @@ from agvviz.replay.studies import cnoem_cells
 from agvviz.replay.studies.cnoem import is_cnoem_trials_recording, replay_cnoem_trials, study_method, trials_from_recording
 from agvviz.replay.studies.cnoem_cells import METHODS
 from agvviz.replay.studies.monte_carlo import trials_timing
-from agvviz.recording.reader import PoseMsg, ReadReport, RecordedMessage, iter_messages
+from agvviz.model.messages import PoseMsg, RecordedMessage
+from agvviz.recording.raw import ReadReport
+from agvviz.recording.reader import iter_messages
 from agvviz.recording.source import iter_role_messages, open_recording, resolve_roles, scan
-from agvviz.recording.topics import ROLE_CORNERS
+from agvviz.model.topics import ROLE_CORNERS
 from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document

@@ -266,7 +266,7 @@ def test_replay_keeps_the_largest_code_when_the_markers_fit_no_common_pose():
     largest code's own pose — paper 000's answer — instead of losing the frame, and says why."""
     from agvviz.geometry import PinholeCamera
     from agvviz.replay.graph import replay
-    from agvviz.recording.reader import CalibrationMsg, FrameTransformMsg
+    from agvviz.model.messages import CalibrationMsg, FrameTransformMsg
     from agvviz.settings import RunSettings
     from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
     from tests.test_pipeline import CAM, CAMERA, T_AGV_CAM, T_WORLD_AGV, _frame, _msg

@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 
-from agvviz.recording.contract import (
-    UNMAPPED_CODE_SPACINGS,
+from agvviz.recording.checks import (
     QrMap,
+    UNMAPPED_CODE_SPACINGS,
     payload_map_problem,
     qr_map_of,
     unmapped_tolerance_m,

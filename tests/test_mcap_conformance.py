@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from agvviz.recording import ReadReport, iter_messages
+from agvviz.recording.raw import ReadReport
+from agvviz.recording.reader import iter_messages
 
 SUITE = Path(__file__).resolve().parents[2] / "shared" / "data" / "mcap_conformance"
 FILES = sorted(SUITE.glob("*/*.mcap")) if SUITE.is_dir() else []

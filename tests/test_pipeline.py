@@ -10,13 +10,7 @@ import pytest
 
 from agvviz.geometry import PinholeCamera, se3
 from agvviz.markers.payload import QrPayload, encode_payload
-from agvviz.recording.reader import (
-    CalibrationMsg,
-    CompressedFrame,
-    FrameTransformMsg,
-    PoseMsg,
-    RecordedMessage,
-)
+from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg, PoseMsg, RecordedMessage
 from agvviz.model.frames import (
     REJECT_IMAGE,
     REJECT_NO_CALIBRATION,

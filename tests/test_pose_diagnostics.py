@@ -11,7 +11,7 @@ import pytest
 
 from agvviz.geometry import se3
 from agvviz.replay.graph import replay
-from agvviz.recording.reader import PoseMsg
+from agvviz.model.messages import PoseMsg
 from agvviz.settings import RunSettings, SettingsError, apply_overrides
 from agvviz.viz import paths
 from agvviz.viz.readback import read_rrd, scalar_series, text_logs

@@ -32,7 +32,8 @@ from typer.testing import CliRunner
 from agvviz.cli.main import app
 from agvviz.errors import InputError, RecordingError, RunError
 from agvviz.geometry import se3
-from agvviz.recording.reader import FrameTransformMsg, PoseMsg, iter_messages
+from agvviz.model.messages import FrameTransformMsg, PoseMsg
+from agvviz.recording.reader import iter_messages
 from agvviz.recording.source import open_recording, scan
 from agvviz.recording.contract import inspect_recording
 from agvviz.app.run import run_recording
@@ -476,7 +477,8 @@ def test_bayer_demosaic_follows_the_ros_pattern_name(pattern):
 
 
 def test_camera_info_distortion_models():
-    from agvviz.recording.reader import MessageDecodeError, calibration
+    from agvviz.recording.raw import MessageDecodeError
+    from agvviz.recording.values import calibration
 
     K = [500.0, 0, 320, 0, 500.0, 240, 0, 0, 1]
     rational = calibration("/c/camera_info", "c", K, [0.1, -0.05, 0.001, 0.002, 0.01, 0.2, -0.01, 0.003],
@@ -584,7 +586,7 @@ def test_truth_interpolated_between_samples_within_the_gap(content, native_error
 
 def test_every_ros2_type_decodes(tmp_path):
     """Each ROS 2 type the reader decodes, written by rosbags, read back through mcap-ros2-support."""
-    from agvviz.recording.reader import calibration as make_calibration
+    from agvviz.recording.values import calibration as make_calibration
 
     T = se3.make(cv2.Rodrigues(np.array([0.1, -0.2, 0.3]))[0], np.array([1.0, 2.0, 3.0]))
     rgb = np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3)
@@ -619,7 +621,7 @@ def test_every_ros2_type_decodes(tmp_path):
 
 def test_extrinsic_through_a_time_varying_link():
     """A camera on a pan unit: base_link → pan (/tf) → camera_optical_frame (/tf_static)."""
-    from agvviz.recording.reader import RecordedMessage
+    from agvviz.model.messages import RecordedMessage
     from agvviz.replay.sync import SyncState
 
     sync = SyncState(body_frame="base_link")
@@ -636,7 +638,7 @@ def test_extrinsic_through_a_time_varying_link():
 
 
 def test_topic_names_live_in_one_module():
-    """Every agvviz topic name is written once, in agvviz/recording/topics.py."""
+    """Every agvviz topic name is written once, in agvviz/model/topics.py."""
     import re
 
     root = Path(__file__).resolve().parents[1]

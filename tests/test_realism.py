@@ -11,8 +11,10 @@ import pytest
 from agvviz import scenarios as scenario_registry
 from agvviz.geometry import se3
 from agvviz.geometry.euler import hpr_from_matrix
-from agvviz.recording import topics
-from agvviz.recording.reader import RawMessage, iter_messages, iter_raw
+from agvviz.model import topics
+from agvviz.recording.mcap_stream import iter_raw
+from agvviz.recording.raw import RawMessage
+from agvviz.recording.reader import iter_messages
 from agvviz.sim import realism as rl
 from agvviz.sim.trajectory import forward_camera_mount, track_pose
 from agvviz.scenarios import qr_floor

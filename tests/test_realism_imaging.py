@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from agvviz import scenarios as scenario_registry
-from agvviz.recording import topics
+from agvviz.model import topics
 from agvviz.sim import imaging as im
 from agvviz.sim import realism as rl
 from tests.test_realism import GOLDEN, QR_SMALL, UWB_SMALL, _digest, _raw, _record

@@ -11,18 +11,13 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from mcap.reader import make_reader
 
 from agvviz.geometry import PinholeCamera, se3, so3
-from agvviz.recording import (
-    CalibrationMsg,
-    CompressedFrame,
-    PoseMsg,
-    ReadReport,
-    RecordingError,
-    RecordingWriter,
-    format_report,
-    inspect_recording,
-    iter_messages,
-    read_scenario_metadata,
-)
+from agvviz.errors import RecordingError
+from agvviz.model.messages import CalibrationMsg, CompressedFrame, PoseMsg
+from agvviz.recording.contract import format_report, inspect_recording
+from agvviz.recording.mcap_stream import read_scenario_metadata
+from agvviz.recording.raw import ReadReport
+from agvviz.recording.reader import iter_messages
+from agvviz.recording.writer import RecordingWriter
 
 SCENARIO = {"name": "unit", "seed": 7, "options": {"speed_m_s": 0.5, "cams": ["front"], "n": 3}}
 CAMERA = PinholeCamera(
@@ -382,7 +377,7 @@ def test_header_reader_ends_on_a_truncated_file(chunked_recording, tmp_path):
     damaged = tmp_path / "cut.mcap"
     damaged.write_bytes(path.read_bytes()[: chunks[-1].chunk_start_offset + 100])
     code = (
-        "from agvviz.recording.reader import read_file_header; import sys; "
+        "from agvviz.recording.mcap_stream import read_file_header; import sys; "
         f"print(read_file_header(sys.argv[1])[1])"
     )
     done = subprocess.run([sys.executable, "-c", code, str(damaged)], capture_output=True, text=True, timeout=120)

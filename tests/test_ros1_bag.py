@@ -31,7 +31,7 @@ from agvviz.cli.main import app
 from agvviz.errors import RecordingError
 from agvviz.geometry import se3
 from agvviz.recording.contract import format_report, inspect_recording
-from agvviz.recording.reader import ReadReport
+from agvviz.recording.raw import ReadReport
 from agvviz.recording.source import iter_role_messages, open_recording
 from agvviz.replay.run import SideInputs, prepare
 from agvviz.settings import RunSettings

@@ -15,7 +15,7 @@ from agvviz.geometry import se3
 from agvviz.markers.aruco import aruco_modules, detect_aruco, parse_aruco_map
 from agvviz.markers.charuco import charuco_marker_corners
 from agvviz.markers.payload import QrPayload, encode_payload
-from agvviz.recording.reader import CalibrationMsg, FrameTransformMsg
+from agvviz.model.messages import CalibrationMsg, FrameTransformMsg
 from agvviz.recording.sidefiles import (
     APRILTAG_DICTIONARIES,
     SideFileError,

@@ -146,7 +146,7 @@ def test_hold_only_constant_links_and_forget_the_note_when_a_link_changes():
     note; once a different sample arrives it is time-varying again and the note goes."""
     from agvviz.geometry.tf_buffer import PoseSeries
     from agvviz.replay.sync import SyncState
-    from agvviz.recording.reader import FrameTransformMsg, RecordedMessage
+    from agvviz.model.messages import FrameTransformMsg, RecordedMessage
 
     series = PoseSeries()
     series.add(20, np.eye(4))

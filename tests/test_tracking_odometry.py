@@ -21,8 +21,9 @@ from agvviz.geometry.plane import DegenerateGeometryError
 from agvviz.geometry.tf_buffer import PoseSeries
 from agvviz.replay.detect.stage import DetectParams, SegmentDetector
 from agvviz.replay.detect.pool import DetectionFeed
-from agvviz.recording.reader import PoseMsg, iter_messages
-from agvviz.recording.topics import ROLE_ODOMETRY
+from agvviz.model.messages import PoseMsg
+from agvviz.recording.reader import iter_messages
+from agvviz.model.topics import ROLE_ODOMETRY
 from agvviz.replay.run import prepare
 from agvviz.settings import RunSettings
 from agvviz.sim.trajectory import forward_camera_mount

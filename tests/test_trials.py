@@ -16,7 +16,7 @@ from agvviz.replay.studies.monte_carlo import collect, is_trials_recording, repl
 from agvviz.replay.studies.monte_carlo_cells import SOLVERS, evaluate_cell
 from agvviz.recording.reader import ReadReport, RecordedMessage
 from agvviz.recording.source import iter_role_messages, open_recording, resolve_roles, scan
-from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS
+from agvviz.model.topics import CORNERS_TOPIC, ROLE_CORNERS
 from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz.readback import document_json, read_rrd, scalar_series, text_document

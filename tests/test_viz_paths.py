@@ -1,7 +1,7 @@
 """Entity paths of every .rrd are written in one module, agvviz/viz/paths.py (fast: reads source only).
 
 The sibling of tests/test_real_logs.py::test_topic_names_live_in_one_module: there MCAP topic names
-live in agvviz/recording/topics.py, here Rerun entity paths in agvviz/viz/paths.py.
+live in agvviz/model/topics.py, here Rerun entity paths in agvviz/viz/paths.py.
 """
 
 from __future__ import annotations

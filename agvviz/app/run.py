@@ -24,7 +24,7 @@ from agvviz.errors import InputError, RunError
 from agvviz.evaluation.summary import RunStatistics, timing
 from agvviz.recording.reader import ReadReport
 from agvviz.recording.source import require_recording_path
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, image_role
+from agvviz.model.topics import ROLE_CORNERS, ROLE_MARKER_MAP, image_role
 from agvviz.replay.graph import STUDY_CNOEM, STUDY_MONTE_CARLO, Composition
 from agvviz.replay.run import (
     UNUSABLE_REJECTIONS,

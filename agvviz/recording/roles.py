@@ -1,6 +1,6 @@
 """The role map: which topic of a recording plays which role for the replay.
 
-agvviz's own recordings use the names of :mod:`agvviz.recording.topics`. For any other file
+agvviz's own recordings use the names of :mod:`agvviz.model.topics`. For any other file
 (a ROS 2 bag, a Foxglove SDK file) the map is *inferred* from each topic's schema, name and
 frame id (:func:`infer_roles`), printed by ``agvviz inspect``, and can be overridden with
 ``--topic ROLE=TOPIC`` or a roles file (``inspect --write-roles FILE`` writes one; ``--roles
@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from agvviz.errors import InputError
-from agvviz.recording.topics import (
+from agvviz.model.topics import (
     CAMERA_TOPIC_RE,
     TF_STATIC_TOPIC,
     TF_TOPIC,

@@ -5,8 +5,12 @@ Each loader returns the value the recording reader yields for the same role, so 
 cannot tell a side file from a recorded message:
 
 * :func:`load_marker_map` → the ``agvviz.MarkerMap`` dict of ``/markers/map``;
-* :func:`load_calibration` → :class:`~agvviz.recording.reader.CalibrationMsg`;
-* :func:`parse_extrinsic` → :class:`~agvviz.recording.reader.FrameTransformMsg`.
+* :func:`load_calibration` → :class:`~agvviz.model.messages.CalibrationMsg`;
+* :func:`parse_extrinsic` → :class:`~agvviz.model.messages.FrameTransformMsg`.
+
+Length (≈660 lines, over the ~600 guide): the three loaders share their parsing helpers and
+their error style (numbers, poses, YAML/JSON reading, :class:`SideFileError`); split apart, the
+calibration and extrinsic loaders would import the marker-map loader's private helpers.
 
 Every problem raises :class:`SideFileError` (an :class:`~agvviz.errors.InputError`, exit code 2)
 whose message is one line naming the file (or the option) and what is wrong.
@@ -45,7 +49,8 @@ import numpy as np
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.errors import InputError
 from agvviz.geometry import PinholeCamera, se3
-from agvviz.recording.reader import CalibrationMsg, FrameTransformMsg, image_size_problem
+from agvviz.model.messages import CalibrationMsg, FrameTransformMsg
+from agvviz.recording.values import image_size_problem
 from agvviz.recording.schemas import MARKER_MAP, validate
 
 #: The dictionary name of QR-code maps.
@@ -337,7 +342,7 @@ def _aruco_marker(entry: object, where: str, dictionary: str, count: int) -> dic
 
 def _qr_marker(entry: object, where: str) -> dict:
     from agvviz.markers.payload import PayloadError, parse_payload
-    from agvviz.recording.contract import PAYLOAD_MAP_TOLERANCE_M
+    from agvviz.recording.checks import PAYLOAD_MAP_TOLERANCE_M
 
     entry = _check_keys(entry, _MARKER_KEYS, where)
     frame = _frame(entry, where)

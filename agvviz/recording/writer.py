@@ -27,7 +27,7 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
 import agvviz
-from agvviz.recording import topics
+from agvviz.model import topics
 from agvviz.conventions import camera_frame
 from agvviz.geometry import PinholeCamera, se3
 from agvviz.recording.schemas import SCENARIO_METADATA, SCHEMAS, validate_payload
@@ -108,7 +108,7 @@ class RecordingWriter:
 
     # -- context manager ------------------------------------------------------------------
     def __enter__(self) -> "RecordingWriter":
-        from agvviz.recording import outputs  # temporary names, their clean-up, OutputError
+        from agvviz.recording import outputs
 
         folder = self.path.parent
         if not folder.is_dir():

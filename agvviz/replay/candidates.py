@@ -27,7 +27,8 @@ from agvviz.model.frames import (
     FrameDraft,
     MarkerObservation,
 )
-from agvviz.recording.contract import REJECT_MAP_MISMATCH, payload_map_problem
+from agvviz.model.frames import REJECT_MAP_MISMATCH
+from agvviz.recording.contract import payload_map_problem
 from agvviz.replay.detect.stage import CodeDetection
 
 #: When no code of a frame is usable, the frame's reason is the first of these its codes had.

@@ -43,7 +43,7 @@ import numpy as np
 
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
-from agvviz.recording.reader import PoseMsg, RecordedMessage
+from agvviz.model.messages import PoseMsg, RecordedMessage
 from agvviz.replay.sync import SyncState
 from agvviz.model.correction import CorrectionEvent, CorrectionStep, FrameSighting
 from agvviz.model.frames import FrameResult
@@ -53,7 +53,7 @@ from agvviz.solvers.cnoem import CornerWindow, Sighting, WindowSolution, solve_c
 from agvviz.solvers.uncertainty import UncertaintyError
 from agvviz.solvers.window_crlb import position_bound_m, window_crlb
 
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY  # noqa: E402
+from agvviz.model.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY  # noqa: E402
 
 
 class CorrectionError(InputError):

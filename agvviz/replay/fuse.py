@@ -23,14 +23,15 @@ import numpy as np
 from agvviz.fusion import FusionStep, KalmanSettings, make_fusion
 from agvviz.model.fusion import FrameSetResult, RangeResult, UwbFixResult
 from agvviz.replay.multicam import select_camera_fix
-from agvviz.recording.reader import FrameTransformMsg, RecordedMessage
+from agvviz.model.messages import FrameTransformMsg
+from agvviz.recording.reader import RecordedMessage
 from agvviz.model.frames import FrameResult
 from agvviz.replay.sync import SyncState
 from agvviz.settings import RunSettings
 from agvviz.uwb import RangeRecord, UwbTracker, range_from_timestamps_m
 from agvviz.uwb.localize import predicted_ranges_m
 
-from agvviz.recording.topics import ROLE_UWB_ANCHORS, ROLE_UWB_RANGE  # noqa: E402
+from agvviz.model.topics import ROLE_UWB_ANCHORS, ROLE_UWB_RANGE  # noqa: E402
 TAG_FRAME = "uwb_tag"
 
 

@@ -38,11 +38,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterable, Iterator, Mapping
 
-from agvviz.recording.contract import REJECT_TIME
+from agvviz.model.frames import REJECT_TIME
 from agvviz.recording.reader import MessageDecodeError, RawMetadata, ReadReport, RecordedMessage, decode
 from agvviz.recording.roles import RoleMap
 from agvviz.recording.source import Recording
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE
+from agvviz.model.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE
 from agvviz.replay.correct import CorrectionReplay, CorrectionSettings
 from agvviz.replay.detect.pool import DetectionFeed
 from agvviz.replay.fuse import FusionReplay

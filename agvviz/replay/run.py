@@ -19,8 +19,10 @@ import numpy as np
 from agvviz.conventions import camera_frame
 from agvviz.errors import InputError, OutputError, RunError
 from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC, FrameResult
-from agvviz.recording.contract import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
-from agvviz.recording.reader import DATA_SECTION_CRC_PROBLEM, CalibrationMsg, FrameTransformMsg, ReadReport
+from agvviz.model.frames import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
+from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
+from agvviz.model.messages import CalibrationMsg, FrameTransformMsg
+from agvviz.recording.reader import ReadReport
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import (
     Recording,
@@ -31,7 +33,7 @@ from agvviz.recording.source import (
     resolve_roles,
     scan,
 )
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
+from agvviz.model.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.replay.detect import cache as detect_cache
 from agvviz.replay.detect.pool import DetectionFeed, default_jobs
 from agvviz.replay.graph import Composition, GraphOutcome, ReplayGraph

@@ -45,9 +45,12 @@ from agvviz.model.frames import (
     FrameResult,
     freeze,
 )
-from agvviz.recording.contract import IMAGE_FORMATS, REJECT_TIME, TimeChecks, qr_map_of, unmapped_tolerance_m
-from agvviz.recording.reader import CalibrationMsg, CompressedFrame, FrameTransformMsg, RecordedMessage
-from agvviz.recording.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
+from agvviz.recording.checks import IMAGE_FORMATS, unmapped_tolerance_m
+from agvviz.model.frames import REJECT_TIME
+from agvviz.recording.contract import TimeChecks, qr_map_of
+from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg
+from agvviz.recording.reader import RecordedMessage
+from agvviz.model.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
 from agvviz.replay.candidates import REASON_RANK, aruco_candidates, qr_candidates
 from agvviz.replay.detect.stage import DetectParams, FrameDetections, FrameJob, SegmentDetector, camera_model
 from agvviz.replay.diagnostics import PoseDiagnostics
@@ -98,7 +101,7 @@ class Replay:
     map), then :meth:`feed` with the messages in file order; calibration and transforms then
     apply to every frame whatever order the file holds them in, and truth is interpolated at
     each image's stamp. Fed without :meth:`prime`, a frame knows what came before it.
-    Messages are dispatched on their role (:mod:`agvviz.recording.topics`).
+    Messages are dispatched on their role (:mod:`agvviz.model.topics`).
     """
 
     def __init__(self, settings: RunSettings, body_frame: str = AGV_FRAME, world_frame: str = WORLD_FRAME):

@@ -36,8 +36,8 @@ import numpy as np
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import PinholeCamera
 from agvviz.geometry.tf_buffer import PoseSeries, TransformBuffer
-from agvviz.recording.reader import CalibrationMsg, FrameTransformMsg, PoseMsg, RecordedMessage
-from agvviz.recording.topics import (
+from agvviz.model.messages import CalibrationMsg, FrameTransformMsg, PoseMsg, RecordedMessage
+from agvviz.model.topics import (
     ROLE_MARKER_MAP,
     ROLE_ODOMETRY,
     ROLE_TF,

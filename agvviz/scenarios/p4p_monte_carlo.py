@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agvviz.recording import topics
+from agvviz.model import topics
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.settings import setting

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agvviz.recording import topics
+from agvviz.model import topics
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agvviz.recording import topics
+from agvviz.model import topics
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
 from agvviz.geometry import se3
 from agvviz.geometry.camera import PinholeCamera

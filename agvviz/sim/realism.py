@@ -612,16 +612,12 @@ def realism_draws(recording) -> dict | None:
     one made before the record existed, or not by agvviz. ``recording``: a path. Reads only top-level
     records (chunks are skipped). Raises ``ValueError`` when the record is not valid JSON.
     """
-    from mcap.records import Metadata
+    from agvviz.recording.mcap_stream import read_metadata
 
-    from agvviz.recording.reader import ReadReport, _open, _top_level_records
-
-    f, size = _open(recording)
-    with f:
-        for _, record in _top_level_records(f, size, ReadReport(), read_chunks=False):
-            if isinstance(record, Metadata) and record.name == REALISM_METADATA:
-                try:
-                    return json.loads(record.metadata["draws"])
-                except (KeyError, json.JSONDecodeError) as exc:
-                    raise ValueError(f"{recording}: {REALISM_METADATA} metadata is malformed ({exc})") from None
-    return None
+    values = read_metadata(recording, REALISM_METADATA)
+    if values is None:
+        return None
+    try:
+        return json.loads(values["draws"])
+    except (KeyError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{recording}: {REALISM_METADATA} metadata is malformed ({exc})") from None

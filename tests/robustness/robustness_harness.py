@@ -298,7 +298,8 @@ def validate_output(path: Path) -> Optional[str]:
             if not contents.entity_paths:
                 return "holds no entity"
         elif path.suffix == ".mcap":
-            from agvviz.recording.reader import ReadReport, iter_raw
+            from agvviz.recording.mcap_stream import iter_raw
+            from agvviz.recording.raw import ReadReport
 
             report = ReadReport()
             for _ in iter_raw(path, report=report):

@@ -33,7 +33,9 @@ from agvviz.markers.scan import (
     sample_indices,
     scan_frame,
 )
-from agvviz.recording.reader import CompressedFrame, MessageDecodeError, ReadReport, decode
+from agvviz.model.messages import CompressedFrame
+from agvviz.recording.formats import decode
+from agvviz.recording.raw import MessageDecodeError, ReadReport
 from agvviz.recording.roles import camera_of_role
 
 

@@ -31,7 +31,7 @@ from typing import Callable, Iterable, Iterator
 
 from agvviz.errors import RunError
 from agvviz.replay.detect.stage import DetectParams, FrameDetections, FrameJob, detect_segment
-from agvviz.recording.reader import CompressedFrame, RecordedMessage
+from agvviz.model.messages import CompressedFrame, RecordedMessage
 
 #: Messages read ahead of the replay before a slow camera's unfinished segment is cut short.
 MAX_READ_AHEAD = 4096

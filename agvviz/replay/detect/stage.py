@@ -40,9 +40,10 @@ from agvviz.errors import InputError
 from agvviz.geometry import PinholeCamera
 from agvviz.geometry.homography import floor_homography
 from agvviz.geometry.plane import DegenerateGeometryError
-from agvviz.recording.contract import REJECT_IMAGE, frame_problem
-from agvviz.recording.reader import CalibrationMsg, image_size_problem
-from agvviz.model.frames import REJECT_DECODE
+from agvviz.recording.checks import frame_problem
+from agvviz.model.messages import CalibrationMsg
+from agvviz.recording.values import image_size_problem
+from agvviz.model.frames import REJECT_DECODE, REJECT_IMAGE
 from agvviz.settings import RunSettings
 
 #: The run settings that change what the detect stage outputs; every other setting (solver,

@@ -26,9 +26,10 @@ from agvviz.conventions import AGV_FRAME
 from agvviz.errors import RecordingError
 from agvviz.geometry import se3
 from agvviz.model.studies import CnoemCellResult, CnoemTrialsOutcome, CycleTrial, GridCell, RecordedCell
-from agvviz.recording.reader import CalibrationMsg, PoseMsg, RecordedMessage
+from agvviz.model.messages import CalibrationMsg, PoseMsg
+from agvviz.recording.reader import RecordedMessage
 from agvviz.recording.roles import RoleMap
-from agvviz.recording.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TF_STATIC, ROLE_TRUTH
+from agvviz.model.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TF_STATIC, ROLE_TRUTH
 from agvviz.replay.studies.monte_carlo import error_statistics
 from agvviz.settings import RunSettings
 from agvviz.solvers.cnoem import Sighting

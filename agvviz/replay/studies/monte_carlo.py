@@ -24,9 +24,10 @@ import numpy as np
 
 from agvviz.errors import RecordingError
 from agvviz.model.studies import CellResult, CellTrials, CnoemTrialsOutcome, TrialsOutcome
-from agvviz.recording.reader import CalibrationMsg, RecordedMessage
+from agvviz.model.messages import CalibrationMsg
+from agvviz.recording.reader import RecordedMessage
 from agvviz.recording.roles import RoleMap
-from agvviz.recording.topics import CORNERS_TOPIC, ROLE_CORNERS
+from agvviz.model.topics import CORNERS_TOPIC, ROLE_CORNERS
 from agvviz.replay.studies import monte_carlo_cells
 from agvviz.replay.studies.monte_carlo_cells import LM_VARIANTS, MC_LM_MAX_ITERATIONS, SOLVERS
 from agvviz.settings import RunSettings

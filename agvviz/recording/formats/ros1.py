@@ -1,9 +1,10 @@
-"""ROS 1 bags (``.bag``, format 2.0) read directly — no conversion — salvaging what a damaged
-or cut-short file still holds.
+"""The ROS 1 format: bags (``.bag``, format 2.0, or a folder of them read one after the other in
+name order, numbers as numbers) read directly — no conversion — salvaging what a damaged or
+cut-short file still holds.
 
 Reading: the file is walked front to back, one record at a time, in file order (the order the
 recorder wrote the messages), with ``rosbags``' record layout (``rosbags.rosbag1``) but our own
-loop, for the reasons :mod:`agvviz.recording.reader` gives for MCAP: ``rosbags.rosbag1.Reader``
+loop, for the reasons :mod:`agvviz.recording.mcap_records` gives for MCAP: ``rosbags.rosbag1.Reader``
 needs the index the recorder writes when it *stops* (a bag whose recorder was killed, or a
 copy cut short, has none and is refused whole), and dies on the first bad record. Here
 
@@ -22,21 +23,24 @@ copy cut short, has none and is refused whole), and dies on the first bad record
 
 Only a missing file or a file that is not a ROS 1 bag raises :class:`RecordingError`.
 
-Messages become :class:`agvviz.recording.reader.RawMessage` with ``message_encoding`` ``ros1``,
+Messages become :class:`agvviz.recording.raw.RawMessage` with ``message_encoding`` ``ros1``,
 ``schema_encoding`` ``ros1msg``, the type name in ROS 2 form (``sensor_msgs/CompressedImage``
 → ``sensor_msgs/msg/CompressedImage``, as ``rosbags`` normalises it, so role inference treats
 ROS 1 and ROS 2 types alike) and the message definition the bag carries as ``schema_data``.
 The log time is the record's ``time`` (integer ns).
 
-Decoding (:func:`decode_ros1`): the bytes are deserialised by ``rosbags`` from the message
+Decoding (:func:`decode`): the bytes are deserialised by ``rosbags`` from the message
 definition the bag itself carries (a type store per definition, ``Stores.EMPTY`` plus that
 definition, so a bag's own — even custom — layout is used); a connection without a
 definition falls back to ``rosbags``' ROS 1 Noetic store when its md5sum matches. The decoded
-message becomes the same value as a ROS 2 one (:func:`agvviz.recording.ros2.ros_value`: ROS 1
+message becomes the same value as a ROS 2 one (:func:`agvviz.recording.ros_messages.ros_value`: ROS 1
 field names such as ``CameraInfo.K``/``D`` included; ``tf/tfMessage`` like
 ``tf2_msgs/TFMessage``). A message that does not decode (a definition that does not parse, a
 type without a definition, damaged bytes) raises :class:`MessageDecodeError` — a skipped
 message with its topic and reason, never a traceback.
+
+Length (≈620 lines, at the ~600 guide): a format is one module (:mod:`agvviz.recording.formats`);
+the salvaging bag reader is most of it.
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ import os
 import re
 import stat
 import struct
+import sys
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,7 +60,11 @@ from typing import Iterator
 import lz4.frame
 
 from agvviz.errors import RecordingError
-from agvviz.recording.reader import MAX_CHUNK_BYTES, MessageDecodeError, RawMessage, ReadReport
+from agvviz.recording.raw import MAX_CHUNK_BYTES, MessageDecodeError, RawMessage, ReadReport, Recording, hashed
+from agvviz.recording.ros_messages import DECODED_TYPES, ros_value
+
+#: The recording kind this format reads (:attr:`agvviz.recording.raw.Recording.kind`).
+NAME = "rosbag1"
 
 BAG_MAGIC = b"#ROSBAG V2.0\n"
 _MAGIC_PREFIX = b"#ROSBAG V"
@@ -229,11 +238,11 @@ def is_bag(path) -> bool:
         return False
 
 
-def _open(path: Path):
+def _open(path: Path, digest=None):
     try:
         if not stat.S_ISREG(os.stat(path).st_mode):
             raise RecordingError(f"{path}: not a regular file (a pipe, device or socket); give a ROS 1 .bag file")
-        f = open(path, "rb")
+        f = hashed(open(path, "rb"), digest)
     except FileNotFoundError:
         raise RecordingError(f"{path}: no such file; give a ROS 1 .bag file") from None
     except OSError as exc:
@@ -345,11 +354,13 @@ def _index(f, index_pos: int, size: int, report: ReadReport) -> tuple[dict[int, 
     return connections, total
 
 
-def iter_raw(path, topics: set[str] | None, report: ReadReport) -> Iterator[RawMessage]:
+def iter_raw(path, topics: set[str] | None, report: ReadReport, digest=None) -> Iterator[RawMessage]:
     """The messages of a ROS 1 bag in file order (see the module docstring); problems go to
-    ``report``. Raises :class:`RecordingError` only when the file is missing or not a bag."""
+    ``report``. Raises :class:`RecordingError` only when the file is missing or not a bag.
+    With ``digest`` (a ``hashlib`` object) every byte of the file goes into it once the stream
+    has ended (:class:`~agvviz.recording.raw.HashedReads`)."""
     path = Path(path)
-    f, size = _open(path)
+    f, size = _open(path, digest)
     with f:
         connections: dict[int, _Connection] = {}
         index_connections: dict[int, _Connection] = {}
@@ -478,6 +489,8 @@ def iter_raw(path, topics: set[str] | None, report: ReadReport) -> Iterator[RawM
                 f"{count} message(s) on connection {conn_id} skipped: that connection's definition was in a "
                 "lost part of the file"
             )
+        if digest is not None:
+            f.finish()
 
 
 # -- decoding ---------------------------------------------------------------------------------
@@ -545,11 +558,14 @@ def _undefined_types(store) -> list[str]:
     return sorted(used - set(store.fielddefs))
 
 
-def decode_ros1(raw: RawMessage) -> object:
-    """The value of a ROS 1 message (:func:`agvviz.recording.ros2.ros_value`); ``bytes`` for
-    types agvviz does not use. Raises :class:`MessageDecodeError`."""
-    from agvviz.recording.ros2 import DECODED_TYPES, ros_value
+def decodes(raw: RawMessage) -> bool:
+    """True for ROS 1 messages (a bag's, or an MCAP file's with the ROS 1 profile)."""
+    return raw.message_encoding == MESSAGE_ENCODING
 
+
+def decode(raw: RawMessage) -> object:
+    """The value of a ROS 1 message (:func:`agvviz.recording.ros_messages.ros_value`); ``bytes``
+    for types agvviz does not use. Raises :class:`MessageDecodeError`."""
     if raw.schema_name not in DECODED_TYPES:
         return raw.data
     store = _typestore(raw)
@@ -572,4 +588,35 @@ def bag_order(path: Path) -> list:
     return [int(part) if part.isdigit() else part for part in _SPLIT_NUMBER.split(path.name)]
 
 
-__all__ = ["iter_raw", "decode_ros1", "is_bag", "bag_order", "BAG_MAGIC", "MESSAGE_ENCODING"]
+# -- the recording ----------------------------------------------------------------------------
+def _bags_of(path: Path) -> list[Path] | None:
+    """The bags of ``path``: a ``.bag`` file (or any file with the bag magic), or the ``.bag``
+    files of a directory without ``metadata.yaml`` in :func:`bag_order`; ``None`` when
+    ``path`` is neither."""
+    if path.is_dir():
+        bags = sorted((p for p in path.glob("*.bag") if p.is_file()), key=bag_order)
+        if not bags or (path / "metadata.yaml").exists():
+            return None
+        return bags
+    if path.suffix == ".bag" or is_bag(path):
+        return [path]
+    return None
+
+
+def recognises(path: Path) -> bool:
+    """A ``.bag`` file, a file with the bag magic, or a folder of ``.bag`` files without
+    ``metadata.yaml``."""
+    return _bags_of(path) is not None
+
+
+def open_recording(path: Path) -> Recording:
+    """The recording of a bag or a folder of bags; raises :class:`RecordingError` (one line)
+    now, not at the first read, when the first file is not a bag of format 2.0."""
+    recording = Recording(path, _bags_of(path), sys.modules[__name__], profile="ros1")
+    check_bag(recording.files[0])
+    return recording
+
+
+def describe(files: list[str]) -> str:
+    """What ``inspect`` adds after the path: the bags."""
+    return f" (ROS 1 bag{'s' if len(files) > 1 else ''}: {', '.join(files)})"

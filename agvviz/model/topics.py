@@ -3,7 +3,7 @@
 The replay consumes **roles**, not topics (DESIGN §4 "Roles, not topics"). A role map (see
 :mod:`agvviz.recording.roles`) says which topic of a file plays which role; every consumer
 (``pipeline``, ``fusion_replay``, ``correction``, ``inspect``) dispatches on
-:attr:`agvviz.recording.reader.RecordedMessage.role`.
+:attr:`agvviz.model.messages.RecordedMessage.role`.
 
 Roles and agvviz's own topic for each:
 
