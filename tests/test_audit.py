@@ -26,6 +26,7 @@ from agvviz.cli.main import app
 from agvviz.errors import InputError
 from agvviz.recording.sidefiles import load_marker_map, parse_extrinsic
 from agvviz.sim import inject as inj
+from agvviz.recording.mcap_stream import realism_draws
 from agvviz.sim import realism as rl
 from agvviz.viz import paths
 from agvviz.viz.readback import read_rrd, scalar_series, text_document
@@ -267,7 +268,7 @@ def test_cli_audit_end_to_end(injected_recording, tmp_path):
         assert "flagged" in line, line
     assert "front" in text and "translation" in text and "rotation" in text
     # the injected truth from the recording's own draws
-    draws = rl.realism_draws(injected_recording)
+    draws = realism_draws(injected_recording)
     assert draws["sources"]["inject"][0]["target"] == "Q034"
     truth = {d["id"]: marker_truth(d) for d in draws["sources"]["map"]}
     # the outputs

@@ -15,6 +15,7 @@ from agvviz.model import topics
 from agvviz.recording.mcap_stream import iter_raw
 from agvviz.recording.raw import RawMessage
 from agvviz.recording.reader import iter_messages
+from agvviz.recording.mcap_stream import realism_draws
 from agvviz.sim import realism as rl
 from agvviz.sim.trajectory import forward_camera_mount, track_pose
 from agvviz.scenarios import qr_floor
@@ -130,7 +131,7 @@ def test_ideal_recordings_are_todays_message_for_message(tmp_path, key):
     overrides, digest, count = GOLDEN[key]
     path = _record(tmp_path, key, key.removesuffix("_grid"), overrides)
     assert _digest(path) == (digest, count)
-    assert rl.realism_draws(path) is None  # no source, no record
+    assert realism_draws(path) is None  # no source, no record
 
 
 # -- each source: the recording differs from the truth by exactly the draws ------------------------
@@ -153,7 +154,7 @@ def qr_sources(tmp_path_factory):
 
 def test_recorded_calibration_and_extrinsic_are_true_plus_the_draws(qr_sources):
     path = qr_sources["calibration"]
-    draw = rl.realism_draws(path)["sources"]["calibration"]["front"]
+    draw = realism_draws(path)["sources"]["calibration"]["front"]
     options = scenario_registry.build_options("qr_floor", QR_SMALL)
     true_camera = qr_floor.make_camera(options)
     np.testing.assert_array_equal(draw["true"]["K"], true_camera.K)
@@ -182,7 +183,7 @@ def test_recorded_calibration_and_extrinsic_are_true_plus_the_draws(qr_sources):
 
 def test_map_holds_the_mapped_codes_and_the_draws_the_true_ones(qr_sources):
     path = qr_sources["map"]
-    draws = rl.realism_draws(path)["sources"]["map"]
+    draws = realism_draws(path)["sources"]["map"]
     (map_message,) = _messages(path, topics.MARKER_MAP_TOPIC)
     recorded = {m["id"]: np.array(m["corners_world_m"]) for m in map_message.value["markers"]}
     ideal_map = _messages(qr_sources["ideal"], topics.MARKER_MAP_TOPIC)[0].value
@@ -207,7 +208,7 @@ def test_map_holds_the_mapped_codes_and_the_draws_the_true_ones(qr_sources):
 
 def test_latency_shifts_the_world_an_image_shows_and_dropped_frames_are_missing(qr_sources):
     path = qr_sources["timing"]
-    timing = rl.realism_draws(path)["sources"]["timing"]
+    timing = realism_draws(path)["sources"]["timing"]
     stamps = np.array(timing["stamp_ns"])
     delay = np.array(timing["cameras"]["front"]["delay_ns"])
     dropped = np.array(timing["cameras"]["front"]["dropped"])
@@ -230,8 +231,8 @@ def test_latency_shifts_the_world_an_image_shows_and_dropped_frames_are_missing(
 
 
 def test_switching_a_source_off_leaves_every_other_draw_unchanged(qr_sources):
-    everything = rl.realism_draws(qr_sources["all"])["sources"]
-    no_calibration = rl.realism_draws(qr_sources["no_calibration"])["sources"]
+    everything = realism_draws(qr_sources["all"])["sources"]
+    no_calibration = realism_draws(qr_sources["no_calibration"])["sources"]
     for source in ("map", "timing", "bumps", "slip"):
         assert no_calibration[source] == everything[source], source
     assert all(v == 0.0 or v == [0.0, 0.0, 0.0] for v in no_calibration["calibration"]["front"]["delta"].values())
@@ -244,7 +245,7 @@ def test_switching_a_source_off_leaves_every_other_draw_unchanged(qr_sources):
 def test_bumps_pitch_and_roll_the_true_agv_by_the_recorded_angles(tmp_path):
     path = _record(tmp_path, "bumps", "qr_floor", QR_SMALL + [
         "realism=harsh", f"realism_off={ONLY['bumps']}"])
-    bumps = rl.realism_draws(path)["sources"]["bumps"]
+    bumps = realism_draws(path)["sources"]["bumps"]
     truth = _messages(path, topics.GROUND_TRUTH_TOPIC)
     assert len(truth) == len(bumps["stamp_pitch_deg"]) == 3
     for message, pitch, roll in zip(truth, bumps["stamp_pitch_deg"], bumps["stamp_roll_deg"]):
@@ -257,7 +258,7 @@ def test_bumps_pitch_and_roll_the_true_agv_by_the_recorded_angles(tmp_path):
 def test_wheel_slip_scales_each_odometry_step_by_the_drawn_fraction(tmp_path):
     quiet = ["odom_scale_error=0", "odom_heading_bias_deg_per_s=0", "odom_step_noise_m=0", "odom_heading_noise_deg=0"]
     path = _record(tmp_path, "slip", "qr_floor", QR_SMALL + quiet + ["realism=harsh", f"realism_off={ONLY['slip']}"])
-    slip = np.array(rl.realism_draws(path)["sources"]["slip"]["fraction"])
+    slip = np.array(realism_draws(path)["sources"]["slip"]["fraction"])
     truth = np.array([m.value.T[:3, 3] for m in _messages(path, topics.GROUND_TRUTH_TOPIC)])
     odom = np.array([m.value.T[:3, 3] for m in _messages(path, topics.ODOMETRY_TOPIC)])
     ratio = np.linalg.norm(np.diff(odom, axis=0), axis=1) / np.linalg.norm(np.diff(truth, axis=0), axis=1)
@@ -269,7 +270,7 @@ def test_wheel_slip_scales_each_odometry_step_by_the_drawn_fraction(tmp_path):
 def test_uwb_room_cameras_roof_code_and_timing_carry_their_draws(tmp_path):
     path = _record(tmp_path, "room", "uwb_room", UWB_SMALL + [
         "realism=harsh", "realism_set=timing.drop_probability=0.5"])
-    draws = rl.realism_draws(path)["sources"]
+    draws = realism_draws(path)["sources"]
     assert draws["slip"] is None  # no odometry in the room
     options = scenario_registry.build_options("uwb_room", UWB_SMALL)
     poses = uwb_room.camera_poses(options)

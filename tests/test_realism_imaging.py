@@ -11,6 +11,7 @@ import pytest
 from agvviz import scenarios as scenario_registry
 from agvviz.model import topics
 from agvviz.sim import imaging as im
+from agvviz.recording.mcap_stream import realism_draws
 from agvviz.sim import realism as rl
 from tests.test_realism import GOLDEN, QR_SMALL, UWB_SMALL, _digest, _raw, _record
 
@@ -106,7 +107,7 @@ def test_imaging_changes_the_images_and_nothing_else(qr):
     for topic in (topics.GROUND_TRUTH_TOPIC, topics.ODOMETRY_TOPIC, "/cam/front/calibration",
                   topics.TF_STATIC_TOPIC, topics.MARKER_MAP_TOPIC):
         assert _raw(a, topic) == _raw(b, topic), topic
-    record = rl.realism_draws(a)
+    record = realism_draws(a)
     imaging = record["sources"]["imaging"]
     assert imaging["errors"]["jpeg_quality"] == 90 and imaging["errors"]["defocus_radius_px"] == 0.5
     assert imaging["time_samples"] == 2 and imaging["rows_per_band"] == 32
@@ -119,8 +120,8 @@ def test_imaging_off_is_ideal_imaging_with_the_other_sources_on(qr):
     off, reference = qr["typical_no_imaging"], qr["ideal_plus_others"]
     for topic in (IMAGE, topics.GROUND_TRUTH_TOPIC, topics.ODOMETRY_TOPIC, "/cam/front/calibration"):
         assert _raw(off, topic) == _raw(reference, topic), topic
-    on = rl.realism_draws(qr["typical"])["sources"]
-    without = rl.realism_draws(off)["sources"]
+    on = realism_draws(qr["typical"])["sources"]
+    without = realism_draws(off)["sources"]
     for source in ("calibration", "map", "timing", "bumps", "slip"):
         assert on[source] == without[source], source
     for topic in (topics.GROUND_TRUTH_TOPIC, topics.ODOMETRY_TOPIC, "/cam/front/calibration"):
@@ -144,7 +145,7 @@ def test_ideal_with_imaging_switched_off_is_still_todays_world(tmp_path, key):
     overrides, digest, count = GOLDEN[key]
     path = _record(tmp_path, key, key, overrides + ["realism_off=imaging"])
     assert _digest(path) == (digest, count)
-    assert rl.realism_draws(path) is None
+    assert realism_draws(path) is None
 
 
 def test_uwb_room_renders_typical_images_of_the_moving_roof_code(tmp_path):
@@ -154,7 +155,7 @@ def test_uwb_room_renders_typical_images_of_the_moving_roof_code(tmp_path):
         assert _raw(typical, f"/cam/{wall}/image") != _raw(ideal, f"/cam/{wall}/image")
     for topic in (topics.GROUND_TRUTH_TOPIC, topics.UWB_RANGE_TOPIC):
         assert _raw(typical, topic) == _raw(ideal, topic)
-    assert rl.realism_draws(typical)["sources"]["imaging"]["errors"]["exposure_s"] == im.TYPICAL_IMAGING.exposure_s
+    assert realism_draws(typical)["sources"]["imaging"]["errors"]["exposure_s"] == im.TYPICAL_IMAGING.exposure_s
 
 
 def test_a_standing_camera_exposes_the_static_frame_bit_for_bit():

@@ -15,7 +15,7 @@ from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema
 from agvviz.errors import RecordingError
 from agvviz.recording.mcap_records import chunk_records, open_mcap, read_tail, top_level_records
 from agvviz.recording.raw import DAMAGE_ERRORS, RawMessage, RawMetadata, ReadReport
-from agvviz.recording.schemas import SCENARIO_METADATA
+from agvviz.recording.schemas import REALISM_METADATA, SCENARIO_METADATA
 
 #: Most recent message keys remembered for duplicate detection (bounded memory; a chunk
 #: written twice further apart than this is still caught by its chunk signature).
@@ -226,6 +226,23 @@ def read_scenario_metadata(path) -> dict | None:
         return parse_scenario_metadata(values)
     except ValueError as exc:
         raise RecordingError(f"{path}: {exc}; re-record it with 'agvviz record'") from None
+
+
+def realism_draws(recording) -> dict | None:
+    """The realism draws (``{"profile", "seed", "parameters", "sources"}``, written by
+    :func:`agvviz.sim.realism.metadata_values`) stored in a recording's ``agvviz.realism``
+    metadata record, or ``None`` when it has none: an ``ideal`` recording (no error source — its
+    messages are exactly those of agvviz before the sources existed), one made before the record
+    existed, or not by agvviz. ``recording``: a path. Reads only top-level records (chunks are
+    skipped). Raises ``ValueError`` when the record is not valid JSON.
+    """
+    values = read_metadata(recording, REALISM_METADATA)
+    if values is None:
+        return None
+    try:
+        return json.loads(values["draws"])
+    except (KeyError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{recording}: {REALISM_METADATA} metadata is malformed ({exc})") from None
 
 
 def read_file_header(path) -> tuple[str, str, dict | None]:

@@ -8,7 +8,7 @@ cannot tell a side file from a recorded message:
 * :func:`load_calibration` → :class:`~agvviz.model.messages.CalibrationMsg`;
 * :func:`parse_extrinsic` → :class:`~agvviz.model.messages.FrameTransformMsg`.
 
-Length (≈660 lines, over the ~600 guide): the three loaders share their parsing helpers and
+Longer than 600 lines because the three loaders share their parsing helpers and
 their error style (numbers, poses, YAML/JSON reading, :class:`SideFileError`); split apart, the
 calibration and extrinsic loaders would import the marker-map loader's private helpers.
 

@@ -68,6 +68,7 @@ from agvviz.settings import MAX_FRAMES, MAX_IMAGE_SAMPLES, check_total, setting
 from agvviz.settings import validate as check_fields
 from agvviz.sim import auv
 from agvviz.sim import imaging as im
+from agvviz.recording.schemas import REALISM_METADATA
 from agvviz.sim import realism as rl
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
 from agvviz.sim.room import placed, roof_code
@@ -237,7 +238,7 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: 
     if o.images and not ideal_imaging:
         draws.sources["imaging"] = rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band)
     if not realism.is_ideal:  # an ideal recording stays message for message what it was
-        writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
+        writer.write_metadata(REALISM_METADATA, rl.metadata_values(draws))
     for name in mounts:
         writer.write_calibration(name, calib[name].recorded_camera, t0)
     writer.write_tf_static([(AGV_FRAME, camera_frame(n_), calib[n_].T_parent_cam_recorded) for n_ in mounts], t0)

@@ -54,6 +54,7 @@ from agvviz.settings import validate as check_fields
 from agvviz.sim.qr_texture import PAYLOAD_RESOLUTION_M, QUIET_ZONE_MODULES, make_floor_code
 from agvviz.sim.render import FloorScene, encode_jpeg
 from agvviz.sim import imaging as im
+from agvviz.recording.schemas import REALISM_METADATA
 from agvviz.sim import realism as rl
 from agvviz.sim import inject as inj
 from agvviz.geometry import euler, se3
@@ -373,7 +374,7 @@ def record(
     if injected:
         draws.sources["inject"] = injected.to_json()
     if not realism.is_ideal or injected:  # an ideal recording stays message for message what it was
-        writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
+        writer.write_metadata(REALISM_METADATA, rl.metadata_values(draws))
 
     t0_ns = int(stamps_ns[0])
     writer.write_calibration(CAM_NAME, calib[CAM_NAME].recorded_camera, t0_ns)

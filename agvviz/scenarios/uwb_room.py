@@ -61,6 +61,7 @@ from agvviz.settings import validate as check_fields
 from agvviz.markers.aruco import aruco_modules
 from agvviz.markers.dictionary import aruco_dictionary, is_aruco_dictionary
 from agvviz.sim import imaging as im
+from agvviz.recording.schemas import REALISM_METADATA
 from agvviz.sim import realism as rl
 from agvviz.sim.render import FloorScene, encode_jpeg
 from agvviz.sim.room import WALLS, agv_pose, grid_points, horizontal_fov_focal_px, look_at, placed, roof_code, wall_points
@@ -335,7 +336,7 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
         imaging=rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band),
     )
     if not realism.is_ideal:  # an ideal recording stays message for message what it was
-        writer.write_metadata(rl.REALISM_METADATA, rl.metadata_values(draws))
+        writer.write_metadata(REALISM_METADATA, rl.metadata_values(draws))
 
     for wall in WALLS:
         writer.write_calibration(wall, calib[wall].recorded_camera, t0_ns)

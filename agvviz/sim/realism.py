@@ -29,8 +29,11 @@ imaging        image formation and print (:mod:`agvviz.sim.imaging`, :class:`Ima
 Every source draws from its own generator :func:`source_rng` (seed, source name), and every
 draw is a standard normal (or uniform) scaled by its σ afterwards, so switching one source or
 one parameter off leaves every other draw unchanged — the exact counterfactual an error budget
-needs. :class:`Draws` keeps what was drawn (JSON); :func:`realism_draws` reads it back from a
-recording's ``agvviz.realism`` metadata record. Numpy only: no files, no I/O.
+needs. :class:`Draws` keeps what was drawn (JSON, :func:`metadata_values`: the scenario writes it as the
+recording's ``agvviz.realism`` metadata record; :func:`agvviz.recording.mcap_stream.realism_draws`
+reads it back). Numpy only: no files, no I/O.
+Longer than 600 lines because the six error sources' parameters and their draws are one
+vocabulary (each draw reads its source's parameters); scenarios and tests address both here.
 """
 
 from __future__ import annotations
@@ -47,7 +50,6 @@ import numpy as np
 from agvviz.geometry import se3, so3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.geometry.euler import Rx, Ry, Rz
-from agvviz.recording.schemas import REALISM_METADATA
 from agvviz.sim import imaging as im
 from agvviz.sim.render import FloorCode  # "agvviz.realism", key "draws"
 
@@ -603,21 +605,3 @@ def new_draws(realism: Realism, seed: int) -> Draws:
 def metadata_values(draws: Draws) -> dict[str, str]:
     """The ``agvviz.realism`` MCAP metadata record's values."""
     return {"draws": draws.to_json()}
-
-
-def realism_draws(recording) -> dict | None:
-    """The draws (``{"profile", "seed", "parameters", "sources"}``) stored in a recording's
-    ``agvviz.realism`` metadata record, or ``None`` when it has none: an ``ideal`` recording
-    (no error source — its messages are exactly those of agvviz before the sources existed),
-    one made before the record existed, or not by agvviz. ``recording``: a path. Reads only top-level
-    records (chunks are skipped). Raises ``ValueError`` when the record is not valid JSON.
-    """
-    from agvviz.recording.mcap_stream import read_metadata
-
-    values = read_metadata(recording, REALISM_METADATA)
-    if values is None:
-        return None
-    try:
-        return json.loads(values["draws"])
-    except (KeyError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{recording}: {REALISM_METADATA} metadata is malformed ({exc})") from None

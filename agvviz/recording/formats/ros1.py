@@ -39,7 +39,7 @@ field names such as ``CameraInfo.K``/``D`` included; ``tf/tfMessage`` like
 type without a definition, damaged bytes) raises :class:`MessageDecodeError` — a skipped
 message with its topic and reason, never a traceback.
 
-Length (≈620 lines, at the ~600 guide): a format is one module (:mod:`agvviz.recording.formats`);
+Longer than 600 lines because a format is one module (:mod:`agvviz.recording.formats`);
 the salvaging bag reader is most of it.
 """
 
