@@ -204,7 +204,8 @@ def test_detect_params_know_the_boards_and_the_cache_keeps_the_saddles(tmp_path)
     import pickle
 
     from agvviz.replay.detect import cache as detect_cache
-    from agvviz.replay.detect.stage import DetectParams, FrameDetections
+    from agvviz.replay.detect.stage import DetectParams
+    from agvviz.model.detections import FrameDetections
     from agvviz.replay.detect.pool import DetectedFrame
     from agvviz.markers.aruco import parse_aruco_map
     from agvviz.markers.charuco import ChessboardCorners

@@ -29,7 +29,7 @@ from agvviz.model.frames import (
 )
 from agvviz.model.frames import REJECT_MAP_MISMATCH
 from agvviz.recording.contract import payload_map_problem
-from agvviz.replay.detect.stage import CodeDetection
+from agvviz.model.detections import CodeDetection
 
 #: When no code of a frame is usable, the frame's reason is the first of these its codes had.
 REASON_RANK = {

@@ -37,7 +37,7 @@ TAG_FRAME = "uwb_tag"
 
 class FusionReplay:
     """See the module docstring. ``cameras`` is a read-only snapshot of the cameras' state
-    (:class:`~agvviz.replay.sync.CameraState` by name), replaced by the graph whenever a camera
+    (:class:`~agvviz.model.cameras.CameraState` by name), replaced by the graph whenever a camera
     changes and read when a frame set is completed; ``sync`` the sync stage, whose
     ground truth (interpolated at each stamp) scores ranges, fixes and fused positions."""
 

@@ -8,7 +8,7 @@
 
 * source — :mod:`agvviz.recording.source` (readers, role map) opened by :func:`agvviz.replay.run.prepare`;
 * sync — :class:`agvviz.replay.sync.SyncState`, filled by a first pass over the non-image messages;
-* detect — :mod:`agvviz.replay.detect.stage` (frame → :class:`~agvviz.replay.detect.stage.FrameDetections`),
+* detect — :mod:`agvviz.replay.detect.stage` (frame → :class:`~agvviz.model.detections.FrameDetections`),
   computed ahead by :class:`agvviz.replay.detect.pool.DetectionFeed` or read from the cache;
 * solve — :class:`agvviz.replay.solve.Replay` (detections → :class:`~agvviz.model.frames.FrameResult`);
 * fuse — :class:`agvviz.replay.fuse.FusionReplay`;

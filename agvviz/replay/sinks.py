@@ -13,8 +13,8 @@ from typing import Any, Mapping, Protocol, Sequence
 import numpy as np
 
 from agvviz.model.frames import FrameResult
-from agvviz.replay.detect.stage import FrameDetections
-from agvviz.replay.sync import CameraState
+from agvviz.model.detections import FrameDetections
+from agvviz.model.cameras import CameraState
 
 
 @dataclass(frozen=True)

@@ -52,13 +52,15 @@ from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransfor
 from agvviz.recording.reader import RecordedMessage
 from agvviz.model.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
 from agvviz.replay.candidates import REASON_RANK, aruco_candidates, qr_candidates
-from agvviz.replay.detect.stage import DetectParams, FrameDetections, FrameJob, SegmentDetector, camera_model
+from agvviz.replay.detect.stage import DetectParams, FrameJob, SegmentDetector, camera_model
+from agvviz.model.detections import FrameDetections
 from agvviz.replay.diagnostics import PoseDiagnostics
 from agvviz.settings import RunSettings
 from agvviz.solvers import SolverOptions, SolveResult, solve
 from agvviz.solvers.joint import MarkerView, solve_joint
 from agvviz.solvers.planar import PlanarPrior
-from agvviz.replay.sync import CameraState, SyncState
+from agvviz.model.cameras import CameraState
+from agvviz.replay.sync import SyncState
 
 @dataclass
 class ReplayContext:

@@ -29,12 +29,10 @@ before each frame.
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass
 
 import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME, camera_frame
-from agvviz.geometry import PinholeCamera
 from agvviz.geometry.tf_buffer import PoseSeries, TransformBuffer
 from agvviz.model.messages import CalibrationMsg, FrameTransformMsg, PoseMsg, RecordedMessage
 from agvviz.model.topics import (
@@ -55,20 +53,6 @@ def _same_camera(a: CalibrationMsg, b: CalibrationMsg) -> bool:
         ca.width_px == cb.width_px and ca.height_px == cb.height_px
         and np.array_equal(ca.K, cb.K) and np.array_equal(ca.dist, cb.dist)
     )
-
-
-@dataclass(frozen=True)
-class CameraState:
-    """What the replay knows about one camera at the frame being replayed: its calibration and
-    extrinsic (from :class:`SyncState`). Frozen: a change is a new state
-    (:attr:`agvviz.replay.solve.ReplayContext.cameras`), so stages and sinks are handed values."""
-
-    camera: PinholeCamera | None = None
-    calibration_problem: str = ""  # why the last calibration of this camera was refused
-    T_agv_cam: np.ndarray | None = None  # T_body_cam (the body frame is a setting)
-    T_world_cam: np.ndarray | None = None  # a camera fixed in the world (paper 003's wall cameras)
-    calibration: CalibrationMsg | None = None  # the message ``camera`` came from
-    extrinsic_problem: str = ""  # why neither extrinsic is known
 
 
 class SyncState:

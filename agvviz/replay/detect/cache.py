@@ -24,7 +24,8 @@ import numpy as np
 
 from agvviz import __version__
 from agvviz.recording import outputs
-from agvviz.replay.detect.stage import DETECT_REVISION, CodeDetection, DetectParams, FrameDetections
+from agvviz.replay.detect.stage import DETECT_REVISION, DetectParams
+from agvviz.model.detections import CodeDetection, FrameDetections
 from agvviz.replay.detect.pool import DetectedFrame
 from agvviz.markers.charuco import ChessboardCorners
 

@@ -4,7 +4,7 @@
 camera's frames into segments (:class:`agvviz.replay.detect.stage.DetectParams.segment_frames`
 consecutive frames; a segment is one task and keeps its own tracking state), runs the segments
 on ``jobs`` worker processes and hands every message back *in file order* together with its
-frame's :class:`~agvviz.replay.detect.stage.FrameDetections`. At most ``2·jobs + 1`` segments are in
+frame's :class:`~agvviz.model.detections.FrameDetections`. At most ``2·jobs + 1`` segments are in
 flight and every message read ahead is held only until the replay takes it, so memory stays flat
 however long the recording. With ``jobs = 1`` the segments run in this process, by the same
 code, with the same results; detections from the cache (:mod:`agvviz.replay.detect.cache`) are
@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator
 
 from agvviz.errors import RunError
-from agvviz.replay.detect.stage import DetectParams, FrameDetections, FrameJob, detect_segment
+from agvviz.replay.detect.stage import DetectParams, FrameJob, detect_segment
+from agvviz.model.detections import FrameDetections
 from agvviz.model.messages import CompressedFrame, RecordedMessage
 
 #: Messages read ahead of the replay before a slow camera's unfinished segment is cut short.
