@@ -23,14 +23,7 @@ from agvviz.errors import InputError
 from agvviz.evaluation import expression
 from agvviz.evaluation.comparison import DIRECT, Comparison, RunSeries, compare_runs, metric_names
 from agvviz.evaluation.trajectory import ALIGNMENTS
-from agvviz.app.run_series import (
-    cameras_of,
-    fixed_cameras_of,
-    load_run,
-    overlay_errors,
-    overlay_truth,
-    reprojected_corners,
-)
+from agvviz.app import run_series
 from agvviz.viz.overlay import OverlayRun, write_overlay
 from agvviz.viz.readback import read_rrd
 
@@ -310,7 +303,7 @@ def diff(
         outputs.prepare_output(overlay_path, inputs=(a_path, b_path))
     seconds = {}
     t0 = time.perf_counter()
-    a, b = load_run(a_path), load_run(b_path)
+    a, b = run_series.load_run(a_path), run_series.load_run(b_path)
     seconds["load"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     comparison = compare_runs(
@@ -336,16 +329,16 @@ def _write_diff_overlay(
 ) -> Path:
     ia, ib = c.matched[:, 0], c.matched[:, 1]
     a_contents = read_rrd(a_path)
-    cams = cameras_of(a_contents) if images else []
-    reproj_a = reprojected_corners(a_path, cams) if images else {}
-    reproj_b_own = reprojected_corners(b_path, cams) if images else {}
+    cams = run_series.cameras_of(a_contents) if images else []
+    reproj_a = run_series.reprojected_corners(a_path, cams) if images else {}
+    reproj_b_own = run_series.reprojected_corners(b_path, cams) if images else {}
     # B's corners go onto A's frame numbers through the time matching.
     b_to_a = {int(b.frames[j]): int(a.frames[i]) for i, j in zip(ia, ib)}
     reproj_b = {cam: {b_to_a[f]: pts for f, pts in per.items() if f in b_to_a} for cam, per in reproj_b_own.items()}
     runs = [
-        OverlayRun("a", f"A {a.name}", a.frames, a.time_ns, a.T_est, overlay_errors(a), reproj_a,
+        OverlayRun("a", f"A {a.name}", a.frames, a.time_ns, a.T_est, run_series.overlay_errors(a), reproj_a,
                    T_truth=a.T_truth, short_label="A"),
-        OverlayRun("b", f"B {b.name}", a.frames[ia], a.time_ns[ia], b.T_est[ib], overlay_errors(b, ib), reproj_b,
+        OverlayRun("b", f"B {b.name}", a.frames[ia], a.time_ns[ia], b.T_est[ib], run_series.overlay_errors(b, ib), reproj_b,
                    T_truth=b.T_truth[ib], short_label="B"),
     ]
     deltas = {
@@ -357,10 +350,10 @@ def _write_diff_overlay(
         out,
         recording_name=f"diff {a.name} vs {b.name}",
         runs=runs,
-        truth=overlay_truth(a),
+        truth=run_series.overlay_truth(a),
         source=a_path,
         cam_names=cams,
-        fixed_cams=fixed_cameras_of(a_contents) & set(cams),
+        fixed_cams=run_series.fixed_cameras_of(a_contents) & set(cams),
         report_markdown=comparison_markdown(c),
         deltas=deltas,
         inputs=(a_path, b_path),

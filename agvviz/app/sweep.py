@@ -28,14 +28,7 @@ from agvviz.evaluation.comparison import QUANTITIES, RunSeries, match_frames, me
 from agvviz.evaluation.trajectory import ALIGNMENTS, EvaluationError
 from agvviz.settings import RunSettings, SettingsError, apply_overrides, field_types
 from agvviz.app.diff import CompareError, format_number, format_p
-from agvviz.app.run_series import (
-    cameras_of,
-    fixed_cameras_of,
-    load_run,
-    overlay_errors,
-    overlay_truth,
-    reprojected_corners,
-)
+from agvviz.app import run_series
 from agvviz.viz.overlay import OverlayRun, write_overlay
 from agvviz.viz.readback import RrdReadError, read_rrd
 
@@ -318,7 +311,7 @@ def _finish_recording(
     for index, entry in enumerate(entries):
         if entry.ok:
             try:
-                series[index] = load_run(entry.out_path)
+                series[index] = run_series.load_run(entry.out_path)
                 entry.metrics = run_metrics(series[index], align=align, rpe_delta=rpe_delta)
             except (RrdReadError, EvaluationError) as exc:
                 entry.error = f"{type(exc).__name__}: {exc}"
@@ -419,7 +412,7 @@ def _write_sweep_overlay(
     index_of = {id(e): i for i, e in enumerate(entries)}
     first = series[index_of[id(ok[0])]]
     first_contents = read_rrd(ok[0].out_path)
-    cams = cameras_of(first_contents) if images else []
+    cams = run_series.cameras_of(first_contents) if images else []
     runs = []
     for rank, entry in enumerate(ok):
         s = series[index_of[id(entry)]]
@@ -427,11 +420,11 @@ def _write_sweep_overlay(
         to_first = {int(s.frames[j]): int(first.frames[i]) for i, j in zip(ia, ib)}
         reprojected = {
             cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
-            for cam, per in (reprojected_corners(entry.out_path, cams) if images else {}).items()
+            for cam, per in (run_series.reprojected_corners(entry.out_path, cams) if images else {}).items()
         }
         runs.append(OverlayRun(
             _entity_key(rank, entry.label), f"#{entry.rank} {entry.label}",
-            first.frames[ia], first.time_ns[ia], s.T_est[ib], overlay_errors(s, ib), reprojected,
+            first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib), reprojected,
             T_truth=None if s.T_truth is None else s.T_truth[ib], short_label=f"#{entry.rank}",
         ))
     header, rows = ranking_rows(ok, rank_by)
@@ -444,10 +437,10 @@ def _write_sweep_overlay(
         out,
         recording_name=f"sweep {recording.stem}",
         runs=runs,
-        truth=overlay_truth(first),
+        truth=run_series.overlay_truth(first),
         source=ok[0].out_path,
         cam_names=cams,
-        fixed_cams=fixed_cameras_of(first_contents) & set(cams),
+        fixed_cams=run_series.fixed_cameras_of(first_contents) & set(cams),
         report_markdown=report,
         inputs=(recording, *[e.out_path for e in ok]),
     )

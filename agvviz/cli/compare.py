@@ -16,16 +16,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from agvviz.cli.common import console, err_console, error_line, fail, handle_errors, progress_bar
-from agvviz.cli.options import (
-    CACHE_DIR_HELP,
-    CACHE_HELP,
-    CALIBRATION_HELP,
-    EXTRINSIC_HELP,
-    JOBS_HELP,
-    MARKERS_HELP,
-    check_detect_jobs,
-    side_inputs,
-)
+from agvviz.cli import options
 from agvviz.cli.record_run import error_budget_with_progress
 from agvviz.errors import EXIT_BAD_INPUT, EXIT_OUTPUT
 from agvviz.recording import outputs
@@ -114,7 +105,7 @@ def sweep(
                                 "except solved / solved_pct)"),
     align: str = typer.Option("none", "--align", help="APE alignment: none | se3 | se2 | yaw"),
     images: bool = typer.Option(True, "--images/--no-images", help="camera images in the overlay"),
-    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=options.CACHE_DIR_HELP),
 ) -> None:
     """Replay each RECORDING under every combination of the --set values on a Dask cluster; rank each recording's runs.
 
@@ -225,13 +216,13 @@ def audit(
                                    "k_sigma, min_position_m, sigma_px, map_sigma_m, …) or run setting (repeatable)"),
     out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-audit.rrd); the corrected "
                                        "map <out>-markers.yaml and extrinsic <out>-extrinsic.txt are written beside it"),
-    markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
-    calibration: List[str] = typer.Option([], "--calibration", metavar="CAM=FILE", help=CALIBRATION_HELP),
-    extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=EXTRINSIC_HELP),
+    markers: Optional[Path] = typer.Option(None, "--markers", help=options.MARKERS_HELP),
+    calibration: List[str] = typer.Option([], "--calibration", metavar="CAM=FILE", help=options.CALIBRATION_HELP),
+    extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=options.EXTRINSIC_HELP),
     correct: str = typer.Option("flagged", "--correct", help="markers moved in the corrected map: flagged or all (estimated)"),
-    jobs: Optional[int] = typer.Option(None, "--jobs", help=JOBS_HELP),
-    cache: bool = typer.Option(True, "--cache/--no-cache", help=CACHE_HELP),
-    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help=options.JOBS_HELP),
+    cache: bool = typer.Option(True, "--cache/--no-cache", help=options.CACHE_HELP),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=options.CACHE_DIR_HELP),
 ) -> None:
     """Audit a map and a calibration: which markers are misplaced, is the camera where the calibration says.
 
@@ -251,7 +242,7 @@ def audit(
 
     if correct not in ("flagged", "all"):
         fail(f"--correct must be flagged or all, got {correct!r}")
-    check_detect_jobs(jobs)
+    options.check_detect_jobs(jobs)
     audit_pairs, run_pairs = audit_lib.split_settings(list(set_))
     from agvviz.settings import field_types
 
@@ -269,7 +260,7 @@ def audit(
     inputs = [recording] + ([markers] if markers else [])
     for path in paths.values():  # fail before the work, not after
         outputs.prepare_output(path, inputs=inputs)
-    side = side_inputs(markers, list(calibration), list(extrinsic), run_settings.body_frame)
+    side = options.side_inputs(markers, list(calibration), list(extrinsic), run_settings.body_frame)
     with progress_bar() as progress:
         task = progress.add_task(f"auditing {recording.name}", total=None, rate="")
         result = audit_lib.audit_recording(recording, run_settings, settings, side=side, jobs=jobs,

@@ -17,20 +17,7 @@ from rich.text import Text
 from agvviz import __version__
 from agvviz.cli import interrupts
 from agvviz.cli.common import console, err_console, fail, handle_errors, progress_bar
-from agvviz.cli.options import (
-    BUDGET_HELP,
-    CACHE_DIR_HELP,
-    CACHE_HELP,
-    CALIBRATION_HELP,
-    EXTRINSIC_HELP,
-    JOBS_HELP,
-    MARKERS_HELP,
-    ROLES_HELP,
-    SET_HELP,
-    TOPIC_HELP,
-    check_detect_jobs,
-    side_inputs,
-)
+from agvviz.cli import options
 from agvviz.errors import InputError
 from agvviz.recording import outputs
 from agvviz.settings import RunSettings, apply_overrides, describe
@@ -70,7 +57,7 @@ def _record(scenario: str, seed: int, sets: list[str], out: Path) -> Path:
 def record(
     scenario: str = typer.Argument("qr_floor", metavar="SCENARIO", help="scenario name (see `agvviz scenarios`)"),
     seed: int = typer.Option(0, "--seed", help="fixes all randomness; same seed ⇒ same recording"),
-    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help=SET_HELP),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help=options.SET_HELP),
     out: Optional[Path] = typer.Option(None, "--out", help="output .mcap (default: recordings/<scenario>.mcap)"),
 ) -> None:
     """Simulate SCENARIO and write an MCAP recording.
@@ -128,14 +115,14 @@ def _run(
     from agvviz.app.run import run_recording
     from agvviz.replay.run import NoUsableFrameError
 
-    check_detect_jobs(jobs)
+    options.check_detect_jobs(jobs)
     require_recording_path(recording)  # one line, before a progress bar is drawn
     settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
     if budget and (topics or roles or markers or calibration or extrinsic):
         fail("--budget re-records the scenario of an agvviz recording with each error source off; "
              "--topic, --roles, --markers, --calibration and --extrinsic do not apply to it")
     topic_map = parse_topic_options(list(topics))
-    side = side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
+    side = options.side_inputs(markers, list(calibration), list(extrinsic), settings.body_frame)
     error_budget = None
     if budget:
         if out is not None:
@@ -237,17 +224,17 @@ def error_budget_with_progress(recording: Path, settings: RunSettings, work_dir:
 def run(
     recording: Path = typer.Argument(..., metavar="RECORDING", help="recording: an .mcap file, a rosbag2 directory or a ROS 1 .bag (or folder of them)"),
     solver: Optional[str] = typer.Option(None, "--solver", help="shortcut for --set solver=NAME"),
-    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help=SET_HELP),
+    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help=options.SET_HELP),
     out: Optional[Path] = typer.Option(None, "--out", help="output .rrd (default: runs/<recording>-<settings>.rrd)"),
-    topic: List[str] = typer.Option([], "--topic", metavar="ROLE=TOPIC", help=TOPIC_HELP),
-    roles: Optional[Path] = typer.Option(None, "--roles", help=ROLES_HELP),
-    markers: Optional[Path] = typer.Option(None, "--markers", help=MARKERS_HELP),
-    calibration: List[str] = typer.Option([], "--calibration", metavar="CAM=FILE", help=CALIBRATION_HELP),
-    extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=EXTRINSIC_HELP),
-    jobs: Optional[int] = typer.Option(None, "--jobs", help=JOBS_HELP),
-    cache: bool = typer.Option(True, "--cache/--no-cache", help=CACHE_HELP),
-    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=CACHE_DIR_HELP),
-    budget: bool = typer.Option(False, "--budget", help=BUDGET_HELP),
+    topic: List[str] = typer.Option([], "--topic", metavar="ROLE=TOPIC", help=options.TOPIC_HELP),
+    roles: Optional[Path] = typer.Option(None, "--roles", help=options.ROLES_HELP),
+    markers: Optional[Path] = typer.Option(None, "--markers", help=options.MARKERS_HELP),
+    calibration: List[str] = typer.Option([], "--calibration", metavar="CAM=FILE", help=options.CALIBRATION_HELP),
+    extrinsic: List[str] = typer.Option([], "--extrinsic", metavar="CAM=POSE", help=options.EXTRINSIC_HELP),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help=options.JOBS_HELP),
+    cache: bool = typer.Option(True, "--cache/--no-cache", help=options.CACHE_HELP),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=options.CACHE_DIR_HELP),
+    budget: bool = typer.Option(False, "--budget", help=options.BUDGET_HELP),
 ) -> None:
     _run(recording, solver, set_, out, topic, roles, markers, calibration, extrinsic,
          jobs=jobs, cache_dir=(cache_dir if cache else False), budget=budget)
