@@ -650,6 +650,4 @@ def test_topic_names_live_in_one_module():
         for number, line in enumerate(path.read_text().splitlines(), 1):
             if literal.search(line) and not line.lstrip().startswith("#"):
                 offenders.append(f"{path.relative_to(root)}:{number}: {line.strip()}")
-    # uwb_blueprint's "/uwb/range/<anchor>/**" is an .rrd entity path, not a topic
-    offenders = [o for o in offenders if "uwb_blueprint" not in o]
     assert not offenders, "\n".join(offenders)
