@@ -4,7 +4,7 @@ For an agvviz recording made under a non-ideal realism profile (:mod:`agvviz.sim
 each error source that is on is switched off in turn: the scenario is recorded again with the
 same seed and options plus ``realism_off=<existing>,<source>``
 (:func:`agvviz.scenarios.record`), replayed with the same run settings
-(:func:`agvviz.replay.run.run_recording`), its run loaded back (:func:`agvviz.app.run_series.load_run`)
+(:func:`agvviz.app.run.run_recording`), its run loaded back (:func:`agvviz.app.run_series.load_run`)
 and compared with the replay of the recording itself. The mathematics — shares, the remainder,
 per-frame differences, the table — is :mod:`agvviz.evaluation.error_budget`'s. Returns values,
 prints nothing.
@@ -101,7 +101,7 @@ def error_budget(
     ``sources`` limits the budget to these (names of :data:`agvviz.sim.realism.SOURCES` or
     ``imaging.<effect>``; default: every source that is on). ``progress(done, total, what)``
     is called before and after each step (one step: a recording or a replay). ``jobs`` and
-    ``cache_dir`` are passed to :func:`agvviz.replay.run.run_recording`.
+    ``cache_dir`` are passed to :func:`agvviz.app.run.run_recording`.
 
     Raises
     ------

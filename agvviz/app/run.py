@@ -142,7 +142,7 @@ def run_recording(
     False: no cache). Neither changes the run's results.
 
     ``error_budget`` (an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this recording
-    under these settings, from :func:`agvviz.evaluation.error_budget.error_budget`) goes into
+    under these settings, from :func:`agvviz.app.budget.error_budget`) goes into
     the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
     in the ``.rrd`` (:mod:`agvviz.viz.log_budget`), with a layout that shows them.
     """

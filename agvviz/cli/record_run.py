@@ -1,6 +1,6 @@
 """The commands that make recordings and runs: ``scenarios``, ``record``, ``run``, ``demo`` and
 ``version``; each parses its options and calls the library (:mod:`agvviz.scenarios`,
-:func:`agvviz.replay.run.run_recording`), then prints where its output went.
+:func:`agvviz.app.run.run_recording`), then prints where its output went.
 """
 
 from __future__ import annotations

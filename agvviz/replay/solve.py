@@ -74,7 +74,7 @@ class ReplayContext:
     aruco_map: ArucoMap | None = None  # from /markers/map when it names an ArUco dictionary
     marker_map_problem: str = ""  # why /markers/map was refused, for the rejection detail
     qr_map: dict[str, np.ndarray] = field(default_factory=dict)  # QR id -> world corners (4, 3)
-    unmapped_tolerance_m: float = 0.0  # see agvviz.recording.contract.payload_map_problem
+    unmapped_tolerance_m: float = 0.0  # see agvviz.recording.checks.payload_map_problem
 
     def cameras_snapshot(self) -> Mapping[str, CameraState]:
         """The cameras as they are now (a read-only copy: later changes do not show in it)."""
