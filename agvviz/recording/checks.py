@@ -107,7 +107,7 @@ def frame_problem(
     return None
 
 
-def _span(first_ns: int, last_ns: int) -> str:
+def span_text(first_ns: int, last_ns: int) -> str:
     """``start 2023-11-14 22:13:20.000 UTC, duration 1 min 12.4 s`` (a stamp before 2001 is
     taken as time since the start of a simulation or bag clock: ``start 0.000 s``)."""
     seconds = (last_ns - first_ns) / 1e9
@@ -120,7 +120,7 @@ def _span(first_ns: int, last_ns: int) -> str:
         duration = f"{sign}{minutes} min {rest_s:.1f} s"
     else:
         duration = f"{seconds:.3f} s"
-    return f"start {_format_ns(first_ns)}, duration {duration}"
+    return f"start {format_ns(first_ns)}, duration {duration}"
 
 
 class TimeChecks:
@@ -198,8 +198,8 @@ class TimeChecks:
             t0, t1 = self._truth
             if t1 < first - truth_max_dt_ns or t0 > last + truth_max_dt_ns:
                 lines.append(
-                    f"ground truth ({GROUND_TRUTH_TOPIC}, {_span(t0, t1)}) does not overlap the "
-                    f"images ({_span(first, last)}) in time: no frame can be scored against truth"
+                    f"ground truth ({GROUND_TRUTH_TOPIC}, {span_text(t0, t1)}) does not overlap the "
+                    f"images ({span_text(first, last)}) in time: no frame can be scored against truth"
                 )
         return lines
 
@@ -285,7 +285,7 @@ def payload_map_problem(
     return None
 
 
-def _format_ns(t_ns: int | None, start_ns: int | None = None) -> str:
+def format_ns(t_ns: int | None, start_ns: int | None = None) -> str:
     """A time stamp for people: ``+72.400 s`` after ``start_ns`` when given; else a UTC date and
     time (``2023-11-14 22:13:20.000 UTC``) for stamps from 2001 on, seconds (``3.900 s``) for
     earlier ones (a simulation or bag clock from zero); ``-`` for none."""

@@ -28,7 +28,7 @@ from agvviz.model.topics import (
     camera_calibration_topic,
     camera_of_role,
 )
-from agvviz.recording.checks import TimeChecks, _format_ns, _span, frame_problem, payload_map_problem, qr_map_of
+from agvviz.recording.checks import TimeChecks, format_ns, span_text, frame_problem, payload_map_problem, qr_map_of
 from agvviz.recording.formats import by_name, decode
 from agvviz.recording.mcap_stream import parse_scenario_metadata
 from agvviz.recording.raw import MessageDecodeError, RawMetadata, ReadReport
@@ -328,7 +328,7 @@ def format_report(report: InspectReport) -> str:
     lines = [f"recording: {report.path}" + by_name(report.kind).describe(report.files)]
     if report.bag_message_count is not None:
         lines.append(f"metadata.yaml: {report.bag_message_count} messages in {len(report.bag_topic_counts)} topic(s)")
-    span = _span(report.start_ns, report.end_ns) if report.start_ns is not None else "no messages"
+    span = span_text(report.start_ns, report.end_ns) if report.start_ns is not None else "no messages"
     lines.append(f"time span: {span}")
     lines.append("")
     header = ("topic", "schema", "count", "first", "last")
@@ -337,8 +337,8 @@ def format_report(report: InspectReport) -> str:
             s.topic,
             f"{s.schema_name or '(none)'} [{s.encoding}]",
             str(s.count),
-            _format_ns(s.first_ns, report.start_ns),
-            _format_ns(s.last_ns, report.start_ns),
+            format_ns(s.first_ns, report.start_ns),
+            format_ns(s.last_ns, report.start_ns),
         )
         for s in report.topics
     ]
