@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, fields, make_dataclass
 
 import numpy as np
 
+from agvviz.model.suspects import Suspect
 from agvviz.solvers.types import LmIteration
 
 #: Reasons a frame is rejected. Every rejected frame carries exactly one.
@@ -117,6 +118,9 @@ class FrameResult:
     ambiguity_rule: str = ""  # which rule chose the pose (or why there was no choice)
     flipped: bool = False  # chosen pose on the branch the previous solved frame rejected
     T_world_agv_ghost: np.ndarray | None = None  # the rejected candidate pose
+    #: The checks against what else the log knows (:mod:`agvviz.replay.checks`), when this solved
+    #: frame failed one; ``None`` for a clean or rejected frame, or before the check stage ran.
+    suspect: Suspect | None = None
 
     @property
     def solved(self) -> bool:

@@ -1,0 +1,94 @@
+"""Suspect frames: a solved pose that disagrees with what else the log knows, checked without
+truth (issue 25). Made by the check stage (:mod:`agvviz.replay.checks`), shown by the run's
+``.rrd`` (``events/suspects``, the solver panel, marks on the error plots), counted in the run
+summary and listed by the terminal. Frozen.
+
+A check compares one frame's pose with an independent witness and expresses the disagreement in
+standard deviations (a Mahalanobis distance with both sides' covariances, or the χ² of a test
+turned into its equivalent normal σ). The frame is a suspect when the worst check exceeds its
+limit; the suspect names the check, the size of the disagreement, the likely cause in plain
+words, the evidence, and the next step a user can take.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+#: The checks, in the order they are run (issue 25, "every frame checked against what the log knows").
+CHECK_MOTION = "motion"  # pose step against the odometry step (or a constant-velocity model)
+CHECK_MARKERS = "markers"  # each marker's own pose against the frame's joint pose
+CHECK_AMBIGUITY = "ambiguity"  # IPPE ratio, and whether the mirror pose agrees better with the motion
+CHECK_PAYLOAD = "payload"  # a code's payload against the marker map
+CHECK_CAMERAS = "cameras"  # cameras of one rig against each other at one time stamp
+CHECK_UWB = "uwb"  # camera fix against the UWB fix at one time stamp
+CHECK_TIME = "time"  # image stamps against the camera's frame rate
+CHECKS = (CHECK_MOTION, CHECK_MARKERS, CHECK_AMBIGUITY, CHECK_PAYLOAD, CHECK_CAMERAS, CHECK_UWB, CHECK_TIME)
+
+#: Likely causes a suspect names (its ``cause``); a stretch groups consecutive suspects of one cause.
+CAUSE_MAP_ENTRY = "map_entry"  # a marker's map entry is wrong (moved or turned)
+CAUSE_PAYLOAD = "payload"  # a code's payload carries wrong coordinates
+CAUSE_MIRROR_FLIP = "mirror_flip"  # planar ambiguity: the mirror pose was chosen
+CAUSE_EXTRINSIC = "extrinsic"  # a camera's extrinsic (mount) is not what the recording says
+CAUSE_TIME_OFFSET = "time_offset"  # a camera's stamps are offset from the others / the odometry
+CAUSE_TIME_STAMPS = "time_stamps"  # stamps off the frame rate (dropped or duplicated frames)
+CAUSE_UWB = "uwb"  # camera and UWB disagree (NLOS ranges or a camera problem)
+CAUSE_UNKNOWN = "unknown"  # a check failed and no cause explains it better
+CAUSES = (CAUSE_MAP_ENTRY, CAUSE_PAYLOAD, CAUSE_MIRROR_FLIP, CAUSE_EXTRINSIC, CAUSE_TIME_OFFSET,
+          CAUSE_TIME_STAMPS, CAUSE_UWB, CAUSE_UNKNOWN)
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    """One check of one frame: ``sigma`` the disagreement in standard deviations (≥ 0),
+    ``limit_sigma`` the check's limit, ``detail`` the numbers behind it in plain words
+    (e.g. "pose step 2.21 m, odometry step 0.05 m")."""
+
+    check: str  # one of CHECKS
+    sigma: float
+    limit_sigma: float
+    detail: str = ""
+
+    @property
+    def failed(self) -> bool:
+        return self.sigma > self.limit_sigma
+
+
+@dataclass(frozen=True)
+class Suspect:
+    """A frame whose pose failed at least one check.
+
+    ``checks`` every check that ran on the frame (failed or not); ``check`` and ``sigma`` the
+    worst failure; ``cause`` one of :data:`CAUSES`; ``message`` the finding in plain words with
+    its evidence (e.g. "code Q015 disagrees with Q024 by 2.2 m and with the odometry by 2.2 m:
+    Q015's map entry is likely wrong"); ``next_step`` what to do (e.g. "`agvviz audit` can
+    estimate where it is"); ``marker_id`` / ``cam_name`` what the cause names, when it names one.
+    """
+
+    frame_index: int
+    log_time_ns: int
+    cam_name: str
+    check: str
+    sigma: float
+    cause: str
+    message: str
+    next_step: str = ""
+    marker_id: str | None = None
+    checks: tuple[CheckResult, ...] = ()
+
+
+@dataclass(frozen=True)
+class SuspectStretch:
+    """Consecutive suspect frames (of one camera, no solved clean frame between them) with one
+    cause: what the terminal lists and the plots mark."""
+
+    first_frame: int
+    last_frame: int
+    first_time_ns: int
+    last_time_ns: int
+    n_frames: int
+    cause: str
+    message: str  # the first suspect's message (the stretch's evidence)
+    next_step: str = ""
+    cam_name: str = ""
+    marker_id: str | None = None
+    max_sigma: float = 0.0
