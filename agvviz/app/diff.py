@@ -13,14 +13,15 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from agvviz.recording import outputs
 from agvviz.errors import InputError
-from agvviz.evaluation import expression
+from agvviz.evaluation import expression, gates as gate_rules
+from agvviz.evaluation.gates import Gate
 from agvviz.evaluation.comparison import DIRECT, Comparison, RunSeries, compare_runs, metric_names
 from agvviz.evaluation.trajectory import ALIGNMENTS
 from agvviz.app import run_series
@@ -98,7 +99,7 @@ HEADLINE_METRICS = (
 )
 #: Rows of the compact ``diff`` table (``diff_table(..., all_metrics=True)`` gives every row).
 COMPACT_METRICS = (
-    "solved", "position_rmse_mm", "position_median_mm", "position_p95_mm", "heading_rmse_deg",
+    "solved", "suspects", "position_rmse_mm", "position_median_mm", "position_p95_mm", "heading_rmse_deg",
     "reproj_median_px", "rpe_trans_rmse_mm",
 )
 
@@ -140,6 +141,14 @@ def diff_verdict(comparison: Comparison, alpha: float | None = None) -> Verdict:
         None,
     )
     extra = []
+    suspects = next((r for r in c.rows if r.name == "suspects"), None)
+    if suspects is not None and suspects.a != suspects.b:
+        by_cause = ", ".join(
+            f"{r.name.split('.', 1)[1]} {format_number(r.a)} → {format_number(r.b)}"
+            for r in c.rows if r.name.startswith("suspects.") and r.a != r.b
+        )
+        extra.append(f"suspect frames (checks without truth): A {format_number(suspects.a)}, "
+                     f"B {format_number(suspects.b)}" + (f" ({by_cause})" if by_cause else ""))
     solved = c.row("solved")
     if solved.a != solved.b:
         fewer = "fewer" if solved.b < solved.a else "more"
@@ -265,9 +274,11 @@ class DiffOutcome:
 
     comparison: Comparison
     overlay_path: Path | None
-    fail_if: str | None
-    failed: bool  # the --fail-if condition holds (False when there is none)
+    fail_if: list[str]  # the --fail-if conditions
+    failed: bool  # a --fail-if condition holds (False when there is none)
     seconds: dict[str, float]  # wall time of each step: load, compare, overlay
+    gates: list[Gate] = field(default_factory=list)  # the verdict of each condition
+    junit_path: Path | None = None  # where the verdicts were written as JUnit XML
 
 
 def diff(
@@ -275,7 +286,8 @@ def diff(
     b_path: str | os.PathLike,
     *,
     overlay_path: str | os.PathLike | None = None,
-    fail_if: str | None = None,
+    fail_if: str | list[str] | tuple[str, ...] | None = None,
+    junit_path: str | os.PathLike | None = None,
     align: str = "none",
     rpe_delta: int = 1,
     time_offset: bool = False,
@@ -287,8 +299,13 @@ def diff(
 ) -> DiffOutcome:
     """Compare run B with run A (both ``.rrd``), read back through Rerun's API.
 
-    ``fail_if`` is parsed before any file is read, so a typo in a metric name fails at once
-    (:class:`~agvviz.evaluation.expression.ExpressionError`, listing the known metrics).
+    ``fail_if`` (one condition or several) is parsed before any file is read, so a typo in a
+    metric name fails at once (:class:`~agvviz.evaluation.expression.ExpressionError`, listing
+    the known metrics); ``failed`` is True when any holds. Besides the comparison's metrics a
+    condition can read each run's suspect counts (``B.suspects``, ``B.suspects.map_entry``,
+    :func:`agvviz.evaluation.gates.suspect_metric_names`). ``junit_path``: the verdicts as
+    JUnit XML (one testcase per condition), written also when a condition cannot be evaluated
+    (then ExpressionError is raised after it, and no overlay is written).
     The overlay (``overlay_path``) holds both runs on A's clock; ``images=False`` leaves the
     camera images out of it.
     """
@@ -296,11 +313,16 @@ def diff(
         raise CompareError(f"unknown alignment {align!r}; choose one of: {', '.join(ALIGNMENTS)}")
     if rpe_delta < 1:
         raise CompareError(f"rpe_delta must be ≥ 1 frame, got {rpe_delta}")
-    condition = expression.parse(fail_if, metric_names(time_offset)) if fail_if is not None else None
+    conditions = [fail_if] if isinstance(fail_if, str) else list(fail_if or [])
+    parsed = gate_rules.parse_conditions(conditions, metric_names(time_offset) + gate_rules.suspect_metric_names())
     if overlay_path is not None and Path(overlay_path).suffix != ".rrd":
         raise CompareError(f"--out must be a .rrd file, got {overlay_path}")
     if overlay_path is not None:  # before any work: never over A or B (also through links)
         outputs.prepare_output(overlay_path, inputs=(a_path, b_path))
+    if junit_path is not None:
+        if not conditions:
+            raise CompareError("--junit-xml writes the verdict of --fail-if conditions; give at least one --fail-if")
+        outputs.prepare_output(junit_path, inputs=(a_path, b_path), option="--junit-xml")
     seconds = {}
     t0 = time.perf_counter()
     a, b = run_series.load_run(a_path), run_series.load_run(b_path)
@@ -314,13 +336,34 @@ def diff(
     if note is not None:
         comparison.notes.append(note)
     seconds["compare"] = time.perf_counter() - t0
-    failed = bool(expression.evaluate(condition, comparison.metrics())) if condition is not None else False
+    runs = {"A": a, "B": b}
+    verdicts = gate_rules.evaluate(
+        parsed, comparison.metrics(), lambda run, name: gate_rules.missing_reason(name, runs[run].summary)
+    )
+    junit = None
+
+    def write_junit(overlay: Path | None) -> Path:
+        from agvviz.app.run import write_junit as write
+
+        properties = {"A": str(a_path), "B": str(b_path), **({"overlay": str(overlay)} if overlay else {})}
+        return write(Path(junit_path), "diff", f"agvviz diff {a.name} vs {b.name}", verdicts,
+                     properties=properties, details=diff_verdict(comparison).headline, inputs=(a_path, b_path))
+
+    errors = [g for g in verdicts if g.holds is None]
+    if errors:
+        if junit_path is not None:
+            write_junit(None)
+        raise expression.ExpressionError("; ".join(g.message for g in errors))
+    failed = any(g.holds for g in verdicts)
     written = None
     if overlay_path is not None:
         t0 = time.perf_counter()
         written = _write_diff_overlay(Path(overlay_path), Path(a_path), Path(b_path), a, b, comparison, images)
         seconds["overlay"] = time.perf_counter() - t0
-    return DiffOutcome(comparison=comparison, overlay_path=written, fail_if=fail_if, failed=failed, seconds=seconds)
+    if junit_path is not None:
+        junit = write_junit(written)
+    return DiffOutcome(comparison=comparison, overlay_path=written, fail_if=conditions, failed=failed,
+                       seconds=seconds, gates=verdicts, junit_path=junit)
 
 
 

@@ -54,6 +54,8 @@ class RunOutcome:
     manifest: dict
     read_report: ReadReport
     timing: dict
+    #: The recording's first stamp (ns): the terminal gives suspect stretches' times from it.
+    recording_start_ns: int | None = None
 
     def summary_rows(self) -> list[tuple[str, str]]:
         """The summary table ``agvviz run`` prints: (metric, value) rows of the summary and the
@@ -258,4 +260,50 @@ def run_recording(
         manifest=manifest,
         read_report=read_report,
         timing={**timing(scores, wall_time_s), **detection.timing()},
+        recording_start_ns=logger.recording_start_ns,
+    )
+
+
+# -- CI gates: run --fail-if and --junit-xml ---------------------------------------------------
+def check_gates(conditions, junit_path: Path | None = None, inputs=()) -> None:
+    """Refuse, before any work, a ``run --fail-if`` condition that does not parse (an unknown
+    metric lists the known ones) and a ``--junit-xml`` path that cannot be written or is an
+    input (:class:`~agvviz.errors.InputError`, :class:`~agvviz.errors.OutputError`)."""
+    from agvviz.evaluation import gates
+    from agvviz.recording import outputs
+
+    gates.parse_conditions(list(conditions), gates.run_metric_names(), runs=())
+    if junit_path is not None:
+        outputs.prepare_output(junit_path, inputs=inputs, option="--junit-xml")
+
+
+def gate_run(outcome: RunOutcome, conditions, junit_path: Path | None = None, inputs=()) -> list:
+    """``agvviz run --fail-if``: each condition over the run's summary
+    (:func:`agvviz.evaluation.gates.run_gates`), and the verdicts as JUnit XML at ``junit_path``
+    (written atomically; its ``system-out`` lists the suspect stretches). Returns the
+    :class:`~agvviz.evaluation.gates.Gate` of each condition; the caller exits 1 when one holds."""
+    from agvviz.evaluation import gates, suspect_report
+
+    verdicts = gates.run_gates(list(conditions), outcome.summary)
+    if junit_path is not None:
+        details = suspect_report.stretch_lines(outcome.summary, outcome.recording_start_ns)
+        write_junit(
+            junit_path, "run", f"agvviz run {outcome.manifest.get('recording_name', '')}".strip(), verdicts,
+            properties={"rrd": str(outcome.out_path), "recording": str(outcome.manifest.get("recording", "")),
+                        "recording_sha256": str(outcome.manifest.get("recording_sha256", ""))},
+            details=("suspect stretches:\n" + "\n".join(details)) if details else "",
+            inputs=inputs,
+        )
+    return verdicts
+
+
+def write_junit(path: Path, command: str, suite: str, verdicts: list, *, properties: dict | None = None,
+                details: str = "", inputs=()) -> Path:
+    """The verdicts of ``--fail-if`` gates as JUnit XML at ``path`` (atomic: a complete file or
+    none; never over an input)."""
+    from agvviz.evaluation.junit import junit_xml
+    from agvviz.recording import outputs
+
+    return outputs.atomic_write_text(
+        path, junit_xml(command, suite, verdicts, properties=properties, details=details), inputs=inputs
     )

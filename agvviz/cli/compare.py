@@ -28,11 +28,14 @@ def diff(
     a: Path = typer.Argument(..., metavar="A", help="run A .rrd (the reference)"),
     b: Path = typer.Argument(..., metavar="B", help="run B .rrd (compared with A)"),
     out: Optional[Path] = typer.Option(None, "--out", help="write the overlay .rrd (both runs on one clock) here"),
-    fail_if: Optional[str] = typer.Option(
-        None, "--fail-if",
-        help="exit 1 when this condition holds, e.g. \"B.position_rmse_mm > 1.05*A.position_rmse_mm\" "
-        "(metrics of A and B, numbers, + - * /, comparisons, and/or, parentheses)",
+    fail_if: List[str] = typer.Option(
+        [], "--fail-if", metavar="CONDITION",
+        help="exit 1 when this condition holds, e.g. \"B.position_rmse_mm > 1.05*A.position_rmse_mm\" or "
+        "\"B.suspects > A.suspects\" (repeatable: exit 1 when any holds; metrics of A and B — the table's "
+        "metrics and each run's suspect counts suspects, suspects_pct, suspect_stretches, suspects.<cause> — "
+        "numbers, + - * /, comparisons, and/or, parentheses)",
     ),
+    junit_xml: Optional[Path] = typer.Option(None, "--junit-xml", metavar="FILE", help=options.JUNIT_XML_HELP),
     align: str = typer.Option("none", "--align", help="APE alignment: none | se3 | se2 | yaw"),
     rpe_delta: int = typer.Option(1, "--rpe-delta", help="RPE pair distance in frames"),
     time_offset: bool = typer.Option(False, "--time-offset", help="also estimate each run's time offset to truth"),
@@ -43,14 +46,14 @@ def diff(
     """Compare run B with run A: a verdict first, then the metrics, B − A, a paired test and a confidence interval.
 
     Frames are matched by time; error metrics are over the frames both runs solved.
-    Exit codes: 0 fine, 1 the --fail-if condition holds, 2 bad input, 3 the overlay could not be written (never over A or B).
+    Exit codes: 0 fine, 1 a --fail-if condition holds, 2 bad input (or a condition on a metric without a value), 3 the overlay or --junit-xml could not be written (never over A or B).
 
     Example: agvviz diff runs/lm.rrd runs/p4p.rrd --out runs/diff.rrd --fail-if "B.position_rmse_mm > 1.05*A.position_rmse_mm"
     """
     from agvviz.app.diff import diff as diff_runs, diff_table, diff_table_title, diff_verdict
 
     outcome = diff_runs(
-        a, b, overlay_path=out, fail_if=fail_if, align=align, rpe_delta=rpe_delta,
+        a, b, overlay_path=out, fail_if=fail_if, junit_path=junit_xml, align=align, rpe_delta=rpe_delta,
         time_offset=time_offset, images=images, seed=seed,
     )
     c = outcome.comparison
@@ -82,11 +85,15 @@ def diff(
         err_console.print(f"[yellow]note:[/] {note}")
     if outcome.overlay_path is not None:
         console.print(f"overlay written: [bold]{outcome.overlay_path}[/]  (agvviz view {outcome.overlay_path})")
+    if outcome.junit_path is not None:
+        console.print(f"JUnit verdict written: [bold]{escape(str(outcome.junit_path))}[/]")
+    for gate in outcome.gates:
+        if gate.holds:
+            err_console.print(f"[bold red]--fail-if holds:[/] {escape(gate.message)}")
+        else:
+            console.print(f"--fail-if does not hold: {escape(gate.message)}")
     if outcome.failed:
-        err_console.print(f"[bold red]--fail-if holds:[/] {fail_if}")
         raise typer.Exit(code=1)
-    if fail_if is not None:
-        console.print(f"--fail-if does not hold: {fail_if}")
 
 
 @handle_errors

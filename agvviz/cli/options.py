@@ -36,6 +36,17 @@ BUDGET_HELP = (
     "position error each error source causes, found by re-recording the scenario with that source off "
     "(minutes: once per source); in the summary and the .rrd (same as `agvviz budget`)"
 )
+RUN_FAIL_IF_HELP = (
+    "exit 1 when this condition on the run holds, e.g. \"suspects > 0\" or \"suspects.map_entry > 0 or "
+    "position_rmse_mm > 5\" (repeatable: exit 1 when any holds). Metrics: frames, solved, rejected, solved_pct, "
+    "suspects, suspects_pct, suspect_stretches, suspects.<cause> (map_entry, payload, mirror_flip, extrinsic, "
+    "time_offset, time_stamps, uwb, unknown), <position|heading|pitch|roll>_<rmse|median|p95|max>_<mm|deg> "
+    "(with truth), reproj_<stat>_px; numbers, + - * /, comparisons, and/or, parentheses"
+)
+JUNIT_XML_HELP = (
+    "write the --fail-if verdicts as JUnit XML to FILE for CI (one testcase per condition, a failure "
+    "when it holds)"
+)
 CACHE_DIR_HELP = "detection cache folder (default: $AGVVIZ_CACHE_DIR, else ~/.cache/agvviz/detections)"
 
 

@@ -98,25 +98,73 @@ def _print_summary(outcome) -> None:
         table.add_row(metric, value)
     console.print(table)
     summary = outcome.summary
+    _print_stretches(summary, outcome.recording_start_ns)
     for problem in summary.get("recording_damage", []):
         err_console.print(f"[yellow]recording damage:[/] {escape(problem)}")
     for warning in summary.get("warnings", []):
         err_console.print(f"[yellow]warning:[/] {escape(warning)}")
 
 
+def _print_stretches(summary: dict, start_ns) -> None:
+    """The suspect stretches after the summary table (at most
+    :data:`~agvviz.evaluation.suspect_report.MAX_STRETCH_ROWS`, then "… and N more"); nothing
+    when there are none."""
+    from agvviz.evaluation import suspect_report
+
+    rows, more = suspect_report.stretch_rows(summary, start_ns)
+    if not rows:
+        return
+    table = Table(title="suspect stretches: solved poses that disagree with what else the log knows "
+                  "(time since the recording's start)", title_justify="left")
+    for column in suspect_report.STRETCH_COLUMNS:
+        table.add_column(column, justify="right" if column in ("time (s)", "max σ") else "left",
+                         no_wrap=column in ("frames", "time (s)", "max σ"), overflow="fold")
+    for row in rows:
+        table.add_row(*[escape(cell) for cell in row], style="yellow")
+    console.print(table)
+    if more:
+        console.print(f"… and {more} more (every suspect frame: the suspects log in the .rrd)")
+
+
+def _gates(outcome, fail_if: list[str], junit_xml: Optional[Path], recording: Path) -> None:
+    """Evaluate ``run --fail-if`` on the run's summary, write ``--junit-xml``, print each verdict;
+    exit 1 when a condition holds, 2 when one could not be evaluated (a metric without a value)."""
+    from agvviz.app.run import gate_run
+    from agvviz.evaluation.expression import ExpressionError
+
+    verdicts = gate_run(outcome, fail_if, junit_xml, inputs=[recording, outcome.out_path])
+    if junit_xml is not None:
+        console.print(f"JUnit verdict written: [bold]{escape(str(junit_xml))}[/]")
+    for gate in verdicts:
+        if gate.holds:
+            err_console.print(f"[bold red]--fail-if holds:[/] {escape(gate.message)}")
+        elif gate.holds is False:
+            console.print(f"--fail-if does not hold: {escape(gate.message)}")
+    errors = [gate for gate in verdicts if gate.holds is None]
+    if errors:
+        raise ExpressionError("; ".join(gate.message for gate in errors))
+    if any(gate.holds for gate in verdicts):
+        raise typer.Exit(code=1)
+
+
 def _run(
     recording: Path, solver: Optional[str], sets: list[str], out: Optional[Path],
     topics: list[str] = (), roles: Optional[Path] = None, markers: Optional[Path] = None,
     calibration: list[str] = (), extrinsic: list[str] = (), jobs: Optional[int] = None,
-    cache_dir=None, budget: bool = False,
+    cache_dir=None, budget: bool = False, fail_if: list[str] = (), junit_xml: Optional[Path] = None,
 ) -> Path:
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
     from agvviz.app.run import run_recording
     from agvviz.replay.run import NoUsableFrameError
 
+    from agvviz.app.run import check_gates
+
     options.check_detect_jobs(jobs)
     require_recording_path(recording)  # one line, before a progress bar is drawn
+    if junit_xml is not None and not fail_if:
+        fail("--junit-xml writes the verdict of --fail-if conditions; give at least one --fail-if")
+    check_gates(fail_if, junit_xml, inputs=[recording] + ([out] if out is not None else []))
     settings = apply_overrides(RunSettings(), ([f"solver={solver}"] if solver else []) + list(sets))
     if budget and (topics or roles or markers or calibration or extrinsic):
         fail("--budget re-records the scenario of an agvviz recording with each error source off; "
@@ -169,6 +217,8 @@ def _run(
         _budget_hint(outcome.manifest.get("scenario"))
     console.print(f"run written: [bold]{outcome.out_path}[/]")
     console.print(f"open it with: [bold]agvviz view {outcome.out_path}[/]")
+    if fail_if:
+        _gates(outcome, list(fail_if), junit_xml, recording)
     return outcome.out_path
 
 
@@ -235,9 +285,11 @@ def run(
     cache: bool = typer.Option(True, "--cache/--no-cache", help=options.CACHE_HELP),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=options.CACHE_DIR_HELP),
     budget: bool = typer.Option(False, "--budget", help=options.BUDGET_HELP),
+    fail_if: List[str] = typer.Option([], "--fail-if", metavar="CONDITION", help=options.RUN_FAIL_IF_HELP),
+    junit_xml: Optional[Path] = typer.Option(None, "--junit-xml", metavar="FILE", help=options.JUNIT_XML_HELP),
 ) -> None:
     _run(recording, solver, set_, out, topic, roles, markers, calibration, extrinsic,
-         jobs=jobs, cache_dir=(cache_dir if cache else False), budget=budget)
+         jobs=jobs, cache_dir=(cache_dir if cache else False), budget=budget, fail_if=fail_if, junit_xml=junit_xml)
 
 
 @handle_errors

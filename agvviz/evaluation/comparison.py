@@ -4,7 +4,9 @@ A run is given as a :class:`RunSeries` (per-frame arrays, as read back from its 
 :func:`agvviz.app.run_series.load_run`). Every metric is named ``<quantity>_<statistic>_<unit>`` over the
 absolute per-frame values, e.g. ``position_rmse_mm``, ``heading_p95_deg``,
 ``ape_trans_rmse_mm``, ``rpe_rot_median_deg``; plus the counts ``frames``, ``solved``,
-``rejected``, ``solved_pct`` and, when asked for, ``time_offset_ms``.
+``rejected``, ``solved_pct``, when asked for, ``time_offset_ms`` and, when a run's summary
+counts suspect frames (issue 25), ``suspects``, ``suspects_pct``, ``suspect_stretches`` and
+``suspects.<cause>`` (each run's own counts, from its summary).
 
 Comparing A with B: frames are matched by time (mutual nearest stamps within half a frame
 interval). Error metrics in a comparison are computed on the frames *both* runs solved, so the
@@ -20,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agvviz.evaluation import statistics, trajectory
+from agvviz.evaluation.gates import suspect_counts, suspect_metric_names
 from agvviz.evaluation.trajectory import EvaluationError
 
 
@@ -336,6 +339,12 @@ def compare_runs(
     counts_a, counts_b = _counts(a), _counts(b)
     for name in COUNTS:
         rows.append(MetricRow(name, counts_a[name], counts_b[name], _difference(counts_a[name], counts_b[name])))
+    if any(isinstance(run.summary.get("suspects"), dict) for run in (a, b)):
+        # Suspect counts (issue 25) from each run's summary: a run without them has no value.
+        suspects_a, suspects_b = suspect_counts(a.summary), suspect_counts(b.summary)
+        for name in suspect_metric_names():
+            va_, vb_ = suspects_a[name], suspects_b[name]
+            rows.append(MetricRow(name, va_, vb_, _difference(va_, vb_)))
     delta_series = {}
     for q in QUANTITIES:
         x, y = va[q.key][ca], vb[q.key][cb]

@@ -1,4 +1,5 @@
-"""The small, safe grammar of ``agvviz diff --fail-if``. Never handed to ``eval``.
+"""The small, safe grammar of ``agvviz diff --fail-if`` and ``agvviz run --fail-if``. Never
+handed to ``eval``.
 
 ::
 
@@ -10,7 +11,9 @@
     product    := unary (("*" | "/") unary)*
     unary      := "-" unary | atom
     atom       := NUMBER | METRIC | "(" sum ")"
-    METRIC     := ("A" | "B") "." name          e.g. B.position_rmse_mm
+    METRIC     := ("A" | "B") "." name          diff: e.g. B.position_rmse_mm, B.suspects.map_entry
+                | name                          run (``runs=()``): e.g. suspects, suspects.map_entry
+    name       := word ("." word)*
     NUMBER     := decimal, optional exponent    e.g. 1.05, 2e-3 (ASCII digits only)
 
 Only ASCII is accepted: a full-width digit ``１``, a non-breaking space or any other
@@ -43,7 +46,7 @@ MAX_DEPTH = 32
 _TOKEN = re.compile(
     r"[ \t\r\n\f\v]*(?:"
     r"(?P<number>(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?)"
-    r"|(?P<metric>[A-Za-z_][A-Za-z0-9_]*\.[A-Za-z_][A-Za-z0-9_]*)"
+    r"|(?P<metric>[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)+)"
     r"|(?P<word>[A-Za-z_][A-Za-z0-9_]*)"
     r"|(?P<op><=|>=|==|!=|<|>|\+|-|\*|/|\(|\))"
     r")",
@@ -52,6 +55,7 @@ _TOKEN = re.compile(
 _BLANK = " \t\r\n\f\v"
 _COMPARISONS = ("<", "<=", ">", ">=", "==", "!=")
 RUNS = ("A", "B")
+_KEYWORDS = ("and", "or")
 
 
 class ExpressionError(InputError):
@@ -72,8 +76,13 @@ class Number:
 
 @dataclass(frozen=True)
 class Metric:
-    run: str  # "A" | "B"
+    run: str  # "A" | "B"; "" for a single run's metric (``agvviz run --fail-if``)
     name: str
+
+    @property
+    def qualified(self) -> str:
+        """The metric as written: ``B.suspects`` or ``suspects``."""
+        return f"{self.run}.{self.name}" if self.run else self.name
 
 
 @dataclass(frozen=True)
@@ -128,10 +137,11 @@ def _tokenize(text: str) -> list[_Token]:
 
 
 class _Parser:
-    def __init__(self, text: str, known: frozenset[str]):
+    def __init__(self, text: str, known: frozenset[str], runs: tuple[str, ...] = RUNS):
         self.tokens = _tokenize(text)
         self.pos = 0
         self.known = known
+        self.runs = tuple(runs)
         self.depth = 0
 
     # -- helpers ------------------------------------------------------------------------
@@ -240,11 +250,14 @@ class _Parser:
             if not math.isfinite(value):
                 raise self.fail("number out of range (largest is 1.8e308)", token)
             return Number(value)
-        if token.kind == "metric":
+        if token.kind == "metric" or (token.kind == "word" and not self.runs and token.text not in _KEYWORDS):
             self.take()
-            run, _, name = token.text.partition(".")
-            if run not in RUNS:
-                raise self.fail(f"metrics belong to run A or B, not {run!r}", token)
+            if self.runs:
+                run, _, name = token.text.partition(".")
+                if run not in self.runs:
+                    raise self.fail(f"metrics belong to run {' or '.join(self.runs)}, not {run!r}", token)
+            else:
+                run, name = "", token.text
             if name not in self.known:
                 raise ExpressionError(
                     f"unknown metric {name!r} at column {token.column}; known metrics: "
@@ -261,12 +274,16 @@ class _Parser:
             self.depth -= 1
             return node
         if token.kind == "word":
-            raise self.fail("expected a number or a metric such as A.position_rmse_mm, got a bare word")
+            example = "A.position_rmse_mm" if self.runs else "suspects"
+            raise self.fail(f"expected a number or a metric such as {example}, got a bare word")
         raise self.fail("expected a number, a metric or '('")
 
 
-def parse(text: str, known_metrics: Iterable[str]) -> Node:
+def parse(text: str, known_metrics: Iterable[str], runs: tuple[str, ...] = RUNS) -> Node:
     """Parse a ``--fail-if`` condition over the metric names ``known_metrics``.
+
+    ``runs``: the run names a metric is prefixed with (``A.``, ``B.`` for ``diff``); empty for
+    the metrics of a single run (``agvviz run --fail-if "suspects > 0"``), written bare.
 
     Raises
     ------
@@ -277,7 +294,7 @@ def parse(text: str, known_metrics: Iterable[str]) -> Node:
         raise ExpressionError("empty expression; e.g. 'B.position_rmse_mm > 1.05 * A.position_rmse_mm'")
     if len(text) > MAX_LENGTH:
         raise ExpressionError(f"expression longer than {MAX_LENGTH} characters")
-    parser = _Parser(text, frozenset(known_metrics))
+    parser = _Parser(text, frozenset(known_metrics), runs)
     node = parser.condition()
     if not parser.at("end"):
         raise parser.fail("unexpected text")
@@ -285,13 +302,14 @@ def parse(text: str, known_metrics: Iterable[str]) -> Node:
 
 
 def evaluate(node: Node, metrics: Mapping[str, Mapping[str, float | None]]) -> bool | float:
-    """Value of a parsed expression given ``metrics = {"A": {name: value}, "B": {...}}``."""
+    """Value of a parsed expression given ``metrics = {"A": {name: value}, "B": {...}}`` (a single
+    run's metrics under the run name ``""``)."""
     if isinstance(node, Number):
         return node.value
     if isinstance(node, Metric):
         value = metrics.get(node.run, {}).get(node.name)
         if value is None:
-            raise ExpressionError(f"{node.run}.{node.name} has no value in this comparison")
+            raise ExpressionError(f"{node.qualified} has no value in this {'comparison' if node.run else 'run'}")
         return float(value)
     if isinstance(node, Negate):
         return -evaluate(node.operand, metrics)
@@ -328,3 +346,20 @@ def check(text: str, metrics: Mapping[str, Mapping[str, float | None]]) -> bool:
     """Parse ``text`` against the metric names of run A and evaluate it on ``metrics``."""
     node = parse(text, metrics.get("A", {}).keys() | metrics.get("B", {}).keys())
     return bool(evaluate(node, metrics))
+
+
+def metrics_of(node: Node) -> list[Metric]:
+    """The metrics a parsed expression reads, in order of appearance, each once."""
+    found: dict[Metric, None] = {}
+
+    def walk(n: Node) -> None:
+        if isinstance(n, Metric):
+            found[n] = None
+        elif isinstance(n, Negate):
+            walk(n.operand)
+        elif isinstance(n, (Arithmetic, Comparison, Logical)):
+            walk(n.left)
+            walk(n.right)
+
+    walk(node)
+    return list(found)

@@ -15,6 +15,9 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
   each solver's RMSE ÷ CRLB;
 - CNOEM grid trials: ``cnoem_study`` (:mod:`agvviz.replay.studies.cnoem`): cells × trials ×
   methods, each method's mean and RMS error and RMS ÷ CRLB, CNOEM ÷ IPPE against the paper;
+- suspect frames (issue 25): ``suspects`` (the check stage's counts), below the frame rows —
+  suspect frames of the solved, stretches, frames per likely cause
+  (:func:`agvviz.evaluation.suspect_report.summary_rows`);
 - an error budget: ``error_budget`` (``run --budget``,
   :meth:`agvviz.evaluation.error_budget.ErrorBudget.summary`): each source's share.
 
@@ -23,6 +26,8 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
 """
 
 from __future__ import annotations
+
+from agvviz.evaluation import suspect_report
 
 #: Summary sections that are a run's output on their own, without camera frames.
 OTHER_KINDS = ("trials", "cnoem_study", "fusion", "correction")
@@ -79,6 +84,7 @@ def _frame_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
     rows.append(("reprojection RMS median (px)", _fmt(summary["reproj_rms_px"]["median"], 3)))
     if summary.get("truth", {}).get("note"):  # truth given, no frame scored (issue 23)
         rows.append(("truth", summary["truth"]["note"]))
+    rows += suspect_report.summary_rows(summary)
     if "time_per_frame_ms" not in timing:  # a stored summary carries no wall-clock figures
         return rows
     rows.append((

@@ -26,8 +26,9 @@ The default run layout::
     │                              │ this frame's solve (text) + LM tabs  │
     ├──────────────┬───────────────┼─────────────┬────────────────────────┤
     │ position err │ heading err   │ reproj RMS  │ summary (terminal      │
-    │ (+ rejected) │ (tabs: pitch, │ + threshold │ table) / rejections /  │
-    │              │  roll)        │ (tabs)      │ manifest / flips       │
+    │ (+ rejected, │ (tabs: pitch, │ + threshold │ table) / manifest /    │
+    │  suspect)    │  roll)        │ (tabs)      │ flips; suspects log /  │
+    │              │               │             │ rejections log         │
     └──────────────┴───────────────┴─────────────┴────────────────────────┘
 
 Every plot has its legend; the time panel of a run is on ``elapsed`` (seconds since the
@@ -58,10 +59,12 @@ _LEGEND = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.LeftTop)
 
 
 def _error_view(entities: list[str], name: str) -> rrb.TimeSeriesView:
-    """Time series of ``entities`` with the rejected-frame markers along the zero line."""
+    """Time series of ``entities`` with the rejected-frame markers along the zero line and the
+    suspect-frame markers on the lines (``errors/suspect/<series>``)."""
+    suspects = [paths.error_suspect(e) for e in entities if e in paths.SUSPECT_MARKED]
     return rrb.TimeSeriesView(
         origin="/",
-        contents=[f"/{e}" for e in [*entities, paths.ERROR_REJECTED]],
+        contents=[f"/{e}" for e in [*entities, *suspects, paths.ERROR_REJECTED]],
         name=name,
         plot_legend=_LEGEND,
     )
@@ -153,6 +156,7 @@ def default_blueprint(
     cov_scale: float | None = None,
     start_m: tuple[float, float, float] | None = None,
     budget_sources: list[str] | None = None,
+    has_suspects: bool = False,
 ) -> rrb.Blueprint:
     """Build the default layout for a run with cameras ``cam_names`` (fits 1600×1000).
 
@@ -163,6 +167,8 @@ def default_blueprint(
     view's title; the 3D view follows the estimated AGV from its first position ``start_m``.
     ``budget_sources``: the run holds an error budget of these sources (``run --budget``): its
     table is the active document and its chart and series are tabs beside the position error.
+    ``has_suspects``: the suspects log (one line per suspect frame) under the summary, before
+    the rejections.
     """
     image_views = []
     for cam_name in cam_names:
@@ -189,9 +195,13 @@ def default_blueprint(
         *([budget_table_view()] if budget_sources is not None else []),
         active_tab=0 if budget_sources is None else 3,
     )
-    if has_rejections:
+    logs = [
+        *([rrb.TextLogView(origin=paths.EVENTS_SUSPECTS, name="suspects (checks without truth)")] if has_suspects else []),
+        *([rrb.TextLogView(origin=paths.EVENTS_REJECTIONS, name="rejections")] if has_rejections else []),
+    ]
+    if logs:
         documents = rrb.Vertical(
-            documents, rrb.TextLogView(origin=paths.EVENTS_REJECTIONS, name="rejections"), row_shares=[0.62, 0.38]
+            documents, logs[0] if len(logs) == 1 else rrb.Tabs(*logs, active_tab=0), row_shares=[0.62, 0.38]
         )
     reprojection = [paths.ERROR_REPROJ_RMS_PX] + ([paths.ERROR_REPROJ_THRESHOLD_PX] if has_threshold else [])
     top = rrb.Horizontal(

@@ -20,6 +20,7 @@ import rerun as rr
 from agvviz.errors import RunError
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
+from agvviz.evaluation.suspect_report import suspect_line
 from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
@@ -35,6 +36,7 @@ from agvviz.viz.style import (
     COLOR_REPROJECTED,
     COLOR_ROLL,
     COLOR_STALE,
+    COLOR_SUSPECT,
     COLOR_THRESHOLD,
     COLOR_TRUTH,
 )
@@ -74,6 +76,10 @@ FRAME_SERIES = (
     (paths.ERROR_ROLL_DEG, "roll error [deg]", COLOR_ROLL),
     (paths.ERROR_REPROJ_RMS_PX, "reprojection RMS [px]", COLOR_REPROJECTED),
 )
+
+
+#: Legend name of the suspect-frame markers on every error plot (issue 25).
+SUSPECT_LEGEND = "suspect frame (why: suspects log)"
 
 
 class RunLogError(RunError):
@@ -138,6 +144,8 @@ class FrameLogger:
         self._zoom_cams: set[str] = set()
         #: Frames rejected so far.
         self.rejected_frames = 0
+        #: Suspect frames so far (solved, but failed a check against what else the log knows).
+        self.suspect_frames = 0
         #: The first estimated pose T_world_agv (the 3D view starts there); None: none yet.
         self.first_pose: np.ndarray | None = None
 
@@ -177,6 +185,17 @@ class FrameLogger:
             ),
             static=True,
         )
+        for entity in paths.SUSPECT_MARKED:
+            rec.log(
+                paths.error_suspect(entity),
+                rr.SeriesPoints(
+                    names=SUSPECT_LEGEND,
+                    colors=COLOR_SUSPECT,
+                    markers=rr.components.MarkerShape.Diamond,
+                    marker_sizes=5.0,
+                ),
+                static=True,
+            )
         for entity in (paths.AGV_TRUTH, paths.AGV_CAMERA):
             rec.log(entity, rr.TransformAxes3D(AGV_AXIS_LENGTH_M), static=True)
         rec.log(paths.AGV_TRUTH_BODY, agv_body(COLOR_TRUTH, "truth"), static=True)
@@ -418,6 +437,7 @@ class FrameLogger:
 
     def log_errors(self, frame: FrameResult, stamp: Stamp) -> None:
         columns = self._columns
+        suspect = frame.suspect if frame.solved else None
         for entity, value in (
             (paths.ERROR_POSITION_MM, None if frame.position_error_m is None else 1000.0 * frame.position_error_m),
             (paths.ERROR_HEADING_DEG, frame.heading_error_deg),
@@ -427,8 +447,13 @@ class FrameLogger:
         ):
             if value is not None:
                 columns.scalar(entity, stamp, value)
+                if suspect is not None:  # a marker on the line, at this frame's value
+                    columns.scalar(paths.error_suspect(entity), stamp, value)
             elif not frame.solved:
                 columns.gap(entity, stamp)  # the line breaks at a rejected frame
+        if suspect is not None:
+            self.suspect_frames += 1
+            self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(suspect_line(suspect), level=rr.TextLogLevel.WARN))
         if self.max_reproj_px is not None:
             columns.scalar(paths.ERROR_REPROJ_THRESHOLD_PX, stamp, self.max_reproj_px)
         if not frame.solved:

@@ -1,6 +1,8 @@
 """The solver of each frame in a run's ``.rrd``: its LM iterations as bar charts (log10) and as
 ``lm_iter`` columns, the reprojected points of every iteration and each point's path over them,
-and a line of text on what the solver did (or "closed-form").
+and a line of text on what the solver did (or "closed-form"); a suspect frame's text says
+"suspect: <finding>" where a clean one says "solved", with the check, the likely cause and the
+next step below.
 
 :class:`LmLogger` is one of the modality loggers a :class:`agvviz.viz.run_logger.RunLogger` holds;
 its per-frame values go through the run's :class:`agvviz.viz.columns.Columns`.
@@ -11,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
+from agvviz.evaluation.suspect_report import cause_words
 from agvviz.model.frames import FrameResult, LmIteration
 from agvviz.viz import paths
 from agvviz.viz.columns import Columns, Stamp
@@ -127,12 +130,21 @@ def _lm_text(frame: FrameResult) -> str:
         text = f"{markers} — {text}"
     if frame.marker_note:
         text += f"  \n{frame.marker_note}"
+    if frame.solved and frame.suspect is not None:
+        s = frame.suspect
+        text += (f"  \n{s.check} check {s.sigma:.1f}σ, likely cause: {cause_words(s.cause)}"
+                 + (f"; next: {s.next_step}" if s.next_step else "") + " (all suspect frames: the suspects log)")
     return text
 
 
 def _solve_text(frame: FrameResult) -> str:
     iterations = frame.lm_iterations
-    outcome = "solved" if frame.solved else f"rejected: {frame.rejected}"
+    if not frame.solved:
+        outcome = f"rejected: {frame.rejected}"
+    elif frame.suspect is not None:  # solved, but the pose disagrees with what else the log knows
+        outcome = f"**suspect: {frame.suspect.message}**"
+    else:
+        outcome = "solved"
     if not iterations:
         if frame.solved:
             rms = "" if frame.reproj_rms_px is None else f"; reprojection RMS {frame.reproj_rms_px:.3g} px"

@@ -36,7 +36,10 @@ the camera is).
                                             a Clear on rejected frames breaks the line)
     errors/reproj_threshold_px              Scalars per frame: the max_reproj_px setting
     errors/rejected                         Scalars 0.0 on rejected frames (a marker in plots)
+    errors/suspect/position_mm|heading_deg|pitch_deg|roll_deg|reproj_rms_px   Scalars on suspect
+                                            frames only: the frame's value (a marker on each plot)
     events/rejections                       TextLog (WARN) with reason and detail
+    events/suspects                         TextLog (WARN) per suspect frame: check, σ, cause, message
     run/manifest, run/summary               TextDocument (static, markdown + JSON block)
 """
 
@@ -91,6 +94,21 @@ ERROR_REPROJ_THRESHOLD_PX = "errors/reproj_threshold_px"  # the max_reproj_px se
 MARKERS_SEEN = "world/markers_seen"  # LineStrips3D: outlines and ids of this frame's codes
 ZOOM = "zoom"
 EVENTS_REJECTIONS = "events/rejections"
+#: TextLog (WARN), one row per suspect frame (issue 25): the check, its σ, the likely cause, the
+#: marker or camera it names, the finding and the next step.
+EVENTS_SUSPECTS = "events/suspects"
+#: Parent of the suspect markers on the error plots: ``errors/suspect/<series>`` holds, on suspect
+#: frames only, the value of ``errors/<series>`` (:func:`error_suspect`).
+ERROR_SUSPECT = "errors/suspect"
+#: The error series whose plots mark the suspect frames.
+SUSPECT_MARKED = (ERROR_POSITION_MM, ERROR_HEADING_DEG, ERROR_PITCH_DEG, ERROR_ROLL_DEG, ERROR_REPROJ_RMS_PX)
+
+
+def error_suspect(error_entity: str) -> str:
+    """``errors/suspect/<name>``: the suspect-frame markers of the error series ``errors/<name>``."""
+    return f"{ERROR_SUSPECT}/{error_entity.rsplit('/', 1)[-1]}"
+
+
 RUN_MANIFEST = "run/manifest"
 RUN_SUMMARY = "run/summary"
 

@@ -189,6 +189,15 @@ def text_document(src: str | os.PathLike | RrdContents, entity: str) -> str:
     return _rows(src, entity, "TextDocument:text")[-1]["TextDocument:text"][0]
 
 
+def text_documents(src: str | os.PathLike | RrdContents, entity: str) -> dict[int, str]:
+    """Per-frame TextDocument text of ``entity`` (e.g. ``solver/lm/this_frame``), by frame index."""
+    return {
+        int(row[paths.TIMELINE_FRAME]): row["TextDocument:text"][0]
+        for row in _rows(src, entity, "TextDocument:text")
+        if row.get(paths.TIMELINE_FRAME) is not None
+    }
+
+
 def document_json(src: str | os.PathLike | RrdContents, entity: str) -> dict:
     """The JSON block of a run document (``run/manifest`` or ``run/summary``) as a dict."""
     text = text_document(src, entity)

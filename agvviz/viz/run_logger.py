@@ -234,6 +234,7 @@ class RunLogger:
                 cov_scale=self.uncertainty.cov_scale,
                 start_m=None if first_pose is None else tuple(first_pose[:3, 3]),
                 budget_sources=self._budget_sources,
+                has_suspects=self.frames.suspect_frames > 0,
             )
         self._file.commit(blueprint)
 

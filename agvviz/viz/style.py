@@ -32,6 +32,10 @@ COLOR_REPROJECTED = (255, 0, 200)
 #: Rejections, thresholds and limits.
 COLOR_REJECTED = (230, 40, 40)
 COLOR_THRESHOLD = (230, 40, 40)
+#: Suspect frames (issue 25): a solved pose that disagrees with what else the log knows. Lime, so
+#: it stands out from every error line (orange, violet, light blue, yellow, magenta) and from the
+#: red of rejections.
+COLOR_SUSPECT = (170, 255, 0)
 #: Angle error series.
 COLOR_HEADING = (200, 120, 255)
 COLOR_PITCH = (90, 200, 230)
@@ -53,6 +57,7 @@ LEGEND = {
     COLOR_DETECTED: "detected corners",
     COLOR_REPROJECTED: "reprojected corners",
     COLOR_REJECTED: "rejected",
+    COLOR_SUSPECT: "suspect",
 }
 
 #: The runs of an overlay (``agvviz diff``, ``sweep``) in order, with their names for view
