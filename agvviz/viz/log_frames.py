@@ -20,7 +20,7 @@ import rerun as rr
 from agvviz.errors import RunError
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
-from agvviz.evaluation.suspect_report import suspect_line
+from agvviz.evaluation.suspect_report import cause_words, suspect_line
 from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
@@ -138,7 +138,7 @@ class FrameLogger:
         self._trajectory_truth_m = Track()
         self._trajectory_camera_m = Track()
         # What the previous frame left drawn, so a state is logged only when it changes.
-        self._camera_body_label: str | None = None  # None: not drawn yet; "": solved
+        self._camera_body_label: str | None = None  # None: not drawn yet; "": solved; else its label
         self._zoomed: set[str] = set()  # cameras whose zoom shows a crop now
         # What the run held, for the layout.
         self._zoom_cams: set[str] = set()
@@ -421,9 +421,11 @@ class FrameLogger:
             if self.first_pose is None:
                 self.first_pose = T_est
             self._columns.transform(paths.AGV_CAMERA, stamp, T_est)
-            if self._camera_body_label != "":
-                rec.log(paths.AGV_CAMERA_BODY, agv_body(COLOR_CAMERA))
-                self._camera_body_label = ""
+            # A suspect pose is labelled with its likely cause (the suspects log says more).
+            label = "" if frame.suspect is None else f"suspect: {cause_words(frame.suspect.cause)}"
+            if self._camera_body_label != label:
+                rec.log(paths.AGV_CAMERA_BODY, agv_body(COLOR_CAMERA, label))
+                self._camera_body_label = label
             self._trajectory_camera_m.append(T_est[:3, 3])
             self._columns.row(paths.TRAJECTORY_CAMERA, "strip3d", stamp, _thinned(self._trajectory_camera_m.array()))
         else:

@@ -130,10 +130,11 @@ def _lm_text(frame: FrameResult) -> str:
         text = f"{markers} — {text}"
     if frame.marker_note:
         text += f"  \n{frame.marker_note}"
-    if frame.solved and frame.suspect is not None:
+    if frame.solved and frame.suspect is not None:  # first, so a short panel shows it
         s = frame.suspect
-        text += (f"  \n{s.check} check {s.sigma:.1f}σ, likely cause: {cause_words(s.cause)}"
-                 + (f"; next: {s.next_step}" if s.next_step else "") + " (all suspect frames: the suspects log)")
+        text = (f"**suspect: {s.message}**  \n{s.check} check {s.sigma:.1f}σ, likely cause: {cause_words(s.cause)}"
+                + (f"; next: {s.next_step}" if s.next_step else "") + " (every suspect frame: the suspects log)  \n"
+                + text)
     return text
 
 
@@ -142,7 +143,7 @@ def _solve_text(frame: FrameResult) -> str:
     if not frame.solved:
         outcome = f"rejected: {frame.rejected}"
     elif frame.suspect is not None:  # solved, but the pose disagrees with what else the log knows
-        outcome = f"**suspect: {frame.suspect.message}**"
+        outcome = "suspect"
     else:
         outcome = "solved"
     if not iterations:
