@@ -16,7 +16,7 @@ OutputError       an output could not be written (folder missing or read-only, d
                   full, the output would replace an input)
 ================  =====================================================================  ====
 
-Exit codes of every command: 0 success, 1 a condition held (``diff --fail-if``) or a
+Exit codes of every command: 0 success, 1 a condition held (``diff``/``run --fail-if``) or a
 contract was violated (``inspect``), 2 bad input, 3 output could not be written,
 130 interrupted (Ctrl-C or SIGTERM).
 

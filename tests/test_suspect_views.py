@@ -406,3 +406,22 @@ def test_diff_command_prints_suspect_counts_and_exits_1(tmp_path):
     assert "suspect frames (checks without truth): A 0, B 4 (map_entry 0 → 3, mirror_flip 0 → 1)" in output
     assert "--fail-if holds: 'B.suspects > 0' holds (B.suspects = 4)" in output
     assert (tmp_path / "v.xml").is_file()
+
+
+def test_run_gate_on_a_real_replay(qr_small, tmp_path):
+    """`agvviz run --fail-if` end to end on a short recording: the counts gate on the replay's
+    own summary (exit 1 / 0), the .rrd is written either way, the JUnit names the .rrd."""
+    from agvviz.cli.main import app
+
+    runner = CliRunner()
+    out, junit = tmp_path / "run.rrd", tmp_path / "verdict.xml"
+    args = ["run", str(qr_small), "--out", str(out), "--jobs", "1", "--no-cache", "--junit-xml", str(junit)]
+    result = runner.invoke(app, [*args, "--fail-if", "solved >= 1 and frames >= solved"])
+    assert result.exit_code == 1, result.output
+    assert out.is_file()
+    _, suite = _parse_junit(junit.read_text())
+    assert suite.get("failures") == "1"
+    assert {p.get("name"): p.get("value") for p in suite.iter("property")}["rrd"] == str(out)
+    result = runner.invoke(app, [*args, "--fail-if", "solved_pct < 50", "--fail-if", "position_rmse_mm > 1000"])
+    assert result.exit_code == 0, result.output
+    assert _parse_junit(junit.read_text())[1].get("failures") == "0"

@@ -40,7 +40,7 @@ app = typer.Typer(
     pretty_exceptions_show_locals=False,
     help="agvviz — record, replay and inspect fiducial-marker localisation in Rerun.\n\n"
     "Quick start:  agvviz demo   (records qr_floor, runs the lm solver, writes an .rrd).\n\n"
-    "Exit codes: 0 ok, 1 a condition held (diff --fail-if) or a contract was violated (inspect), "
+    "Exit codes: 0 ok, 1 a condition held (diff or run --fail-if) or a contract was violated (inspect), "
     "2 bad input, 3 output could not be written, 130 interrupted.",
 )
 
