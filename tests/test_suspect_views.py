@@ -348,7 +348,7 @@ def test_run_command_gate_exit_codes_and_junit(tmp_path, monkeypatch):
     result = runner.invoke(app, ["run", str(recording), "--fail-if", "suspects > 0", "--junit-xml", str(junit)])
     assert result.exit_code == 1, result.output
     assert "suspect stretches" in result.output and "5–7 (3)" in result.output and "marker map entry" in result.output
-    assert "--fail-if holds" in result.output
+    assert "--fail-if holds: suspects > 0 (suspects = 4)" in result.output
     _, suite = _parse_junit(junit.read_text())
     assert suite.get("failures") == "1" and "frames 5–7 (3)" in suite.find("system-out").text
     result = runner.invoke(app, ["run", str(recording), "--fail-if", "suspects.payload > 0",
@@ -404,7 +404,7 @@ def test_diff_command_prints_suspect_counts_and_exits_1(tmp_path):
     assert result.exit_code == 1, result.output
     output = " ".join(result.output.split())
     assert "suspect frames (checks without truth): A 0, B 4 (map_entry 0 → 3, mirror_flip 0 → 1)" in output
-    assert "--fail-if holds: 'B.suspects > 0' holds (B.suspects = 4)" in output
+    assert "--fail-if holds: B.suspects > 0 (B.suspects = 4)" in output
     assert (tmp_path / "v.xml").is_file()
 
 

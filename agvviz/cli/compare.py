@@ -89,9 +89,9 @@ def diff(
         console.print(f"JUnit verdict written: [bold]{escape(str(outcome.junit_path))}[/]")
     for gate in outcome.gates:
         if gate.holds:
-            err_console.print(f"[bold red]--fail-if holds:[/] {escape(gate.message)}")
+            err_console.print(f"[bold red]--fail-if holds:[/] {escape(gate.shown)}")
         else:
-            console.print(f"--fail-if does not hold: {escape(gate.message)}")
+            console.print(f"--fail-if does not hold: {escape(gate.shown)}")
     if outcome.failed:
         raise typer.Exit(code=1)
 

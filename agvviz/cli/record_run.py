@@ -137,9 +137,9 @@ def _gates(outcome, fail_if: list[str], junit_xml: Optional[Path], recording: Pa
         console.print(f"JUnit verdict written: [bold]{escape(str(junit_xml))}[/]")
     for gate in verdicts:
         if gate.holds:
-            err_console.print(f"[bold red]--fail-if holds:[/] {escape(gate.message)}")
+            err_console.print(f"[bold red]--fail-if holds:[/] {escape(gate.shown)}")
         elif gate.holds is False:
-            console.print(f"--fail-if does not hold: {escape(gate.message)}")
+            console.print(f"--fail-if does not hold: {escape(gate.shown)}")
     errors = [gate for gate in verdicts if gate.holds is None]
     if errors:
         raise ExpressionError("; ".join(gate.message for gate in errors))

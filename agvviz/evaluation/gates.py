@@ -107,13 +107,18 @@ class Gate:
     error: str | None = None
 
     @property
+    def shown(self) -> str:
+        """The condition with the values it read: ``suspects > 0 (suspects = 7)``."""
+        values = ", ".join(f"{name} = {_number(value)}" for name, value in self.values.items())
+        return self.condition + (f" ({values})" if values else "")
+
+    @property
     def message(self) -> str:
         """One line: the verdict with the values it rests on."""
-        shown = ", ".join(f"{name} = {_number(value)}" for name, value in self.values.items())
         if self.error is not None:
             return f"cannot evaluate '{self.condition}': {self.error}"
-        verdict = "holds" if self.holds else "does not hold"
-        return f"'{self.condition}' {verdict}" + (f" ({shown})" if shown else "")
+        values = self.shown[len(self.condition):]
+        return f"'{self.condition}' {'holds' if self.holds else 'does not hold'}{values}"
 
 
 def _number(value) -> str:
@@ -131,7 +136,8 @@ def parse_conditions(conditions, known: list[str], runs: tuple[str, ...] = expre
 
 def evaluate(parsed: list[tuple[str, Node]], metrics: dict, explain=None) -> list[Gate]:
     """The verdict of each parsed condition on ``metrics`` (``{"A": {...}, "B": {...}}``, or a
-    single run's under ``""``). ``explain(run, name)`` says why a metric has no value."""
+    single run's under ``""``). ``explain(run, name)`` says why a metric has no value (None:
+    the grammar's own message stands)."""
     gates = []
     for text, node in parsed:
         read = {m.qualified: metrics.get(m.run, {}).get(m.name) for m in expression.metrics_of(node)}
@@ -140,8 +146,9 @@ def evaluate(parsed: list[tuple[str, Node]], metrics: dict, explain=None) -> lis
         except ExpressionError as exc:
             error = str(exc)
             for m in expression.metrics_of(node):
-                if read[m.qualified] is None and explain is not None:
-                    error = f"{m.qualified} has no value: {explain(m.run, m.name)}"
+                why = explain(m.run, m.name) if read[m.qualified] is None and explain is not None else None
+                if why:
+                    error = f"{m.qualified} has no value: {why}"
                     break
             gates.append(Gate(text, None, read, error))
             continue
