@@ -235,14 +235,14 @@ def test_inspect_prints_a_date_a_duration_and_relative_topic_times(recorded):
     (5 * 10**9, 5 * 10**9 + 123_456_789, "start 5.000 s, duration 0.123 s"),
 ])
 def test_span_texts(first_ns, last_ns, text):
-    from agvviz.recording.checks import _span
+    from agvviz.recording.checks import span_text
 
-    assert _span(first_ns, last_ns) == text
+    assert span_text(first_ns, last_ns) == text
 
 
 def test_relative_stamps():
-    from agvviz.recording.checks import _format_ns
+    from agvviz.recording.checks import format_ns
 
-    assert _format_ns(1_700_000_072_400_000_000, 1_700_000_000 * 10**9) == "+72.400 s"
-    assert _format_ns(10**9 - 5 * 10**6, 10**9) == "-0.005 s"
-    assert _format_ns(None, 0) == "-"
+    assert format_ns(1_700_000_072_400_000_000, 1_700_000_000 * 10**9) == "+72.400 s"
+    assert format_ns(10**9 - 5 * 10**6, 10**9) == "-0.005 s"
+    assert format_ns(None, 0) == "-"
