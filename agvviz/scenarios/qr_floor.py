@@ -42,7 +42,7 @@ code (``marker``), a code whose QR text carries wrong coordinates (``payload``),
 recorded extrinsic or, with ``from_s``, a camera knocked mid-run (``camera``), and a camera
 time offset (``timing``), each recorded with the frames it affects in the draws' ``inject``
 source. Geometry prone to the planar (IPPE mirror) ambiguity comes from the options alone:
-small codes seen small and far through a long lens (docs/audit.md, "Injected faults").
+small markers seen small and off their normal (docs/realism.md, "Mirror flips on purpose").
 """
 
 from __future__ import annotations
