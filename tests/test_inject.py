@@ -267,3 +267,59 @@ def test_ambiguity_recipe_records_mirror_flips(tmp_path):
             ghost_deg = _angle_deg(r.T_world_agv_ghost[:3, :3] @ r.T_world_agv_truth[:3, :3].T)
             assert ghost_deg < off_deg / 2.0, (r.index, off_deg, ghost_deg)  # the mirror of a noisy pose
     assert mirrored >= 2 and ratios >= 8, (mirrored, ratios)
+
+
+# -- uwb_room: wall cameras ------------------------------------------------------------------------
+def test_uwb_room_knock_offset_and_roof_marker_in_the_images(tmp_path):
+    """uwb_room applies the same kinds to its wall cameras and roof code. The detected corners of
+    every frame match the projection of the roof code — moved 5 cm along the AGV's x — through
+    the true camera at the true capture time (south knocked 3 cm along x from 1.5 s on, east's
+    images stamped 30 ms late) within 1 px (ECC corners of a ≈20 px code: ≤ 0.71 px measured),
+    and miss by > 1.5 px with any one fault left out (≥ 2.0 px measured)."""
+    from agvviz.scenarios import uwb_room as u
+
+    over = ["duration_s=3", "rate_hz=5", "block_start_s=0", "block_end_s=0", "realism=ideal", "speed_mps=1",
+            "width_px=640", "height_px=512", "supersample=2",
+            "inject=camera:south:dx_m=0.03,from_s=1.5;timing:east:offset_ms=30;marker:7:dx_m=0.05"]
+    path = tmp_path / "room.mcap"
+    scenario_registry.record("uwb_room", path, seed=4, overrides=over)
+    o = scenario_registry.build_options("uwb_room", over)
+    draws = {(i["kind"], i["target"]): i for i in realism_draws(path)["sources"]["inject"]}
+    knock = draws[("camera", "south")]
+    after = np.array(knock["T_parent_cam_true_after"])
+    np.testing.assert_allclose(after[:3, 3] - u.camera_poses(o)["south"][:3, 3], [0.03, 0.0, 0.0], atol=1e-12)
+    assert len(knock["frames_ns"]) == 7  # 1.6 … 2.8 s
+    assert draws[("timing", "east")]["offset_ns"] == 30_000_000
+    assert draws[("marker", "7")]["frames_in_view_ns"]["south"]
+    pose = u._schedule(o, 4, None).pose  # the path: the AGV's true pose at any time (flat: ideal)
+    cams, camera = u.camera_poses(o), u.make_camera(o)
+    moved, mapped = u.marker_corners_agv(o) + [0.05, 0.0, 0.0], u.marker_corners_agv(o)
+
+    def miss_px(observation, T_world_cam, t_s, corners_agv):
+        world = se3.transform_points(pose(t_s), corners_agv)
+        return np.abs(observation.corners_px - camera.project(se3.transform_points(se3.inverse(T_world_cam), world))).max()
+
+    t0, seen = None, {"south": 0, "east": 0, "knocked": 0}
+    for r in replay_frames(path, dataclasses.replace(RunSettings(), tracking=False)):
+        t0 = r.log_time_ns if t0 is None else t0
+        t_s = (r.log_time_ns - t0) * 1e-9
+        for ob in r.observations:
+            knocked = r.cam_name == "south" and r.log_time_ns in knock["frames_ns"]
+            T, t_capture = (after if knocked else cams[r.cam_name]), (t_s - 0.030 if r.cam_name == "east" else t_s)
+            assert miss_px(ob, T, t_capture, moved) < 1.0, (r.index, r.cam_name)
+            assert miss_px(ob, T, t_capture, mapped) > 1.5, (r.index, r.cam_name)
+            if knocked:
+                assert miss_px(ob, cams["south"], t_capture, moved) > 1.5, r.index
+            if r.cam_name == "east":
+                assert miss_px(ob, T, t_s, moved) > 1.5, r.index
+            seen[r.cam_name] = seen.get(r.cam_name, 0) + 1
+            seen["knocked"] += knocked
+    assert seen["south"] >= 10 and seen["east"] >= 8 and seen["knocked"] >= 5, seen
+
+
+def test_uwb_room_refuses_payload_and_unknown_walls():
+    for item, words in [("payload:7:dx_m=0.1", "payload needs markers whose payload carries coordinates"),
+                        ("camera:front:dz_m=0.01", "no camera 'front'"), ("marker:3:dx_m=0.1", "no marker '3'")]:
+        with pytest.raises(ScenarioError, match=None) as info:
+            scenario_registry.build_options("uwb_room", [f"inject={item}"])
+        assert words in str(info.value), str(info.value)

@@ -322,11 +322,13 @@ def apply_to_payload(code, injection: Injection | None):
 
 def frames_in_view(camera, T_world_cam_per_frame, points_world_m: np.ndarray, stamps_ns) -> list[int]:
     """The stamps of the frames whose camera (the true :class:`PinholeCamera`, at each frame's
-    true ``T_world_cam``) sees every one of ``points_world_m`` in front of it and inside the
-    image: the frames an injected marker or payload can affect."""
+    true ``T_world_cam``) sees every one of ``points_world_m`` ((N, 3), or (frames, N, 3) for a
+    marker that moves) in front of it and inside the image: the frames an injected marker or
+    payload can affect."""
+    points = np.asarray(points_world_m, dtype=float)
     out = []
-    for T_world_cam, stamp in zip(T_world_cam_per_frame, stamps_ns):
-        p = se3.transform_points(se3.inverse(T_world_cam), points_world_m)
+    for k, (T_world_cam, stamp) in enumerate(zip(T_world_cam_per_frame, stamps_ns)):
+        p = se3.transform_points(se3.inverse(T_world_cam), points[k] if points.ndim == 3 else points)
         if np.any(p[:, 2] <= 0.0):
             continue
         px = camera.project(p)
