@@ -104,9 +104,16 @@ def test_scenario_refuses_impossible_injections(extra, words):
     assert words in str(info.value), str(info.value)
 
 
-def test_unknown_payload_target_is_refused(tmp_path):
-    with pytest.raises(ValueError, match="no QR code .Q999."):  # checked once the scene is built
-        scenario_registry.record("qr_floor", tmp_path / "x.mcap", seed=SEED, overrides=SMALL + ["inject=payload:Q999:dx_m=0.1"])
+def test_unknown_targets_are_refused_before_recording():
+    for item, words in [("payload:Q999:dx_m=0.1", "no QR code 'Q999'"), ("marker:Q999:dx_m=0.1", "no marker 'Q999'")]:
+        with pytest.raises(ScenarioError, match=None) as info:
+            scenario_registry.build_options("qr_floor", SMALL + [f"inject={item}"])
+        assert words in str(info.value), str(info.value)
+    o = _options()  # the ids validate checks are the scene's
+    ids = [c.marker_id for c in q.build_scene(o, np.random.default_rng(SEED)).codes]
+    assert q.marker_ids(q.QR_FAMILY, len(ids)) == ids
+    aruco = _options(["marker_family=DICT_APRILTAG_36h11"])
+    assert q.marker_ids(aruco.marker_family, len(ids)) == [c.marker_id for c in q.build_scene(aruco, np.random.default_rng(SEED)).codes]
 
 
 # -- the pieces, exactly -----------------------------------------------------------------------

@@ -197,11 +197,11 @@ def validate(options: Options) -> None:
             "increase grid_spacing_m or decrease code_size_m"
         )
     rl.check_timing(rl.make_realism(o.realism, o.realism_off, o.realism_set).timing, 1.0 / o.rate_hz)
-    injected = inj.parse_inject(o.inject)  # syntax and cameras; marker ids are checked in record()
-    inj.check_targets(dataclasses.replace(injected, items=tuple(i for i in injected.items if i.kind in ("camera", "timing"))),
-                      (), [CAM_NAME])
+    injected = inj.parse_inject(o.inject)
     if injected.payloads() and o.marker_family != QR_FAMILY:
         raise ValueError(f"inject: payload needs QR codes (marker_family=qr): {o.marker_family} markers carry no coordinates")
+    ids = marker_ids(o.marker_family, n_codes)  # build_scene's ids, row-major
+    inj.check_targets(injected, ids, [CAM_NAME], ids if o.marker_family == QR_FAMILY else ())
     timing = rl.make_realism(o.realism, o.realism_off, o.realism_set).timing
     inj.check_frame_times(injected, abs(timing.latency_s) + 5.0 * timing.jitter_sigma_s, 1.0 / o.rate_hz, o.duration_s)
     if not o.write_map and o.marker_family != QR_FAMILY:
@@ -236,6 +236,12 @@ def _check_family(o: Options, n_codes: int) -> float:
         raise ValueError("with_midpoints applies to QR payloads only (marker_family=qr)")
     modules = dictionary.markerSize + 2
     return (modules + 2 * ARUCO_QUIET_ZONE_MODULES) / modules
+
+
+def marker_ids(marker_family: str, n_codes: int) -> list[str]:
+    """The ids :func:`build_scene` gives its ``n_codes`` codes: ``Q000``, ``Q001``… (QR) or
+    ``0``, ``1``… (ArUco/AprilTag)."""
+    return [f"Q{k:03d}" if marker_family == QR_FAMILY else str(k) for k in range(n_codes)]
 
 
 def make_camera(options: Options) -> PinholeCamera:
@@ -389,8 +395,6 @@ def record(
     )
     # Errors injected on purpose (option inject, agvviz.sim.inject), on top of the draws.
     injected = inj.parse_inject(o.inject)
-    ids = [c.marker_id for c in scene.codes]
-    inj.check_targets(injected, ids, [CAM_NAME], ids if o.marker_family == QR_FAMILY else ())
     marker_draws = [inj.apply_to_marker(d, injected.markers().get(d.marker_id)) for d in marker_draws]
     calib = {name: inj.apply_to_camera(d, injected.cameras().get(name)) for name, d in calib.items()}
     knock = injected.cameras().get(CAM_NAME)  # a from_s item: the true mount moves mid-run
