@@ -330,3 +330,64 @@ def test_uwb_room_refuses_payload_and_unknown_walls():
         with pytest.raises(ScenarioError, match=None) as info:
             scenario_registry.build_options("uwb_room", [f"inject={item}"])
         assert words in str(info.value), str(info.value)
+
+
+# -- auv_under_ice: corner-only route ----------------------------------------------------------------
+def test_auv_route_corners_follow_the_knock_the_offset_and_the_moved_marker():
+    """auv_under_ice (route, corner-only, σ = 0: the corners are exact projections) applies the
+    same kinds: left knocked 5 cm along the AUV's x from 4 s on, right stamped 20 ms late, marker 0
+    hung 10 cm off along world x. Each written corner set equals the projection through the model
+    with the fault (1e-6 px) and differs from it without that fault by > 0.1 px (20 ms at 1 m/s
+    moves a marker 10 m away ≈0.4 px)."""
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from agvviz.model.topics import CORNERS_TOPIC
+    from agvviz.recording.mcap_stream import iter_raw
+    from agvviz.recording.raw import RawMessage
+    from agvviz.scenarios import auv_under_ice as a
+    from agvviz.sim import auv
+
+    over = ["duration_s=8", "realism=ideal", "sigma_px=0", "marker_spacing_m=6",
+            "inject=camera:left:dx_m=0.05,from_s=4.05;timing:right:offset_ms=20;marker:0:dx_m=0.1"]
+    o = scenario_registry.build_options("auv_under_ice", over)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "auv.mcap"
+        scenario_registry.record("auv_under_ice", path, seed=2, overrides=over)
+        draws = {(i["kind"], i["target"]): i for i in realism_draws(path)["sources"]["inject"]}
+        messages = [(m.log_time_ns, json.loads(m.data)) for m in iter_raw(path, {CORNERS_TOPIC}) if isinstance(m, RawMessage)]
+    knock = draws[("camera", "left")]
+    assert len(knock["frames_ns"]) == 40  # 4.1 … 8.0 s at 10 Hz
+    mounts, cam = auv.camera_mounts(), auv.camera()
+    markers = dict(a.route_markers(o))
+
+    def corners(name, t_s, mount, marker_id, moved):
+        T_world_marker = markers[marker_id].copy()
+        T_world_marker[0, 3] += 0.1 if (moved and marker_id == "0") else 0.0
+        T_cam_world = se3.inverse(a.route_pose(o, o.speed_mps * t_s) @ mount)
+        return auv.visible_pixels(cam, T_cam_world @ T_world_marker, auv.marker_corners_marker())
+
+    checked = {"left": 0, "right": 0, "knocked": 0, "moved": 0}
+    for t_ns, value in messages:
+        name = value["cam_name"]
+        t_s = (t_ns - a.START_TIME_NS) * 1e-9
+        knocked = name == "left" and t_ns in knock["frames_ns"]
+        mount = np.array(knock["T_parent_cam_true_after"]) if knocked else mounts[name]
+        t_capture = t_s - 0.020 if name == "right" else t_s
+        for seen in value["markers"]:
+            got = np.array(seen["corners_px"])
+            np.testing.assert_allclose(got, corners(name, t_capture, mount, seen["id"], True), atol=1e-6)
+            alternatives = []
+            if knocked:
+                alternatives.append(corners(name, t_capture, mounts[name], seen["id"], True))
+            if name == "right":
+                alternatives.append(corners(name, t_s, mount, seen["id"], True))
+            if seen["id"] == "0":
+                alternatives.append(corners(name, t_capture, mount, seen["id"], False))
+                checked["moved"] += 1
+            for other in alternatives:
+                assert other is None or np.abs(got - other).max() > 0.1, (t_s, name, seen["id"])
+            checked[name] += 1
+            checked["knocked"] += knocked
+    assert checked["left"] and checked["right"] and checked["knocked"] and checked["moved"], checked
