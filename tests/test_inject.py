@@ -93,7 +93,7 @@ def test_bad_items_are_one_line_errors_naming_key_and_range(bad, words):
     (["inject=timing:rear:offset_ms=30"], "timing: the scenario has no camera 'rear'"),
     (["inject=camera:rear:dz_m=0.01,from_s=1"], "camera: the scenario has no camera 'rear'"),
     (["inject=timing:front:offset_ms=120"], "|offset_ms| must be < 99.4 ms"),  # 100 ms less typical 0.1 ms + 5 · 0.1 ms
-    (["inject=camera:front:dz_m=0.01,from_s=3"], "from_s must lie in 0..3 s"),
+    (["inject=camera:front:dz_m=0.01,from_s=2.9"], "from_s must lie in 0..2.8 s (the last frame's time)"),
     (["marker_family=DICT_APRILTAG_36h11", "inject=payload:0:dx_m=0.1"], "payload needs QR codes"),
     (["marker_family=DICT_APRILTAG_36h11", "write_map=false"], "write_map=false needs marker_family=qr"),
 ])

@@ -157,7 +157,7 @@ def validate(options: Options) -> None:
     if o.mode == "route":
         inj.check_targets(injected, [mid for mid, _ in route_markers(o)], list(auv.camera_mounts()), ())
         inj.check_frame_times(injected, abs(realism.timing.latency_s) + 5.0 * realism.timing.jitter_sigma_s,
-                              1.0 / o.frame_rate_hz, o.duration_s)
+                              1.0 / o.frame_rate_hz, int(o.duration_s * o.frame_rate_hz) / o.frame_rate_hz)
         check_total("frames = duration_s × frame_rate_hz", round(o.duration_s * o.frame_rate_hz), MAX_FRAMES,
                     "shorten duration_s or lower frame_rate_hz")
         if o.images:

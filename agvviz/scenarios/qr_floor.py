@@ -203,7 +203,8 @@ def validate(options: Options) -> None:
     ids = marker_ids(o.marker_family, n_codes)  # build_scene's ids, row-major
     inj.check_targets(injected, ids, [CAM_NAME], ids if o.marker_family == QR_FAMILY else ())
     timing = rl.make_realism(o.realism, o.realism_off, o.realism_set).timing
-    inj.check_frame_times(injected, abs(timing.latency_s) + 5.0 * timing.jitter_sigma_s, 1.0 / o.rate_hz, o.duration_s)
+    inj.check_frame_times(injected, abs(timing.latency_s) + 5.0 * timing.jitter_sigma_s, 1.0 / o.rate_hz,
+                          (round(o.duration_s * o.rate_hz) - 1) / o.rate_hz)
     if not o.write_map and o.marker_family != QR_FAMILY:
         raise ValueError(f"write_map=false needs marker_family=qr: {o.marker_family} markers carry no coordinates, the map is all there is")
     # The lens model must be one-to-one over the image: d(r·(1 + k1 r² + k2 r⁴))/dr > 0 up to

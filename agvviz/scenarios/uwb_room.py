@@ -189,7 +189,7 @@ def validate(options: Options) -> None:
     rl.check_timing(timing, 1.0 / o.rate_hz)
     injected = inj.parse_inject(o.inject)
     inj.check_targets(injected, [str(o.marker_id)], WALLS, ())
-    inj.check_frame_times(injected, abs(timing.latency_s) + 5.0 * timing.jitter_sigma_s, 1.0 / o.rate_hz, _length_s(o))
+    inj.check_frame_times(injected, abs(timing.latency_s) + 5.0 * timing.jitter_sigma_s, 1.0 / o.rate_hz, _last_frame_s(o))
     if o.variant == "path":
         half_x = o.track_length_m / 2.0 + o.turn_radius_m
         half_y = o.track_width_m / 2.0 + o.turn_radius_m
@@ -208,12 +208,13 @@ def validate(options: Options) -> None:
         raise ValueError(f"a 6 × 5 grid every {o.grid_spacing_m} m does not fit in the room")
 
 
-def _length_s(o: Options) -> float:
-    """Seconds from the first frame to the end of the recording (the span ``from_s`` falls in)."""
+def _last_frame_s(o: Options) -> float:
+    """The last camera frame's time after the first (as :func:`_schedule` places them)."""
     if o.variant == "path":
-        return o.duration_s
+        return (round(o.duration_s * o.rate_hz) - 1) / o.rate_hz
     points = 1 if o.static_point_m else 30
-    return points * (max(o.fixes_per_point / o.rate_hz, o.fixes_per_point / o.uwb_rate_hz) + GRID_GAP_S)
+    period_s = max(o.fixes_per_point / o.rate_hz, o.fixes_per_point / o.uwb_rate_hz) + GRID_GAP_S
+    return (points - 1) * period_s + (o.fixes_per_point - 1) / o.rate_hz
 
 
 def make_camera(o: Options) -> PinholeCamera:

@@ -220,10 +220,11 @@ def check_targets(spec: InjectSpec, marker_ids, camera_names, payload_ids=None) 
                 raise ValueError(f"inject: {kind}: the scenario has no camera {target!r}; its cameras: {', '.join(camera_names)}")
 
 
-def check_frame_times(spec: InjectSpec, timing_reach_s: float, frame_period_s: float, duration_s: float) -> None:
+def check_frame_times(spec: InjectSpec, timing_reach_s: float, frame_period_s: float, last_frame_s: float) -> None:
     """``ValueError`` unless every ``timing`` offset keeps a frame's capture between its
     neighbours' stamps (|offset| + ``timing_reach_s``, the realism draw's |latency| + 5σ jitter,
-    below half a frame period) and every ``from_s`` falls inside the recording (< ``duration_s``)."""
+    below half a frame period) and every ``from_s`` affects a frame (≤ ``last_frame_s``, the last
+    frame's time after the first)."""
     for name, item in spec.timings().items():
         limit_ms = (frame_period_s / 2.0 - timing_reach_s) * 1e3
         if not abs(item.get("offset_ms")) < limit_ms:
@@ -232,9 +233,9 @@ def check_frame_times(spec: InjectSpec, timing_reach_s: float, frame_period_s: f
                 f"realism timing's reach), got {item.get('offset_ms'):g}; lower it or the frame rate"
             )
     for name, item in spec.cameras().items():
-        if item.from_s is not None and not item.from_s < duration_s:
+        if item.from_s is not None and not item.from_s <= last_frame_s:
             raise ValueError(
-                f"inject: camera:{name}: from_s must lie in 0..{duration_s:g} s (before the recording ends), got {item.from_s:g}"
+                f"inject: camera:{name}: from_s must lie in 0..{last_frame_s:g} s (the last frame's time), got {item.from_s:g}"
             )
 
 
