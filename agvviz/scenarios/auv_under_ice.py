@@ -47,7 +47,9 @@ moves (capture instant: the middle of the middle row's exposure; ``time_samples`
 (``noise_sigma_dn`` set to other than its default overrides the profile's read noise) and JPEG
 (the profile's quality unless ``jpeg_quality`` is set); with the ``ideal`` profile's imaging the
 frames are exactly those made before the imaging effects existed. Draws in the
-``agvviz.realism`` metadata (not under ``ideal``).
+``agvviz.realism`` metadata (not under ``ideal``). Route mode takes faults injected on purpose
+(``inject``, :mod:`agvviz.sim.inject`): markers moved (by id, every marker of that id), a camera's
+extrinsic wrong or knocked from ``from_s`` on, a camera's time offset; recorded in the draws.
 """
 
 from __future__ import annotations
@@ -69,6 +71,7 @@ from agvviz.settings import validate as check_fields
 from agvviz.sim import auv
 from agvviz.sim import imaging as im
 from agvviz.recording.schemas import REALISM_METADATA
+from agvviz.sim import inject as inj
 from agvviz.sim import realism as rl
 from agvviz.sim.render import FloorScene, encode_jpeg, render_frame
 from agvviz.sim.room import placed, roof_code
@@ -110,6 +113,11 @@ class Options:
     grid_vertical_fraction: float = setting(0.1, "grid mode: vertical offset as a fraction of L", min=0.0, max=10.0)
     trials: int = setting(100, "grid mode: number of cycles (the paper: 1000 per cell)", min=1, max=100000)
     realism: str = setting("typical", rl.HELP_PROFILE + " (route mode; grid mode: ideal)", rl.PROFILE_NAMES)
+    inject: str = setting(
+        "",
+        "errors injected on purpose (route mode), ';'-separated: marker:<id>:dx_m=…,yaw_deg=…; "
+        "camera:left|right:pitch_deg=…,dz_m=…[,from_s=…]; timing:left|right:offset_ms=… (keys in agvviz/sim/inject.py)",
+    )
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
 
@@ -143,7 +151,13 @@ def validate(options: Options) -> None:
     rl.check_timing(realism.timing, 1.0 / o.frame_rate_hz)
     if o.mode == "grid" and realism.parameters() != rl.PROFILES["ideal"].parameters():
         raise ValueError("grid mode is the paper's simulation cell without error sources: add --set realism=ideal (the default profile, typical, applies to route mode)")
+    injected = inj.parse_inject(o.inject)
+    if injected and o.mode == "grid":
+        raise ValueError("inject applies to route mode; grid mode is the paper's cell without error sources")
     if o.mode == "route":
+        inj.check_targets(injected, [mid for mid, _ in route_markers(o)], list(auv.camera_mounts()), ())
+        inj.check_frame_times(injected, abs(realism.timing.latency_s) + 5.0 * realism.timing.jitter_sigma_s,
+                              1.0 / o.frame_rate_hz, int(o.duration_s * o.frame_rate_hz) / o.frame_rate_hz)
         check_total("frames = duration_s × frame_rate_hz", round(o.duration_s * o.frame_rate_hz), MAX_FRAMES,
                     "shorten duration_s or lower frame_rate_hz")
         if o.images:
@@ -219,11 +233,22 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: 
     markers = route_markers(o)
     codes = [placed(roof_code(aruco_modules(DICTIONARY, int(mid)), mid, auv.MARKER_SIDE_M, 1), T) for mid, T in markers]
     marker_draws = rl.draw_map(realism.map, rl.source_rng(seed, "map"), [(c.marker_id, c.T_world_marker, c.side_m) for c in codes])
+    # Errors injected on purpose (option inject, agvviz.sim.inject), on top of the draws.
+    injected = inj.parse_inject(o.inject)
+    marker_draws = [inj.apply_to_marker(d, injected.markers().get(d.marker_id)) for d in marker_draws]
+    calib = {name: inj.apply_to_camera(d, injected.cameras().get(name)) for name, d in calib.items()}
     true_codes = [rl.placed_as_drawn(c, d) for c, d in zip(codes, marker_draws)]
     dt = 1.0 / o.frame_rate_hz
     n = int(o.duration_s * o.frame_rate_hz) + 1
     stamps_ns = np.array([t0 + int(round(k * dt * 1e9)) for k in range(n)], dtype=np.int64)
     timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), n, list(mounts))
+    timing = {name: inj.apply_to_timing(t, injected.timings().get(name)) for name, t in timing.items()}
+
+    def mount(name: str, k: int) -> np.ndarray:
+        """Camera ``name``'s true T_agv_cam for its frame k (knocked from ``from_s`` on)."""
+        item = injected.cameras().get(name)
+        capture_s = (int(stamps_ns[k]) - int(timing[name].delay_ns[k]) - t0) * 1e-9
+        return inj.knocked_mount(mounts[name], item) if inj.knocked(item, capture_s) else mounts[name]
     imaging, jpeg_quality = rl.scenario_imaging(realism, o)
     # The ideal profile's imaging renders as before the imaging effects existed (render_frame,
     # quantised, then brightness and noise); any other renders through agvviz.sim.imaging.
@@ -237,7 +262,9 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: 
     )
     if o.images and not ideal_imaging:
         draws.sources["imaging"] = rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band)
-    if not realism.is_ideal:  # an ideal recording stays message for message what it was
+    if injected:
+        draws.sources["inject"] = injected.to_json(_inject_details(injected, mounts, stamps_ns, timing, mount))
+    if not realism.is_ideal or injected:  # an ideal recording stays message for message what it was
         writer.write_metadata(REALISM_METADATA, rl.metadata_values(draws))
     for name in mounts:
         writer.write_calibration(name, calib[name].recorded_camera, t0)
@@ -268,7 +295,8 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: 
         for t_capture_ns, name in [e for e in extra if e[0] > t_ns]:
             writer.write_pose(topics.GROUND_TRUTH_TOPIC, captured[name], WORLD_FRAME, t_capture_ns)
         writer.write_pose(topics.ODOMETRY_TOPIC, nav[k], WORLD_FRAME, t_ns)
-        for c, (name, T_agv_cam) in enumerate(mounts.items()):
+        for c, name in enumerate(mounts):
+            T_agv_cam = mount(name, k)
             T_world_cam = captured[name] @ T_agv_cam
             dropped = bool(timing[name].dropped[k])  # still rendered / drawn: other frames stay the same
             if o.images and not ideal_imaging:
@@ -309,6 +337,26 @@ def _record_route(writer, o: Options, rng: np.random.Generator, progress, seed: 
                 )
         if progress is not None:
             progress(k + 1, n)
+
+
+def _inject_details(injected, mounts, stamps_ns, timing, mount) -> dict:
+    """What the camera and timing items affect, for the draws (:meth:`agvviz.sim.inject.InjectSpec.to_json`):
+    the stamps (ns) of the frames written (not dropped) that each changes (``frames_ns``; with
+    ``from_s`` also ``from_ns`` and the knocked ``T_parent_cam_true_after``), a timing item's
+    ``offset_ns``. A marker item carries its values only (its draw in ``map`` holds the moved pose)."""
+    t0_ns = int(stamps_ns[0])
+    details = {}
+    for name, item in injected.cameras().items():
+        written = [k for k in range(len(stamps_ns)) if not timing[name].dropped[k]]
+        changed = [k for k in written if item.from_s is None or not np.array_equal(mount(name, k), mounts[name])]
+        details[("camera", name)] = {"frames_ns": [int(stamps_ns[k]) for k in changed]}
+        if item.from_s is not None:
+            details[("camera", name)].update(from_ns=t0_ns + int(round(item.from_s * 1e9)),
+                                             T_parent_cam_true_after=inj.knocked_mount(mounts[name], item).tolist())
+    for name, item in injected.timings().items():
+        details[("timing", name)] = {"offset_ns": int(round(item.get("offset_ms") * 1e6)),
+                                     "frames_ns": [int(stamps_ns[k]) for k in range(len(stamps_ns)) if not timing[name].dropped[k]]}
+    return details
 
 
 def _record_grid(writer, o: Options, rng: np.random.Generator, progress) -> None:

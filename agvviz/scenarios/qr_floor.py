@@ -16,7 +16,8 @@ instead — ids 0, 1, … row-major on the same grid, ``code_size_m`` the side o
 with every marker's world corners, so ``agvviz run`` detects and solves them with no side file.
 
 Recorded: calibration, ``/tf_static`` (agv → cam_front) and the marker map once at the first
-time stamp; then per frame ``/agv/ground_truth`` (world), ``/agv/odometry`` (odom) and the
+time stamp (``write_map=false``: no map, the QR payloads are then the only source of the codes'
+coordinates); then per frame ``/agv/ground_truth`` (world), ``/agv/odometry`` (odom) and the
 JPEG frame, all at the frame's log time, in that order.
 
 Error sources (``realism``, :mod:`agvviz.sim.realism`; default ``typical``; ``ideal``: none): the
@@ -35,6 +36,13 @@ exposure (:func:`agvviz.sim.realism.exposure_start_s`). ``blur_sigma_px``, ``noi
 and ``jpeg_quality`` set to other than their defaults override the profile's lens blur, read
 noise and JPEG quality (:func:`agvviz.sim.realism.scenario_imaging`). The draws are in the
 ``agvviz.realism`` metadata record, written before the first message (not under ``ideal``).
+
+Faults injected on purpose (``inject``, :mod:`agvviz.sim.inject`): a moved, turned or rescaled
+code (``marker``), a code whose QR text carries wrong coordinates (``payload``), a wrong
+recorded extrinsic or, with ``from_s``, a camera knocked mid-run (``camera``), and a camera
+time offset (``timing``), each recorded with the frames it affects in the draws' ``inject``
+source. Geometry prone to the planar (IPPE mirror) ambiguity comes from the options alone:
+small markers seen small and off their normal (docs/realism.md, "Mirror flips on purpose").
 """
 
 from __future__ import annotations
@@ -115,6 +123,11 @@ class Options:
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
     inject: str = setting("", inj.HELP)
+    write_map: bool = setting(
+        True,
+        "write /markers/map; false: the QR payloads are the recording's only source of code "
+        "coordinates (marker_family=qr only)",
+    )
     marker_family: str = setting(
         QR_FAMILY,
         "floor markers: qr (codes carrying their world coordinates), or an OpenCV ArUco dictionary "
@@ -184,9 +197,16 @@ def validate(options: Options) -> None:
             "increase grid_spacing_m or decrease code_size_m"
         )
     rl.check_timing(rl.make_realism(o.realism, o.realism_off, o.realism_set).timing, 1.0 / o.rate_hz)
-    for camera in inj.parse_inject(o.inject).cameras():  # syntax; marker ids are checked in record()
-        if camera != CAM_NAME:
-            raise ValueError(f"inject: the scenario has no camera {camera!r}; its camera: {CAM_NAME}")
+    injected = inj.parse_inject(o.inject)
+    if injected.payloads() and o.marker_family != QR_FAMILY:
+        raise ValueError(f"inject: payload needs QR codes (marker_family=qr): {o.marker_family} markers carry no coordinates")
+    ids = marker_ids(o.marker_family, n_codes)  # build_scene's ids, row-major
+    inj.check_targets(injected, ids, [CAM_NAME], ids if o.marker_family == QR_FAMILY else ())
+    timing = rl.make_realism(o.realism, o.realism_off, o.realism_set).timing
+    inj.check_frame_times(injected, abs(timing.latency_s) + 5.0 * timing.jitter_sigma_s, 1.0 / o.rate_hz,
+                          (round(o.duration_s * o.rate_hz) - 1) / o.rate_hz)
+    if not o.write_map and o.marker_family != QR_FAMILY:
+        raise ValueError(f"write_map=false needs marker_family=qr: {o.marker_family} markers carry no coordinates, the map is all there is")
     # The lens model must be one-to-one over the image: d(r·(1 + k1 r² + k2 r⁴))/dr > 0 up to
     # beyond the image corner's normalised radius.
     corner_r = math.hypot(o.width_px / 2.0, o.height_px / 2.0) / o.focal_px
@@ -217,6 +237,12 @@ def _check_family(o: Options, n_codes: int) -> float:
         raise ValueError("with_midpoints applies to QR payloads only (marker_family=qr)")
     modules = dictionary.markerSize + 2
     return (modules + 2 * ARUCO_QUIET_ZONE_MODULES) / modules
+
+
+def marker_ids(marker_family: str, n_codes: int) -> list[str]:
+    """The ids :func:`build_scene` gives its ``n_codes`` codes: ``Q000``, ``Q001``… (QR) or
+    ``0``, ``1``… (ArUco/AprilTag)."""
+    return [f"Q{k:03d}" if marker_family == QR_FAMILY else str(k) for k in range(n_codes)]
 
 
 def make_camera(options: Options) -> PinholeCamera:
@@ -296,6 +322,39 @@ def marker_map(scene: FloorScene, marker_family: str = QR_FAMILY) -> dict:
     }
 
 
+def _inject_details(injected, true_scene, camera, T_world_cam, stamps_ns, capture_ns, written, T_agv_cam_knocked) -> dict:
+    """What each injected item affects, for the draws (:meth:`agvviz.sim.inject.InjectSpec.to_json`),
+    by the stamps (ns) of the frames written (``written``: not dropped): a marker or payload item
+    the frames that show the code whole (``frames_in_view_ns``; a payload item also the
+    ``payload`` text printed), a camera item the frames it affects (``frames_ns``: every frame, or
+    those captured from ``from_s`` on, then with ``from_ns`` = first stamp + from_s and the
+    knocked true mount ``T_parent_cam_true_after``), a timing item its ``offset_ns`` and frames."""
+    codes = {c.marker_id: c for c in true_scene.codes}
+    t0_ns = int(stamps_ns[0])
+    shown = [k for k in range(len(stamps_ns)) if written[k]]
+    details = {}
+    for kind, items in (("marker", injected.markers()), ("payload", injected.payloads())):
+        for target in items:
+            code = codes[target]
+            in_view = inj.frames_in_view(camera, [T_world_cam[k] for k in shown], code.points_world_m[:4], stamps_ns[shown])
+            details[(kind, target)] = {"frames_in_view_ns": in_view}
+            if kind == "payload":
+                details[(kind, target)]["payload"] = code.payload
+    for name, item in injected.cameras().items():
+        if item.from_s is None:
+            details[("camera", name)] = {"frames_ns": [int(stamps_ns[k]) for k in shown]}
+        else:
+            details[("camera", name)] = {
+                "from_ns": t0_ns + int(round(item.from_s * 1e9)),
+                "frames_ns": [int(stamps_ns[k]) for k in shown if inj.knocked(item, (int(capture_ns[k]) - t0_ns) * 1e-9)],
+                "T_parent_cam_true_after": T_agv_cam_knocked.tolist(),
+            }
+    for name, item in injected.timings().items():
+        details[("timing", name)] = {"offset_ns": int(round(item.get("offset_ms") * 1e6)),
+                                     "frames_ns": [int(stamps_ns[k]) for k in shown]}
+    return details
+
+
 def record(
     writer,
     options: Options,
@@ -337,13 +396,16 @@ def record(
     )
     # Errors injected on purpose (option inject, agvviz.sim.inject), on top of the draws.
     injected = inj.parse_inject(o.inject)
-    inj.check_targets(injected, [c.marker_id for c in scene.codes], [CAM_NAME])
     marker_draws = [inj.apply_to_marker(d, injected.markers().get(d.marker_id)) for d in marker_draws]
     calib = {name: inj.apply_to_camera(d, injected.cameras().get(name)) for name, d in calib.items()}
-    true_scene = dataclasses.replace(
-        scene, codes=tuple(rl.placed_as_drawn(c, d) for c, d in zip(scene.codes, marker_draws))
-    )
+    knock = injected.cameras().get(CAM_NAME)  # a from_s item: the true mount moves mid-run
+    T_agv_cam_knocked = inj.knocked_mount(T_agv_cam, knock)
+    true_scene = dataclasses.replace(scene, codes=tuple(
+        rl.placed_as_drawn(inj.apply_to_payload(c, injected.payloads().get(c.marker_id)), d)
+        for c, d in zip(scene.codes, marker_draws)
+    ))
     timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), total, [CAM_NAME])[CAM_NAME]
+    timing = inj.apply_to_timing(timing, injected.timings().get(CAM_NAME))
     bumps = rl.draw_bumps(realism.bumps, rl.source_rng(seed, "bumps"))
     imaging, jpeg_quality = rl.scenario_imaging(realism, o)
     image_seed = int(seed) % 2**64
@@ -372,14 +434,19 @@ def record(
         imaging=rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band),
     )
     if injected:
-        draws.sources["inject"] = injected.to_json()
+        T_world_cam = [captured[k][0] @ (T_agv_cam_knocked if inj.knocked(knock, (int(capture_ns[k]) - int(stamps_ns[0])) * 1e-9)
+                                         else T_agv_cam) for k in range(total)]
+        draws.sources["inject"] = injected.to_json(_inject_details(
+            injected, true_scene, camera, T_world_cam, stamps_ns, capture_ns, ~timing.dropped, T_agv_cam_knocked,
+        ))
     if not realism.is_ideal or injected:  # an ideal recording stays message for message what it was
         writer.write_metadata(REALISM_METADATA, rl.metadata_values(draws))
 
     t0_ns = int(stamps_ns[0])
     writer.write_calibration(CAM_NAME, calib[CAM_NAME].recorded_camera, t0_ns)
     writer.write_tf_static([(AGV_FRAME, camera_frame(CAM_NAME), calib[CAM_NAME].T_parent_cam_recorded)], t0_ns)
-    writer.write_marker_map(marker_map(scene, o.marker_family), t0_ns)
+    if o.write_map:
+        writer.write_marker_map(marker_map(scene, o.marker_family), t0_ns)
     for k in range(total):
         t_ns, t_capture_ns = int(stamps_ns[k]), int(capture_ns[k])
         T_world_agv_capture = captured[k][0]
@@ -390,13 +457,14 @@ def record(
             writer.write_pose(topics.GROUND_TRUTH_TOPIC, T_world_agv_capture, WORLD_FRAME, t_capture_ns)
         writer.write_pose(topics.ODOMETRY_TOPIC, T_odom_agv[k], "odom", t_ns)
         t_capture_s = (t_capture_ns - t0_ns) * 1e-9
-        T_world_cam_capture = T_world_agv_capture @ T_agv_cam
+        mount = T_agv_cam_knocked if inj.knocked(knock, t_capture_s) else T_agv_cam  # whole frame: its capture's
+        T_world_cam_capture = T_world_agv_capture @ mount
 
-        def pose_at_time(t_s: float, t_capture_s=t_capture_s, T_capture=T_world_cam_capture) -> np.ndarray:
+        def pose_at_time(t_s: float, t_capture_s=t_capture_s, T_capture=T_world_cam_capture, mount=mount) -> np.ndarray:
             """True T_world_cam at t_s (s from the first stamp) during the exposure."""
             if t_s == t_capture_s:
                 return T_capture
-            return bumps.apply(track_pose(track, o.speed_mps, t_s))[0] @ T_agv_cam
+            return bumps.apply(track_pose(track, o.speed_mps, t_s))[0] @ mount
 
         rngs = im.source_rngs(image_seed, rl.FRAME_KEY, k)
         rngs["read_noise"] = rng  # the scenario's own stream: ideal frames are what they were

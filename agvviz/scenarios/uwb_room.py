@@ -41,7 +41,10 @@ rolling shutter; ``time_samples``, ``rows_per_band``), then illumination, vignet
 blur, shot and read noise and JPEG; the capture instant is the middle of the middle row's
 exposure. ``blur_sigma_px``, ``noise_sigma_dn`` and ``jpeg_quality`` set to other than their
 defaults override the profile's (:func:`agvviz.sim.realism.scenario_imaging`). The draws are in the ``agvviz.realism`` metadata record, written before the first message
-(not under ``ideal``).
+(not under ``ideal``). Faults injected on purpose (``inject``, :mod:`agvviz.sim.inject`): the roof
+code moved (``marker:<marker_id>``, AGV frame), a wall camera's extrinsic wrong or knocked from
+``from_s`` on (``camera:<wall>``, world frame) and its images stamped late (``timing:<wall>``);
+each is in the draws' ``inject`` source with the frames it affects (then written under ``ideal`` too).
 """
 
 from __future__ import annotations
@@ -62,6 +65,7 @@ from agvviz.markers.aruco import aruco_modules
 from agvviz.markers.dictionary import aruco_dictionary, is_aruco_dictionary
 from agvviz.sim import imaging as im
 from agvviz.recording.schemas import REALISM_METADATA
+from agvviz.sim import inject as inj
 from agvviz.sim import realism as rl
 from agvviz.sim.render import FloorScene, encode_jpeg
 from agvviz.sim.room import WALLS, agv_pose, grid_points, horizontal_fov_focal_px, look_at, placed, roof_code, wall_points
@@ -122,6 +126,12 @@ class Options:
     realism: str = setting("typical", rl.HELP_PROFILE, rl.PROFILE_NAMES)
     realism_off: str = setting("", rl.HELP_OFF)
     realism_set: str = setting("", rl.HELP_SET)
+    inject: str = setting(
+        "",
+        "errors injected on purpose, ';'-separated: marker:<marker_id>:dx_m=…(agv frame),yaw_deg=…,scale=…; "
+        "camera:<wall>:pitch_deg=…,dz_m=…[,from_s=…] (world frame; from_s: knocked then); "
+        "timing:<wall>:offset_ms=… (walls south, east, north, west; keys in agvviz/sim/inject.py)",
+    )
 
 
 def realism_sources(options: dict) -> tuple[str, ...]:
@@ -175,7 +185,11 @@ def validate(options: Options) -> None:
     count = aruco_dictionary(o.dictionary).bytesList.shape[0]
     if not 0 <= o.marker_id < count:
         raise ValueError(f"marker_id must lie in 0..{count - 1} for {o.dictionary}, got {o.marker_id}")
-    rl.check_timing(rl.make_realism(o.realism, o.realism_off, o.realism_set).timing, 1.0 / o.rate_hz)
+    timing = rl.make_realism(o.realism, o.realism_off, o.realism_set).timing
+    rl.check_timing(timing, 1.0 / o.rate_hz)
+    injected = inj.parse_inject(o.inject)
+    inj.check_targets(injected, [str(o.marker_id)], WALLS, ())
+    inj.check_frame_times(injected, abs(timing.latency_s) + 5.0 * timing.jitter_sigma_s, 1.0 / o.rate_hz, _last_frame_s(o))
     if o.variant == "path":
         half_x = o.track_length_m / 2.0 + o.turn_radius_m
         half_y = o.track_width_m / 2.0 + o.turn_radius_m
@@ -192,6 +206,15 @@ def validate(options: Options) -> None:
             raise ValueError(f"static_point_m {o.static_point_m} is outside the room")
     elif (o.room_length_m <= 6 * o.grid_spacing_m) or (o.room_width_m <= 5 * o.grid_spacing_m):
         raise ValueError(f"a 6 × 5 grid every {o.grid_spacing_m} m does not fit in the room")
+
+
+def _last_frame_s(o: Options) -> float:
+    """The last camera frame's time after the first (as :func:`_schedule` places them)."""
+    if o.variant == "path":
+        return (round(o.duration_s * o.rate_hz) - 1) / o.rate_hz
+    points = 1 if o.static_point_m else 30
+    period_s = max(o.fixes_per_point / o.rate_hz, o.fixes_per_point / o.uwb_rate_hz) + GRID_GAP_S
+    return (points - 1) * period_s + (o.fixes_per_point - 1) / o.rate_hz
 
 
 def make_camera(o: Options) -> PinholeCamera:
@@ -269,6 +292,40 @@ def _standing(true_pose, *times_s: float) -> bool:
     return all(np.array_equal(true_pose(t)[0], first) for t in times_s[1:])
 
 
+def _inject_details(injected, true_code, calib, captures, timing, stamps_ns, schedule, true_pose, T_agv_marker_true, mount) -> dict:
+    """What each injected item affects, for the draws (:meth:`agvviz.sim.inject.InjectSpec.to_json`),
+    by frame stamp (ns) of the frames written (not dropped): a marker item per camera the frames
+    that show the roof code whole (``frames_in_view_ns``), a camera item the frames it affects
+    (``frames_ns``: all, or those captured from ``from_s`` on, then with ``from_ns`` and the
+    knocked true ``T_parent_cam_true_after``), a timing item its ``offset_ns`` and frames."""
+    t0_ns = int(stamps_ns[0])
+    details = {}
+    written = {wall: [k for k in range(len(stamps_ns)) if not timing[wall].dropped[k]] for wall in WALLS}
+    for target in injected.markers():
+        corners = true_code.points_marker_m[:4]
+        in_view = {}
+        for wall in WALLS:
+            ks = [k for k in written[wall] if not schedule.blocked(captures[wall][k])]
+            points = [se3.transform_points(true_pose(captures[wall][k])[0] @ T_agv_marker_true, corners) for k in ks]
+            in_view[wall] = inj.frames_in_view(
+                calib[wall].true_camera, [mount(wall, k) for k in ks], np.array(points).reshape(len(ks), 4, 3), stamps_ns[ks]
+            )
+        details[("marker", target)] = {"frames_in_view_ns": in_view}
+    for wall, item in injected.cameras().items():
+        if item.from_s is None:
+            details[("camera", wall)] = {"frames_ns": [int(stamps_ns[k]) for k in written[wall]]}
+        else:
+            details[("camera", wall)] = {
+                "from_ns": t0_ns + int(round(item.from_s * 1e9)),
+                "frames_ns": [int(stamps_ns[k]) for k in written[wall] if inj.knocked(item, captures[wall][k])],
+                "T_parent_cam_true_after": inj.knocked_mount(calib[wall].T_parent_cam_true, item).tolist(),
+            }
+    for wall, item in injected.timings().items():
+        details[("timing", wall)] = {"offset_ns": int(round(item.get("offset_ms") * 1e6)),
+                                     "frames_ns": [int(stamps_ns[k]) for k in written[wall]]}
+    return details
+
+
 def record(writer, options: Options, seed: int, progress: Callable[[int, int], None] | None = None) -> None:
     """Write the whole recording to ``writer`` (an open :class:`RecordingWriter`).
 
@@ -298,11 +355,17 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
         realism.calibration, rl.source_rng(seed, "calibration"), {wall: (camera, cams[wall]) for wall in WALLS}
     )
     (marker_draw,) = rl.draw_map(realism.map, rl.source_rng(seed, "map"), [(str(o.marker_id), T_agv_marker, o.marker_side_m)])
+    # Errors injected on purpose (option inject, agvviz.sim.inject), on top of the draws.
+    injected = inj.parse_inject(o.inject)
+    marker_draw = inj.apply_to_marker(marker_draw, injected.markers().get(str(o.marker_id)))
+    calib = {wall: inj.apply_to_camera(d, injected.cameras().get(wall)) for wall, d in calib.items()}
+    knocked_cams = {wall: inj.knocked_mount(cams[wall], injected.cameras().get(wall)) for wall in WALLS}
     true_code = rl.placed_as_drawn(code, marker_draw, np.eye(4))  # in the agv frame: placed per frame below
     T_agv_marker_true = marker_draw.T_parent_marker_true
     t0_ns = SIM_START_TIME_NS
     stamps_ns = np.array([t0_ns + int(round(float(t) * 1e9)) for t in schedule.frame_times_s], dtype=np.int64)
     timing = rl.draw_timing(realism.timing, rl.source_rng(seed, "timing"), len(stamps_ns), WALLS)
+    timing = {wall: inj.apply_to_timing(t, injected.timings().get(wall)) for wall, t in timing.items()}
     bumps = rl.draw_bumps(realism.bumps, rl.source_rng(seed, "bumps"))
     imaging, jpeg_quality = rl.scenario_imaging(realism, o)
     image_seed = int(seed) % 2**64
@@ -335,7 +398,16 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
         },
         imaging=rl.imaging_record(imaging, jpeg_quality, o.time_samples, o.rows_per_band),
     )
-    if not realism.is_ideal:  # an ideal recording stays message for message what it was
+
+    def mount(wall: str, k: int) -> np.ndarray:
+        """Camera ``wall``'s true T_world_cam for its frame k (knocked from ``from_s`` on)."""
+        return knocked_cams[wall] if inj.knocked(injected.cameras().get(wall), captures[wall][k]) else cams[wall]
+
+    if injected:
+        draws.sources["inject"] = injected.to_json(_inject_details(
+            injected, true_code, calib, captures, timing, stamps_ns, schedule, true_pose, T_agv_marker_true, mount,
+        ))
+    if not realism.is_ideal or injected:  # an ideal recording stays message for message what it was
         writer.write_metadata(REALISM_METADATA, rl.metadata_values(draws))
 
     for wall in WALLS:
@@ -401,7 +473,7 @@ def record(writer, options: Options, seed: int, progress: Callable[[int, int], N
             codes = () if schedule.blocked(t_capture_s) else (placed(printed_code, T_world_marker_capture),)
             scene = FloorScene(codes=codes, floor_dn=float(roof_dn), black_dn=float(black_dn), white_dn=float(white_dn))
 
-            def pose_at_time(t_exposure_s: float, t_capture_s=t_capture_s, M0=T_world_marker_capture, C=cams[wall]):
+            def pose_at_time(t_exposure_s: float, t_capture_s=t_capture_s, M0=T_world_marker_capture, C=mount(wall, k)):
                 """The wall camera as seen from the code held at its capture pose M0: the code
                 at M(t) seen from C is the code at M0 seen from M0·M(t)⁻¹·C (the roof around
                 it is uniform)."""

@@ -574,7 +574,9 @@ class Draws:
     it): ``calibration`` {camera: :meth:`CameraDraw.to_json`}, ``map`` [:meth:`MarkerDraw.to_json`],
     ``timing`` {"stamp_ns": [...], "cameras": {camera: :meth:`CameraTiming.to_json`}},
     ``bumps`` {"field": …, "capture_ns": [...], "pitch_deg": {camera: [...]}, "roll_deg": …}
-    or per-frame lists, ``slip`` {"fraction": [...]} per odometry step.
+    or per-frame lists, ``slip`` {"fraction": [...]} per odometry step; ``inject`` (only when the
+    scenario option ``inject`` is set) [:meth:`agvviz.sim.inject.InjectSpec.to_json`]: each
+    injected fault with the frames it affects.
     """
 
     profile: str
