@@ -32,7 +32,8 @@ frame is skipped.
 6. **uwb** — the camera position against the latest UWB fix (at most ``UWB_MAX_DT_NS`` older),
    2-D, with the fix's covariance (or ``uwb_sigma_m``) and the motion in between.
 7. **time** — each camera's stamp step against its frame period (the median of the steps so
-   far): gaps and duplicates.
+   far): a step off every whole number of periods, or a repeated frame, fails (a whole number of
+   periods is frames dropped: noted, not failed).
 
 :func:`suspect_stretches` groups consecutive suspects of one cause (what the terminal lists and
 the plots mark); :func:`suspects_summary` is the run summary's ``suspects`` entry.
@@ -92,6 +93,9 @@ TIME_JITTER_SHARE = 0.1
 TIME_OFFSET_MIN_S = 0.003
 TIME_OFFSET_MAX_S = 0.5
 
+#: Checks whose failure doubts the pose itself (a failing frame is then no reference for the next).
+POSE_CHECKS = (CHECK_MOTION, CHECK_AMBIGUITY, CHECK_CAMERAS, CHECK_UWB)
+
 NEXT_STEP = {
     CAUSE_MAP_ENTRY: "`agvviz audit` can estimate where it is",
     CAUSE_PAYLOAD: "compare the code's payload with the marker map (`agvviz inspect`), re-print the code",
@@ -123,8 +127,8 @@ class CheckSettings:
     """The check stage's parameters (``checks_*`` run settings, docs/suspects.md)."""
 
     limit_sigma: float = 5.0
-    pose_floor_m: float = 0.005
-    pose_floor_rad: float = math.radians(0.3)
+    pose_floor_m: float = 0.002
+    pose_floor_rad: float = math.radians(0.1)
     odom_m_per_m: float = 0.02
     odom_rad_per_m: float = math.radians(0.5)
     odom_rad_per_rad: float = 0.02
@@ -198,6 +202,9 @@ class _CameraState:
     reference: _Reference | None = None
     stretch_start_odometry: np.ndarray | None = None  # odometry where the current failing stretch began
     last_suspect: Suspect | None = None
+    last_suspect_frame: FrameResult | None = None
+    last_suspect_odometry: np.ndarray | None = None
+    stretch_n: int = 0  # suspect frames in the current failing stretch
     last_time_ns: int | None = None
     steps_ns: deque = None
     pair_counts: dict = None  # other camera -> [compared, failed]
@@ -257,9 +264,15 @@ class CheckStage:
                     finding = (CAUSE_MIRROR_FLIP, f"mirror-pose flip: {ambiguity.detail}", None, None)
             if result.failed and finding is None:
                 finding = self._explain_motion(frame, state, ref.frame, delta, result)
+            elif not result.failed:
+                inherited = self._persisting(frame, state, odometry, delta)
+                if inherited is not None:
+                    results[-1] = inherited[0]
+                    finding = inherited[1]
         marker_results, marker_finding = self._markers(frame)
         results += marker_results
-        finding = finding or marker_finding
+        if marker_finding is not None and (finding is None or finding[0] != CAUSE_MIRROR_FLIP):
+            finding = marker_finding  # a marker left out names itself: better evidence than a step
         payload = self._payload(frame)
         if payload is not None:
             results.append(payload[0])
@@ -291,7 +304,10 @@ class CheckStage:
             check=worst.check, sigma=float(worst.sigma), cause=cause, message=message,
             next_step=NEXT_STEP.get(cause, ""), marker_id=marker_id, checks=tuple(results),
         )
-        self._failed(frame, state, odometry, suspect)
+        if any(r.check in POSE_CHECKS and r.failed for r in results):
+            self._failed(frame, state, odometry, suspect)
+        else:
+            self._clean(frame, state, odometry)  # the pose itself passed: a marker, payload or stamp is suspect
         self.frames_suspect += 1
         return replace(frame, suspect=suspect)
 
@@ -306,9 +322,13 @@ class CheckStage:
         state.reference = _Reference(frame, odometry, velocity)
         state.stretch_start_odometry = None
         state.last_suspect = None
+        state.last_suspect_frame = None
+        state.stretch_n = 0
 
     def _failed(self, frame, state: _CameraState, odometry, suspect: Suspect) -> None:
         state.last_suspect = suspect
+        state.last_suspect_frame, state.last_suspect_odometry = frame, odometry
+        state.stretch_n += 1
         if odometry is None or state.reference is None:
             if state.reference is None:
                 state.reference = _Reference(frame, odometry)
@@ -361,6 +381,35 @@ class CheckStage:
         )
         return CheckResult(CHECK_MOTION, sigma, cs.limit_sigma, detail), delta, (predicted, C), ref
 
+    def _persisting(self, frame: FrameResult, state: _CameraState, odometry, delta):
+        """A frame that passes the motion check only because the odometry's σ grew, while it sees
+        the same codes as the suspect frame before it and its step from that frame agrees with the
+        odometry: the suspect frame's error is carried on (a wrong map entry or mount moves every
+        pose of the stretch alike). (CheckResult, finding) or None."""
+        last, last_frame = state.last_suspect, state.last_suspect_frame
+        if last is None or last_frame is None or last.cause == CAUSE_MIRROR_FLIP or last.check != CHECK_MOTION:
+            return None
+        if set(frame.used_marker_ids) != set(last_frame.used_marker_ids):
+            return None
+        step = self._motion(frame, _CameraState(reference=_Reference(last_frame, state.last_suspect_odometry)), odometry)
+        if step is None or step[0].failed:
+            return None
+        detail = (
+            f"same code{'s' if len(frame.used_marker_ids) > 1 else ''} {', '.join(frame.used_marker_ids)} as suspect frame "
+            f"{last_frame.index} and a step that agrees with it ({step[0].sigma:.1f}σ): its error persists "
+            f"(now {_size(delta)} from the carried pose)"
+        )
+        result = CheckResult(CHECK_MOTION, float(last.sigma), self.settings.limit_sigma, detail)
+        cause, marker, cam = last.cause, last.marker_id, None if last.marker_id else last.cam_name
+        message = last.message
+        if cause == CAUSE_UNKNOWN and marker is None and state.stretch_n + 1 >= 3:
+            cause = CAUSE_EXTRINSIC
+            message = (
+                f"pose of camera {frame.cam_name} stays {_size(delta)} off the pose the odometry carries for "
+                f"{state.stretch_n + 1} frames with the same codes in view: camera {frame.cam_name}'s extrinsic (mount)?"
+            )
+        return result, (cause, message, marker, cam)
+
     def _explain_motion(self, frame, state: _CameraState, ref_frame: FrameResult, delta, result: CheckResult):
         """(cause, message, marker id, camera) of a motion failure."""
         used = set(frame.used_marker_ids)
@@ -372,7 +421,7 @@ class CheckStage:
             marker = new[0] if len(new) == 1 else (frame.used_marker_id if new else None)
         size = _size(delta)
         if marker is not None:
-            others = ", ".join(ref_frame.used_marker_ids) or "the markers before"
+            others = ", ".join(m for m in ref_frame.used_marker_ids if m != marker) or "the codes before"
             mapped = marker in self.qr_map()
             where = "map entry" if mapped else "payload coordinates"
             return (
@@ -384,17 +433,19 @@ class CheckStage:
             )
         markers = ", ".join(frame.used_marker_ids)
         return (
-            CAUSE_EXTRINSIC,
+            CAUSE_UNKNOWN,
             f"pose of camera {frame.cam_name} jumped by {size} against the {result.detail.split('carried by the ')[-1]} "
             f"({result.sigma:.1f}σ) with the same code{'s' if len(frame.used_marker_ids) > 1 else ''} {markers} in view: "
-            f"camera {frame.cam_name}'s extrinsic (mount) or the odometry?",
+            f"a bad detection, camera {frame.cam_name}'s extrinsic (mount) or the odometry?",
             None, frame.cam_name,
         )
 
     # -- (3) ambiguity --------------------------------------------------------------------------
     def _ambiguity(self, frame, predicted, ref, odometry, motion: CheckResult) -> CheckResult | None:
         ratio = frame.ambiguity_ratio
-        if frame.T_world_agv_ghost is None or ratio is None or ratio >= self.settings.ambiguity_ratio:
+        if frame.T_world_agv_ghost is None or ratio is None:
+            return None
+        if ratio >= self.settings.ambiguity_ratio and not motion.failed:
             return None
         T_pred, C = predicted
         ghost_sigma = mahalanobis_sigma(pose_difference(T_pred, frame.T_world_agv_ghost), C)
@@ -473,6 +524,17 @@ class CheckStage:
         result = CheckResult(CHECK_CAMERAS, sigma, cs.limit_sigma, detail)
         if not result.failed:
             return result, None
+        if frame.T_world_agv_ghost is not None:
+            ghost_sigma = mahalanobis_sigma(
+                pose_difference(other.T_world_agv, frame.T_world_agv_ghost), pose_cov(frame, cs) + pose_cov(other, cs)
+            )
+            if ghost_sigma <= cs.limit_sigma:
+                ratio = f"ambiguity ratio {frame.ambiguity_ratio:.2f}, " if frame.ambiguity_ratio is not None else ""
+                return result, (
+                    CAUSE_MIRROR_FLIP,
+                    f"mirror-pose flip: {ratio}the other pose agrees with camera {other.cam_name} ({ghost_sigma:.1f}σ, "
+                    f"the chosen one {sigma:.1f}σ)", None, frame.cam_name,
+                )
         offset_s = self._time_offset(frame, state, delta)
         if offset_s is not None:
             return result, (
@@ -541,11 +603,17 @@ class CheckStage:
         if len(steps) >= 3:
             period_ns = float(np.median(steps))
             jitter_ns = max(TIME_JITTER_S * 1e9, TIME_JITTER_SHARE * period_ns)
-            sigma = abs(step_ns - period_ns) / jitter_ns
+            # A step of a whole number of periods is frames dropped: the stamps are right and the
+            # pose is not in doubt (said in the detail, not failed); a step off every multiple of
+            # the period, or a repeated frame, fails.
+            multiple = max(1, round(step_ns / period_ns))
+            sigma = abs(step_ns - multiple * period_ns) / jitter_ns
+            if step_ns < 0.5 * period_ns:
+                sigma = max(sigma, abs(step_ns - period_ns) / jitter_ns)
             what = (
                 f"{step_ns / 1e6:.0f} ms after the previous frame, frame period {period_ns / 1e6:.0f} ms"
-                + (f": {round(step_ns / period_ns) - 1} frame(s) dropped?" if step_ns > 1.5 * period_ns
-                   else ": a repeated frame?" if step_ns < 0.5 * period_ns else "")
+                + (": a repeated frame?" if step_ns < 0.5 * period_ns
+                   else f": {multiple - 1} frame(s) dropped" if multiple > 1 else "")
             )
             result = CheckResult(CHECK_TIME, sigma, self.settings.limit_sigma, what)
         if step_ns > 0:
