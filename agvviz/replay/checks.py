@@ -47,6 +47,7 @@ from dataclasses import dataclass, replace
 from typing import Iterable, Mapping
 
 import numpy as np
+from scipy.special import chdtrc, ndtri
 
 from agvviz.geometry import so3
 from agvviz.model.frames import FrameResult
@@ -88,7 +89,7 @@ PERSISTENT_MIN = 5
 #: max(TIME_JITTER_S, TIME_JITTER_SHARE × period).
 TIME_HISTORY = 50
 TIME_JITTER_S = 0.002
-TIME_JITTER_SHARE = 0.1
+TIME_JITTER_SHARE = 0.05
 #: A time offset explains a camera disagreement when the offset fitted to it lies within these bounds (s).
 TIME_OFFSET_MIN_S = 0.003
 TIME_OFFSET_MAX_S = 0.5
@@ -109,14 +110,18 @@ NEXT_STEP = {
 
 
 def chi2_sigma(d2: float, dof: int) -> float:
-    """A χ²_dof value as the normal σ of the same upper tail (Wilson–Hilferty; ≥ 0, finite for
-    any finite d²): 1 dof gives √d², 6 dof at d² = 16.8 (p = 1 %) about 2.3 σ."""
+    """A χ²_dof value as the normal σ of the same upper tail (≥ 0): 1 dof gives √d²; 6 dof at
+    d² = 41.0 gives 5 σ. Exact (scipy.special) while the tail is representable, then the
+    Wilson–Hilferty approximation (slightly low there: conservative)."""
     if not math.isfinite(d2):
         return math.inf
     if d2 <= 0:
         return 0.0
     if dof == 1:
         return math.sqrt(d2)
+    p = float(chdtrc(dof, d2))
+    if p > 1e-300:
+        return max(0.0, float(-ndtri(p)))
     k = float(dof)
     z = ((d2 / k) ** (1.0 / 3.0) - (1.0 - 2.0 / (9.0 * k))) / math.sqrt(2.0 / (9.0 * k))
     return max(0.0, z)
