@@ -1,53 +1,13 @@
-"""The check stage: every solved pose checked against what else the log knows, truth not needed (issue 25).
-
-Runs in the graph right after solve (:mod:`agvviz.replay.graph`), before a frame reaches the
-sinks, and sets :attr:`~agvviz.model.frames.FrameResult.suspect` on a frame that fails a check.
-It never reads ground truth (a frame's ``T_world_agv_truth`` and errors are not looked at), so
-``truth=ignore`` gives the same suspects. Each check compares the pose with one independent
-witness and turns the disagreement into standard deviations (σ): a Mahalanobis distance d² with
-k degrees of freedom is given as the normal quantile of its χ²_k tail (:func:`chi2_sigma`), so
-every check has one scale and one limit (``checks_limit_sigma``). A check without a witness on a
-frame is skipped.
-
-1. **motion** — the pose against the last clean pose of the same camera carried forward by the
-   odometry (``SyncState.odometry_at``), or by a constant-velocity model without odometry: the
-   6-DoF difference (position in the world, rotation vector) against both poses' covariances,
-   each with a systematic floor (``checks_pose_floor_m`` / ``_deg``: today's covariance models
-   pixel noise only), plus the odometry's noise per metre and per degree turned. A failing
-   frame does not become the reference, so a stretch of frames on a wrong map entry keeps
-   failing (a rigid error of the map leaves frame-to-frame steps intact: only the carried
-   reference sees it). After ``REANCHOR_M`` of travel in one failing stretch the reference
-   moves on (the odometry itself may have jumped).
-2. **markers** — the joint solve's χ² test of each marker against the joint pose
-   (:class:`~agvviz.solvers.joint.MarkerCheck`): a marker left out names itself.
-3. **ambiguity** — with an IPPE ratio under ``checks_ambiguity_ratio``, the rejected mirror pose
-   (``T_world_agv_ghost``) against the same motion witness: when it agrees and the chosen one
-   does not, the cause is a mirror flip.
-4. **payload** — each used code's payload coordinates against its map entry (σ of a map entry
-   ``checks_map_sigma_m``); a motion failure that a code explains is blamed on its map entry, or
-   on its payload when the code has no map entry (payload-only recordings).
-5. **cameras** — on a rig, a camera's pose against the other cameras' poses at the same stamp;
-   a disagreement along the motion whose size follows the speed is a time offset, else the
-   camera's extrinsic ("on every frame" once it persists).
-6. **uwb** — the camera position against the latest UWB fix (at most ``UWB_MAX_DT_NS`` older),
-   2-D, with the fix's covariance (or ``uwb_sigma_m``) and the motion in between.
-7. **time** — each camera's stamp step against its frame period (the median of the steps so
-   far): a step off every whole number of periods, or a repeated frame, fails (a whole number of
-   periods is frames dropped: noted, not failed).
-
-:func:`suspect_stretches` groups consecutive suspects of one cause (what the terminal lists and
-the plots mark); :func:`suspects_summary` is the run summary's ``suspects`` entry.
-"""
+"""The check stage itself (:class:`CheckStage`): per camera, the motion reference and the stamp
+history; per time stamp, the other cameras' poses; the latest UWB fix. See :mod:`agvviz.replay.checks`."""
 
 from __future__ import annotations
 
 import math
 from collections import deque
 from dataclasses import dataclass, replace
-from typing import Iterable, Mapping
 
 import numpy as np
-from scipy.special import chdtrc, ndtri
 
 from agvviz.geometry import so3
 from agvviz.model.frames import FrameResult
@@ -60,7 +20,6 @@ from agvviz.model.suspects import (
     CAUSE_TIME_STAMPS,
     CAUSE_UNKNOWN,
     CAUSE_UWB,
-    CAUSES,
     CHECK_AMBIGUITY,
     CHECK_CAMERAS,
     CHECK_MARKERS,
@@ -68,128 +27,32 @@ from agvviz.model.suspects import (
     CHECK_PAYLOAD,
     CHECK_TIME,
     CHECK_UWB,
-    CHECKS,
     CheckResult,
     Suspect,
-    SuspectStretch,
+)
+from agvviz.replay.checks.common import (
+    CV_ACCEL_MPS2,
+    CV_ANGULAR_ACCEL_RADPS2,
+    NEXT_STEP,
+    PERSISTENT_MIN,
+    PERSISTENT_SHARE,
+    POSE_CHECKS,
+    REANCHOR_M,
+    TIME_HISTORY,
+    TIME_JITTER_S,
+    TIME_JITTER_SHARE,
+    TIME_OFFSET_MAX_S,
+    TIME_OFFSET_MIN_S,
+    UWB_MAX_DT_NS,
+    CheckSettings,
+    angle_deg,
+    chi2_sigma,
+    mahalanobis_sigma,
+    pose_cov,
+    pose_difference,
+    size_text,
 )
 from agvviz.settings import RunSettings
-
-#: A failing stretch longer than this (metres of odometry travel) moves the motion check's reference on.
-REANCHOR_M = 5.0
-#: Without odometry: the constant-velocity model's σ of acceleration (m/s², rad/s²).
-CV_ACCEL_MPS2 = 2.0
-CV_ANGULAR_ACCEL_RADPS2 = 2.0
-#: The UWB fix a frame is compared with is at most this much older than the frame.
-UWB_MAX_DT_NS = 200_000_000
-#: A camera disagreeing with the others on at least this share of at least this many stamps: "on every frame".
-PERSISTENT_SHARE = 0.8
-PERSISTENT_MIN = 5
-#: Frame-period estimate: steps remembered per camera; a stamp step is judged with a jitter σ of
-#: max(TIME_JITTER_S, TIME_JITTER_SHARE × period).
-TIME_HISTORY = 50
-TIME_JITTER_S = 0.002
-TIME_JITTER_SHARE = 0.05
-#: A time offset explains a camera disagreement when the offset fitted to it lies within these bounds (s).
-TIME_OFFSET_MIN_S = 0.003
-TIME_OFFSET_MAX_S = 0.5
-
-#: Checks whose failure doubts the pose itself (a failing frame is then no reference for the next).
-POSE_CHECKS = (CHECK_MOTION, CHECK_AMBIGUITY, CHECK_CAMERAS, CHECK_UWB)
-
-NEXT_STEP = {
-    CAUSE_MAP_ENTRY: "`agvviz audit` can estimate where it is",
-    CAUSE_PAYLOAD: "compare the code's payload with the marker map (`agvviz inspect`), re-print the code",
-    CAUSE_MIRROR_FLIP: "try `--set ambiguity=odometry`, or look at the code more squarely",
-    CAUSE_EXTRINSIC: "`agvviz audit` can estimate the camera's extrinsic",
-    CAUSE_TIME_OFFSET: "check the camera's time stamps (driver latency); `--set time_source=header` if the headers are right",
-    CAUSE_TIME_STAMPS: "check the recording for dropped or repeated frames (`agvviz inspect`)",
-    CAUSE_UWB: "look at the UWB ranges of this stretch (NLOS?) and the camera's markers",
-    CAUSE_UNKNOWN: "look at the frame's markers and the odometry around it",
-}
-
-
-def chi2_sigma(d2: float, dof: int) -> float:
-    """A χ²_dof value as the normal σ of the same upper tail (≥ 0): 1 dof gives √d²; 6 dof at
-    d² = 41.0 gives 5 σ. Exact (scipy.special) while the tail is representable, then the
-    Wilson–Hilferty approximation (slightly low there: conservative)."""
-    if not math.isfinite(d2):
-        return math.inf
-    if d2 <= 0:
-        return 0.0
-    if dof == 1:
-        return math.sqrt(d2)
-    p = float(chdtrc(dof, d2))
-    if p > 1e-300:
-        return max(0.0, float(-ndtri(p)))
-    k = float(dof)
-    z = ((d2 / k) ** (1.0 / 3.0) - (1.0 - 2.0 / (9.0 * k))) / math.sqrt(2.0 / (9.0 * k))
-    return max(0.0, z)
-
-
-@dataclass(frozen=True)
-class CheckSettings:
-    """The check stage's parameters (``checks_*`` run settings, docs/suspects.md)."""
-
-    limit_sigma: float = 5.0
-    pose_floor_m: float = 0.002
-    pose_floor_rad: float = math.radians(0.1)
-    odom_m_per_m: float = 0.02
-    odom_rad_per_m: float = math.radians(0.5)
-    odom_rad_per_rad: float = 0.02
-    ambiguity_ratio: float = 4.0
-    map_sigma_m: float = 0.005
-    uwb_sigma_m: float = 0.1
-
-    @classmethod
-    def of(cls, settings: RunSettings) -> "CheckSettings":
-        return cls(
-            limit_sigma=settings.checks_limit_sigma, pose_floor_m=settings.checks_pose_floor_m,
-            pose_floor_rad=math.radians(settings.checks_pose_floor_deg), odom_m_per_m=settings.checks_odom_m_per_m,
-            odom_rad_per_m=math.radians(settings.checks_odom_deg_per_m),
-            odom_rad_per_rad=settings.checks_odom_deg_per_deg, ambiguity_ratio=settings.checks_ambiguity_ratio,
-            map_sigma_m=settings.checks_map_sigma_m, uwb_sigma_m=settings.uwb_sigma_m,
-        )
-
-
-# -- pose arithmetic ------------------------------------------------------------------------------
-def pose_cov(frame: FrameResult, cs: CheckSettings) -> np.ndarray:
-    """(6, 6) covariance of (position in the world, rotation vector) of the frame's AGV pose:
-    its own (position block and rotation block; none: zeros) plus the systematic floors."""
-    C = np.zeros((6, 6))
-    if frame.cov_world_agv is not None and np.all(np.isfinite(frame.cov_world_agv)):
-        C[3:, 3:] = frame.cov_world_agv[3:, 3:]
-        if frame.position_cov_world_m2 is not None:
-            C[:3, :3] = frame.position_cov_world_m2
-        else:
-            C[:3, :3] = frame.cov_world_agv[:3, :3]
-    C[:3, :3] += np.eye(3) * cs.pose_floor_m**2
-    C[3:, 3:] += np.eye(3) * cs.pose_floor_rad**2
-    return C
-
-
-def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
-    """(6,) ``T_b`` − ``T_a``: position difference in the world and the rotation vector of R_b R_aᵀ."""
-    return np.concatenate([T_b[:3, 3] - T_a[:3, 3], so3.log(T_b[:3, :3] @ T_a[:3, :3].T)])
-
-
-def mahalanobis_sigma(delta: np.ndarray, cov: np.ndarray) -> float:
-    """The difference ``delta`` against ``cov`` as σ (:func:`chi2_sigma` of d², dof = its length)."""
-    try:
-        d2 = float(delta @ np.linalg.solve(cov, delta))
-    except np.linalg.LinAlgError:
-        d2 = float(delta @ np.linalg.pinv(cov) @ delta)
-    return chi2_sigma(d2, len(delta))
-
-
-def _angle_deg(delta: np.ndarray) -> float:
-    return math.degrees(float(np.linalg.norm(delta[3:])))
-
-
-def _size(delta: np.ndarray) -> str:
-    """"2.78 m, 90.0°" / "42 mm, 0.3°"."""
-    d = float(np.linalg.norm(delta[:3]))
-    return (f"{d:.2f} m" if d >= 1.0 else f"{d * 1000:.0f} mm") + f", {_angle_deg(delta):.1f}°"
 
 
 # -- per-camera state ------------------------------------------------------------------------------
@@ -382,7 +245,7 @@ class CheckStage:
         delta = pose_difference(predicted, frame.T_world_agv)
         sigma = mahalanobis_sigma(delta, C)
         detail = (
-            f"pose {_size(delta)} from frame {ref.frame.index} carried by the {witness}"
+            f"pose {size_text(delta)} from frame {ref.frame.index} carried by the {witness}"
         )
         return CheckResult(CHECK_MOTION, sigma, cs.limit_sigma, detail), delta, (predicted, C), ref
 
@@ -402,7 +265,7 @@ class CheckStage:
         detail = (
             f"same code{'s' if len(frame.used_marker_ids) > 1 else ''} {', '.join(frame.used_marker_ids)} as suspect frame "
             f"{last_frame.index} and a step that agrees with it ({step[0].sigma:.1f}σ): its error persists "
-            f"(now {_size(delta)} from the carried pose)"
+            f"(now {size_text(delta)} from the carried pose)"
         )
         result = CheckResult(CHECK_MOTION, float(last.sigma), self.settings.limit_sigma, detail)
         cause, marker, cam = last.cause, last.marker_id, None if last.marker_id else last.cam_name
@@ -410,7 +273,7 @@ class CheckStage:
         if cause == CAUSE_UNKNOWN and marker is None and state.stretch_n + 1 >= 3:
             cause = CAUSE_EXTRINSIC
             message = (
-                f"pose of camera {frame.cam_name} stays {_size(delta)} off the pose the odometry carries for "
+                f"pose of camera {frame.cam_name} stays {size_text(delta)} off the pose the odometry carries for "
                 f"{state.stretch_n + 1} frames with the same codes in view: camera {frame.cam_name}'s extrinsic (mount)?"
             )
         return result, (cause, message, marker, cam)
@@ -424,7 +287,7 @@ class CheckStage:
         else:
             new = [m for m in frame.used_marker_ids if m not in set(ref_frame.used_marker_ids)]
             marker = new[0] if len(new) == 1 else (frame.used_marker_id if new else None)
-        size = _size(delta)
+        size = size_text(delta)
         if marker is not None:
             others = ", ".join(m for m in ref_frame.used_marker_ids if m != marker) or "the codes before"
             mapped = marker in self.qr_map()
@@ -525,7 +388,7 @@ class CheckStage:
         counts = state.pair_counts.setdefault(other.cam_name, [0, 0])
         counts[0] += 1
         counts[1] += sigma > cs.limit_sigma
-        detail = f"camera {frame.cam_name} {_size(delta)} from camera {other.cam_name}"
+        detail = f"camera {frame.cam_name} {size_text(delta)} from camera {other.cam_name}"
         result = CheckResult(CHECK_CAMERAS, sigma, cs.limit_sigma, detail)
         if not result.failed:
             return result, None
@@ -544,15 +407,15 @@ class CheckStage:
         if offset_s is not None:
             return result, (
                 CAUSE_TIME_OFFSET,
-                f"camera {frame.cam_name} disagrees with {other.cam_name} by {_size(delta)} along its motion: "
+                f"camera {frame.cam_name} disagrees with {other.cam_name} by {size_text(delta)} along its motion: "
                 f"its stamps {'lag' if offset_s > 0 else 'lead'} by about {abs(offset_s) * 1000:.0f} ms",
                 None, frame.cam_name,
             )
         every = counts[0] >= PERSISTENT_MIN and counts[1] >= PERSISTENT_SHARE * counts[0]
         return result, (
             CAUSE_EXTRINSIC,
-            f"camera {frame.cam_name} disagrees with {other.cam_name} by {_size(delta)} ({sigma:.1f}σ)"
-            + (f" on every frame ({counts[1]} of {counts[0]})" if every else "") + f": its extrinsic?",
+            f"camera {frame.cam_name} disagrees with {other.cam_name} by {size_text(delta)} ({sigma:.1f}σ)"
+            + (f" on every frame ({counts[1]} of {counts[0]})" if every else "") + ": its extrinsic?",
             None, frame.cam_name,
         )
 
@@ -574,7 +437,7 @@ class CheckStage:
         across = float(np.linalg.norm(delta[:3] + v * offset))
         if not TIME_OFFSET_MIN_S <= abs(offset) <= TIME_OFFSET_MAX_S or across > 0.3 * float(np.linalg.norm(delta[:3])):
             return None
-        if _angle_deg(delta) > 0.5 + math.degrees(float(np.linalg.norm(pose_difference(ref.frame.T_world_agv, frame.T_world_agv)[3:])) * abs(offset) / dt):
+        if angle_deg(delta) > 0.5 + math.degrees(float(np.linalg.norm(pose_difference(ref.frame.T_world_agv, frame.T_world_agv)[3:])) * abs(offset) / dt):
             return None  # a rotation the motion does not explain: a mount, not a clock
         return offset
 
@@ -624,77 +487,6 @@ class CheckStage:
         if step_ns > 0:
             steps.append(step_ns)
         return result
-
-
-# -- stretches and the summary ------------------------------------------------------------------
-def suspect_stretches(frames: Iterable) -> list[SuspectStretch]:
-    """Consecutive suspect frames of one camera with one cause (and the same marker / camera named),
-    no clean solved frame between them; rejected frames do not break a stretch. ``frames``: anything
-    with ``index``, ``cam_name``, ``solved`` and ``suspect`` (a :class:`FrameResult`), in file order.
-    Stretches are listed by their first frame."""
-    open_: dict[str, list] = {}  # camera -> [stretch fields]
-    done: list[SuspectStretch] = []
-
-    def close(cam: str) -> None:
-        s = open_.pop(cam, None)
-        if s is not None:
-            done.append(SuspectStretch(**s))
-
-    for frame in frames:
-        suspect = frame.suspect
-        cam = frame.cam_name
-        if suspect is None:
-            if frame.solved:
-                close(cam)
-            continue
-        s = open_.get(cam)
-        if s is not None and (s["cause"], s["marker_id"], s["cam_name"]) == (suspect.cause, suspect.marker_id, suspect.cam_name):
-            s["last_frame"], s["last_time_ns"] = suspect.frame_index, suspect.log_time_ns
-            s["n_frames"] += 1
-            s["max_sigma"] = max(s["max_sigma"], suspect.sigma)
-            continue
-        close(cam)
-        open_[cam] = dict(
-            first_frame=suspect.frame_index, last_frame=suspect.frame_index, first_time_ns=suspect.log_time_ns,
-            last_time_ns=suspect.log_time_ns, n_frames=1, cause=suspect.cause, message=suspect.message,
-            next_step=suspect.next_step, cam_name=suspect.cam_name, marker_id=suspect.marker_id,
-            max_sigma=float(suspect.sigma),
-        )
-    for cam in list(open_):
-        close(cam)
-    return sorted(done, key=lambda s: (s.first_frame, s.first_time_ns, s.cam_name))
-
-
-def stretch_dict(stretch: SuspectStretch) -> dict:
-    """A stretch as plain values (the summary stores it)."""
-    return {
-        "first_frame": stretch.first_frame, "last_frame": stretch.last_frame,
-        "first_time_ns": stretch.first_time_ns, "last_time_ns": stretch.last_time_ns,
-        "n_frames": stretch.n_frames, "cause": stretch.cause, "message": stretch.message,
-        "next_step": stretch.next_step, "cam_name": stretch.cam_name, "marker_id": stretch.marker_id,
-        "max_sigma": round(float(stretch.max_sigma), 3),
-    }
-
-
-def suspects_summary(frames: Iterable, checked: bool = True) -> dict:
-    """The run summary's ``suspects`` entry: ``checked`` (the check stage ran), ``frames`` (suspect
-    frames), ``solved`` (solved frames checked), ``by_cause`` and ``by_check`` (counts, every name
-    of :data:`CAUSES` / :data:`CHECKS` present, zeros included), ``stretches`` (:func:`stretch_dict` each)."""
-    frames = list(frames)
-    suspects = [f.suspect for f in frames if f.suspect is not None]
-    by_cause = {c: 0 for c in CAUSES}
-    by_check = {c: 0 for c in CHECKS}
-    for s in suspects:
-        by_cause[s.cause] = by_cause.get(s.cause, 0) + 1
-        by_check[s.check] = by_check.get(s.check, 0) + 1
-    return {
-        "checked": bool(checked),
-        "frames": len(suspects),
-        "solved": sum(1 for f in frames if f.solved),
-        "by_cause": by_cause,
-        "by_check": by_check,
-        "stretches": [stretch_dict(s) for s in suspect_stretches(frames)],
-    }
 
 
 def check_stage(settings: RunSettings, sync, ctx) -> CheckStage | None:
