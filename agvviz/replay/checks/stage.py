@@ -73,6 +73,7 @@ class _CameraState:
     last_suspect_frame: FrameResult | None = None
     last_suspect_odometry: np.ndarray | None = None
     stretch_n: int = 0  # suspect frames in the current failing stretch
+    uwb_failed: tuple = (None, False)  # (stamp of the UWB fix last compared, whether it failed)
     last_time_ns: int | None = None
     steps_ns: deque = None
     pair_counts: dict = None  # other camera -> [compared, failed]
@@ -94,7 +95,7 @@ class CheckStage:
         self.qr_map = qr_map if qr_map is not None else (lambda: {})
         self.cameras: dict[str, _CameraState] = {}
         self._stamp_ns: int | None = None
-        self._at_stamp: list[FrameResult] = []  # solved frames of other cameras at the current stamp
+        self._at_stamp: list[FrameResult] = []  # undoubted solved frames at the current stamp
         self._uwb: tuple[int, np.ndarray, np.ndarray] | None = None  # (t_ns, xy, cov 2x2)
         self.frames_checked = 0
         self.frames_suspect = 0
@@ -139,8 +140,27 @@ class CheckStage:
                     finding = inherited[1]
         marker_results, marker_finding = self._markers(frame)
         results += marker_results
-        if marker_finding is not None and (finding is None or finding[0] != CAUSE_MIRROR_FLIP):
-            finding = marker_finding  # a marker left out names itself: better evidence than a step
+        motion_failed = motion is not None and motion[0].failed
+        if marker_finding is not None and not motion_failed:
+            finding = marker_finding  # the pose passed: the marker left out names itself
+        elif marker_finding is not None and finding is not None and finding[0] in (CAUSE_MAP_ENTRY, CAUSE_PAYLOAD):
+            # The pose fails the motion check although the joint solve left a marker out: the
+            # markers it kept are the wrong ones; the left-out one agrees with the motion.
+            left_out = marker_finding[2]
+            offset = next((c.own_offset_m for c in frame.marker_checks if c.marker_id == left_out), None)
+            by = f" by {offset:.2f} m" if offset is not None and offset >= 1.0 else (
+                f" by {offset * 1000:.0f} mm" if offset is not None else "")
+            blamed = finding[2]
+            where = "map entry is" if finding[0] == CAUSE_MAP_ENTRY else "payload coordinates are"
+            finding = (
+                finding[0],
+                f"code {blamed} disagrees with {left_out}{by} and with the "
+                f"{'odometry' if 'odometry' in motion[0].detail else 'motion'} by {size_text(motion[1])} "
+                f"({motion[0].sigma:.1f}σ): {blamed}'s {where} likely wrong",
+                blamed, None,
+            )
+        elif marker_finding is not None and finding is None:
+            finding = marker_finding
         payload = self._payload(frame)
         if payload is not None:
             results.append(payload[0])
@@ -152,16 +172,21 @@ class CheckStage:
             if cameras[0].failed:
                 finding = finding or cameras[1]
         uwb = self._uwb_check(frame, state)
+        if uwb is not None and uwb.failed and cameras is not None and not cameras[0].failed:
+            # another camera agrees with this one at this stamp: the UWB fix is the odd one out
+            uwb = CheckResult(CHECK_UWB, min(uwb.sigma, uwb.limit_sigma), uwb.limit_sigma,
+                              f"{uwb.detail} ({uwb.sigma:.1f}σ), but camera {frame.cam_name} agrees with the "
+                              "other cameras: the UWB fix is likely off (NLOS ranges?)")
         if uwb is not None:
             results.append(uwb)
             if uwb.failed:
                 finding = finding or (CAUSE_UWB, f"camera {frame.cam_name} and UWB disagree: {uwb.detail}", None, None)
         if time_result is not None and time_result.failed:
             finding = finding or (CAUSE_TIME_STAMPS, f"time stamps: {time_result.detail}", None, frame.cam_name)
-        self._at_stamp.append(frame)
         failed = [r for r in results if r.failed]
         if not failed:
             self._clean(frame, state, odometry)
+            self._at_stamp.append(frame)
             return frame
         worst = max(failed, key=lambda r: r.sigma / r.limit_sigma)
         cause, message, marker_id, cam_name = finding or (
@@ -176,6 +201,7 @@ class CheckStage:
             self._failed(frame, state, odometry, suspect)
         else:
             self._clean(frame, state, odometry)  # the pose itself passed: a marker, payload or stamp is suspect
+            self._at_stamp.append(frame)  # (a doubted pose is no witness for the other cameras)
         self.frames_suspect += 1
         return replace(frame, suspect=suspect)
 
@@ -457,8 +483,14 @@ class CheckStage:
             C = C + np.eye(2) * (speed * dt_s) ** 2
         delta = frame.T_world_agv[:2, 3] - xy
         sigma = mahalanobis_sigma(delta, C)
-        return CheckResult(CHECK_UWB, sigma, self.settings.limit_sigma,
-                           f"camera fix {float(np.linalg.norm(delta)) * 1000:.0f} mm from the UWB fix {dt_s * 1000:.0f} ms before")
+        detail = f"camera fix {float(np.linalg.norm(delta)) * 1000:.0f} mm from the UWB fix {dt_s * 1000:.0f} ms before"
+        # One UWB fix off is what an NLOS range does (a few % of ranges): the check fails only
+        # when this camera's previous comparison, with an earlier fix, failed too.
+        before, state.uwb_failed = state.uwb_failed, (t_ns, sigma > self.settings.limit_sigma)
+        if sigma > self.settings.limit_sigma and not (before[1] and before[0] != t_ns):
+            return CheckResult(CHECK_UWB, self.settings.limit_sigma, self.settings.limit_sigma,
+                               f"{detail} ({sigma:.1f}σ, a single fix: NLOS?)")
+        return CheckResult(CHECK_UWB, sigma, self.settings.limit_sigma, detail)
 
     # -- (7) time -------------------------------------------------------------------------------
     def _time(self, frame: FrameResult, state: _CameraState) -> CheckResult | None:
