@@ -21,6 +21,7 @@ from agvviz.model.suspects import (
     CAUSE_EXTRINSIC,
     CAUSE_MAP_ENTRY,
     CAUSE_MIRROR_FLIP,
+    CAUSE_TIME_OFFSET,
     CAUSE_TIME_STAMPS,
     CAUSE_UNKNOWN,
     CAUSE_UWB,
@@ -130,6 +131,25 @@ def test_time_stamps_off_the_frame_rate_but_not_dropped_frames():
     late = stage.check(frame(7, pose(0.75), t_ns=T0 + int(7.5 * PERIOD_NS)))  # 150 ms after it
     assert all(f.suspect is None for f in out) and dropped.suspect is None
     assert late.suspect is not None and late.suspect.cause == CAUSE_TIME_STAMPS and "150 ms" in late.suspect.message
+
+
+def _track(t_s: float) -> np.ndarray:
+    """A vehicle weaving smoothly along x (1 m/s forward, y = 0.5·sin 1.5t, heading along the path)."""
+    return pose(t_s, 0.5 * math.sin(1.5 * t_s), math.atan2(0.75 * math.cos(1.5 * t_s), 1.0))
+
+
+def test_a_camera_stamped_30_ms_late_is_found_against_the_odometry():
+    odometry = lambda t_ns: _track((t_ns - T0) / 1e9)  # noqa: E731 - a perfect odometry
+    stage = CheckStage(CheckSettings(), odometry)
+    frames = [stage.check(frame(i, _track(0.1 * i - 0.030))) for i in range(60)]
+    causes = [f.suspect.cause for f in frames if f.suspect is not None]
+    assert causes and set(causes) == {CAUSE_TIME_OFFSET}
+    last = frames[-1].suspect
+    assert last is not None and last.cam_name == "front"
+    fitted_ms = float(last.message.split("by ")[1].split(" ±")[0])
+    assert fitted_ms == pytest.approx(30.0, abs=3.0), last.message
+    on_time = CheckStage(CheckSettings(), odometry)
+    assert all(on_time.check(frame(i, _track(0.1 * i))).suspect is None for i in range(60))
 
 
 def _suspect(i: int, cause: str, marker: str | None = None, cam: str = "front") -> Suspect:

@@ -45,6 +45,13 @@ TIME_JITTER_SHARE = 0.05
 #: A time offset explains a camera disagreement when the offset fitted to it lies within these bounds (s).
 TIME_OFFSET_MIN_S = 0.003
 TIME_OFFSET_MAX_S = 0.5
+#: Time offset against the odometry: reported from this many clean steps on, failed from this size
+#: on (a few ms is what rolling shutters and odometry filters do), velocities over ± this (ns).
+ODOMETRY_OFFSET_MIN_STEPS = 20
+ODOMETRY_OFFSET_MIN_S = 0.01
+ODOMETRY_VELOCITY_NS = 20_000_000
+#: Weights of (position m, rotation rad) in the time-offset fits: 1 mm ~ 0.06° (1 mrad).
+OFFSET_WEIGHT = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
 
 #: Checks whose failure doubts the pose itself (a failing frame is then no reference for the next).
 POSE_CHECKS = (CHECK_MOTION, CHECK_AMBIGUITY, CHECK_CAMERAS, CHECK_UWB)

@@ -44,6 +44,10 @@ from agvviz.replay.checks.common import (
     TIME_OFFSET_MAX_S,
     TIME_OFFSET_MIN_S,
     UWB_MAX_DT_NS,
+    ODOMETRY_OFFSET_MIN_S,
+    ODOMETRY_OFFSET_MIN_STEPS,
+    ODOMETRY_VELOCITY_NS,
+    OFFSET_WEIGHT,
     CheckSettings,
     angle_deg,
     chi2_sigma,
@@ -74,6 +78,8 @@ class _CameraState:
     last_suspect_odometry: np.ndarray | None = None
     stretch_n: int = 0  # suspect frames in the current failing stretch
     uwb_failed: tuple = (None, False)  # (stamp of the UWB fix last compared, whether it failed)
+    #: time offset against the odometry, least squares r ≈ w·dt: Σw·r, Σw·w, Σr·r, point count
+    offset_sums: list = None
     last_time_ns: int | None = None
     steps_ns: deque = None
     pair_counts: dict = None  # other camera -> [compared, failed]
@@ -81,6 +87,7 @@ class _CameraState:
     def __post_init__(self):
         self.steps_ns = deque(maxlen=TIME_HISTORY)
         self.pair_counts = {}
+        self.offset_sums = [0.0, 0.0, 0.0, 0]
 
 
 class CheckStage:
@@ -132,12 +139,17 @@ class CheckStage:
                 if ambiguity.failed:
                     finding = (CAUSE_MIRROR_FLIP, f"mirror-pose flip: {ambiguity.detail}", None, None)
             if result.failed and finding is None:
-                finding = self._explain_motion(frame, state, ref.frame, delta, result)
+                finding = self._explain_motion(frame, state, ref.frame, delta, result, predicted)
             elif not result.failed:
                 inherited = self._persisting(frame, state, odometry, delta)
                 if inherited is not None:
                     results[-1] = inherited[0]
                     finding = inherited[1]
+        offset = self._odometry_offset(frame, state, odometry, motion)
+        if offset is not None:
+            results.append(offset[0])
+            if offset[0].failed:
+                finding = finding or offset[1]
         marker_results, marker_finding = self._markers(frame)
         results += marker_results
         motion_failed = motion is not None and motion[0].failed
@@ -304,7 +316,7 @@ class CheckStage:
             )
         return result, (cause, message, marker, cam)
 
-    def _explain_motion(self, frame, state: _CameraState, ref_frame: FrameResult, delta, result: CheckResult):
+    def _explain_motion(self, frame, state: _CameraState, ref_frame: FrameResult, delta, result: CheckResult, predicted=None):
         """(cause, message, marker id, camera) of a motion failure."""
         used = set(frame.used_marker_ids)
         last = state.last_suspect
@@ -326,6 +338,16 @@ class CheckStage:
                 marker, None,
             )
         markers = ", ".join(frame.used_marker_ids)
+        if predicted is not None:
+            offset_s = self._explained_by_offset(frame, state.reference, delta, predicted[1])
+            if offset_s is not None:
+                return (
+                    CAUSE_TIME_OFFSET,
+                    f"camera {frame.cam_name}'s pose is {size_text(delta)} off the odometry ({result.sigma:.1f}σ) the way a "
+                    f"stamp {abs(offset_s) * 1000:.0f} ms {'late' if offset_s > 0 else 'early'} puts it: "
+                    f"its time stamps {'lag' if offset_s > 0 else 'lead'}?",
+                    None, frame.cam_name,
+                )
         return (
             CAUSE_UNKNOWN,
             f"pose of camera {frame.cam_name} jumped by {size} against the {result.detail.split('carried by the ')[-1]} "
@@ -466,6 +488,80 @@ class CheckStage:
         if angle_deg(delta) > 0.5 + math.degrees(float(np.linalg.norm(pose_difference(ref.frame.T_world_agv, frame.T_world_agv)[3:])) * abs(offset) / dt):
             return None  # a rotation the motion does not explain: a mount, not a clock
         return offset
+
+    def _odometry_offset(self, frame: FrameResult, state: _CameraState, odometry, motion):
+        """(7) The camera's stamp offset against the odometry, from every clean step so far: a
+        pose stamped ``dt`` late sits where the vehicle was ``dt`` earlier, so its difference from
+        the pose carried by the odometry is r ≈ −(v(t) − v(t_ref))·dt (velocities from the
+        odometry, in the world): least squares over the steps, σ from the scatter of the fit
+        (scale-free: no covariance needed). Fails once |dt| ≥ ODOMETRY_OFFSET_MIN_S and
+        |dt| / σ exceeds the limit after ODOMETRY_OFFSET_MIN_STEPS steps. (CheckResult, finding) or None."""
+        if motion is None or odometry is None or "odometry" not in motion[0].detail:
+            return None
+        result, delta, (_, C), ref = motion
+        w = self._offset_direction(frame, ref)
+        if w is not None and not result.failed:
+            r = delta * OFFSET_WEIGHT
+            wr = w * OFFSET_WEIGHT
+            sums = state.offset_sums
+            sums[0] += float(wr @ r)
+            sums[1] += float(wr @ wr)
+            sums[2] += float(r @ r)
+            sums[3] += 6
+        num, den, rr, n = state.offset_sums
+        if n < 6 * ODOMETRY_OFFSET_MIN_STEPS or den <= 0:
+            return None
+        dt = num / den
+        s2 = max(rr - dt * num, 0.0) / max(n - 1, 1)
+        sigma_dt = math.sqrt(s2 / den) if s2 > 0 else math.inf
+        z = abs(dt) / sigma_dt if math.isfinite(sigma_dt) and sigma_dt > 0 else 0.0
+        if abs(dt) < ODOMETRY_OFFSET_MIN_S:
+            z = min(z, self.settings.limit_sigma)
+        detail = (f"camera {frame.cam_name}'s poses {'lag' if dt > 0 else 'lead'} the odometry by "
+                  f"{abs(dt) * 1000:.0f} ± {sigma_dt * 1000:.0f} ms (from {n // 6} steps)")
+        return CheckResult(CHECK_TIME, z, self.settings.limit_sigma, detail), (
+            CAUSE_TIME_OFFSET, f"time offset: {detail}: its stamps are {'late' if dt > 0 else 'early'}", None, frame.cam_name,
+        )
+
+    def _offset_direction(self, frame: FrameResult, ref) -> np.ndarray | None:
+        """(6,) w with (pose − carried pose) ≈ w·dt for a stamp ``dt`` late: −(twist now − twist at
+        the reference) + (ω_ref × the step, 0), twists (velocity, angular velocity) from the
+        odometry, in the world (first order in dt)."""
+        now = self._odometry_twist(frame.log_time_ns, frame.T_world_agv)
+        then = self._odometry_twist(ref.frame.log_time_ns, ref.frame.T_world_agv)
+        if now is None or then is None:
+            return None
+        w = -(now - then)
+        # the reference's own heading lag swings the carried step: + ω_ref × (p − p_ref)
+        w[:3] += np.cross(then[3:], frame.T_world_agv[:3, 3] - ref.frame.T_world_agv[:3, 3])
+        return w
+
+    def _odometry_twist(self, t_ns: int, T_world_agv: np.ndarray) -> np.ndarray | None:
+        """(6,) the vehicle's velocity (m/s) and angular velocity (rad/s) at ``t_ns`` in the world:
+        the odometry's step over ±ODOMETRY_VELOCITY_NS, turned into the world by the pose's rotation."""
+        a = self.odometry_at(t_ns - ODOMETRY_VELOCITY_NS)
+        b = self.odometry_at(t_ns + ODOMETRY_VELOCITY_NS)
+        mid = self.odometry_at(t_ns)
+        if a is None or b is None or mid is None:
+            return None
+        step = np.linalg.inv(a) @ b
+        R = T_world_agv[:3, :3] @ mid[:3, :3].T @ a[:3, :3]  # world ← odometry frame at t − h
+        span_s = 2 * ODOMETRY_VELOCITY_NS / 1e9
+        return np.concatenate([R @ step[:3, 3], R @ so3.log(step[:3, :3])]) / span_s
+
+    def _explained_by_offset(self, frame: FrameResult, ref, delta: np.ndarray, C: np.ndarray) -> float | None:
+        """The stamp offset (s) that alone explains a motion failure of this frame (its remainder
+        passes the check), or None."""
+        w = self._offset_direction(frame, ref)
+        if w is None:
+            return None
+        ww = float((w * OFFSET_WEIGHT) @ (w * OFFSET_WEIGHT))
+        if ww <= 0:
+            return None
+        dt = float((w * OFFSET_WEIGHT) @ (delta * OFFSET_WEIGHT)) / ww
+        if not TIME_OFFSET_MIN_S <= abs(dt) <= TIME_OFFSET_MAX_S:
+            return None
+        return dt if mahalanobis_sigma(delta - w * dt, C) <= self.settings.limit_sigma else None
 
     # -- (6) uwb --------------------------------------------------------------------------------
     def _uwb_check(self, frame: FrameResult, state: _CameraState) -> CheckResult | None:
