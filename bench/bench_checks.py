@@ -5,12 +5,12 @@ clean recordings' flag rate, and the checks' run-time cost — every replay with
 Usage:  python bench/bench_checks.py [--seeds 20] [--workdir DIR] [--duration-s 6] [--repeats 3]
 
 Per seed, three ``qr_floor`` recordings (``duration_s``, 640×512, focal 500 px, supersample 2,
-realism typical): clean, ``inject=marker:Q015:yaw_deg=90`` and ``inject=marker:Q015:dx_m=0.05``.
-Printed:
+realism typical): clean, ``inject=marker:Q015:yaw_deg=90``, ``inject=marker:Q015:dx_m=0.05`` and
+a 30 ms camera latency (``realism_set=timing.latency_s=0.03``). Printed:
 
 1. injected: affected frames (truth says > 2 cm or > 1° off, or Q015 in the frame's used or
-   left-out markers) flagged, and of those the share whose suspect names Q015 with cause
-   map_entry; target ≥ 95 % flagged, ≥ 90 % named right;
+   left-out markers) flagged, and of those the share whose suspect names the right cause (Q015's
+   map_entry; time_offset); target ≥ 95 % flagged, ≥ 90 % named right;
 2. clean: suspect frames ÷ solved frames; target ≤ 1 %;
 3. cost: `run_recording` wall time (``.rrd`` written, detection cache warm) with ``checks=on`` ÷
    ``checks=off`` on the first clean recording, the median of ``--repeats`` alternating pairs;
@@ -31,8 +31,13 @@ from agvviz.replay.run import replay_frames
 from agvviz.settings import RunSettings
 
 SMALL = ["width_px=640", "height_px=512", "focal_px=500.0", "supersample=2"]
-INJECTED = {"turned": "marker:Q015:yaw_deg=90", "moved": "marker:Q015:dx_m=0.05"}
 CODE = "Q015"
+#: kind -> (recording overrides, the cause a suspect must name, the code it must name or None)
+INJECTED = {
+    "turned": ("inject=marker:Q015:yaw_deg=90", "map_entry", CODE),
+    "moved": ("inject=marker:Q015:dx_m=0.05", "map_entry", CODE),
+    "late": ("realism_set=timing.latency_s=0.03", "time_offset", None),
+}
 
 
 def main() -> None:
@@ -56,24 +61,24 @@ def main() -> None:
         frames = [f for f in replay_frames(path, RunSettings(truth="ignore")) if f.solved]
         clean[0] += sum(f.suspect is not None for f in frames)
         clean[1] += len(frames)
-        for kind, inject in INJECTED.items():
+        for kind, (override, cause, code) in INJECTED.items():
             path = work / f"{kind}-{seed}.mcap"
             if not path.exists():
-                scenarios.record("qr_floor", path, seed=seed, overrides=overrides + [f"inject={inject}"])
+                scenarios.record("qr_floor", path, seed=seed, overrides=overrides + [override])
             truth = {f.index: f for f in replay_frames(path, RunSettings()) if f.solved}
             for f in replay_frames(path, RunSettings(truth="ignore")):
                 t = truth.get(f.index)
                 if t is None:
                     continue
                 off = t.position_error_m > 0.02 or abs(t.heading_error_deg) > 1.0
-                if not (off or CODE in f.used_marker_ids + f.excluded_marker_ids):
+                if not (off or (code is not None and code in f.used_marker_ids + f.excluded_marker_ids)):
                     continue
                 counts[kind][0] += 1
                 counts[kind][1] += f.suspect is not None
-                counts[kind][2] += f.suspect is not None and f.suspect.marker_id == CODE and f.suspect.cause == "map_entry"
+                counts[kind][2] += f.suspect is not None and f.suspect.marker_id == code and f.suspect.cause == cause
         print(f"seed {seed}: clean {clean[0]}/{clean[1]}, " + ", ".join(f"{k} {c[1]}/{c[0]} named {c[2]}" for k, c in counts.items()), flush=True)
     for kind, (affected, flagged, named) in counts.items():
-        print(f"{kind} ({INJECTED[kind]}): {flagged}/{affected} affected frames flagged "
+        print(f"{kind} ({INJECTED[kind][0]}): {flagged}/{affected} affected frames flagged "
               f"({100 * flagged / max(affected, 1):.1f} %), cause named right {named}/{flagged} "
               f"({100 * named / max(flagged, 1):.1f} %)")
     print(f"clean typical: {clean[0]}/{clean[1]} solved frames flagged ({100 * clean[0] / max(clean[1], 1):.2f} %)")

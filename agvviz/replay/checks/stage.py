@@ -104,6 +104,7 @@ class CheckStage:
         self._stamp_ns: int | None = None
         self._at_stamp: list[FrameResult] = []  # undoubted solved frames at the current stamp
         self._uwb: tuple[int, np.ndarray, np.ndarray] | None = None  # (t_ns, xy, cov 2x2)
+        self._twists: dict[int, np.ndarray | None] = {}  # stamp -> body-frame twist from the odometry
         self.frames_checked = 0
         self.frames_suspect = 0
 
@@ -538,16 +539,25 @@ class CheckStage:
 
     def _odometry_twist(self, t_ns: int, T_world_agv: np.ndarray) -> np.ndarray | None:
         """(6,) the vehicle's velocity (m/s) and angular velocity (rad/s) at ``t_ns`` in the world:
-        the odometry's step over ±ODOMETRY_VELOCITY_NS, turned into the world by the pose's rotation."""
-        a = self.odometry_at(t_ns - ODOMETRY_VELOCITY_NS)
-        b = self.odometry_at(t_ns + ODOMETRY_VELOCITY_NS)
-        mid = self.odometry_at(t_ns)
-        if a is None or b is None or mid is None:
+        the odometry's step over ±ODOMETRY_VELOCITY_NS, turned into the world by the pose's
+        rotation. The body-frame twist is kept per stamp (a reference's is asked for again)."""
+        local = self._twists.get(t_ns, False)
+        if local is False:
+            a = self.odometry_at(t_ns - ODOMETRY_VELOCITY_NS)
+            b = self.odometry_at(t_ns + ODOMETRY_VELOCITY_NS)
+            mid = self.odometry_at(t_ns)
+            local = None
+            if a is not None and b is not None and mid is not None:
+                step = np.linalg.inv(a) @ b
+                R = mid[:3, :3].T @ a[:3, :3]  # body at t ← odometry frame at t − h
+                local = np.concatenate([R @ step[:3, 3], R @ so3.log(step[:3, :3])]) / (2 * ODOMETRY_VELOCITY_NS / 1e9)
+            if len(self._twists) > 64:
+                self._twists.clear()
+            self._twists[t_ns] = local
+        if local is None:
             return None
-        step = np.linalg.inv(a) @ b
-        R = T_world_agv[:3, :3] @ mid[:3, :3].T @ a[:3, :3]  # world ← odometry frame at t − h
-        span_s = 2 * ODOMETRY_VELOCITY_NS / 1e9
-        return np.concatenate([R @ step[:3, 3], R @ so3.log(step[:3, :3])]) / span_s
+        R = T_world_agv[:3, :3]
+        return np.concatenate([R @ local[:3], R @ local[3:]])
 
     def _explained_by_offset(self, frame: FrameResult, ref, delta: np.ndarray, C: np.ndarray) -> float | None:
         """The stamp offset (s) that alone explains a motion failure of this frame (its remainder
