@@ -209,3 +209,17 @@ def test_a_clean_typical_recording_flags_at_most_one_percent(recordings):
     flagged = [f.suspect for f in solved if f.suspect is not None]
     assert len(solved) >= 50 and len(flagged) <= 0.01 * len(solved), flagged
     assert all(f.suspect is None for f in _run(recordings["turned"], checks="off"))
+
+
+def test_the_summary_table_counts_suspects_per_cause():
+    from agvviz.evaluation.summary_table import summary_rows
+
+    frames = [frame(0, pose(0)), frame(1, pose(0), suspect=_suspect(1, CAUSE_MAP_ENTRY, "Q1"))]
+    base = {"frames": 2, "solved": 2, "rejected": {}, "reproj_rms_px": {"median": 0.1},
+            "position_error_mm": {"rmse": None, "median": None, "p95": None},
+            "heading_error_deg": {"rmse": None, "median": None, "p95": None}}
+    rows = dict(summary_rows({**base, "suspects": suspects_summary(frames)}, {}))
+    assert rows["suspect frames"] == "1 of 2 solved" and rows["suspect: map_entry"] == "1"
+    assert "suspect: uwb" not in rows
+    off = dict(summary_rows({**base, "suspects": suspects_summary(frames, checked=False)}, {}))
+    assert off["suspect frames"] == "not checked (checks=off)"
