@@ -233,6 +233,41 @@ class RunSettings:
     cnoem_update: str = setting(
         "lm", "correction=cnoem: lm (Gauss-Newton/Levenberg-Marquardt) or paper (first-order, eqs 14-20)", ("lm", "paper")
     )
+    truth: str = setting(
+        "use",
+        "ground truth: use (score every pose against it), or ignore (replay as if the recording had none: "
+        "no errors, no NEES; the checks never read truth in either mode)",
+        ("use", "ignore"),
+    )
+    checks: str = setting(
+        "on", "check every solved pose against what else the log knows (docs/suspects.md): on or off", ("on", "off")
+    )
+    checks_limit_sigma: float = setting(
+        5.0, "checks: a frame is a suspect when a check's disagreement exceeds this many σ", min=1.0, max=100.0
+    )
+    checks_pose_floor_m: float = setting(
+        0.002, "checks: systematic position σ added to every pose's covariance (calibration, map placement; m)",
+        min=0.0, max=10.0,
+    )
+    checks_pose_floor_deg: float = setting(
+        0.1, "checks: systematic rotation σ added to every pose's covariance (deg)", min=0.0, max=90.0
+    )
+    checks_odom_m_per_m: float = setting(
+        0.02, "checks: odometry position σ per metre travelled (m/m)", min=0.0, max=10.0
+    )
+    checks_odom_deg_per_m: float = setting(
+        0.5, "checks: odometry heading σ per metre travelled (deg/m)", min=0.0, max=90.0
+    )
+    checks_odom_deg_per_deg: float = setting(
+        0.02, "checks: odometry heading σ per degree turned (deg/deg)", min=0.0, max=10.0
+    )
+    checks_ambiguity_ratio: float = setting(
+        4.0, "checks: IPPE ambiguity ratio below which the mirror pose is tested against the motion", min=1.0, max=1e6
+    )
+    checks_map_sigma_m: float = setting(
+        0.005, "checks: σ of a marker's map entry, against which its payload's coordinates are checked (m)",
+        min=1e-6, max=10.0,
+    )
 
     def __post_init__(self):
         validate(self)

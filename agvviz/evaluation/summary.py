@@ -19,10 +19,22 @@ import numpy as np
 
 from agvviz.evaluation.fusion_summary import FusionStats
 from agvviz.model.frames import FrameResult
+from agvviz.model.suspects import Suspect
+from agvviz.replay.checks import suspects_summary
 from agvviz.replay.correct import CorrectionStats
 from agvviz.replay.fuse import FrameSetResult
 from agvviz.replay.sinks import GraphOutcome, NullSink
 from agvviz.settings import RunSettings
+
+
+@dataclass(frozen=True)
+class CheckedFrame:
+    """What the suspects' summary needs of one solve-stage frame (:func:`agvviz.replay.checks.suspects_summary`)."""
+
+    index: int
+    cam_name: str
+    solved: bool
+    suspect: Suspect | None
 
 
 @dataclass(frozen=True)
@@ -119,6 +131,10 @@ class RunStatistics(NullSink):
         self.correction_stats = CorrectionStats()
         self.study_outcome = None
         self.outcome = GraphOutcome()
+        self.checked: list[CheckedFrame] = []  # every solve-stage frame, for the suspects' summary
+
+    def solved(self, frame: FrameResult, detections) -> None:
+        self.checked.append(CheckedFrame(frame.index, frame.cam_name, frame.solved, frame.suspect))
 
     def frame(self, frame: FrameResult) -> None:
         self._score(frame)
@@ -156,7 +172,8 @@ class RunStatistics(NullSink):
     ) -> dict:
         """The run summary (stored in the ``.rrd``, printed by the CLI). A study's: its own
         summary, the recording's damage and the warnings. A camera or correction run's: the
-        frame statistics (none for a correction run without camera frames), ``fusion`` with
+        frame statistics (none for a correction run without camera frames), ``suspects`` (the check
+        stage's findings, :func:`agvviz.replay.checks.suspects_summary`) with camera frames, ``fusion`` with
         UWB, ``correction`` when the correct stage ran, then ``recording_damage``,
         ``detection``, ``warnings``, ``truth`` and, when given, ``error_budget``."""
         if self.study_outcome is not None:
@@ -164,6 +181,8 @@ class RunStatistics(NullSink):
         settings = self.settings
         has_uwb, corrected = self.outcome.has_uwb, self.outcome.corrected
         summary = summarize(self.scores) if self.scores or not corrected else {}
+        if self.checked:
+            summary["suspects"] = suspects_summary(self.checked, checked=settings.checks == "on")
         if has_uwb:
             summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **self.fusion_stats.summary()}
         if corrected:

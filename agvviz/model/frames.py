@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, fields, make_dataclass
 import numpy as np
 
 from agvviz.model.suspects import Suspect
+from agvviz.solvers.joint import MarkerCheck
 from agvviz.solvers.types import LmIteration
 
 #: Reasons a frame is rejected. Every rejected frame carries exactly one.
@@ -84,6 +85,9 @@ class FrameResult:
     #: Markers seen and mapped but left out: their corners failed the χ² test against the others.
     excluded_marker_ids: tuple[str, ...] = ()
     marker_note: str = ""  # the joint solve's finding in plain words (who was left out, why)
+    #: The joint solve's test of each marker against the joint pose (χ², own-pose offset), one per
+    #: marker given to it; empty without a joint solve. Read by the check stage (issue 25).
+    marker_checks: tuple[MarkerCheck, ...] = ()
     T_world_cam: np.ndarray | None = None
     T_world_agv: np.ndarray | None = None
     hpr_rad: np.ndarray | None = None  # heading, pitch, roll of T_world_agv (eq 57)

@@ -1,8 +1,8 @@
 """The replay graph: every run's stages, composed from what the recording holds, driven over its messages.
 
-    source ──► sync ──► detect ──► solve ──► fuse ──► correct ──► sinks
-    (readers,  (calibration,  (corners,   (pose and     (camera fixes  (multi-frame   (.rrd, statistics,
-     roles)     transforms,    ids,        its           + UWB)         windows)       summary, audit)
+    source ──► sync ──► detect ──► solve ──► checks ──► fuse ──► correct ──► sinks
+    (readers,  (calibration,  (corners,   (pose and   (suspects:  (camera fixes  (multi-frame   (.rrd, statistics,
+     roles)     transforms,    ids,        its         no truth)   + UWB)         windows)       summary, audit)
                 truth)         payloads)   diagnostics)
           └──► study (a Monte-Carlo or CNOEM grid study's trials) ──────────────────► sinks
 
@@ -11,6 +11,8 @@
 * detect — :mod:`agvviz.replay.detect.stage` (frame → :class:`~agvviz.model.detections.FrameDetections`),
   computed ahead by :class:`agvviz.replay.detect.pool.DetectionFeed` or read from the cache;
 * solve — :class:`agvviz.replay.solve.Replay` (detections → :class:`~agvviz.model.frames.FrameResult`);
+* checks — :class:`agvviz.replay.checks.CheckStage` (sets ``FrameResult.suspect`` before the frame
+  reaches the sinks; ``checks=off`` leaves it out; it is handed the fuse stage's UWB fixes);
 * fuse — :class:`agvviz.replay.fuse.FusionReplay`;
 * correct — :class:`agvviz.replay.correct.CorrectionReplay`;
 * study — :func:`agvviz.replay.studies.monte_carlo.replay_trials` or
@@ -43,6 +45,8 @@ from agvviz.recording.reader import MessageDecodeError, RawMetadata, ReadReport,
 from agvviz.recording.roles import RoleMap
 from agvviz.recording.source import Recording
 from agvviz.model.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE
+from agvviz.model.fusion import UwbFixResult
+from agvviz.replay.checks import check_stage
 from agvviz.replay.correct import CorrectionReplay, CorrectionSettings
 from agvviz.replay.detect.pool import DetectionFeed
 from agvviz.replay.fuse import FusionReplay
@@ -133,6 +137,8 @@ class ReplayGraph:
         self.progress = progress  # a study's progress(trials_done)
         self.until = until
         self._cameras_version = -1
+        #: the check stage (None with ``checks=off`` or a detect-only graph)
+        self.checks = check_stage(self.settings, solve.sync, solve.ctx) if until != "detect" else None
 
     @classmethod
     def compose(
@@ -189,6 +195,7 @@ class ReplayGraph:
         if self.fuse is not None:
             uwb = self._uwb()
             for item in self.fuse.finish():
+                self._uwb_fix(item)
                 self.sinks.fused(item, uwb)
         if self.correct is not None:
             for step in self.correct.finish():
@@ -211,11 +218,23 @@ class ReplayGraph:
         """(message, its detections, the solve stage's frame or None) for every message."""
         if self.detect is None:
             for message in messages:
-                yield message, None, self.solve.feed(message)
+                yield message, None, self._checked(self.solve.feed(message))
             return
         with self.detect as feed:
             for message, detections in feed.annotate(messages):
-                yield message, detections, self.solve.feed(message, detections)
+                yield message, detections, self._checked(self.solve.feed(message, detections))
+
+    def _checked(self, frame):
+        """The check stage's verdict on a solve-stage frame (the frame itself without checks)."""
+        if frame is None or self.checks is None:
+            return frame
+        return self.checks.check(frame)
+
+    def _uwb_fix(self, item) -> None:
+        """A UWB fix of the fuse stage, handed to the check stage (camera against UWB)."""
+        if self.checks is not None and isinstance(item, UwbFixResult):
+            fix = item.fix
+            self.checks.uwb_fix(fix.log_time_ns, fix.position_m, getattr(fix, "covariance_m2", None))
 
     def _run_study(self, messages: Iterable[RecordedMessage]):
         from agvviz.replay.studies.cnoem import replay_cnoem_trials
@@ -250,6 +269,7 @@ class ReplayGraph:
         if items:
             uwb = self._uwb()
             for item in items:
+                self._uwb_fix(item)
                 self.sinks.fused(item, uwb)
         if self.correct is not None:
             for step in self.correct.feed(message, frame):

@@ -114,6 +114,7 @@ class Replay:
             world_frame=world_frame,
             truth_max_dt_ns=int(settings.truth_max_dt_s * 1e9),
             truth_max_gap_ns=int(settings.truth_max_gap_s * 1e9),
+            ignore_truth=settings.truth == "ignore",
         )
         self.primed = False
         #: camera name -> the frame id its images carry, when known before the first image
@@ -209,7 +210,7 @@ class Replay:
     def _take_context(self, message: RecordedMessage) -> None:
         value = message.value
         kept = self.sync.add(message)
-        if message.role == ROLE_TRUTH and kept:
+        if message.role == ROLE_TRUTH and kept and not self.sync.ignore_truth:
             self.truth_seen = True
         if message.role == ROLE_MARKER_MAP and isinstance(value, dict) and self.sync.side_marker_map is None:
             self._set_marker_map(value)
@@ -535,6 +536,7 @@ class Replay:
                 solved = SolveResult(joint.T_cam_F, "", joint.iterations, joint.reproj_rms_px, joint.path)
                 result.used_marker_ids = joint.used
                 result.excluded_marker_ids = joint.excluded
+                result.marker_checks = joint.checks
                 result.marker_note = _notes(joint.note, board_note)
                 if len(joint.used) >= 2:
                     self._diagnostics.joint_resolved(result, len(joint.used))

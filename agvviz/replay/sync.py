@@ -13,7 +13,7 @@ image of one camera at time t:
   that appears only once or never changes is a fixed mount published on the wrong topic: it
   is treated as static (valid at every frame, not only near its stamps) and :attr:`notes`
   says so (the run summary's warnings, ``inspect``);
-* **ground truth** and **odometry** at t, interpolated on SE(3) between the samples either
+* **ground truth** (none with ``truth=ignore``) and **odometry** at t, interpolated on SE(3) between the samples either
   side (at most ``truth_max_gap_ns`` apart), or the nearest sample within
   ``truth_max_dt_ns``.
 
@@ -64,8 +64,11 @@ class SyncState:
         world_frame: str = WORLD_FRAME,
         truth_max_dt_ns: int = 5_000_000,
         truth_max_gap_ns: int = 50_000_000,
+        ignore_truth: bool = False,
     ):
         self.body_frame = body_frame
+        #: ``truth=ignore``: ground-truth messages are taken and dropped, as if the recording had none.
+        self.ignore_truth = ignore_truth
         self.world_frame = world_frame
         self.truth_max_dt_ns = truth_max_dt_ns
         self.truth_max_gap_ns = truth_max_gap_ns
@@ -107,6 +110,8 @@ class SyncState:
             name = cam[0] if cam else value.cam_name
             self.add_calibration(name, value, message.time_ns)
             return True
+        if role == ROLE_TRUTH and self.ignore_truth and isinstance(value, (list, PoseMsg)):
+            return True  # truth=ignore: consumed, never stored
         if role == ROLE_TRUTH and isinstance(value, list) and len(value) == 1 and isinstance(value[0], FrameTransformMsg):
             # truth published as a TransformStamped (motion capture): T_world_body
             self.truth.add(message.time_ns, value[0].T_parent_child)

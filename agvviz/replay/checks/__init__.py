@@ -1,0 +1,49 @@
+"""The check stage: every solved pose checked against what else the log knows, truth not needed (issue 25).
+
+Runs in the graph right after solve (:mod:`agvviz.replay.graph`), before a frame reaches the
+sinks, and sets :attr:`~agvviz.model.frames.FrameResult.suspect` on a frame that fails a check.
+It never reads ground truth (a frame's ``T_world_agv_truth`` and errors are not looked at), so
+``truth=ignore`` gives the same suspects. Each check compares the pose with one independent
+witness and turns the disagreement into standard deviations (σ): a Mahalanobis distance d² with
+k degrees of freedom is given as the normal quantile of its χ²_k tail (:func:`chi2_sigma`), so
+every check has one scale and one limit (``checks_limit_sigma``). A check without a witness on a
+frame is skipped.
+
+1. **motion** — the pose against the last clean pose of the same camera carried forward by the
+   odometry (``SyncState.odometry_at``), or by a constant-velocity model without odometry: the
+   6-DoF difference (position in the world, rotation vector) against both poses' covariances,
+   each with a systematic floor (``checks_pose_floor_m`` / ``_deg``: today's covariance models
+   pixel noise only), plus the odometry's noise per metre and per degree turned. A failing
+   frame does not become the reference, so a stretch of frames on a wrong map entry keeps
+   failing (a rigid error of the map leaves frame-to-frame steps intact: only the carried
+   reference sees it). After ``REANCHOR_M`` of travel in one failing stretch the reference
+   moves on (the odometry itself may have jumped).
+2. **markers** — the joint solve's χ² test of each marker against the joint pose
+   (:class:`~agvviz.solvers.joint.MarkerCheck`): a marker left out names itself.
+3. **ambiguity** — with an IPPE ratio under ``checks_ambiguity_ratio``, the rejected mirror pose
+   (``T_world_agv_ghost``) against the same motion witness: when it agrees and the chosen one
+   does not, the cause is a mirror flip.
+4. **payload** — each used code's payload coordinates against its map entry (σ of a map entry
+   ``checks_map_sigma_m``); a motion failure that a code explains is blamed on its map entry, or
+   on its payload when the code has no map entry (payload-only recordings).
+5. **cameras** — on a rig, a camera's pose against the other cameras' poses at the same stamp;
+   a disagreement along the motion whose size follows the speed is a time offset, else the
+   camera's extrinsic ("on every frame" once it persists).
+6. **uwb** — the camera position against the latest UWB fix (at most ``UWB_MAX_DT_NS`` older),
+   2-D, with the fix's covariance (or ``uwb_sigma_m``) and the motion in between.
+7. **time** — each camera's stamp step against its frame period (the median of the steps so
+   far): a step off every whole number of periods, or a repeated frame, fails (a whole number of
+   periods is frames dropped: noted, not failed).
+
+:func:`suspect_stretches` groups consecutive suspects of one cause (what the terminal lists and
+the plots mark); :func:`suspects_summary` is the run summary's ``suspects`` entry.
+"""
+
+from agvviz.replay.checks.common import NEXT_STEP, CheckSettings, chi2_sigma, mahalanobis_sigma, pose_cov, pose_difference
+from agvviz.replay.checks.stage import CheckStage, check_stage
+from agvviz.replay.checks.stretches import stretch_dict, suspect_stretches, suspects_summary
+
+__all__ = [
+    "NEXT_STEP", "CheckSettings", "CheckStage", "check_stage", "chi2_sigma", "mahalanobis_sigma", "pose_cov",
+    "pose_difference", "stretch_dict", "suspect_stretches", "suspects_summary",
+]

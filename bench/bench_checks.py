@@ -1,0 +1,100 @@
+"""The issue 25 figures of the check stage (docs/suspects.md): injected faults flagged and named,
+clean recordings' flag rate, and the checks' run-time cost — every replay with ``truth=ignore``
+(truth is read only here, to say which frames are affected).
+
+Usage:  python bench/bench_checks.py [--seeds 20] [--workdir DIR] [--duration-s 6] [--repeats 3]
+
+Per seed, three ``qr_floor`` recordings (``duration_s``, 640×512, focal 500 px, supersample 2,
+realism typical): clean, ``inject=marker:Q015:yaw_deg=90``, ``inject=marker:Q015:dx_m=0.05`` and
+a 30 ms camera latency (``realism_set=timing.latency_s=0.03``). Printed:
+
+1. injected: affected frames (truth says > 2 cm or > 1° off, or Q015 in the frame's used or
+   left-out markers) flagged, and of those the share whose suspect names the right cause (Q015's
+   map_entry; time_offset); target ≥ 95 % flagged, ≥ 90 % named right;
+2. clean: suspect frames ÷ solved frames; target ≤ 1 %;
+3. cost: `run_recording` wall time (``.rrd`` written, detection cache warm) with ``checks=on`` ÷
+   ``checks=off`` on the first clean recording, the median of ``--repeats`` alternating pairs;
+   target ≤ 1.05.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from agvviz import scenarios
+from agvviz.app.run import run_recording
+from agvviz.replay.run import replay_frames
+from agvviz.settings import RunSettings
+
+SMALL = ["width_px=640", "height_px=512", "focal_px=500.0", "supersample=2"]
+CODE = "Q015"
+#: kind -> (recording overrides, the cause a suspect must name, the code it must name or None)
+INJECTED = {
+    "turned": ("inject=marker:Q015:yaw_deg=90", "map_entry", CODE),
+    "moved": ("inject=marker:Q015:dx_m=0.05", "map_entry", CODE),
+    "late": ("realism_set=timing.latency_s=0.03", "time_offset", None),
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--duration-s", type=float, default=6.0)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--workdir", type=Path, default=None)
+    args = parser.parse_args()
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_checks_"))
+    work.mkdir(parents=True, exist_ok=True)
+    overrides = SMALL + [f"duration_s={args.duration_s:g}"]
+    counts = {k: [0, 0, 0] for k in INJECTED}  # affected, flagged, named right
+    clean = [0, 0]  # suspects, solved
+    clean_paths = []
+    for seed in range(args.seeds):
+        path = work / f"clean-{seed}.mcap"
+        if not path.exists():
+            scenarios.record("qr_floor", path, seed=seed, overrides=overrides)
+        clean_paths.append(path)
+        frames = [f for f in replay_frames(path, RunSettings(truth="ignore")) if f.solved]
+        clean[0] += sum(f.suspect is not None for f in frames)
+        clean[1] += len(frames)
+        for kind, (override, cause, code) in INJECTED.items():
+            path = work / f"{kind}-{seed}.mcap"
+            if not path.exists():
+                scenarios.record("qr_floor", path, seed=seed, overrides=overrides + [override])
+            truth = {f.index: f for f in replay_frames(path, RunSettings()) if f.solved}
+            for f in replay_frames(path, RunSettings(truth="ignore")):
+                t = truth.get(f.index)
+                if t is None:
+                    continue
+                off = t.position_error_m > 0.02 or abs(t.heading_error_deg) > 1.0
+                if not (off or (code is not None and code in f.used_marker_ids + f.excluded_marker_ids)):
+                    continue
+                counts[kind][0] += 1
+                counts[kind][1] += f.suspect is not None
+                counts[kind][2] += f.suspect is not None and f.suspect.marker_id == code and f.suspect.cause == cause
+        print(f"seed {seed}: clean {clean[0]}/{clean[1]}, " + ", ".join(f"{k} {c[1]}/{c[0]} named {c[2]}" for k, c in counts.items()), flush=True)
+    for kind, (affected, flagged, named) in counts.items():
+        print(f"{kind} ({INJECTED[kind][0]}): {flagged}/{affected} affected frames flagged "
+              f"({100 * flagged / max(affected, 1):.1f} %), cause named right {named}/{flagged} "
+              f"({100 * named / max(flagged, 1):.1f} %)")
+    print(f"clean typical: {clean[0]}/{clean[1]} solved frames flagged ({100 * clean[0] / max(clean[1], 1):.2f} %)")
+    rec = clean_paths[0]
+    run_recording(rec, RunSettings(), work / "warm.rrd")  # fill the detection cache
+    ratios = []
+    for _ in range(args.repeats):
+        walls = {}
+        for checks in ("on", "off"):
+            t0 = time.perf_counter()
+            run_recording(rec, RunSettings(checks=checks), work / f"cost-{checks}.rrd")
+            walls[checks] = time.perf_counter() - t0
+        ratios.append(walls["on"] / walls["off"])
+        print(f"  run wall time checks on {walls['on']:.2f} s, off {walls['off']:.2f} s", flush=True)
+    print(f"cost: wall time checks on ÷ off = {statistics.median(ratios):.3f} (median of {len(ratios)})")
+
+
+if __name__ == "__main__":
+    main()
