@@ -219,7 +219,8 @@ def test_the_summary_table_counts_suspects_per_cause():
             "position_error_mm": {"rmse": None, "median": None, "p95": None},
             "heading_error_deg": {"rmse": None, "median": None, "p95": None}}
     rows = dict(summary_rows({**base, "suspects": suspects_summary(frames)}, {}))
-    assert rows["suspect frames"] == "1 of 2 solved" and rows["suspect: map_entry"] == "1"
-    assert "suspect: uwb" not in rows
+    assert rows["suspect frames (checks without truth)"] == "1 of 2 solved"
+    assert rows["  marker map entry"] == "1" and rows["suspect stretches"] == "1"
+    assert not any("UWB" in metric for metric in rows)
     off = dict(summary_rows({**base, "suspects": suspects_summary(frames, checked=False)}, {}))
-    assert off["suspect frames"] == "not checked (checks=off)"
+    assert off["suspect frames (checks without truth)"] == "not checked (checks=off)"

@@ -8,8 +8,6 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
   nothing else (a run whose every frame failed still says "frames N / solved 0"); with a
   ``truth`` row when truth was given but scored no frame (``truth["note"]``, from
   :meth:`agvviz.replay.solve.Replay.truth_status`: the offset between the time spans);
-- suspects: ``suspects`` (:func:`agvviz.replay.checks.suspects_summary`): suspect frames of the
-  solved ones and the count per cause (the stretches are listed by the CLI below the table);
 - UWB fusion: ``fusion`` (:class:`agvviz.evaluation.fusion_summary.FusionStats`);
 - corrections: ``correction`` (:class:`agvviz.replay.correct.CorrectionStats`), e.g. a corner-only
   ``auv_under_ice`` run, which has no camera frame and so no frame rows;
@@ -17,9 +15,10 @@ A run summary (stored in the ``.rrd``) has one section per kind of output the ru
   each solver's RMSE ÷ CRLB;
 - CNOEM grid trials: ``cnoem_study`` (:mod:`agvviz.replay.studies.cnoem`): cells × trials ×
   methods, each method's mean and RMS error and RMS ÷ CRLB, CNOEM ÷ IPPE against the paper;
-- suspect frames (issue 25): ``suspects`` (the check stage's counts), below the frame rows —
-  suspect frames of the solved, stretches, frames per likely cause
-  (:func:`agvviz.evaluation.suspect_report.summary_rows`);
+- suspect frames (issue 25): ``suspects`` (the check stage's counts,
+  :func:`agvviz.replay.checks.suspects_summary`), below the frame rows — suspect frames of the
+  solved (or "not checked"), stretches, frames per likely cause
+  (:func:`agvviz.evaluation.suspect_report.summary_rows`; the CLI lists the stretches below the table);
 - an error budget: ``error_budget`` (``run --budget``,
   :meth:`agvviz.evaluation.error_budget.ErrorBudget.summary`): each source's share.
 
@@ -63,8 +62,6 @@ def summary_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
     frames = has_frame_rows(summary)
     if frames:
         rows += _frame_rows(summary, timing)
-    if "suspects" in summary:
-        rows += _suspect_rows(summary["suspects"])
     if "fusion" in summary:
         rows += _fusion_rows(summary["fusion"])
     if "correction" in summary:
@@ -73,15 +70,6 @@ def summary_rows(summary: dict, timing: dict) -> list[tuple[str, str]]:
         rows += _budget_rows(summary["error_budget"])
     if not frames and not any(kind in summary for kind in STUDY_KINDS) and timing.get("wall_time_s") is not None:
         rows.append(("wall time (s)", _fmt(timing["wall_time_s"], 1)))
-    return rows
-
-
-def _suspect_rows(suspects: dict) -> list[tuple[str, str]]:
-    """The check stage's counts (issue 25): suspect frames of the solved ones, then per cause."""
-    if not suspects.get("checked", True):
-        return [("suspect frames", "not checked (checks=off)")]
-    rows = [("suspect frames", f"{suspects['frames']} of {suspects['solved']} solved")]
-    rows += [(f"suspect: {cause}", str(n)) for cause, n in suspects.get("by_cause", {}).items() if n]
     return rows
 
 

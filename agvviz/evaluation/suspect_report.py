@@ -64,6 +64,8 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
     section = summary.get("suspects")
     if not isinstance(section, dict):
         return []
+    if not section.get("checked", True):
+        return [("suspect frames (checks without truth)", "not checked (checks=off)")]
     n = int(section.get("frames", 0))
     solved = summary.get("solved")
     of = f" of {solved} solved" if isinstance(solved, int) else ""
