@@ -114,14 +114,14 @@ def _print_stretches(summary: dict, start_ns) -> None:
     rows, more = suspect_report.stretch_rows(summary, start_ns)
     if not rows:
         return
-    table = Table(title="suspect stretches: solved poses that disagree with what else the log knows "
-                  "(time since the recording's start)", title_justify="left")
-    for column in suspect_report.STRETCH_COLUMNS:
-        table.add_column(column, justify="right" if column in ("time (s)", "max σ") else "left",
-                         no_wrap=column in ("frames", "time (s)", "max σ"), overflow="fold")
-    for row in rows:
-        table.add_row(*[escape(cell) for cell in row], style="yellow")
-    console.print(table)
+    console.print("[bold]suspect stretches[/] — solved poses that disagree with what else the log knows "
+                  "(frames, seconds since the recording's start):")
+    for frames, time_s, cause, where, max_sigma, finding, next_step in rows:
+        console.print(f"[yellow]  frames {escape(frames)}, {escape(time_s)} s — {escape(cause)}"
+                      f"{' (' + escape(where) + ')' if where else ''}, up to {escape(max_sigma)}σ[/]")
+        console.print(f"    {escape(finding)}")
+        if next_step:
+            console.print(f"    next: {escape(next_step)}")
     if more:
         console.print(f"… and {more} more (every suspect frame: the suspects log in the .rrd)")
 
