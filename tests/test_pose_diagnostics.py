@@ -30,7 +30,12 @@ def messages():
 
 
 def test_solved_frames_carry_covariance_bound_nees_and_ambiguity(messages):
-    frames = list(replay(messages, RunSettings(sigma_px="0.05")))
+    # covariance=pixel: pixel noise alone, the CRLB's model (the full covariance adds the
+    # systematic sources: tests/test_uncertainty_systematic.py, and below).
+    frames = list(replay(messages, RunSettings(sigma_px="0.05", covariance="pixel")))
+    full = list(replay(messages, RunSettings(sigma_px="0.05")))
+    for f, g in zip(frames, full):
+        assert np.all(np.linalg.eigvalsh(g.cov_world_agv - f.cov_world_agv) > 0)
     assert [f.rejected for f in frames] == [None, None]
     for f in frames:
         assert f.n_points == 4 and f.sigma_px == 0.05
