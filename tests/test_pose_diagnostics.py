@@ -94,6 +94,11 @@ def test_new_entities_read_back_from_the_rrd(messages, tmp_path):
         index, values = scalar_series(contents, entity)
         assert list(index) == [0, 1]
         np.testing.assert_array_equal(values, [getattr(f, attribute) for f in frames])
+    # The NEES view's lines: χ²₆'s mean and 99 % quantile on every frame with a NEES.
+    _, expected = scalar_series(contents, paths.ERROR_NEES_EXPECTED)
+    _, bound = scalar_series(contents, paths.ERROR_NEES_BOUND_99)
+    np.testing.assert_array_equal(expected, [6.0, 6.0])
+    np.testing.assert_allclose(bound, [16.811894, 16.811894])  # scipy.stats.chi2.ppf(0.99, 6)
     _, ratios = scalar_series(contents, paths.SOLVER_AMBIGUITY_RATIO)
     np.testing.assert_array_equal(ratios, [min(f.ambiguity_ratio, 100.0) for f in frames])
     logs = text_logs(contents, paths.EVENTS_FLIPS)

@@ -226,15 +226,15 @@ class SystematicSigmas:
 SOURCES = ("noise", "corner_bias", "intrinsics", "distortion", "map")
 
 
-def _stack(markers) -> tuple[np.ndarray, list[np.ndarray], list[slice]]:
-    """Points in F (N, 3), each marker's points in F, each marker's row slice of the points."""
+def _stack(markers) -> tuple[np.ndarray, list[slice]]:
+    """Points in F (N, 3) and each marker's row slice of them."""
     points_F, slices, start = [], [], 0
     for T_F_marker, points_marker_m in markers:
         pts = se3.transform_points(np.asarray(T_F_marker, dtype=float), np.asarray(points_marker_m, dtype=float))
         points_F.append(pts)
         slices.append(slice(start, start + len(pts)))
         start += len(pts)
-    return np.vstack(points_F), points_F, slices
+    return np.vstack(points_F), slices
 
 
 def frame_covariance_parts(
@@ -256,7 +256,7 @@ def frame_covariance_parts(
         raise ValueError(f"unknown objective {objective!r}; valid: {', '.join(OBJECTIVES)}")
     T_cam_F = np.asarray(T_cam_F, dtype=float)
     K = np.asarray(K, dtype=float)
-    points_F, per_marker, slices = _stack(markers)
+    points_F, slices = _stack(markers)
     w_cam = se3.transform_points(T_cam_F, points_F)
     if not np.all(w_cam[:, 2] > 0.0):
         raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
