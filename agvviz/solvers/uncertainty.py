@@ -254,70 +254,110 @@ def frame_covariance_parts(
     """
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}; valid: {', '.join(OBJECTIVES)}")
-    T_cam_F = np.asarray(T_cam_F, dtype=float)
-    K = np.asarray(K, dtype=float)
-    points_F, slices = _stack(markers)
-    w_cam = se3.transform_points(T_cam_F, points_F)
-    if not np.all(w_cam[:, 2] > 0.0):
-        raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
-    n = len(points_F)
-    pixels, J_px_wrt_w = PinholeCamera(K).project_with_jacobian(w_cam)  # (N, 2), (N, 2, 3)
-    J = (J_px_wrt_w @ se3.J_point_wrt_left_perturbation(w_cam)).reshape(-1, 6)
-    weight = np.ones(2 * n) if objective == "pixel" else np.repeat(w_cam[:, 2] ** 2, 2)
+    view = _View(np.asarray(T_cam_F, dtype=float), markers, np.asarray(K, dtype=float))
+    J = (view.J_px_wrt_w @ se3.J_point_wrt_left_perturbation(view.w_cam)).reshape(-1, 6)
+    weight = np.ones(2 * view.n) if objective == "pixel" else np.repeat(view.w_cam[:, 2] ** 2, 2)
     bread = _inverse_information(J.T @ (weight[:, None] * J), "covariance")
     H = bread @ (J * weight[:, None]).T  # (6, 2N): dδ = −H dr
-    H_pt = H.reshape(6, n, 2).transpose(1, 0, 2)  # (N, 6, 2): H's columns of each point
-
-    def part(B: np.ndarray, variances: np.ndarray) -> np.ndarray:
-        """H B diag(variances) Bᵀ Hᵀ for B (2N, k) over all rows."""
-        HB = H @ B
-        return (HB * variances) @ HB.T
-
     parts = {"noise": sigma_px**2 * H @ H.T}  # pixel: σ²(JᵀJ)⁻¹; depth: the sandwich
-    # Intrinsics: u = fx·x/z + cx, v = fy·y/z + cy (ideal pixels: no skew, no distortion).
-    xn, yn = w_cam[:, 0] / w_cam[:, 2], w_cam[:, 1] / w_cam[:, 2]
-    B_K = np.zeros((n, 2, 4))
-    B_K[:, 0, 0], B_K[:, 1, 1], B_K[:, 0, 2], B_K[:, 1, 3] = xn, yn, 1.0, 1.0
-    parts["intrinsics"] = part(
-        B_K.reshape(-1, 4), np.array([sigmas.focal_px, sigmas.focal_px, sigmas.principal_point_px, sigmas.principal_point_px]) ** 2
-    )
-    r2 = xn**2 + yn**2
-    f = np.array([K[0, 0], K[1, 1]])
-    B_D = np.zeros((n, 2, 4))
-    B_D[:, :, 0] = (r2[:, None] * np.stack([xn, yn], axis=1)) * f
-    B_D[:, :, 1] = (r2[:, None] ** 2 * np.stack([xn, yn], axis=1)) * f
-    B_D[:, :, 2] = np.stack([2 * xn * yn, r2 + 2 * yn**2], axis=1) * f
-    B_D[:, :, 3] = np.stack([r2 + 2 * xn**2, 2 * xn * yn], axis=1) * f
-    parts["distortion"] = part(B_D.reshape(-1, 4), np.array([sigmas.k1, sigmas.k2, sigmas.p1, sigmas.p2]) ** 2)
-    # Per marker: points in F move by dX_F; pixels by J_px_wrt_w · R_cam_F · dX_F.
-    R_cam_F = T_cam_F[:3, :3]
-    J_px_wrt_F = J_px_wrt_w @ R_cam_F  # (N, 2, 3)
-    bias, placement = np.zeros((6, 6)), np.zeros((6, 6))
-    map_var = np.array([sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,
-                        sigmas.map_tilt_rad, sigmas.map_tilt_rad, sigmas.map_yaw_rad, sigmas.map_scale]) ** 2
-    for (T_F_marker, points_marker_m), rows in zip(markers, slices):
-        R = np.asarray(T_F_marker, dtype=float)[:3, :3]
-        x = np.asarray(points_marker_m, dtype=float)
-        Jm = J_px_wrt_F[rows]  # (n_i, 2, 3)
-        Hm = H_pt[rows]  # (n_i, 6, 2)
-        if sigmas.corner_bias_px > 0.0 and len(x) >= 2:
-            spread_m = np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1)))
-            px = pixels[rows]
-            spread_px = np.sqrt(np.mean(np.sum((px - px.mean(axis=0)) ** 2, axis=1)))
-            if spread_px > 0.0:
-                sigma_m = sigmas.corner_bias_px * spread_m / spread_px
-                HB = Hm @ (Jm @ R[:, :2])  # (n_i, 6, 2): each corner's in-plane offset
-                bias += sigma_m**2 * np.einsum("nij,nkj->ik", HB, HB)
-        if np.any(map_var > 0.0):
-            dX = np.zeros((len(x), 3, 7))
-            dX[:, :, :3] = np.eye(3)
-            dX[:, :, 3:6] = -np.einsum("ij,njk->nik", R, _hat_rows(x))  # R·Exp(φ)·x: −R·x^·φ
-            dX[:, :, 6] = x @ R.T
-            HB = np.einsum("nij,njk->ik", Hm, Jm @ dX)  # (6, 7): summed over the marker's points
-            placement += (HB * map_var) @ HB.T
-    parts["corner_bias"] = bias
-    parts["map"] = placement
+    parts.update(view.systematic_parts(H, sigmas))
     return {name: 0.5 * (parts[name] + parts[name].T) for name in SOURCES}
+
+
+class _View:
+    """One frame's points seen by the camera at ``T_cam_F``: what every source's B needs."""
+
+    def __init__(self, T_cam_F: np.ndarray, markers, K: np.ndarray):
+        self.markers = markers
+        self.K = K
+        points_F, self.slices = _stack(markers)
+        self.w_cam = se3.transform_points(T_cam_F, points_F)
+        if not np.all(self.w_cam[:, 2] > 0.0):
+            raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
+        self.n = len(points_F)
+        self.pixels, self.J_px_wrt_w = PinholeCamera(K).project_with_jacobian(self.w_cam)  # (N, 2), (N, 2, 3)
+        self.J_px_wrt_F = self.J_px_wrt_w @ T_cam_F[:3, :3]  # (N, 2, 3): points moved in F
+
+    def systematic_parts(self, H: np.ndarray, sigmas: SystematicSigmas) -> dict[str, np.ndarray]:
+        """``H B Σ_θ Bᵀ Hᵀ`` (k, k) of corner bias, intrinsics, distortion and map for the
+        sensitivity ``H`` (k, 2N) of the estimate's k parameters to the residuals."""
+        k, n = H.shape[0], self.n
+        H_pt = H.reshape(k, n, 2).transpose(1, 0, 2)  # (N, k, 2): H's columns of each point
+
+        def part(B: np.ndarray, variances: np.ndarray) -> np.ndarray:
+            HB = H @ B
+            return (HB * variances) @ HB.T
+
+        parts = {}
+        # Intrinsics: u = fx·x/z + cx, v = fy·y/z + cy (ideal pixels: no skew, no distortion).
+        xn, yn = self.w_cam[:, 0] / self.w_cam[:, 2], self.w_cam[:, 1] / self.w_cam[:, 2]
+        B_K = np.zeros((n, 2, 4))
+        B_K[:, 0, 0], B_K[:, 1, 1], B_K[:, 0, 2], B_K[:, 1, 3] = xn, yn, 1.0, 1.0
+        parts["intrinsics"] = part(
+            B_K.reshape(-1, 4),
+            np.array([sigmas.focal_px, sigmas.focal_px, sigmas.principal_point_px, sigmas.principal_point_px]) ** 2,
+        )
+        r2 = xn**2 + yn**2
+        f = np.array([self.K[0, 0], self.K[1, 1]])
+        xy = np.stack([xn, yn], axis=1)
+        B_D = np.zeros((n, 2, 4))
+        B_D[:, :, 0] = r2[:, None] * xy * f
+        B_D[:, :, 1] = r2[:, None] ** 2 * xy * f
+        B_D[:, :, 2] = np.stack([2 * xn * yn, r2 + 2 * yn**2], axis=1) * f
+        B_D[:, :, 3] = np.stack([r2 + 2 * xn**2, 2 * xn * yn], axis=1) * f
+        parts["distortion"] = part(B_D.reshape(-1, 4), np.array([sigmas.k1, sigmas.k2, sigmas.p1, sigmas.p2]) ** 2)
+        # Per marker: points in F move by dX_F; pixels by J_px_wrt_F · dX_F.
+        bias, placement = np.zeros((k, k)), np.zeros((k, k))
+        map_var = np.array([sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,
+                            sigmas.map_tilt_rad, sigmas.map_tilt_rad, sigmas.map_yaw_rad, sigmas.map_scale]) ** 2
+        for (T_F_marker, points_marker_m), rows in zip(self.markers, self.slices):
+            R = np.asarray(T_F_marker, dtype=float)[:3, :3]
+            x = np.asarray(points_marker_m, dtype=float)
+            Jm = self.J_px_wrt_F[rows]  # (n_i, 2, 3)
+            Hm = H_pt[rows]  # (n_i, k, 2)
+            if sigmas.corner_bias_px > 0.0 and len(x) >= 2:
+                spread_m = np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1)))
+                px = self.pixels[rows]
+                spread_px = np.sqrt(np.mean(np.sum((px - px.mean(axis=0)) ** 2, axis=1)))
+                if spread_px > 0.0:
+                    sigma_m = sigmas.corner_bias_px * spread_m / spread_px
+                    HB = Hm @ (Jm @ R[:, :2])  # (n_i, k, 2): each corner's in-plane offset
+                    bias += sigma_m**2 * np.einsum("nij,nkj->ik", HB, HB)
+            if np.any(map_var > 0.0):
+                dX = np.zeros((len(x), 3, 7))
+                dX[:, :, :3] = np.eye(3)
+                dX[:, :, 3:6] = -np.einsum("ij,njk->nik", R, _hat_rows(x))  # R·Exp(φ)·x: −R·x^·φ
+                dX[:, :, 6] = x @ R.T
+                HB = np.einsum("nij,njk->ik", Hm, Jm @ dX)  # (k, 7): summed over the marker's points
+                placement += (HB * map_var) @ HB.T
+        parts["corner_bias"] = bias
+        parts["map"] = placement
+        return parts
+
+
+def planar_covariance_full(
+    J_planar: np.ndarray,
+    J_planar_wrt_extrinsic: np.ndarray,
+    T_cam_world: np.ndarray,
+    markers: list[tuple[np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    sigma_px: float,
+    sigmas: SystematicSigmas,
+) -> np.ndarray:
+    """Covariance (3, 3) of the ``planar`` solver's (x, y, ψ) with every systematic source.
+
+    ``J_planar`` (2N, 3) is the pixels' Jacobian w.r.t. the planar parameters,
+    ``J_planar_wrt_extrinsic`` (2N, 6) w.r.t. the extrinsic's (δt, δφ) (the extrinsic is in the
+    planar model's residuals); markers in the world (F = world, ``T_cam_world``). The ML
+    estimator: ``H = (JᵀJ)⁻¹Jᵀ``, noise ``σ²(JᵀJ)⁻¹``."""
+    view = _View(np.asarray(T_cam_world, dtype=float), markers, np.asarray(K, dtype=float))
+    bread = _inverse_information(J_planar.T @ J_planar, "planar covariance")
+    H = bread @ J_planar.T
+    cov = sigma_px**2 * bread + sum(view.systematic_parts(H, sigmas).values())
+    HB = H @ J_planar_wrt_extrinsic
+    variances = np.array([sigmas.extrinsic_translation_m] * 3 + [sigmas.extrinsic_rotation_rad] * 3) ** 2
+    cov = cov + (HB * variances) @ HB.T
+    return 0.5 * (cov + cov.T)
 
 
 def _hat_rows(x: np.ndarray) -> np.ndarray:
