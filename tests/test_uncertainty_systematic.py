@@ -261,3 +261,37 @@ def test_ellipsoid_label_names_the_one_magnification():
     half_sizes, _, _, label = _covariance_ellipsoid(frame, COV_MAGNIFICATION)
     assert f"×{COV_MAGNIFICATION:g}" in label
     assert max(half_sizes) == pytest.approx(3 * COV_MAGNIFICATION * 2e-3)
+
+
+def test_planar_extrinsic_jacobian_matches_finite_differences():
+    """The planar model's pixels through a recorded extrinsic [Exp(δφ)·R, t + δt]."""
+    from agvviz.solvers import planar
+
+    points = _points_F(MARKERS)
+
+    def pixels(T_agv_cam):
+        return _pixels(se3.inverse(T_WORLD_AGV @ T_agv_cam), points).ravel()
+
+    numeric = np.empty((2 * len(points), 6))
+    for p in range(6):
+        cols = []
+        for sign in (1, -1):
+            d = np.zeros(6)
+            d[p] = sign * 1e-7
+            cols.append(pixels(se3.make(so3.exp(d[3:]) @ T_AGV_CAM[:3, :3], T_AGV_CAM[:3, 3] + d[:3])))
+        numeric[:, p] = (cols[0] - cols[1]) / 2e-7
+    analytic = planar.pixel_jacobian_planar_wrt_extrinsic(T_WORLD_AGV, T_AGV_CAM, points, K)
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-3)
+
+
+def test_planar_full_covariance_adds_to_the_pixel_one():
+    from agvviz.solvers import planar
+
+    points = _points_F(MARKERS)
+    J3 = planar.pixel_jacobian_planar(T_WORLD_AGV, T_AGV_CAM, points, K)
+    J_ext = planar.pixel_jacobian_planar_wrt_extrinsic(T_WORLD_AGV, T_AGV_CAM, points, K)
+    full = unc.planar_covariance_full(J3, J_ext, T_CAM_WORLD, MARKERS, K, SIGMA_PX, SIGMAS)
+    pixel = planar.covariance_planar(T_WORLD_AGV, T_AGV_CAM, points, K, SIGMA_PX)
+    none = unc.planar_covariance_full(J3, J_ext, T_CAM_WORLD, MARKERS, K, SIGMA_PX, unc.SystematicSigmas())
+    np.testing.assert_allclose(none, pixel, rtol=1e-9)
+    assert np.all(np.linalg.eigvalsh(full - pixel) > 0)

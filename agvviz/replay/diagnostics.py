@@ -20,8 +20,9 @@ covariance of ``T_world_agv`` is in the left tangent space in the world frame, (
 intrinsics and distortion, the camera's extrinsic and every used marker's map placement,
 propagated through the solution (:func:`agvviz.solvers.uncertainty.frame_covariance_full`;
 their σ's are the run's settings); with ``covariance=pixel`` the map and the extrinsics are
-taken as exact and pixel noise is the only source. The ``planar`` solver's covariance is pixel
-noise only in both modes.
+taken as exact and pixel noise is the only source. The ``planar`` solver's (x, y, ψ) take the
+same sources (:func:`agvviz.solvers.uncertainty.planar_covariance_full`; its extrinsic is in the
+residuals).
 """
 
 from __future__ import annotations
@@ -223,7 +224,16 @@ class PoseDiagnostics:
             return
         try:
             points_world = se3.transform_points(T_world_marker, points_marker_m)
-            if is_planar:
+            if is_planar and self.systematic is not None:
+                cov3 = uncertainty.planar_covariance_full(
+                    planar.pixel_jacobian_planar(T_world_agv, T_agv_cam, points_world, K),
+                    planar.pixel_jacobian_planar_wrt_extrinsic(T_world_agv, T_agv_cam, points_world, K),
+                    se3.inverse(T_world_cam),
+                    markers if markers is not None else [(T_world_marker, points_marker_m)],
+                    K, sigma, self.systematic,
+                )
+                cov = planar.embed_world_left(cov3, T_world_agv)
+            elif is_planar:
                 cov3 = planar.covariance_planar(T_world_agv, T_agv_cam, points_world, K, sigma)
                 cov = planar.embed_world_left(cov3, T_world_agv)
             else:
