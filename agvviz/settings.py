@@ -24,6 +24,7 @@ from agvviz.fusion.common import FUSION_NAMES
 from agvviz.solvers.multi_camera import CAMERA_SELECT
 from agvviz.solvers.ambiguity import POLICIES as AMBIGUITY_POLICIES
 from agvviz.solvers.registry import SOLVER_NAMES
+from agvviz.solvers.uncertainty import SystematicSigmas
 from agvviz.uwb.localize import METHODS as UWB_METHODS
 
 
@@ -131,9 +132,49 @@ class RunSettings:
     )
     corner_bias_px: float = setting(
         0.3,
-        "markers=all: each marker's systematic corner error σ (px), added to the pixel noise in "
-        "the chi-square test across markers (0.3 px measured on real photos: docs/joint-solve.md)",
+        "each marker's systematic corner error σ (px): added to the pixel noise in the joint "
+        "solve's chi-square test across markers, and a source of the pose covariance "
+        "(covariance=full) (0.3 px measured on real photos: docs/joint-solve.md)",
         min=0.0, max=100.0,
+    )
+    covariance: str = setting(
+        "full",
+        "pose covariance: full (pixel noise + corner bias + calibration + extrinsic + map, the cov_* "
+        "settings; docs/uncertainty.md) or pixel (pixel noise only, as before issue 25)",
+        ("full", "pixel"),
+    )
+    # The cov_* defaults are the `typical` realism profile's σ's (agvviz.sim.realism.PROFILES
+    # ["typical"]: a carefully calibrated and surveyed AGV); tests/test_uncertainty.py holds
+    # them equal. A real log uses them unless told its calibration and survey are better/worse.
+    cov_focal_px: float = setting(0.1, "covariance=full: σ of the focal lengths fx, fy each (px)", min=0.0, max=1e4)
+    cov_principal_point_px: float = setting(
+        0.1, "covariance=full: σ of the principal point cx, cy each (px)", min=0.0, max=1e4
+    )
+    cov_k1: float = setting(0.00025, "covariance=full: σ of the radial distortion k1", min=0.0, max=1.0)
+    cov_k2: float = setting(0.0001, "covariance=full: σ of the radial distortion k2", min=0.0, max=1.0)
+    cov_tangential: float = setting(
+        0.00003, "covariance=full: σ of the tangential distortion p1, p2 each", min=0.0, max=1.0
+    )
+    cov_extrinsic_rotation_deg: float = setting(
+        0.02, "covariance=full: σ of each camera extrinsic's rotation, per axis (deg)", min=0.0, max=90.0
+    )
+    cov_extrinsic_translation_m: float = setting(
+        0.0001, "covariance=full: σ of each camera extrinsic's translation, per axis (m)", min=0.0, max=10.0
+    )
+    cov_map_position_m: float = setting(
+        0.0001, "covariance=full: σ of each marker's mapped position along x and y each (m)", min=0.0, max=10.0
+    )
+    cov_map_height_m: float = setting(
+        0.0001, "covariance=full: σ of each marker's mapped height z (m)", min=0.0, max=10.0
+    )
+    cov_map_yaw_deg: float = setting(
+        0.007, "covariance=full: σ of each marker's mapped yaw about its normal (deg)", min=0.0, max=180.0
+    )
+    cov_map_tilt_deg: float = setting(
+        0.015, "covariance=full: σ of each marker's tilt about its x and y axes each (deg)", min=0.0, max=90.0
+    )
+    cov_map_scale: float = setting(
+        0.00015, "covariance=full: σ of each marker's printed scale (fraction of its side)", min=0.0, max=1.0
     )
     max_reproj_px: float = setting(
         2.0, "reject a frame whose RMS reprojection error exceeds this (px)", min=1e-3, max=1e4
@@ -302,6 +343,26 @@ class RunSettings:
                 raise SettingsError(
                     f"sigma_px must be auto or lie in {_fmt(SIGMA_PX_MIN)}..{_fmt(SIGMA_PX_MAX)} px, got {self.sigma_px!r}"
                 )
+
+    @property
+    def systematic_sigmas(self) -> SystematicSigmas | None:
+        """The systematic sources of the pose covariance (``covariance=full``), or ``None`` for
+        the pixel-noise-only covariance (``covariance=pixel``)."""
+        if self.covariance == "pixel":
+            return None
+        return SystematicSigmas(
+            corner_bias_px=self.corner_bias_px,
+            focal_px=self.cov_focal_px,
+            principal_point_px=self.cov_principal_point_px,
+            k1=self.cov_k1, k2=self.cov_k2, p1=self.cov_tangential, p2=self.cov_tangential,
+            extrinsic_rotation_rad=math.radians(self.cov_extrinsic_rotation_deg),
+            extrinsic_translation_m=self.cov_extrinsic_translation_m,
+            map_position_m=self.cov_map_position_m,
+            map_height_m=self.cov_map_height_m,
+            map_yaw_rad=math.radians(self.cov_map_yaw_deg),
+            map_tilt_rad=math.radians(self.cov_map_tilt_deg),
+            map_scale=self.cov_map_scale,
+        )
 
     @property
     def sigma_px_value(self) -> float | None:

@@ -30,7 +30,12 @@ def messages():
 
 
 def test_solved_frames_carry_covariance_bound_nees_and_ambiguity(messages):
-    frames = list(replay(messages, RunSettings(sigma_px="0.05")))
+    # covariance=pixel: pixel noise alone, the CRLB's model (the full covariance adds the
+    # systematic sources: tests/test_uncertainty_systematic.py, and below).
+    frames = list(replay(messages, RunSettings(sigma_px="0.05", covariance="pixel")))
+    full = list(replay(messages, RunSettings(sigma_px="0.05")))
+    for f, g in zip(frames, full):
+        assert np.all(np.linalg.eigvalsh(g.cov_world_agv - f.cov_world_agv) > 0)
     assert [f.rejected for f in frames] == [None, None]
     for f in frames:
         assert f.n_points == 4 and f.sigma_px == 0.05
@@ -89,6 +94,11 @@ def test_new_entities_read_back_from_the_rrd(messages, tmp_path):
         index, values = scalar_series(contents, entity)
         assert list(index) == [0, 1]
         np.testing.assert_array_equal(values, [getattr(f, attribute) for f in frames])
+    # The NEES view's lines: χ²₆'s mean and 99 % quantile on every frame with a NEES.
+    _, expected = scalar_series(contents, paths.ERROR_NEES_EXPECTED)
+    _, bound = scalar_series(contents, paths.ERROR_NEES_BOUND_99)
+    np.testing.assert_array_equal(expected, [6.0, 6.0])
+    np.testing.assert_allclose(bound, [16.811894, 16.811894])  # scipy.stats.chi2.ppf(0.99, 6)
     _, ratios = scalar_series(contents, paths.SOLVER_AMBIGUITY_RATIO)
     np.testing.assert_array_equal(ratios, [min(f.ambiguity_ratio, 100.0) for f in frames])
     logs = text_logs(contents, paths.EVENTS_FLIPS)

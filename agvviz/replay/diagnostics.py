@@ -15,8 +15,14 @@ kept as the frame's *ghost*. A frame is
 Uncertainty (every solved frame): pixel σ is the ``sigma_px`` setting, or with ``auto`` the
 pooled residual estimate sqrt(Σ‖r‖² / Σ dof) over all solved frames so far, this one included
 (one frame of 4 points has only 2 degrees of freedom — far too few for a per-frame σ). The
-covariance of ``T_world_agv`` is in the left tangent space in the world frame, (ρ, φ);
-the marker map and the extrinsics are taken as exact.
+covariance of ``T_world_agv`` is in the left tangent space in the world frame, (ρ, φ). With
+``covariance=full`` (``systematic`` given) it adds each marker's systematic corner error, the
+intrinsics and distortion, the camera's extrinsic and every used marker's map placement,
+propagated through the solution (:func:`agvviz.solvers.uncertainty.frame_covariance_full`;
+their σ's are the run's settings); with ``covariance=pixel`` the map and the extrinsics are
+taken as exact and pixel noise is the only source. The ``planar`` solver's (x, y, ψ) take the
+same sources (:func:`agvviz.solvers.uncertainty.planar_covariance_full`; its extrinsic is in the
+residuals).
 """
 
 from __future__ import annotations
@@ -58,10 +64,21 @@ class PoseDiagnostics:
     policy : ambiguity policy (:data:`agvviz.solvers.ambiguity.POLICIES`).
     sigma_px : fixed pixel σ, or ``None`` for the pooled residual estimate.
     options : LM settings used to refine the alternative IPPE branch.
+    systematic : σ's of the covariance's systematic sources, or ``None`` for pixel noise only.
     """
 
-    def __init__(self, solver: str, objective: str, policy: str, sigma_px: float | None, options: SolverOptions):
+    def __init__(
+        self,
+        solver: str,
+        objective: str,
+        policy: str,
+        sigma_px: float | None,
+        options: SolverOptions,
+        systematic: uncertainty.SystematicSigmas | None = None,
+    ):
         self.solver = solver
+        #: σ's of the systematic sources (``covariance=full``), ``None``: pixel noise only
+        self.systematic = systematic
         self.objective = objective
         self.policy = policy
         self.fixed_sigma_px = sigma_px
@@ -179,8 +196,15 @@ class PoseDiagnostics:
         K: np.ndarray,
         T_agv_cam: np.ndarray | None,
         camera_on_agv: bool,
+        markers: list[tuple[np.ndarray, np.ndarray]] | None = None,
+        T_frame_marker: np.ndarray | None = None,
     ) -> None:
-        """Covariance, bound and NEES of a solved frame; then remember it for the next one."""
+        """Covariance, bound and NEES of a solved frame; then remember it for the next one.
+
+        ``points_marker_m`` are in the frame of ``T_cam_marker``, whose pose in the frame F the
+        markers are fixed in is ``T_frame_marker`` (identity for a joint solve, whose points are
+        in F); ``markers`` lists every used marker's mapped ``T_F_marker`` and its points in its
+        own frame, in the order of the points (default: one marker, ``T_frame_marker``)."""
         T_world_cam, T_world_agv = result.T_world_cam, result.T_world_agv
         T_world_marker = T_world_cam @ T_cam_marker
         is_planar = self.solver == "planar"
@@ -200,14 +224,32 @@ class PoseDiagnostics:
             return
         try:
             points_world = se3.transform_points(T_world_marker, points_marker_m)
-            if is_planar:
+            if is_planar and self.systematic is not None:
+                cov3 = uncertainty.planar_covariance_full(
+                    planar.pixel_jacobian_planar(T_world_agv, T_agv_cam, points_world, K),
+                    planar.pixel_jacobian_planar_wrt_extrinsic(T_world_agv, T_agv_cam, points_world, K),
+                    se3.inverse(T_world_cam),
+                    markers if markers is not None else [(T_world_marker, points_marker_m)],
+                    K, sigma, self.systematic,
+                )
+                cov = planar.embed_world_left(cov3, T_world_agv)
+            elif is_planar:
                 cov3 = planar.covariance_planar(T_world_agv, T_agv_cam, points_world, K, sigma)
                 cov = planar.embed_world_left(cov3, T_world_agv)
             else:
                 objective = self.objective if self.solver == "lm" else "pixel"
-                cov = uncertainty.covariance_world_agv(
-                    uncertainty.covariance(T_cam_marker, points_marker_m, K, sigma, objective), T_world_cam
-                )
+                if self.systematic is None:
+                    cov = uncertainty.covariance_world_agv(
+                        uncertainty.covariance(T_cam_marker, points_marker_m, K, sigma, objective), T_world_cam
+                    )
+                else:
+                    T_F_m = np.eye(4) if T_frame_marker is None else np.asarray(T_frame_marker, dtype=float)
+                    cov, _ = uncertainty.frame_covariance_full(
+                        T_cam_marker @ se3.inverse(T_F_m),
+                        markers if markers is not None else [(T_F_m, points_marker_m)],
+                        K, sigma, self.systematic, T_world_cam, T_world_agv,
+                        T_agv_cam if camera_on_agv else T_world_cam, camera_on_agv, objective,
+                    )
             result.cov_world_agv = cov
             result.position_cov_world_m2 = uncertainty.position_covariance(cov, T_world_agv)
             result.position_sigma_m = uncertainty.position_bound_m(result.position_cov_world_m2)

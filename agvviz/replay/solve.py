@@ -137,7 +137,7 @@ class Replay:
         )
         self._diagnostics = PoseDiagnostics(
             settings.solver, settings.objective, settings.ambiguity, settings.sigma_px_value,
-            self._solver_options,
+            self._solver_options, settings.systematic_sigmas,
         )
         #: per camera: the detect stage run in process, when :meth:`feed` is not given the
         #: frame's detections (computed ahead by :mod:`agvviz.replay.detect.pool`)
@@ -497,6 +497,7 @@ class Replay:
             result,
         )
         result.used_marker_ids = (observation.marker_id,)
+        used_markers = [(T_frame_marker, points_marker_m)]  # each used marker's pose in its frame and points
         same_frame = [c for c in candidates if c[3] == marker_frame]
         if self.settings.solver != "planar":
             self._diagnostics.note_single_marker(solved.T_cam_marker, points_marker_m, ideal_px, camera.K)
@@ -532,6 +533,7 @@ class Replay:
                 used = [c for c in same_frame if c[0].marker_id in joint.used]
                 ideal_px = np.vstack([c[1] for c in used])
                 points_marker_m = np.vstack([se3.transform_points(c[4], c[2]) for c in used])
+                used_markers = [(c[4], c[2]) for c in used]
                 T_frame_marker = np.eye(4)
                 solved = SolveResult(joint.T_cam_F, "", joint.iterations, joint.reproj_rms_px, joint.path)
                 result.used_marker_ids = joint.used
@@ -582,7 +584,8 @@ class Replay:
             result.pitch_error_deg = float(pitch_err)
             result.roll_error_deg = float(roll_err)
         self._diagnostics.finish(
-            result, solved.T_cam_marker, points_marker_m, ideal_px, camera.K, cam.T_agv_cam, camera_on_agv
+            result, solved.T_cam_marker, points_marker_m, ideal_px, camera.K, cam.T_agv_cam, camera_on_agv,
+            used_markers, T_frame_marker,
         )
         return result
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agvviz.geometry import se3
+from agvviz.geometry import se3, so3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.geometry.euler import Rz
 from agvviz.solvers import lm_core
@@ -110,6 +110,23 @@ def pixel_jacobian_planar(
     # p_agv ← Exp(−δ)·p_agv, so ∂p_agv/∂δ = −[I, −p^]; then w = T_cam_agv·p_agv.
     J_w_wrt_delta = -T_cam_agv[:3, :3] @ se3.J_point_wrt_left_perturbation(p_agv)
     return (J_px_wrt_w @ J_w_wrt_delta[:, :, PLANAR_DOF]).reshape(-1, 3)
+
+
+def pixel_jacobian_planar_wrt_extrinsic(
+    T_world_agv: np.ndarray, T_agv_cam: np.ndarray, points_world_m: np.ndarray, K: np.ndarray
+) -> np.ndarray:
+    """``J_pixels_wrt_(δt, δφ)`` (2N, 6) of an error of the extrinsic as recorded,
+    ``T_agv_cam = [Exp(δφ)·R, t + δt]`` (δφ in the AGV frame) = ``Exp(ξ)·T_agv_cam`` with
+    ``ξ = (δt + t^·δφ, δφ)``: the planar model's residuals go through it."""
+    p_agv = se3.transform_points(se3.inverse(T_world_agv), points_world_m)
+    T_cam_agv = se3.inverse(T_agv_cam)
+    w = se3.transform_points(T_cam_agv, p_agv)
+    _, J_px_wrt_w = PinholeCamera(np.asarray(K, dtype=float)).project_with_jacobian(w)
+    # w = T_agv_cam⁻¹·Exp(−ξ)·p_agv, so ∂w/∂ξ = −R_cam_agv·[I, −p_agv^].
+    J_w_wrt_xi = -T_cam_agv[:3, :3] @ se3.J_point_wrt_left_perturbation(p_agv)
+    G = np.eye(6)
+    G[:3, 3:] = so3.hat(np.asarray(T_agv_cam, dtype=float)[:3, 3])
+    return (J_px_wrt_w @ J_w_wrt_xi).reshape(-1, 6) @ G
 
 
 def _floor_points_agv(pixels_px, K, T_agv_cam) -> np.ndarray | None:

@@ -24,13 +24,50 @@ Estimators
 
 The Cramér–Rao lower bound for any unbiased estimator at the TRUE pose is the inverse Fisher
 information ``σ²(JᵀJ)⁻¹`` with J evaluated at the true pose.
+
+Systematic sources (:func:`frame_covariance_full`)
+    Besides the pixel noise, a pose inherits the errors of everything it is computed from and
+    takes as exact: the camera's calibration, its extrinsic, the map, and each marker's own
+    systematic corner error. Each is a parameter θ (error zero-mean Gaussian, covariance Σ_θ,
+    independent of the others and of the noise) propagated to first order through the solution
+    by the implicit-function theorem: the estimate minimises ``Σ wᵢ rᵢ(T, θ)²`` so
+    ``dT/dθ = −(JᵀWJ)⁻¹JᵀW ∂r/∂θ`` and ``Σ = Σ_noise + Σ_θ (dT/dθ) Σ_θ (dT/dθ)ᵀ``. The pose
+    solved is ``T_cam_F`` — the camera against the frame F the markers are fixed in (the world
+    for floor codes, the AGV for a code on the AGV), so a map error moves the points the
+    residuals are computed from (a single marker's pose absorbs its placement exactly: the
+    first-order result is that rigid shift). Per frame:
+
+    * noise — independent σ (px) on every ideal pixel coordinate (the pooled residual estimate);
+    * corner bias — each corner of marker i sits off by an offset (a, b) in the marker's own
+      plane (along its x and y axes), drawn once per marker and kept in every frame (a corner
+      printed or detected slightly off: it does not average out over frames), independent
+      between corners and markers, σ per axis = ``corner_bias_px`` × the marker's metres per
+      pixel in this frame (RMS spread of its points in metres ÷ in pixels), so about
+      ``corner_bias_px`` in the image; within one frame it therefore acts as corner noise that
+      the pose's own fit cannot see in 6 of every 8 dimensions of a 4-corner marker;
+    * intrinsics — fx, fy (σ ``focal_px`` each), cx, cy (σ ``principal_point_px`` each), through
+      the projection ``u = fx·x/z + cx``;
+    * distortion — k1, k2, p1, p2 of the undistortion that made the ideal pixels: an error δk1
+      moves an ideal pixel by ``f·δk1·r²·(x, y)`` (normalised x, y, r² = x² + y²), k2 by r⁴,
+      p1 by ``f·(2xy, r² + 2y²)``, p2 by ``f·(r² + 2x², 2xy)``;
+    * map — each marker's mapped pose ``T_F_marker``: position (σ ``map_position_m`` along F's
+      x and y, ``map_height_m`` along z), rotation right-perturbed in the marker frame
+      ``R·Exp((tx, ty, yaw))`` (σ ``map_tilt_rad`` about x and y, ``map_yaw_rad`` about the
+      normal), printed scale ``(1 + s)`` about its centre (σ ``map_scale``) — the draws of
+      :mod:`agvviz.sim.realism`'s map source, independent per marker;
+    * extrinsic — the camera's mounting ``T_parent_cam`` (AGV or world), ``R = Exp(δφ)·R̂``
+      (δφ in the parent frame, σ ``extrinsic_rotation_rad`` per axis), ``t = t̂ + δt``
+      (σ ``extrinsic_translation_m`` per axis): it is not in the residuals and moves
+      ``T_world_agv`` directly (:func:`extrinsic_covariance_world`).
 """
 
 from __future__ import annotations
 
-from agvviz.errors import RunError
+from dataclasses import dataclass
 
 import numpy as np
+
+from agvviz.errors import RunError
 
 from agvviz.geometry import se3, so3
 from agvviz.geometry.camera import PinholeCamera
@@ -162,3 +199,219 @@ def nees(T_est: np.ndarray, T_true: np.ndarray, cov_left: np.ndarray) -> float:
     """
     delta = left_error(T_est, T_true)
     return float(delta @ np.linalg.solve(cov_left, delta))
+
+
+@dataclass(frozen=True)
+class SystematicSigmas:
+    """σ of each systematic error source of a frame's pose (module docstring; 0 = exact).
+    Angles in radians, lengths in metres, pixels in px, scale and distortion unitless."""
+
+    corner_bias_px: float = 0.0
+    focal_px: float = 0.0
+    principal_point_px: float = 0.0
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    extrinsic_rotation_rad: float = 0.0
+    extrinsic_translation_m: float = 0.0
+    map_position_m: float = 0.0
+    map_height_m: float = 0.0
+    map_yaw_rad: float = 0.0
+    map_tilt_rad: float = 0.0
+    map_scale: float = 0.0
+
+
+#: Sources of :func:`frame_covariance_parts`, in order (``extrinsic`` is added in the world).
+SOURCES = ("noise", "corner_bias", "intrinsics", "distortion", "map")
+
+
+def _stack(markers) -> tuple[np.ndarray, list[slice]]:
+    """Points in F (N, 3) and each marker's row slice of them."""
+    points_F, slices, start = [], [], 0
+    for T_F_marker, points_marker_m in markers:
+        pts = se3.transform_points(np.asarray(T_F_marker, dtype=float), np.asarray(points_marker_m, dtype=float))
+        points_F.append(pts)
+        slices.append(slice(start, start + len(pts)))
+        start += len(pts)
+    return np.vstack(points_F), slices
+
+
+def frame_covariance_parts(
+    T_cam_F: np.ndarray,
+    markers: list[tuple[np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    sigma_px: float,
+    sigmas: SystematicSigmas,
+    objective: str = "pixel",
+) -> dict[str, np.ndarray]:
+    """Covariance (6, 6) of ``T_cam_F`` (left, (ρ, φ)) from each source of :data:`SOURCES`.
+
+    ``markers`` lists each marker's mapped pose ``T_F_marker`` (4, 4) and its points (n, 3) in
+    its own frame, in the order of the residual rows; ``T_cam_F`` is the solution. The
+    estimator is the ``objective``'s (weights 1 or z², as :func:`covariance`): each part is
+    ``H B Σ_θ Bᵀ Hᵀ`` with ``H = (JᵀWJ)⁻¹JᵀW`` and B the pixels' Jacobian w.r.t. θ.
+    """
+    if objective not in OBJECTIVES:
+        raise ValueError(f"unknown objective {objective!r}; valid: {', '.join(OBJECTIVES)}")
+    view = _View(np.asarray(T_cam_F, dtype=float), markers, np.asarray(K, dtype=float))
+    J = (view.J_px_wrt_w @ se3.J_point_wrt_left_perturbation(view.w_cam)).reshape(-1, 6)
+    weight = np.ones(2 * view.n) if objective == "pixel" else np.repeat(view.w_cam[:, 2] ** 2, 2)
+    bread = _inverse_information(J.T @ (weight[:, None] * J), "covariance")
+    H = bread @ (J * weight[:, None]).T  # (6, 2N): dδ = −H dr
+    parts = {"noise": sigma_px**2 * H @ H.T}  # pixel: σ²(JᵀJ)⁻¹; depth: the sandwich
+    parts.update(view.systematic_parts(H, sigmas))
+    return {name: 0.5 * (parts[name] + parts[name].T) for name in SOURCES}
+
+
+class _View:
+    """One frame's points seen by the camera at ``T_cam_F``: what every source's B needs."""
+
+    def __init__(self, T_cam_F: np.ndarray, markers, K: np.ndarray):
+        self.markers = markers
+        self.K = K
+        points_F, self.slices = _stack(markers)
+        self.w_cam = se3.transform_points(T_cam_F, points_F)
+        if not np.all(self.w_cam[:, 2] > 0.0):
+            raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
+        self.n = len(points_F)
+        self.pixels, self.J_px_wrt_w = PinholeCamera(K).project_with_jacobian(self.w_cam)  # (N, 2), (N, 2, 3)
+        self.J_px_wrt_F = self.J_px_wrt_w @ T_cam_F[:3, :3]  # (N, 2, 3): points moved in F
+
+    def systematic_parts(self, H: np.ndarray, sigmas: SystematicSigmas) -> dict[str, np.ndarray]:
+        """``H B Σ_θ Bᵀ Hᵀ`` (k, k) of corner bias, intrinsics, distortion and map for the
+        sensitivity ``H`` (k, 2N) of the estimate's k parameters to the residuals."""
+        k, n = H.shape[0], self.n
+        H_pt = H.reshape(k, n, 2).transpose(1, 0, 2)  # (N, k, 2): H's columns of each point
+
+        def part(B: np.ndarray, variances: np.ndarray) -> np.ndarray:
+            HB = H @ B
+            return (HB * variances) @ HB.T
+
+        parts = {}
+        # Intrinsics: u = fx·x/z + cx, v = fy·y/z + cy (ideal pixels: no skew, no distortion).
+        xn, yn = self.w_cam[:, 0] / self.w_cam[:, 2], self.w_cam[:, 1] / self.w_cam[:, 2]
+        B_K = np.zeros((n, 2, 4))
+        B_K[:, 0, 0], B_K[:, 1, 1], B_K[:, 0, 2], B_K[:, 1, 3] = xn, yn, 1.0, 1.0
+        parts["intrinsics"] = part(
+            B_K.reshape(-1, 4),
+            np.array([sigmas.focal_px, sigmas.focal_px, sigmas.principal_point_px, sigmas.principal_point_px]) ** 2,
+        )
+        r2 = xn**2 + yn**2
+        f = np.array([self.K[0, 0], self.K[1, 1]])
+        xy = np.stack([xn, yn], axis=1)
+        B_D = np.zeros((n, 2, 4))
+        B_D[:, :, 0] = r2[:, None] * xy * f
+        B_D[:, :, 1] = r2[:, None] ** 2 * xy * f
+        B_D[:, :, 2] = np.stack([2 * xn * yn, r2 + 2 * yn**2], axis=1) * f
+        B_D[:, :, 3] = np.stack([r2 + 2 * xn**2, 2 * xn * yn], axis=1) * f
+        parts["distortion"] = part(B_D.reshape(-1, 4), np.array([sigmas.k1, sigmas.k2, sigmas.p1, sigmas.p2]) ** 2)
+        # Per marker: points in F move by dX_F; pixels by J_px_wrt_F · dX_F.
+        bias, placement = np.zeros((k, k)), np.zeros((k, k))
+        map_var = np.array([sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,
+                            sigmas.map_tilt_rad, sigmas.map_tilt_rad, sigmas.map_yaw_rad, sigmas.map_scale]) ** 2
+        for (T_F_marker, points_marker_m), rows in zip(self.markers, self.slices):
+            R = np.asarray(T_F_marker, dtype=float)[:3, :3]
+            x = np.asarray(points_marker_m, dtype=float)
+            Jm = self.J_px_wrt_F[rows]  # (n_i, 2, 3)
+            Hm = H_pt[rows]  # (n_i, k, 2)
+            if sigmas.corner_bias_px > 0.0 and len(x) >= 2:
+                spread_m = np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1)))
+                px = self.pixels[rows]
+                spread_px = np.sqrt(np.mean(np.sum((px - px.mean(axis=0)) ** 2, axis=1)))
+                if spread_px > 0.0:
+                    sigma_m = sigmas.corner_bias_px * spread_m / spread_px
+                    HB = Hm @ (Jm @ R[:, :2])  # (n_i, k, 2): each corner's in-plane offset
+                    bias += sigma_m**2 * np.einsum("nij,nkj->ik", HB, HB)
+            if np.any(map_var > 0.0):
+                dX = np.zeros((len(x), 3, 7))
+                dX[:, :, :3] = np.eye(3)
+                dX[:, :, 3:6] = -np.einsum("ij,njk->nik", R, _hat_rows(x))  # R·Exp(φ)·x: −R·x^·φ
+                dX[:, :, 6] = x @ R.T
+                HB = np.einsum("nij,njk->ik", Hm, Jm @ dX)  # (k, 7): summed over the marker's points
+                placement += (HB * map_var) @ HB.T
+        parts["corner_bias"] = bias
+        parts["map"] = placement
+        return parts
+
+
+def planar_covariance_full(
+    J_planar: np.ndarray,
+    J_planar_wrt_extrinsic: np.ndarray,
+    T_cam_world: np.ndarray,
+    markers: list[tuple[np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    sigma_px: float,
+    sigmas: SystematicSigmas,
+) -> np.ndarray:
+    """Covariance (3, 3) of the ``planar`` solver's (x, y, ψ) with every systematic source.
+
+    ``J_planar`` (2N, 3) is the pixels' Jacobian w.r.t. the planar parameters,
+    ``J_planar_wrt_extrinsic`` (2N, 6) w.r.t. the extrinsic's (δt, δφ) (the extrinsic is in the
+    planar model's residuals); markers in the world (F = world, ``T_cam_world``). The ML
+    estimator: ``H = (JᵀJ)⁻¹Jᵀ``, noise ``σ²(JᵀJ)⁻¹``."""
+    view = _View(np.asarray(T_cam_world, dtype=float), markers, np.asarray(K, dtype=float))
+    bread = _inverse_information(J_planar.T @ J_planar, "planar covariance")
+    H = bread @ J_planar.T
+    cov = sigma_px**2 * bread + sum(view.systematic_parts(H, sigmas).values())
+    HB = H @ J_planar_wrt_extrinsic
+    variances = np.array([sigmas.extrinsic_translation_m] * 3 + [sigmas.extrinsic_rotation_rad] * 3) ** 2
+    cov = cov + (HB * variances) @ HB.T
+    return 0.5 * (cov + cov.T)
+
+
+def _hat_rows(x: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) skew matrices of the rows of ``x`` (n, 3)."""
+    out = np.zeros((len(x), 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -x[:, 2], x[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = x[:, 2], -x[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -x[:, 1], x[:, 0]
+    return out
+
+
+def extrinsic_covariance_world(
+    T_world_agv: np.ndarray, T_parent_cam: np.ndarray, camera_on_agv: bool, sigmas: SystematicSigmas
+) -> np.ndarray:
+    """Covariance (6, 6) of ``T_world_agv`` (left, world, (ρ, φ)) from the camera's extrinsic.
+
+    The recorded ``T_parent_cam = [Exp(δφ)·R, t + δt]`` is ``Exp(ξ)·T_parent_cam`` with
+    ``ξ = (δt + t^·δφ, δφ)`` to first order. A camera on the AGV (parent = AGV):
+    ``T_world_agv = T_world_cam·T_agv_cam⁻¹`` moves by ``−Ad(T_world_agv)·ξ``; a camera fixed in
+    the world (parent = world): ``T_world_agv = T_world_cam·T_cam_agv`` moves by ξ.
+    """
+    t = np.asarray(T_parent_cam, dtype=float)[:3, 3]
+    G = np.eye(6)
+    G[:3, 3:] = so3.hat(t)
+    if camera_on_agv:
+        G = se3.adjoint(np.asarray(T_world_agv, dtype=float)) @ G
+    variances = np.array([sigmas.extrinsic_translation_m] * 3 + [sigmas.extrinsic_rotation_rad] * 3) ** 2
+    cov = (G * variances) @ G.T
+    return 0.5 * (cov + cov.T)
+
+
+def frame_covariance_full(
+    T_cam_F: np.ndarray,
+    markers: list[tuple[np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    sigma_px: float,
+    sigmas: SystematicSigmas,
+    T_world_cam: np.ndarray,
+    T_world_agv: np.ndarray,
+    T_parent_cam: np.ndarray | None,
+    camera_on_agv: bool,
+    objective: str = "pixel",
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Covariance (6, 6) of ``T_world_agv`` (left, world, (ρ, φ)) with every systematic source,
+    and each source's share ``{source: (6, 6)}`` (:data:`SOURCES` and ``extrinsic``).
+    ``T_parent_cam`` is the camera's extrinsic (``T_agv_cam`` when ``camera_on_agv``, else
+    ``T_world_cam``); ``None`` leaves the extrinsic out."""
+    parts = {
+        name: covariance_world_agv(cov, T_world_cam)
+        for name, cov in frame_covariance_parts(T_cam_F, markers, K, sigma_px, sigmas, objective).items()
+    }
+    parts["extrinsic"] = (
+        np.zeros((6, 6)) if T_parent_cam is None
+        else extrinsic_covariance_world(T_world_agv, T_parent_cam, camera_on_agv, sigmas)
+    )
+    total = sum(parts.values())
+    return 0.5 * (total + total.T), parts

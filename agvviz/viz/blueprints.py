@@ -231,7 +231,10 @@ def default_blueprint(
             _error_view(reprojection, "reprojection RMS [px]" + (" vs max_reproj_px" if has_threshold else "")),
             *([_error_view([paths.ERROR_REPROJ_RMS_PX], "reprojection RMS [px], detail")] if has_threshold else []),
             _error_view([paths.ERROR_POSITION_OVER_CRLB], "position error ÷ CRLB"),
-            _error_view([paths.ERROR_NEES], "NEES (6 = consistent)"),
+            _error_view(
+                [paths.ERROR_NEES, paths.ERROR_NEES_EXPECTED, paths.ERROR_NEES_BOUND_99],
+                "NEES vs χ²(dof): mean dof, 99 % bound",
+            ),
             _error_view([paths.SOLVER_AMBIGUITY_RATIO], "IPPE ambiguity ratio"),
             active_tab=0,
         ),

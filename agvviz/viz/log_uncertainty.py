@@ -19,12 +19,16 @@ from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
 from agvviz.viz.columns import Columns, Stamp
 from agvviz.viz.log_frames import AGV_BODY_CENTER_M, AGV_BODY_HALF_SIZES_M, agv_body, transform3d
-from agvviz.viz.style import COLOR_CAMERA, COLOR_GHOST, COLOR_REPROJECTED, COLOR_TRUTH
+from agvviz.viz.style import COLOR_CAMERA, COLOR_GHOST, COLOR_REPROJECTED, COLOR_THRESHOLD, COLOR_TRUTH
 
-#: The 3σ covariance ellipsoid is magnified by a power of ten chosen once per run, from its
-#: first covariance, so that its largest 3σ half-axis is drawn about this long (m): comparable
-#: with the body, whether σ is 0.1 mm or 5 mm. Its label and the 3D view's title give the factor.
-COV_DRAWN_HALF_AXIS_M = 0.25
+#: The 3σ position ellipsoid is drawn magnified by this one factor in every run (docs/uncertainty.md):
+#: on the ``typical`` qr_floor (σ ≈ 5 mm with ``covariance=full``) its 3σ half-axes come out
+#: ≈ 0.15 m, beside a 0.6 × 0.8 m body; a 1 mm σ draws 3 cm, a 50 mm σ 1.5 m. Its label and
+#: the 3D view's title give it.
+COV_MAGNIFICATION = 10.0
+#: χ² 99 % quantiles by degrees of freedom (the NEES view's bound: a consistent covariance
+#: leaves 1 % of frames above it); 6 for a 6-DoF pose, 3 for ``planar``.
+CHI2_99 = {3: 11.344867, 6: 16.811894}
 #: Ambiguity ratios above this are plotted at this value (exact fits give inf).
 AMBIGUITY_RATIO_CAP = 100.0
 #: The rejected IPPE mirror pose (the ghost) is drawn only when the ambiguity ratio
@@ -40,7 +44,8 @@ COV_ABOVE_BODY_M = 0.05
 
 #: Per-frame uncertainty series: (entity, legend name, colour).
 UNCERTAINTY_SERIES = (
-    (paths.ERROR_NEES, "NEES (expected: dof)", COLOR_CAMERA),
+    (paths.ERROR_NEES, "NEES", COLOR_CAMERA),
+    (paths.ERROR_NEES_EXPECTED, "expected NEES: dof (χ² mean)", COLOR_TRUTH),
     (paths.ERROR_POSITION_OVER_CRLB, "position error ÷ CRLB", COLOR_REPROJECTED),
     (paths.ERROR_CRLB_POSITION_M, "CRLB position [m]", COLOR_TRUTH),
     (paths.ERROR_POSITION_SIGMA_M, "covariance position σ [m]", COLOR_CAMERA),
@@ -54,7 +59,7 @@ class UncertaintyLogger:
     def __init__(self, rec: rr.RecordingStream, columns: Columns):
         self._rec = rec
         self._columns = columns
-        #: The ellipsoid's magnification, chosen from the first covariance (None: none yet).
+        #: The ellipsoid's magnification, :data:`COV_MAGNIFICATION` once one was drawn (else None).
         self.cov_scale: float | None = None
         self._ghost_drawn = False  # the previous frame left the ghost drawn
 
@@ -63,6 +68,11 @@ class UncertaintyLogger:
         rec = self._rec
         for entity, name, color in UNCERTAINTY_SERIES:
             rec.log(entity, rr.SeriesLines(names=name, colors=color, widths=1.5), static=True)
+        rec.log(
+            paths.ERROR_NEES_BOUND_99,
+            rr.SeriesLines(names="χ²(dof) 99 % bound (above: inconsistent)", colors=COLOR_THRESHOLD, widths=1.0),
+            static=True,
+        )
         rec.log(
             paths.AGV_CAMERA_POSITION_COV,
             rr.Ellipsoids3D.from_fields(
@@ -85,6 +95,9 @@ class UncertaintyLogger:
                 columns.scalar(entity, stamp, value)
             elif not frame.solved:
                 columns.gap(entity, stamp)
+        if frame.nees is not None and frame.nees_dof in CHI2_99:
+            columns.scalar(paths.ERROR_NEES_EXPECTED, stamp, float(frame.nees_dof))
+            columns.scalar(paths.ERROR_NEES_BOUND_99, stamp, CHI2_99[frame.nees_dof])
         if frame.ambiguity_ratio is not None:
             columns.scalar(paths.SOLVER_AMBIGUITY_RATIO, stamp, min(float(frame.ambiguity_ratio), AMBIGUITY_RATIO_CAP))
         elif not frame.solved:
@@ -99,8 +112,7 @@ class UncertaintyLogger:
                 ),
             )
         if frame.solved and frame.position_cov_world_m2 is not None:
-            if self.cov_scale is None:
-                self.cov_scale = _cov_scale(np.asarray(frame.position_cov_world_m2, dtype=float))
+            self.cov_scale = COV_MAGNIFICATION
             columns.row(paths.AGV_CAMERA_POSITION_COV, "ellipsoid", stamp, *_covariance_ellipsoid(frame, self.cov_scale))
         else:
             columns.gap(paths.AGV_CAMERA_POSITION_COV, stamp)
@@ -113,14 +125,6 @@ class UncertaintyLogger:
         elif self._ghost_drawn:
             rec.log(paths.AGV_GHOST_BODY, rr.Clear(recursive=False))
             self._ghost_drawn = False
-
-
-def _cov_scale(position_cov_m2: np.ndarray) -> float:
-    """The power of ten (≥ 1) that draws the largest 3σ half-axis about COV_DRAWN_HALF_AXIS_M."""
-    largest_3sigma_m = 3.0 * math.sqrt(max(float(np.max(np.linalg.eigvalsh(position_cov_m2))), 0.0))
-    if largest_3sigma_m <= 0.0 or not math.isfinite(largest_3sigma_m):
-        return 1.0
-    return float(10.0 ** max(0, round(math.log10(COV_DRAWN_HALF_AXIS_M / largest_3sigma_m))))
 
 
 def _covariance_ellipsoid(frame: FrameResult, scale: float) -> tuple[np.ndarray, tuple, np.ndarray, str]:

@@ -217,13 +217,15 @@ def uwb_gate(anchor_id: str) -> str:
 
 # -- pose uncertainty and planar ambiguity ----------------------------------------------------
 #: Ellipsoids3D under the estimated AGV pose (AGV frame): the 3σ position covariance
-#: magnified by a power of ten chosen per run (``log_uncertainty.COV_DRAWN_HALF_AXIS_M``; the label
-#: gives it), drawn above the body; cleared when none.
+#: magnified by the one constant ``log_uncertainty.COV_MAGNIFICATION`` (its label gives it),
+#: drawn above the body; cleared when none.
 AGV_CAMERA_POSITION_COV = "world/agv/camera/position_cov"
 #: Transform3D T_world_agv of the rejected ambiguity candidate (the ghost) + its body box.
 AGV_GHOST = "world/agv/ghost"
 AGV_GHOST_BODY = "world/agv/ghost/body"
 ERROR_NEES = "errors/nees"  # Scalars: NEES of T_world_agv vs truth (expected 6; 3 for planar)
+ERROR_NEES_EXPECTED = "errors/nees_expected"  # Scalars per frame with a NEES: its dof (χ²'s mean)
+ERROR_NEES_BOUND_99 = "errors/nees_bound_99"  # Scalars per frame with a NEES: χ²(dof)'s 99 % quantile
 ERROR_POSITION_OVER_CRLB = "errors/position_over_crlb"  # Scalars: position error ÷ CRLB
 ERROR_CRLB_POSITION_M = "errors/crlb_position_m"  # Scalars: CRLB sqrt(trace) at the true pose
 ERROR_POSITION_SIGMA_M = "errors/position_sigma_m"  # Scalars: sqrt(trace) of the covariance
