@@ -12,8 +12,9 @@ frame is skipped.
 1. **motion** — the pose against the last clean pose of the same camera carried forward by the
    odometry (``SyncState.odometry_at``), or by a constant-velocity model without odometry: the
    6-DoF difference (position in the world, rotation vector) against both poses' covariances,
-   each with a systematic floor (``checks_pose_floor_m`` / ``_deg``: today's covariance models
-   pixel noise only), plus the odometry's noise per metre and per degree turned. A failing
+   each with a systematic floor (``checks_pose_floor_m`` / ``_deg``: a margin chosen when the
+   covariance modelled pixel noise only), plus the odometry's noise per metre and per degree
+   turned. A failing
    frame does not become the reference, so a stretch of frames on a wrong map entry keeps
    failing (a rigid error of the map leaves frame-to-frame steps intact: only the carried
    reference sees it). After ``REANCHOR_M`` of travel in one failing stretch the reference
