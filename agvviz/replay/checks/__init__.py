@@ -14,10 +14,9 @@ frame is skipped.
    6-DoF difference (position in the world, rotation vector) against both poses' covariances,
    each with a systematic floor (``checks_pose_floor_m`` / ``_deg``: a margin chosen when the
    covariance modelled pixel noise only), plus the odometry's noise per metre and per degree
-   turned. A failing
-   frame does not become the reference, so a stretch of frames on a wrong map entry keeps
-   failing (a rigid error of the map leaves frame-to-frame steps intact: only the carried
-   reference sees it). After ``REANCHOR_M`` of travel in one failing stretch the reference
+   turned. A failing frame does not become the reference, so a stretch of frames on a wrong map
+   entry keeps failing (a rigid error of the map leaves frame-to-frame steps intact: only the
+   carried reference sees it). After ``REANCHOR_M`` of travel in one failing stretch the reference
    moves on (the odometry itself may have jumped).
 2. **markers** — the joint solve's χ² test of each marker against the joint pose
    (:class:`~agvviz.solvers.joint.MarkerCheck`): a marker left out names itself.
