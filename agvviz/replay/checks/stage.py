@@ -11,24 +11,7 @@ import numpy as np
 
 from agvviz.geometry import so3
 from agvviz.model.frames import FrameResult
-from agvviz.model.suspects import (
-    CAUSE_EXTRINSIC,
-    CAUSE_MAP_ENTRY,
-    CAUSE_MIRROR_FLIP,
-    CAUSE_PAYLOAD,
-    CAUSE_TIME_OFFSET,
-    CAUSE_TIME_STAMPS,
-    CAUSE_UNKNOWN,
-    CAUSE_UWB,
-    CHECK_AMBIGUITY,
-    CHECK_CAMERAS,
-    CHECK_MARKERS,
-    CHECK_MOTION,
-    CHECK_PAYLOAD,
-    CHECK_UWB,
-    CheckResult,
-    Suspect,
-)
+from agvviz.model import suspects
 from agvviz.replay.checks.common import (
     CV_ACCEL_MPS2,
     CV_ANGULAR_ACCEL_RADPS2,
@@ -64,7 +47,7 @@ class _Reference:
 class _CameraState:
     reference: _Reference | None = None
     stretch_start_odometry: np.ndarray | None = None  # odometry where the current failing stretch began
-    last_suspect: Suspect | None = None
+    last_suspect: suspects.Suspect | None = None
     last_suspect_frame: FrameResult | None = None
     last_suspect_odometry: np.ndarray | None = None
     stretch_n: int = 0  # suspect frames in the current failing stretch
@@ -112,7 +95,7 @@ class CheckStage(ClockChecks):
         state = self.cameras.setdefault(frame.cam_name, _CameraState())
         if frame.log_time_ns != self._stamp_ns:
             self._stamp_ns, self._at_stamp = frame.log_time_ns, []
-        results: list[CheckResult] = []
+        results: list[suspects.CheckResult] = []
         time_result = self._time(frame, state)
         if not frame.solved or frame.T_world_agv is None:
             return frame
@@ -129,7 +112,7 @@ class CheckStage(ClockChecks):
             if ambiguity is not None:
                 results.append(ambiguity)
                 if ambiguity.failed:
-                    finding = (CAUSE_MIRROR_FLIP, f"mirror-pose flip: {ambiguity.detail}", None, None)
+                    finding = (suspects.CAUSE_MIRROR_FLIP, f"mirror-pose flip: {ambiguity.detail}", None, None)
             if result.failed and finding is None:
                 finding = self._explain_motion(frame, state, ref.frame, delta, result, predicted)
             elif not result.failed:
@@ -147,7 +130,7 @@ class CheckStage(ClockChecks):
         motion_failed = motion is not None and motion[0].failed
         if marker_finding is not None and not motion_failed:
             finding = marker_finding  # the pose passed: the marker left out names itself
-        elif marker_finding is not None and finding is not None and finding[0] in (CAUSE_MAP_ENTRY, CAUSE_PAYLOAD):
+        elif marker_finding is not None and finding is not None and finding[0] in (suspects.CAUSE_MAP_ENTRY, suspects.CAUSE_PAYLOAD):
             # The pose fails the motion check although the joint solve left a marker out: the
             # markers it kept are the wrong ones; the left-out one agrees with the motion.
             left_out = marker_finding[2]
@@ -155,7 +138,7 @@ class CheckStage(ClockChecks):
             by = f" by {offset:.2f} m" if offset is not None and offset >= 1.0 else (
                 f" by {offset * 1000:.0f} mm" if offset is not None else "")
             blamed = finding[2]
-            where = "map entry is" if finding[0] == CAUSE_MAP_ENTRY else "payload coordinates are"
+            where = "map entry is" if finding[0] == suspects.CAUSE_MAP_ENTRY else "payload coordinates are"
             finding = (
                 finding[0],
                 f"code {blamed} disagrees with {left_out}{by} and with the "
@@ -178,15 +161,15 @@ class CheckStage(ClockChecks):
         uwb = self._uwb_check(frame, state)
         if uwb is not None and uwb.failed and cameras is not None and not cameras[0].failed:
             # another camera agrees with this one at this stamp: the UWB fix is the odd one out
-            uwb = CheckResult(CHECK_UWB, min(uwb.sigma, uwb.limit_sigma), uwb.limit_sigma,
+            uwb = suspects.CheckResult(suspects.CHECK_UWB, min(uwb.sigma, uwb.limit_sigma), uwb.limit_sigma,
                               f"{uwb.detail} ({uwb.sigma:.1f}σ), but camera {frame.cam_name} agrees with the "
                               "other cameras: the UWB fix is likely off (NLOS ranges?)")
         if uwb is not None:
             results.append(uwb)
             if uwb.failed:
-                finding = finding or (CAUSE_UWB, f"camera {frame.cam_name} and UWB disagree: {uwb.detail}", None, None)
+                finding = finding or (suspects.CAUSE_UWB, f"camera {frame.cam_name} and UWB disagree: {uwb.detail}", None, None)
         if time_result is not None and time_result.failed:
-            finding = finding or (CAUSE_TIME_STAMPS, f"time stamps: {time_result.detail}", None, frame.cam_name)
+            finding = finding or (suspects.CAUSE_TIME_STAMPS, f"time stamps: {time_result.detail}", None, frame.cam_name)
         failed = [r for r in results if r.failed]
         if not failed:
             self._clean(frame, state, odometry)
@@ -194,9 +177,9 @@ class CheckStage(ClockChecks):
             return frame
         worst = max(failed, key=lambda r: r.sigma / r.limit_sigma)
         cause, message, marker_id, cam_name = finding or (
-            CAUSE_UNKNOWN, f"{worst.check} check failed by {worst.sigma:.1f}σ: {worst.detail}", None, None
+            suspects.CAUSE_UNKNOWN, f"{worst.check} check failed by {worst.sigma:.1f}σ: {worst.detail}", None, None
         )
-        suspect = Suspect(
+        suspect = suspects.Suspect(
             frame_index=frame.index, log_time_ns=frame.log_time_ns, cam_name=cam_name or frame.cam_name,
             check=worst.check, sigma=float(worst.sigma), cause=cause, message=message,
             next_step=NEXT_STEP.get(cause, ""), marker_id=marker_id, checks=tuple(results),
@@ -223,7 +206,7 @@ class CheckStage(ClockChecks):
         state.last_suspect_frame = None
         state.stretch_n = 0
 
-    def _failed(self, frame, state: _CameraState, odometry, suspect: Suspect) -> None:
+    def _failed(self, frame, state: _CameraState, odometry, suspect: suspects.Suspect) -> None:
         state.last_suspect = suspect
         state.last_suspect_frame, state.last_suspect_odometry = frame, odometry
         state.stretch_n += 1
@@ -240,7 +223,7 @@ class CheckStage(ClockChecks):
 
     # -- (1) motion -----------------------------------------------------------------------------
     def _motion(self, frame: FrameResult, state: _CameraState, odometry: np.ndarray | None):
-        """(CheckResult, delta, predicted pose, reference) or None (no reference, no witness)."""
+        """(suspects.CheckResult, delta, predicted pose, reference) or None (no reference, no witness)."""
         ref = state.reference
         if ref is None:
             return None
@@ -277,15 +260,15 @@ class CheckStage(ClockChecks):
         detail = (
             f"pose {size_text(delta)} from frame {ref.frame.index} carried by the {witness}"
         )
-        return CheckResult(CHECK_MOTION, sigma, cs.limit_sigma, detail), delta, (predicted, C), ref
+        return suspects.CheckResult(suspects.CHECK_MOTION, sigma, cs.limit_sigma, detail), delta, (predicted, C), ref
 
     def _persisting(self, frame: FrameResult, state: _CameraState, odometry, delta):
         """A frame that passes the motion check only because the odometry's σ grew, while it sees
         the same codes as the suspect frame before it and its step from that frame agrees with the
         odometry: the suspect frame's error is carried on (a wrong map entry or mount moves every
-        pose of the stretch alike). (CheckResult, finding) or None."""
+        pose of the stretch alike). (suspects.CheckResult, finding) or None."""
         last, last_frame = state.last_suspect, state.last_suspect_frame
-        if last is None or last_frame is None or last.cause == CAUSE_MIRROR_FLIP or last.check != CHECK_MOTION:
+        if last is None or last_frame is None or last.cause == suspects.CAUSE_MIRROR_FLIP or last.check != suspects.CHECK_MOTION:
             return None
         if set(frame.used_marker_ids) != set(last_frame.used_marker_ids):
             return None
@@ -297,18 +280,18 @@ class CheckStage(ClockChecks):
             f"{last_frame.index} and a step that agrees with it ({step[0].sigma:.1f}σ): its error persists "
             f"(now {size_text(delta)} from the carried pose)"
         )
-        result = CheckResult(CHECK_MOTION, float(last.sigma), self.settings.limit_sigma, detail)
+        result = suspects.CheckResult(suspects.CHECK_MOTION, float(last.sigma), self.settings.limit_sigma, detail)
         cause, marker, cam = last.cause, last.marker_id, None if last.marker_id else last.cam_name
         message = last.message
-        if cause == CAUSE_UNKNOWN and marker is None and state.stretch_n + 1 >= 3:
-            cause = CAUSE_EXTRINSIC
+        if cause == suspects.CAUSE_UNKNOWN and marker is None and state.stretch_n + 1 >= 3:
+            cause = suspects.CAUSE_EXTRINSIC
             message = (
                 f"pose of camera {frame.cam_name} stays {size_text(delta)} off the pose the odometry carries for "
                 f"{state.stretch_n + 1} frames with the same codes in view: camera {frame.cam_name}'s extrinsic (mount)?"
             )
         return result, (cause, message, marker, cam)
 
-    def _explain_motion(self, frame, state: _CameraState, ref_frame: FrameResult, delta, result: CheckResult, predicted=None):
+    def _explain_motion(self, frame, state: _CameraState, ref_frame: FrameResult, delta, result: suspects.CheckResult, predicted=None):
         """(cause, message, marker id, camera) of a motion failure."""
         used = set(frame.used_marker_ids)
         last = state.last_suspect
@@ -323,7 +306,7 @@ class CheckStage(ClockChecks):
             mapped = marker in self.qr_map()
             where = "map entry" if mapped else "payload coordinates"
             return (
-                CAUSE_MAP_ENTRY if mapped else CAUSE_PAYLOAD,
+                suspects.CAUSE_MAP_ENTRY if mapped else suspects.CAUSE_PAYLOAD,
                 f"code {marker} disagrees with {others} (frame {ref_frame.index}) by {size} as carried by the "
                 f"{'odometry' if 'odometry' in result.detail else 'motion'} ({result.sigma:.1f}σ): "
                 f"{marker}'s {where} {'is' if mapped else 'are'} likely wrong",
@@ -334,14 +317,14 @@ class CheckStage(ClockChecks):
             offset_s = self._explained_by_offset(frame, state.reference, delta, predicted[1])
             if offset_s is not None:
                 return (
-                    CAUSE_TIME_OFFSET,
+                    suspects.CAUSE_TIME_OFFSET,
                     f"camera {frame.cam_name}'s pose is {size_text(delta)} off the odometry ({result.sigma:.1f}σ) the way a "
                     f"stamp {abs(offset_s) * 1000:.0f} ms {'late' if offset_s > 0 else 'early'} puts it: "
                     f"its time stamps {'lag' if offset_s > 0 else 'lead'}?",
                     None, frame.cam_name,
                 )
         return (
-            CAUSE_UNKNOWN,
+            suspects.CAUSE_UNKNOWN,
             f"pose of camera {frame.cam_name} jumped by {size} against the {result.detail.split('carried by the ')[-1]} "
             f"({result.sigma:.1f}σ) with the same code{'s' if len(frame.used_marker_ids) > 1 else ''} {markers} in view: "
             f"a bad detection, camera {frame.cam_name}'s extrinsic (mount) or the odometry?",
@@ -349,7 +332,7 @@ class CheckStage(ClockChecks):
         )
 
     # -- (3) ambiguity --------------------------------------------------------------------------
-    def _ambiguity(self, frame, predicted, ref, odometry, motion: CheckResult) -> CheckResult | None:
+    def _ambiguity(self, frame, predicted, ref, odometry, motion: suspects.CheckResult) -> suspects.CheckResult | None:
         ratio = frame.ambiguity_ratio
         if frame.T_world_agv_ghost is None or ratio is None:
             return None
@@ -363,7 +346,7 @@ class CheckStage(ClockChecks):
             f"the chosen one {motion.sigma:.1f}σ)" if flipped else
             f"ambiguity ratio {ratio:.2f}; mirror pose {ghost_sigma:.1f}σ from the motion, chosen {motion.sigma:.1f}σ"
         )
-        return CheckResult(CHECK_AMBIGUITY, motion.sigma if flipped else 0.0, self.settings.limit_sigma, detail)
+        return suspects.CheckResult(suspects.CHECK_AMBIGUITY, motion.sigma if flipped else 0.0, self.settings.limit_sigma, detail)
 
     # -- (2) markers ----------------------------------------------------------------------------
     def _markers(self, frame: FrameResult):
@@ -375,12 +358,12 @@ class CheckStage(ClockChecks):
             offset = f", its own pose {check.own_offset_m * 1000:.0f} mm away" if check.own_offset_m is not None else ""
             detail = f"code {check.marker_id}: RMS {check.rms_px:.2f} px at the joint pose, χ² {check.chi2:.3g}{offset}"
             # a marker the joint solve kept is, by its own test, consistent: it does not fail here
-            results.append(CheckResult(CHECK_MARKERS, sigma if left_out else min(sigma, self.settings.limit_sigma), self.settings.limit_sigma, detail))
+            results.append(suspects.CheckResult(suspects.CHECK_MARKERS, sigma if left_out else min(sigma, self.settings.limit_sigma), self.settings.limit_sigma, detail))
             if left_out and sigma > self.settings.limit_sigma and finding is None:
                 mapped = check.marker_id in self.qr_map()
                 kept = ", ".join(frame.used_marker_ids)
                 finding = (
-                    CAUSE_MAP_ENTRY if mapped else CAUSE_PAYLOAD,
+                    suspects.CAUSE_MAP_ENTRY if mapped else suspects.CAUSE_PAYLOAD,
                     f"code {check.marker_id} disagrees with {kept}{offset} (χ² {check.chi2:.3g}, left out of the pose): "
                     f"{check.marker_id}'s {'map entry is' if mapped else 'payload coordinates are'} likely wrong",
                     check.marker_id, None,
@@ -406,9 +389,9 @@ class CheckStage(ClockChecks):
             return None
         marker, off = worst
         sigma = off / (math.sqrt(2.0) * self.settings.map_sigma_m)
-        result = CheckResult(CHECK_PAYLOAD, sigma, self.settings.limit_sigma,
+        result = suspects.CheckResult(suspects.CHECK_PAYLOAD, sigma, self.settings.limit_sigma,
                              f"code {marker}'s payload lies {off * 1000:.0f} mm from its map entry")
-        finding = (CAUSE_PAYLOAD, f"code {marker}'s payload coordinates lie {off * 1000:.0f} mm from its map entry: "
+        finding = (suspects.CAUSE_PAYLOAD, f"code {marker}'s payload coordinates lie {off * 1000:.0f} mm from its map entry: "
                    f"one of the two is wrong", marker, None)
         return result, finding
 
@@ -429,7 +412,7 @@ class CheckStage(ClockChecks):
         counts[0] += 1
         counts[1] += sigma > cs.limit_sigma
         detail = f"camera {frame.cam_name} {size_text(delta)} from camera {other.cam_name}"
-        result = CheckResult(CHECK_CAMERAS, sigma, cs.limit_sigma, detail)
+        result = suspects.CheckResult(suspects.CHECK_CAMERAS, sigma, cs.limit_sigma, detail)
         if not result.failed:
             return result, None
         if frame.T_world_agv_ghost is not None:
@@ -439,28 +422,28 @@ class CheckStage(ClockChecks):
             if ghost_sigma <= cs.limit_sigma:
                 ratio = f"ambiguity ratio {frame.ambiguity_ratio:.2f}, " if frame.ambiguity_ratio is not None else ""
                 return result, (
-                    CAUSE_MIRROR_FLIP,
+                    suspects.CAUSE_MIRROR_FLIP,
                     f"mirror-pose flip: {ratio}the other pose agrees with camera {other.cam_name} ({ghost_sigma:.1f}σ, "
                     f"the chosen one {sigma:.1f}σ)", None, frame.cam_name,
                 )
         offset_s = self._time_offset(frame, state, delta)
         if offset_s is not None:
             return result, (
-                CAUSE_TIME_OFFSET,
+                suspects.CAUSE_TIME_OFFSET,
                 f"camera {frame.cam_name} disagrees with {other.cam_name} by {size_text(delta)} along its motion: "
                 f"its stamps {'lag' if offset_s > 0 else 'lead'} by about {abs(offset_s) * 1000:.0f} ms",
                 None, frame.cam_name,
             )
         every = counts[0] >= PERSISTENT_MIN and counts[1] >= PERSISTENT_SHARE * counts[0]
         return result, (
-            CAUSE_EXTRINSIC,
+            suspects.CAUSE_EXTRINSIC,
             f"camera {frame.cam_name} disagrees with {other.cam_name} by {size_text(delta)} ({sigma:.1f}σ)"
             + (f" on every frame ({counts[1]} of {counts[0]})" if every else "") + ": its extrinsic?",
             None, frame.cam_name,
         )
 
     # -- (6) uwb --------------------------------------------------------------------------------
-    def _uwb_check(self, frame: FrameResult, state: _CameraState) -> CheckResult | None:
+    def _uwb_check(self, frame: FrameResult, state: _CameraState) -> suspects.CheckResult | None:
         if self._uwb is None:
             return None
         t_ns, xy, cov = self._uwb
@@ -480,9 +463,9 @@ class CheckStage(ClockChecks):
         # when this camera's previous comparison, with an earlier fix, failed too.
         before, state.uwb_failed = state.uwb_failed, (t_ns, sigma > self.settings.limit_sigma)
         if sigma > self.settings.limit_sigma and not (before[1] and before[0] != t_ns):
-            return CheckResult(CHECK_UWB, self.settings.limit_sigma, self.settings.limit_sigma,
+            return suspects.CheckResult(suspects.CHECK_UWB, self.settings.limit_sigma, self.settings.limit_sigma,
                                f"{detail} ({sigma:.1f}σ, a single fix: NLOS?)")
-        return CheckResult(CHECK_UWB, sigma, self.settings.limit_sigma, detail)
+        return suspects.CheckResult(suspects.CHECK_UWB, sigma, self.settings.limit_sigma, detail)
 
 def check_stage(settings: RunSettings, sync, ctx) -> CheckStage | None:
     """The graph's check stage under ``settings`` (None with ``checks=off``): odometry from the sync
