@@ -4,9 +4,11 @@ clean recordings' flag rate, and the checks' run-time cost — every replay with
 
 Usage:  python bench/bench_checks.py [--seeds 20] [--workdir DIR] [--duration-s 6] [--repeats 3]
 
-Per seed, three ``qr_floor`` recordings (``duration_s``, 640×512, focal 500 px, supersample 2,
-realism typical): clean, ``inject=marker:Q015:yaw_deg=90``, ``inject=marker:Q015:dx_m=0.05`` and
-a 30 ms camera latency (``realism_set=timing.latency_s=0.03``). Printed:
+Per seed, ``qr_floor`` recordings (``duration_s``, 640×512, focal 500 px, supersample 2, realism
+typical): clean, and one per fault of :data:`INJECTED` — Q015 turned 90° or moved 5 cm in the
+map, a 30 ms camera latency (realism) and a 30 ms stamp offset (inject), the camera knocked 1° /
+2 cm at 3 s, Q015's payload 0.3 m off in a recording without a map, and mirror flips (the
+planar-ambiguity recipe :data:`AMBIGUOUS`, 1280×1024). Printed:
 
 1. injected: affected frames (truth says > 2 cm or > 1° off, or Q015 in the frame's used or
    left-out markers) flagged, and of those the share whose suspect names the right cause (Q015's
@@ -31,12 +33,19 @@ from agvviz.replay.run import replay_frames
 from agvviz.settings import RunSettings
 
 SMALL = ["width_px=640", "height_px=512", "focal_px=500.0", "supersample=2"]
+#: The planar-ambiguity recipe of docs/realism.md (small far ArUco markers, 1280×1024): mirror flips.
+AMBIGUOUS = ["marker_family=DICT_4X4_1000", "code_size_m=0.06", "cam_height_m=3", "cam_lookahead_m=1",
+             "grid_spacing_m=2.5", "rate_hz=5"]
 CODE = "Q015"
 #: kind -> (recording overrides, the cause a suspect must name, the code it must name or None)
 INJECTED = {
     "turned": ("inject=marker:Q015:yaw_deg=90", "map_entry", CODE),
     "moved": ("inject=marker:Q015:dx_m=0.05", "map_entry", CODE),
     "late": ("realism_set=timing.latency_s=0.03", "time_offset", None),
+    "offset": ("inject=timing:front:offset_ms=30", "time_offset", None),
+    "knocked": ("inject=camera:front:pitch_deg=1,dz_m=0.02,from_s=3", "extrinsic", None),
+    "payload": ("write_map=false;inject=payload:Q015:dx_m=0.3", "payload", CODE),
+    "mirror": ("", "mirror_flip", None),
 }
 
 
@@ -64,7 +73,11 @@ def main() -> None:
         for kind, (override, cause, code) in INJECTED.items():
             path = work / f"{kind}-{seed}.mcap"
             if not path.exists():
-                scenarios.record("qr_floor", path, seed=seed, overrides=overrides + [override])
+                base = AMBIGUOUS + [f"duration_s={args.duration_s:g}"] if kind == "mirror" else overrides
+                extra = [o for o in override.split(";") if o and not o.startswith("inject=")]
+                injects = ";".join(o[len("inject="):] for o in override.split(";") if o.startswith("inject="))
+                scenarios.record("qr_floor", path, seed=seed,
+                                 overrides=base + extra + ([f"inject={injects}"] if injects else []))
             truth = {f.index: f for f in replay_frames(path, RunSettings()) if f.solved}
             for f in replay_frames(path, RunSettings(truth="ignore")):
                 t = truth.get(f.index)
@@ -75,7 +88,8 @@ def main() -> None:
                     continue
                 counts[kind][0] += 1
                 counts[kind][1] += f.suspect is not None
-                counts[kind][2] += f.suspect is not None and f.suspect.marker_id == code and f.suspect.cause == cause
+                counts[kind][2] += (f.suspect is not None and f.suspect.cause == cause
+                                    and (code is None or f.suspect.marker_id == code))
         print(f"seed {seed}: clean {clean[0]}/{clean[1]}, " + ", ".join(f"{k} {c[1]}/{c[0]} named {c[2]}" for k, c in counts.items()), flush=True)
     for kind, (affected, flagged, named) in counts.items():
         print(f"{kind} ({INJECTED[kind][0]}): {flagged}/{affected} affected frames flagged "
