@@ -30,7 +30,7 @@ from agvviz.model.messages import CalibrationMsg, PoseMsg
 from agvviz.recording.reader import RecordedMessage
 from agvviz.recording.roles import RoleMap
 from agvviz.model.topics import ROLE_CORNERS, ROLE_MARKER_MAP, ROLE_ODOMETRY, ROLE_TF_STATIC, ROLE_TRUTH
-from agvviz.replay.studies.monte_carlo import error_statistics
+from agvviz.replay.studies.monte_carlo import error_statistics, unequal_trials_warnings
 from agvviz.settings import RunSettings
 from agvviz.solvers.cnoem import Sighting
 
@@ -92,12 +92,7 @@ def replay_cnoem_trials(
         done += len(recorded.trials)
     solve_s = time.perf_counter() - t0
     counts = sorted({len(recorded.trials) for recorded in cells.values()})
-    warnings = []
-    if len(counts) > 1:
-        warnings.append(
-            f"the study's cells hold unequal numbers of trials ({counts[0]}..{counts[-1]}): the recording "
-            "lost trial messages; each cell's statistics use the trials it has"
-        )
+    warnings = unequal_trials_warnings(counts)
     for cell_id, recorded in cells.items():
         sightings = sorted({len(trial.sightings) for trial in recorded.trials})
         if len(sightings) > 1:

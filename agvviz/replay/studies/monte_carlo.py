@@ -130,12 +130,7 @@ def replay_trials(
             progress(done)
     solve_s = time.perf_counter() - t0
     counts = sorted({len(cell.pixels_px) for cell in cells.values()})
-    warnings = []
-    if len(counts) > 1:
-        warnings.append(
-            f"the study's cells hold unequal numbers of trials ({counts[0]}..{counts[-1]}): the recording "
-            "lost trial messages; each cell's statistics use the trials it has"
-        )
+    warnings = unequal_trials_warnings(counts)
     trials_per_cell = counts[-1]
     checks = monte_carlo_cells.checks(results)
     return TrialsOutcome(
@@ -158,6 +153,17 @@ def trials_timing(outcome: TrialsOutcome | CnoemTrialsOutcome, wall_time_s: floa
     if wall_time_s > 0:
         timing["trials_per_s"] = outcome.trials / wall_time_s
     return timing
+
+
+def unequal_trials_warnings(counts: list[int]) -> list[str]:
+    """The study's warning when its cells hold unequal numbers of trials (``counts``: the sorted
+    distinct trial counts per cell), for both studies: none when they are equal."""
+    if len(counts) <= 1:
+        return []
+    return [
+        f"the study's cells hold unequal numbers of trials ({counts[0]}..{counts[-1]}): the recording "
+        "lost trial messages; each cell's statistics use the trials it has"
+    ]
 
 
 def error_statistics(values: np.ndarray) -> dict[str, float | None]:
