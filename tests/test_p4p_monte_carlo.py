@@ -79,3 +79,16 @@ def test_bad_options_are_refused():
         scenario_registry.build_options("p4p_monte_carlo", ["trials=0"])
     with pytest.raises(scenario_registry.ScenarioError, match="cells"):
         scenario_registry.build_options("p4p_monte_carlo", ["cells=some"])
+
+
+def test_a_study_refuses_truth_ignore(study, tmp_path):
+    """A study scores every trial against truth: with truth=ignore it is refused before any
+    output is written, instead of reading the truth it was told to ignore."""
+    from agvviz.app.run import run_recording
+    from agvviz.errors import InputError
+    from agvviz.settings import RunSettings
+
+    out = tmp_path / "study.rrd"
+    with pytest.raises(InputError, match="truth=ignore"):
+        run_recording(study, RunSettings(truth="ignore"), out)
+    assert not out.exists()

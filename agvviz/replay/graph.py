@@ -40,6 +40,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterable, Iterator, Mapping
 
+from agvviz.errors import InputError
 from agvviz.model.frames import REJECT_TIME
 from agvviz.recording.reader import MessageDecodeError, RawMetadata, ReadReport, RecordedMessage, decode
 from agvviz.recording.roles import RoleMap
@@ -156,6 +157,11 @@ class ReplayGraph:
         detect stage's feed (None: the solve stage detects in process); ``progress`` a study's
         ``progress(trials_done)``."""
         if composition.study is not None and until == "correct":
+            if settings.truth == "ignore":
+                raise InputError(
+                    f"truth=ignore: a {composition.study} study scores every trial against the recording's "
+                    "truth and has nothing to show without it; run it without --set truth=ignore"
+                )
             return cls(solve, sinks, study=composition.study, settings=settings, progress=progress)
         fuse = correct = None
         if until == "correct":
