@@ -279,7 +279,8 @@ def _chose_the_mirror_pose(f: FrameResult) -> bool:
 
     if f.T_world_agv_ghost is None:
         return False
-    nearer = rotation_distance_rad(f.T_world_agv_ghost, f.T_world_agv_truth) < rotation_distance_rad(f.T_world_agv, f.T_world_agv_truth)
+    T_truth = f.T_world_agv_truth
+    nearer = rotation_distance_rad(f.T_world_agv_ghost, T_truth) < rotation_distance_rad(f.T_world_agv, T_truth)
     return nearer and f.nees > 16.81
 
 
