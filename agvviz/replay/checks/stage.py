@@ -369,9 +369,9 @@ class CheckStage(ClockChecks):
         """
         ratio = frame.ambiguity_ratio
         T_ghost = frame.T_world_agv_ghost
-        if T_ghost is None or ratio is None:
-            return None
         cs = self.settings
+        if T_ghost is None or ratio is None or (ratio >= cs.ambiguity_ratio and not motion.failed):
+            return None  # no mirror pose, or the pixels rule it out and the chosen pose passes
         T_pred, C = predicted
         d2_ghost = _d2(pose_difference(T_pred, T_ghost), C)
         evidence = _d2(pose_difference(T_pred, frame.T_world_agv), C) - d2_ghost
@@ -513,6 +513,7 @@ class CheckStage(ClockChecks):
             return suspects.CheckResult(suspects.CHECK_UWB, self.settings.limit_sigma, self.settings.limit_sigma,
                                f"{detail} ({sigma:.1f}σ, a single fix: NLOS?)")
         return suspects.CheckResult(suspects.CHECK_UWB, sigma, self.settings.limit_sigma, detail)
+
 
 def _d2(delta: np.ndarray, cov: np.ndarray) -> float:
     """Squared Mahalanobis distance of ``delta`` under ``cov``."""
