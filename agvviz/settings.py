@@ -303,7 +303,8 @@ class RunSettings:
         0.02, "checks: odometry heading σ per degree turned (deg/deg)", min=0.0, max=10.0
     )
     checks_ambiguity_ratio: float = setting(
-        4.0, "checks: IPPE ambiguity ratio below which the mirror pose is tested against the motion", min=1.0, max=1e6
+        4.0, "checks: IPPE ambiguity ratio below which the motion's likelihood ratio may name a mirror flip",
+        min=1.0, max=1e6,
     )
     checks_map_sigma_m: float = setting(
         0.005, "checks: σ of a marker's map entry, against which its payload's coordinates are checked (m)",

@@ -20,9 +20,11 @@ frame is skipped.
    moves on (the odometry itself may have jumped).
 2. **markers** — the joint solve's χ² test of each marker against the joint pose
    (:class:`~agvviz.solvers.joint.MarkerCheck`): a marker left out names itself.
-3. **ambiguity** — with an IPPE ratio under ``checks_ambiguity_ratio``, the rejected mirror pose
-   (``T_world_agv_ghost``) against the same motion witness: when it agrees and the chosen one
-   does not, the cause is a mirror flip.
+3. **ambiguity** — the rejected mirror pose (``T_world_agv_ghost``) and the chosen one against
+   the same motion witness: with an IPPE ratio under ``checks_ambiguity_ratio``, a flip when the
+   likelihood ratio mirror : chosen exceeds the χ²₆ 99 % quantile (90 % right after a flip of
+   the same codes); at any ratio, when the mirror pose passes the motion check and the chosen one
+   fails it. A frame whose mirror pose the motion likes at least as well is no reference.
 4. **payload** — each used code's payload coordinates against its map entry (σ of a map entry
    ``checks_map_sigma_m``); a motion failure that a code explains is blamed on its map entry, or
    on its payload when the code has no map entry (payload-only recordings).

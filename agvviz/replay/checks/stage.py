@@ -8,6 +8,7 @@ from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.special import chdtri
 
 from agvviz.geometry import so3
 from agvviz.model.frames import FrameResult
@@ -31,6 +32,13 @@ from agvviz.replay.checks.common import (
 )
 from agvviz.replay.checks.timing import ClockChecks
 from agvviz.settings import RunSettings
+
+#: Mirror flips: 2 ln of the likelihood ratio mirror pose : chosen pose against the motion witness
+#: (``evidence`` in :meth:`CheckStage._ambiguity`) that names a flip — the χ²₆ 99 % quantile on its
+#: own, the 90 % quantile on a frame right after a flip of the same codes (a flip lasts while the
+#: vehicle sees the code from about the same side). Over 0 a frame is never the motion reference.
+FLIP_EVIDENCE_D2 = float(chdtri(6, 0.01))  # 16.8
+FLIP_PERSISTS_D2 = float(chdtri(6, 0.10))  # 10.6
 
 
 # -- per-camera state ------------------------------------------------------------------------------
@@ -57,6 +65,7 @@ class _CameraState:
     last_time_ns: int | None = None
     steps_ns: deque = None
     pair_counts: dict = None  # other camera -> [compared, failed]
+    last_flip: tuple | None = None  # the codes of this camera's last solved frame, when it was named a mirror flip
 
     def __post_init__(self):
         self.steps_ns = deque(maxlen=TIME_HISTORY)
@@ -104,12 +113,14 @@ class CheckStage(ClockChecks):
             results.append(time_result)
         odometry = self.odometry_at(frame.log_time_ns)
         motion = self._motion(frame, state, odometry)
+        undecided = False  # the motion does not prefer the chosen pose to its mirror: no reference
         finding = None  # (cause, message, marker_id, cam_name) of the first explained failure
         if motion is not None:
             result, delta, predicted, ref = motion
             results.append(result)
-            ambiguity = self._ambiguity(frame, predicted, ref, odometry, result)
+            ambiguity = self._ambiguity(frame, state, predicted, result)
             if ambiguity is not None:
+                ambiguity, undecided = ambiguity
                 results.append(ambiguity)
                 if ambiguity.failed:
                     finding = (suspects.CAUSE_MIRROR_FLIP, f"mirror-pose flip: {ambiguity.detail}", None, None)
@@ -172,8 +183,11 @@ class CheckStage(ClockChecks):
             finding = finding or (suspects.CAUSE_TIME_STAMPS, f"time stamps: {time_result.detail}", None, frame.cam_name)
         failed = [r for r in results if r.failed]
         if not failed:
-            self._clean(frame, state, odometry)
-            self._at_stamp.append(frame)
+            if undecided:
+                state.last_flip = None  # doubted, not flagged: neither a reference nor a witness
+            else:
+                self._clean(frame, state, odometry)
+                self._at_stamp.append(frame)
             return frame
         worst = max(failed, key=lambda r: r.sigma / r.limit_sigma)
         cause, message, marker_id, cam_name = finding or (
@@ -184,6 +198,7 @@ class CheckStage(ClockChecks):
             check=worst.check, sigma=float(worst.sigma), cause=cause, message=message,
             next_step=NEXT_STEP.get(cause, ""), marker_id=marker_id, checks=tuple(results),
         )
+        state.last_flip = frame.used_marker_ids if cause == suspects.CAUSE_MIRROR_FLIP else None
         if any(r.check in POSE_CHECKS and r.failed for r in results):
             self._failed(frame, state, odometry, suspect)
         else:
@@ -201,6 +216,7 @@ class CheckStage(ClockChecks):
             if dt > 0:
                 velocity = pose_difference(ref.frame.T_world_agv, frame.T_world_agv) / dt
         state.reference = _Reference(frame, odometry, velocity)
+        state.last_flip = None
         state.stretch_start_odometry = None
         state.last_suspect = None
         state.last_suspect_frame = None
@@ -332,21 +348,52 @@ class CheckStage(ClockChecks):
         )
 
     # -- (3) ambiguity --------------------------------------------------------------------------
-    def _ambiguity(self, frame, predicted, ref, odometry, motion: suspects.CheckResult) -> suspects.CheckResult | None:
+    def _ambiguity(self, frame, state: _CameraState, predicted, motion: suspects.CheckResult):
+        """The mirror pose (the IPPE branch the solver rejected) against the motion witness:
+        ``(suspects.CheckResult, undecided)``, or None without a mirror pose.
+
+        Both poses are compared with the pose the witness predicts under the motion check's
+        covariance ``C``: d² = Δᵀ C⁻¹ Δ, and ``evidence`` = d²(chosen) − d²(mirror) = 2 ln of the
+        likelihood ratio mirror : chosen. When the chosen pose is right, d²(chosen) is χ²₆ and
+        d²(mirror) ≥ 0, so the evidence exceeds the χ²₆ q-quantile on at most 1 − q of the frames.
+        A frame is a flip when
+
+        - its IPPE ratio is under ``checks_ambiguity_ratio`` (the pixels hardly tell the two
+          poses apart) and the evidence exceeds :data:`FLIP_EVIDENCE_D2` (χ²₆ 99 %), or
+          :data:`FLIP_PERSISTS_D2` (χ²₆ 90 %) right after a flip of the same codes; or
+        - at any ratio, the chosen pose fails the motion check and the mirror pose passes it.
+
+        ``undecided`` (ratio under the bound, evidence > 0: the motion likes the mirror pose at
+        least as well) keeps a frame that passes from becoming the motion reference: an
+        unflagged flip as reference would flag the right frames after it.
+        """
         ratio = frame.ambiguity_ratio
-        if frame.T_world_agv_ghost is None or ratio is None:
-            return None
-        if ratio >= self.settings.ambiguity_ratio and not motion.failed:
-            return None
+        T_ghost = frame.T_world_agv_ghost
+        cs = self.settings
+        if T_ghost is None or ratio is None or (ratio >= cs.ambiguity_ratio and not motion.failed):
+            return None  # no mirror pose, or the pixels rule it out and the chosen pose passes
         T_pred, C = predicted
-        ghost_sigma = mahalanobis_sigma(pose_difference(T_pred, frame.T_world_agv_ghost), C)
-        flipped = motion.failed and ghost_sigma <= self.settings.limit_sigma
-        detail = (
-            f"ambiguity ratio {ratio:.2f}, the other pose agrees with the motion ({ghost_sigma:.1f}σ, "
-            f"the chosen one {motion.sigma:.1f}σ)" if flipped else
-            f"ambiguity ratio {ratio:.2f}; mirror pose {ghost_sigma:.1f}σ from the motion, chosen {motion.sigma:.1f}σ"
-        )
-        return suspects.CheckResult(suspects.CHECK_AMBIGUITY, motion.sigma if flipped else 0.0, self.settings.limit_sigma, detail)
+        d2_ghost = _d2(pose_difference(T_pred, T_ghost), C)
+        evidence = _d2(pose_difference(T_pred, frame.T_world_agv), C) - d2_ghost
+        ghost_sigma = chi2_sigma(d2_ghost, 6)
+        ambiguous = ratio < cs.ambiguity_ratio
+        after_flip = state.last_flip is not None and set(state.last_flip) == set(frame.used_marker_ids)
+        bar_d2 = FLIP_PERSISTS_D2 if after_flip else FLIP_EVIDENCE_D2
+        witness = "odometry" if motion.detail.endswith("odometry") else "motion"
+        chosen = f"the chosen one {motion.sigma:.1f}σ; likelihood ratio {_likelihood_text(evidence)}"
+        if ambiguous and evidence > bar_d2:
+            how = "agrees with" if ghost_sigma <= cs.limit_sigma else "agrees far better with"
+            detail = (f"ambiguity ratio {ratio:.2f}, the other pose {how} the {witness} ({ghost_sigma:.1f}σ, {chosen}"
+                      + (", as on the frame before)" if evidence <= FLIP_EVIDENCE_D2 else ")"))
+            # σ and limit of the likelihood-ratio test itself (the χ²₆ tail of the evidence)
+            return suspects.CheckResult(suspects.CHECK_AMBIGUITY, chi2_sigma(evidence, 6), chi2_sigma(bar_d2, 6), detail), True
+        if motion.failed and ghost_sigma <= cs.limit_sigma:
+            detail = f"ambiguity ratio {ratio:.2f}, the other pose agrees with the {witness} ({ghost_sigma:.1f}σ, {chosen})"
+            return suspects.CheckResult(suspects.CHECK_AMBIGUITY, motion.sigma, cs.limit_sigma, detail), True
+        undecided = ambiguous and evidence > 0.0
+        detail = (f"ambiguity ratio {ratio:.2f}; mirror pose {ghost_sigma:.1f}σ from the {witness}, chosen {motion.sigma:.1f}σ"
+                  + ("; the motion does not prefer the chosen pose: not a reference" if undecided else ""))
+        return suspects.CheckResult(suspects.CHECK_AMBIGUITY, 0.0, cs.limit_sigma, detail), undecided
 
     # -- (2) markers ----------------------------------------------------------------------------
     def _markers(self, frame: FrameResult):
@@ -466,6 +513,23 @@ class CheckStage(ClockChecks):
             return suspects.CheckResult(suspects.CHECK_UWB, self.settings.limit_sigma, self.settings.limit_sigma,
                                f"{detail} ({sigma:.1f}σ, a single fix: NLOS?)")
         return suspects.CheckResult(suspects.CHECK_UWB, sigma, self.settings.limit_sigma, detail)
+
+
+def _d2(delta: np.ndarray, cov: np.ndarray) -> float:
+    """Squared Mahalanobis distance of ``delta`` under ``cov``."""
+    try:
+        return float(delta @ np.linalg.solve(cov, delta))
+    except np.linalg.LinAlgError:
+        return float(delta @ np.linalg.pinv(cov) @ delta)
+
+
+def _likelihood_text(evidence_d2: float) -> str:
+    """2 ln(likelihood ratio) as "e^12" / "10^117"."""
+    ln_ratio = max(0.0, evidence_d2 / 2.0)
+    if ln_ratio < 23:
+        return f"e^{ln_ratio:.0f}"
+    return f"10^{ln_ratio / math.log(10):.0f}" if ln_ratio < 100 * math.log(10) else "over 10^100"
+
 
 def check_stage(settings: RunSettings, sync, ctx) -> CheckStage | None:
     """The graph's check stage under ``settings`` (None with ``checks=off``): odometry from the sync
