@@ -21,7 +21,8 @@ from agvviz.errors import RunError
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
 from agvviz.evaluation.suspect_report import cause_words, suspect_line
-from agvviz.model.frames import FrameResult
+from agvviz.model import frames as frames_model
+from agvviz.model.frames import REJECT_REPROJECTION, FrameResult
 from agvviz.viz import paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.style import (
@@ -144,6 +145,9 @@ class FrameLogger:
         self._zoom_cams: set[str] = set()
         #: Frames rejected so far.
         self.rejected_frames = 0
+        #: (stamp, reason) of every rejected frame: their markers are logged at the end
+        #: (:meth:`log_rejection_markers`), where the plots' axes are known.
+        self.rejections: list[tuple[Stamp, str]] = []
         #: Suspect frames so far (solved, but failed a check against what else the log knows).
         self.suspect_frames = 0
         #: The first estimated pose T_world_agv (the 3D view starts there); None: none yet.
@@ -175,16 +179,6 @@ class FrameLogger:
                 ),
                 static=True,
             )
-        rec.log(
-            paths.ERROR_REJECTED,
-            rr.SeriesPoints(
-                names="rejected frame (reasons: rejections log)",
-                colors=COLOR_REJECTED,
-                markers=rr.components.MarkerShape.Cross,
-                marker_sizes=4.0,
-            ),
-            static=True,
-        )
         for entity in paths.SUSPECT_MARKED:
             rec.log(
                 paths.error_suspect(entity),
@@ -447,12 +441,14 @@ class FrameLogger:
             (paths.ERROR_ROLL_DEG, frame.roll_error_deg),
             (paths.ERROR_REPROJ_RMS_PX, frame.reproj_rms_px),
         ):
-            if value is not None:
+            if not frame.solved:
+                # A rejected frame has no value (not even a reprojection RMS it was rejected
+                # for): the line breaks and a marker stands in (log_rejection_markers).
+                columns.gap(entity, stamp)
+            elif value is not None:
                 columns.scalar(entity, stamp, value)
                 if suspect is not None:  # a marker on the line, at this frame's value
                     columns.scalar(paths.error_suspect(entity), stamp, value)
-            elif not frame.solved:
-                columns.gap(entity, stamp)  # the line breaks at a rejected frame
         if suspect is not None:
             self.suspect_frames += 1
             self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(suspect_line(suspect), level=rr.TextLogLevel.WARN))
@@ -460,7 +456,7 @@ class FrameLogger:
             columns.scalar(paths.ERROR_REPROJ_THRESHOLD_PX, stamp, self.max_reproj_px)
         if not frame.solved:
             self.rejected_frames += 1
-            columns.scalar(paths.ERROR_REJECTED, stamp, 0.0)
+            self.rejections.append((stamp, frame.rejected))
             detail = f" — {frame.reject_detail}" if frame.reject_detail else ""
             self._rec.log(
                 paths.EVENTS_REJECTIONS,
@@ -469,6 +465,64 @@ class FrameLogger:
                     level=rr.TextLogLevel.WARN,
                 ),
             )
+
+    def rejection_reasons(self) -> list[str]:
+        """The reasons frames were rejected for, in order of first occurrence."""
+        return list(dict.fromkeys(reason for _, reason in self.rejections))
+
+    def log_rejection_markers(self, marker_y: dict[str, float], series: tuple[str, ...] = paths.REJECTION_MARKED) -> None:
+        """A red cross per rejected frame on the plot of each of ``series``: at ``max_reproj_px``
+        on the reprojection plot for a frame rejected for its reprojection (the limit it broke),
+        else at ``marker_y[series]`` (the top of that plot, above its data). One entity per series
+        and reason, named by the reason, so hovering a cross says why the frame was rejected."""
+        rec = self._rec
+        for reason in self.rejection_reasons():
+            stamps = [stamp for stamp, r in self.rejections if r == reason]
+            for entity in series:
+                at_limit = (
+                    entity == paths.ERROR_REPROJ_RMS_PX and reason == REJECT_REPROJECTION and self.max_reproj_px is not None
+                )
+                y = self.max_reproj_px if at_limit else marker_y.get(entity)
+                if y is None:
+                    continue
+                marker = paths.error_rejected(entity, reason)
+                rec.log(
+                    marker,
+                    rr.SeriesPoints(
+                        names=rejection_name(reason, self.max_reproj_px, at_limit),
+                        colors=COLOR_REJECTED,
+                        markers=rr.components.MarkerShape.Cross,
+                        marker_sizes=5.0,
+                    ),
+                    static=True,
+                )
+                self._columns.extend(marker, stamps, y)
+
+
+def rejection_name(reason: str, max_reproj_px: float | None = None, at_limit: bool = False) -> str:
+    """The series name of a rejection marker: what hovering a red cross says (every frame's
+    detail: the rejections log)."""
+    words = REJECTION_WORDS.get(reason, reason.replace("_", " "))
+    if reason == REJECT_REPROJECTION:
+        limit = "" if max_reproj_px is None else f" {max_reproj_px:g} px"
+        words = f"reprojection RMS above max_reproj_px{limit}" + (" (cross at the limit)" if at_limit else "")
+    return f"rejected: {words}"
+
+
+#: What each rejection reason means, for the markers' names.
+REJECTION_WORDS = {
+    frames_model.REJECT_NO_MARKER: "no code found",
+    frames_model.REJECT_DECODE: "code found, payload not decoded",
+    frames_model.REJECT_PAYLOAD: "payload refused by the parser",
+    frames_model.REJECT_GEOMETRY: "code corners degenerate",
+    frames_model.REJECT_SOLVER: "the solver found no pose",
+    frames_model.REJECT_NO_CALIBRATION: "no calibration yet",
+    frames_model.REJECT_NO_EXTRINSIC: "no camera mount (extrinsic) yet",
+    frames_model.REJECT_IMAGE: "image unreadable",
+    frames_model.REJECT_CALIBRATION_SIZE: "image size differs from the calibration",
+    frames_model.REJECT_TIME: "time stamp not after the previous image",
+    frames_model.REJECT_MAP_MISMATCH: "payload disagrees with the marker map",
+}
 
 
 def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
