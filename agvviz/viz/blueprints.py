@@ -71,7 +71,7 @@ MARKER_BAND = 0.08
 #: A plot whose largest value is more than this many times its 99th percentile is clipped at that
 #: percentile (its title says so and how many values are above): a few metre-size UWB outliers
 #: (NLOS) would flatten every other value.
-CLIP_OVER_P99 = 1.5
+CLIP_OVER_P99 = 3.0
 
 
 @dataclass(frozen=True)
@@ -430,7 +430,7 @@ def uwb_blueprint(
         rrb.TimeSeriesView(
             origin="/",
             contents=[f"/{paths.uwb_ranges(a)}/**"],
-            name=f"range to {a} [m] vs time [s]",
+            name=f"anchor {a}",
             plot_legend=_NO_LEGEND,
             axis_y=range_axes[a].scalar_axis() if a in range_axes else None,
         )
@@ -438,18 +438,18 @@ def uwb_blueprint(
     ]
     # One colour key for the four plots (a legend in each would cover half of it).
     ranges = rrb.Vertical(
-        rrb.TextDocumentView(origin=paths.UWB_RANGE_KEY, name="UWB ranges to each anchor"),
+        rrb.TextDocumentView(origin=paths.UWB_RANGE_KEY, name="UWB range [m] to each anchor vs t [s]"),
         rrb.Grid(*range_views, grid_columns=2),
-        row_shares=[0.14, 0.86],
+        row_shares=[0.11, 0.89],
     )
     camera_error = series_view(
-        paths.ERROR_POSITION_MM, "camera fix error [mm] (gaps: no camera solved)", camera_axis, rejected=camera_rejected
+        paths.ERROR_POSITION_MM, "camera fix error [mm]", camera_axis, rejected=camera_rejected
     )
     fused_error = rrb.TimeSeriesView(
         origin="/",
         contents=[f"/{paths.ERROR_UWB_POSITION_MM}", f"/{paths.ERROR_FUSED_POSITION_MM}"],
         name=series_title(
-            "UWB fix (blue dots), fused (yellow) error [mm]", note="" if error_axis is None else error_axis.note
+            "UWB (blue), fused (yellow) error [mm]", note="" if error_axis is None else error_axis.note
         ),
         plot_legend=_NO_LEGEND,
         axis_y=None if error_axis is None else error_axis.scalar_axis(),

@@ -49,10 +49,7 @@ RANGE_COLORS = {"measured": COLOR_UWB, "predicted_truth": COLOR_TRUTH, "predicte
 RANGE_NAMES = {"measured": "measured", "predicted_truth": "expected from truth", "predicted_estimate": "expected from fused"}
 POSITION_MARKER_RADIUS = rr.Radius.ui_points(6.0)
 #: The colour key above the range plots (one for the four: a legend in each would cover the data).
-RANGE_KEY = (
-    "**range [m] to each anchor**: blue measured · green expected from truth · yellow expected "
-    "from the fused position · red × removed by a gate (hover a point: its series)"
-)
+RANGE_KEY = "blue: measured · green: expected from truth · yellow: expected from fused · red ×: gated"
 
 
 class FusionLogger:
