@@ -21,9 +21,8 @@ from agvviz.errors import RunError
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
 from agvviz.evaluation.suspect_report import cause_words, suspect_line
-from agvviz.model import frames as frames_model
-from agvviz.model.frames import REJECT_REPROJECTION, FrameResult
-from agvviz.viz import paths
+from agvviz.model.frames import FrameResult
+from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.style import (
     COLOR_CAMERA,
@@ -33,7 +32,6 @@ from agvviz.viz.style import (
     COLOR_MARKER_FILL,
     COLOR_OBSERVED,
     COLOR_PITCH,
-    COLOR_REJECTED,
     COLOR_REPROJECTED,
     COLOR_ROLL,
     COLOR_STALE,
@@ -120,7 +118,6 @@ class Track:
 
     def array(self) -> np.ndarray:
         return self._xyz[: self._n]
-
 
 
 class FrameLogger:
@@ -470,59 +467,9 @@ class FrameLogger:
         """The reasons frames were rejected for, in order of first occurrence."""
         return list(dict.fromkeys(reason for _, reason in self.rejections))
 
-    def log_rejection_markers(self, marker_y: dict[str, float], series: tuple[str, ...] = paths.REJECTION_MARKED) -> None:
-        """A red cross per rejected frame on the plot of each of ``series``: at ``max_reproj_px``
-        on the reprojection plot for a frame rejected for its reprojection (the limit it broke),
-        else at ``marker_y[series]`` (the top of that plot, above its data). One entity per series
-        and reason, named by the reason, so hovering a cross says why the frame was rejected."""
-        rec = self._rec
-        for reason in self.rejection_reasons():
-            stamps = [stamp for stamp, r in self.rejections if r == reason]
-            for entity in series:
-                at_limit = (
-                    entity == paths.ERROR_REPROJ_RMS_PX and reason == REJECT_REPROJECTION and self.max_reproj_px is not None
-                )
-                y = self.max_reproj_px if at_limit else marker_y.get(entity)
-                if y is None:
-                    continue
-                marker = paths.error_rejected(entity, reason)
-                rec.log(
-                    marker,
-                    rr.SeriesPoints(
-                        names=rejection_name(reason, self.max_reproj_px, at_limit),
-                        colors=COLOR_REJECTED,
-                        markers=rr.components.MarkerShape.Cross,
-                        marker_sizes=5.0,
-                    ),
-                    static=True,
-                )
-                self._columns.extend(marker, stamps, y)
-
-
-def rejection_name(reason: str, max_reproj_px: float | None = None, at_limit: bool = False) -> str:
-    """The series name of a rejection marker: what hovering a red cross says (every frame's
-    detail: the rejections log)."""
-    words = REJECTION_WORDS.get(reason, reason.replace("_", " "))
-    if reason == REJECT_REPROJECTION:
-        limit = "" if max_reproj_px is None else f" {max_reproj_px:g} px"
-        words = f"reprojection RMS above max_reproj_px{limit}" + (" (cross at the limit)" if at_limit else "")
-    return f"rejected: {words}"
-
-
-#: What each rejection reason means, for the markers' names.
-REJECTION_WORDS = {
-    frames_model.REJECT_NO_MARKER: "no code found",
-    frames_model.REJECT_DECODE: "code found, payload not decoded",
-    frames_model.REJECT_PAYLOAD: "payload refused by the parser",
-    frames_model.REJECT_GEOMETRY: "code corners degenerate",
-    frames_model.REJECT_SOLVER: "the solver found no pose",
-    frames_model.REJECT_NO_CALIBRATION: "no calibration yet",
-    frames_model.REJECT_NO_EXTRINSIC: "no camera mount (extrinsic) yet",
-    frames_model.REJECT_IMAGE: "image unreadable",
-    frames_model.REJECT_CALIBRATION_SIZE: "image size differs from the calibration",
-    frames_model.REJECT_TIME: "time stamp not after the previous image",
-    frames_model.REJECT_MAP_MISMATCH: "payload disagrees with the marker map",
-}
+    def log_rejection_markers(self, marker_y: dict[str, float]) -> None:
+        """The crosses of the rejected frames on every plot (:func:`log_rejections.log_rejection_markers`)."""
+        log_rejections.log_rejection_markers(self._rec, self._columns, self.rejections, marker_y, self.max_reproj_px)
 
 
 def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
