@@ -31,8 +31,10 @@ The default run layout::
     │              │               │             │ rejections log         │
     └──────────────┴───────────────┴─────────────┴────────────────────────┘
 
-Every plot has its legend; the time panel of a run is on ``elapsed`` (seconds since the
-recording's start).
+A run's time series are on ``elapsed`` (seconds since the recording's start, ``vs t [s]`` in
+their titles); their y axes come from the whole run (:func:`run_plot_axes`); they have no legend
+(in Rerun 0.41 it sits on the data): the title names the series, and a rejected frame is a gap
+with a red × (:mod:`agvviz.viz.log_rejections`).
 """
 
 from __future__ import annotations
@@ -388,7 +390,7 @@ def default_blueprint(
 #     │ / fused trajectories          │ detected (cyan), reprojected (magenta)   │
 #     ├──────────────────────┬────────┴───────────┬──────────────────────────────┤
 #     │ ranges per anchor    │ camera fix error   │ camera used / fused from     │
-#     │ (2×2, legends):      │ [mm]               │ (state lanes)                │
+#     │ (2×2, one key):      │ [mm]               │ (state lanes)                │
 #     │ measured, expected   ├────────────────────┼──────────────────────────────┤
 #     │ from truth / fused,  │ UWB and fused      │ switches / gates / GDOP /    │
 #     │ gated (×)            │ error [mm]         │ summary / manifest           │
@@ -440,7 +442,7 @@ def uwb_blueprint(
     ranges = rrb.Vertical(
         rrb.TextDocumentView(origin=paths.UWB_RANGE_KEY, name="UWB range [m] to each anchor vs t [s]"),
         rrb.Grid(*range_views, grid_columns=2),
-        row_shares=[0.11, 0.89],
+        row_shares=[0.16, 0.84],
     )
     camera_error = series_view(
         paths.ERROR_POSITION_MM, "camera fix error [mm]", camera_axis, rejected=camera_rejected
