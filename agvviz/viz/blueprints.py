@@ -60,7 +60,6 @@ from agvviz.viz.style import (
     color_name,
 )
 
-_LEGEND = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.LeftTop)
 #: A run's logs: the time in seconds and the line (no entity path column).
 _LOG_COLUMNS = rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_ELAPSED], text_log_columns=["body"])
 #: A run's time series name their series in the title (a legend in Rerun 0.41 sits on the data).
