@@ -41,13 +41,14 @@ class Picture:
     scenario: str
     run_sets: tuple[str, ...] = ()
     timeline: str = "frame"
-    at: tuple[int, ...] = (100,)  # sequence values on ``timeline``; the first is the README's
+    at: tuple[float, ...] = (100,)  # values on ``timeline`` (seconds on elapsed); the first is the README's
     record_sets: tuple[str, ...] = field(default=())
 
 
 PICTURES = (
-    Picture("qr_floor", at=(100, 20, 180)),
-    Picture("uwb_room", at=(150, 20, 280)),
+    # On ``elapsed`` (seconds, 10 frames a second), the timeline a run opens on: plots read in seconds.
+    Picture("qr_floor", timeline="elapsed", at=(10.0, 2.0, 18.0)),
+    Picture("uwb_room", timeline="elapsed", at=(15.0, 2.0, 28.0)),
     Picture("auv_under_ice", run_sets=("correction=cnoem",), at=(40, 5, 70)),
     Picture("p4p_monte_carlo", timeline="trial", at=(0,)),
 )
