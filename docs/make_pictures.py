@@ -8,6 +8,7 @@ shown in the README. Rerun them whenever a layout changes, and look at every ima
     python docs/make_pictures.py                     # all scenarios → docs/images/<scenario>.png
     python docs/make_pictures.py --only qr_floor --at 20,100,180 --out-dir /tmp/pics
     python docs/make_pictures.py --rrd run.rrd --at 50 --out-dir /tmp/pics   # any run
+    python docs/make_pictures.py --rrd run.rrd --timeline elapsed --at 6.0 --out-dir /tmp/pics  # at 6 s
 
 The viewer runs headless (``rerun --headless``; it needs a Vulkan driver, e.g. Debian's
 ``mesa-vulkan-drivers``) and is driven through ``rerun.experimental.ViewerClient``: open the
@@ -40,13 +41,14 @@ class Picture:
     scenario: str
     run_sets: tuple[str, ...] = ()
     timeline: str = "frame"
-    at: tuple[int, ...] = (100,)  # sequence values on ``timeline``; the first is the README's
+    at: tuple[float, ...] = (100,)  # values on ``timeline`` (seconds on elapsed); the first is the README's
     record_sets: tuple[str, ...] = field(default=())
 
 
 PICTURES = (
-    Picture("qr_floor", at=(100, 20, 180)),
-    Picture("uwb_room", at=(150, 20, 280)),
+    # On ``elapsed`` (seconds, 10 frames a second), the timeline a run opens on: plots read in seconds.
+    Picture("qr_floor", timeline="elapsed", at=(10.0, 2.0, 18.0)),
+    Picture("uwb_room", timeline="elapsed", at=(15.0, 2.0, 28.0)),
     Picture("auv_under_ice", run_sets=("correction=cnoem",), at=(40, 5, 70)),
     Picture("p4p_monte_carlo", timeline="trial", at=(0,)),
 )
@@ -86,13 +88,16 @@ class HeadlessViewer:
                     raise SystemExit(f"cannot reach the headless Rerun viewer: {exc}") from None
                 time.sleep(0.2)
 
-    def screenshots(self, rrd: Path, timeline: str, at: list[int], out_paths: list[Path]) -> None:
+    def screenshots(self, rrd: Path, timeline: str, at: list[float], out_paths: list[Path]) -> None:
         """Open ``rrd`` and save one screenshot per time in ``at``."""
         import cv2
 
         self.client.open(str(rrd.resolve()))
         for value, out in zip(at, out_paths):
-            self.client.set_time(timeline, sequence=int(value), play_state="paused")
+            if timeline == "elapsed":  # seconds since the recording's start (a duration timeline)
+                self.client.set_time(timeline, duration=float(value), play_state="paused")
+            else:
+                self.client.set_time(timeline, sequence=int(value), play_state="paused")
             previous = None
             for _ in range(6):  # until two shots in a row are equal (images decode late)
                 time.sleep(0.5)
@@ -138,7 +143,8 @@ def main() -> None:
     args.out_dir.mkdir(parents=True, exist_ok=True)
     work = args.work or Path(tempfile.mkdtemp(prefix="agvviz-pictures-"))
     work.mkdir(parents=True, exist_ok=True)
-    at_override = [int(v) for v in args.at.split(",")] if args.at else None
+    # Sequence values (frame, trial); seconds on ``--timeline elapsed`` (what a run opens on).
+    at_override = [float(v) if args.timeline == "elapsed" else int(v) for v in args.at.split(",")] if args.at else None
 
     # A fresh viewer per run: a viewer keeps the layout it showed for the application id, so a
     # second run would be drawn in the first one's layout instead of its own.

@@ -173,7 +173,8 @@ def test_scalar_columns_equal_per_frame_values(run):
         (paths.SOLVER_AMBIGUITY_RATIO, lambda f: None if f.ambiguity_ratio is None else min(f.ambiguity_ratio, 100.0)),
         (paths.LM_ITERATIONS, lambda f: len(f.lm_iterations) - 1 if f.lm_iterations else None),
     ):
-        want = [(f.index, value(f)) for f in frames if value(f) is not None]
+        # A rejected frame has no value in any series (issue 26), even one it carries.
+        want = [(f.index, value(f)) for f in frames if value(f) is not None and f.solved]
         idx, values = scalar_series(contents, entity)
         np.testing.assert_array_equal(idx, [i for i, _ in want], err_msg=entity)
         np.testing.assert_array_equal(values, [v for _, v in want], err_msg=entity)
@@ -187,13 +188,18 @@ def test_gaps_at_rejected_frames_and_threshold_line(run):
     frames, _, contents = run
     # No position error on rejected frames, and a Clear there breaks the line.
     assert _frames_with(contents, paths.ERROR_POSITION_MM, "Clear:is_recursive") == sorted(REJECTED)
-    # The reprojection RMS of a frame rejected for it is data: plotted, no gap.
-    assert _frames_with(contents, paths.ERROR_REPROJ_RMS_PX, "Clear:is_recursive") == [5, 71]
+    # Not even the reprojection RMS of a frame rejected for it is plotted (issue 26): a gap, and a
+    # cross on the limit it broke.
+    assert _frames_with(contents, paths.ERROR_REPROJ_RMS_PX, "Clear:is_recursive") == sorted(REJECTED)
+    assert not set(scalar_series(contents, paths.ERROR_REPROJ_RMS_PX)[0].tolist()) & set(REJECTED)
     idx, values = scalar_series(contents, paths.ERROR_REPROJ_THRESHOLD_PX)
     np.testing.assert_array_equal(idx, np.arange(N_FRAMES))
     assert set(values) == {MAX_REPROJ_PX}
-    idx, _ = scalar_series(contents, paths.ERROR_REJECTED)
-    np.testing.assert_array_equal(idx, sorted(REJECTED))
+    idx, values = scalar_series(contents, paths.error_rejected(paths.ERROR_REPROJ_RMS_PX, REJECT_REPROJECTION))
+    np.testing.assert_array_equal(idx, [70])
+    np.testing.assert_array_equal(values, [MAX_REPROJ_PX])
+    idx, _ = scalar_series(contents, paths.error_rejected(paths.ERROR_POSITION_MM, REJECT_NO_MARKER))
+    np.testing.assert_array_equal(idx, [5, 71])
 
 
 def test_summary_is_the_terminal_table_then_json(run):

@@ -150,7 +150,8 @@ def test_entity_tree_and_timelines(run):
         paths.detected(CAM), paths.reprojected(CAM), paths.TRAJECTORY_TRUTH, paths.TRAJECTORY_CAMERA,
         paths.LM_LOG10_COST_PER_ITERATION, paths.LM_THIS_FRAME, paths.LM_COST, paths.LM_REPROJ_RMS_PX, paths.LM_DAMPING,
         paths.LM_STEP_NORM, paths.ERROR_POSITION_MM, paths.ERROR_HEADING_DEG, paths.ERROR_REPROJ_RMS_PX,
-        paths.ERROR_REJECTED, paths.EVENTS_REJECTIONS, paths.RUN_MANIFEST, paths.RUN_SUMMARY,
+        paths.error_rejected(paths.ERROR_POSITION_MM, REJECT_NO_MARKER), paths.EVENTS_REJECTIONS, paths.RUN_MANIFEST,
+        paths.RUN_SUMMARY,
     }
     assert expected <= contents.entity_paths, expected - contents.entity_paths
     reader = RrdReader(path)
@@ -172,15 +173,18 @@ def test_scalar_series_equal_input(run):
         (paths.ERROR_HEADING_DEG, "heading_error_deg", 1.0),
         (paths.ERROR_REPROJ_RMS_PX, "reproj_rms_px", 1.0),
     ):
-        logged = [(f.index, scale * getattr(f, attr)) for f in frames if getattr(f, attr) is not None]
+        # A rejected frame has no value, even one it carries (the RMS it was rejected for).
+        logged = [(f.index, scale * getattr(f, attr)) for f in frames if getattr(f, attr) is not None and f.solved]
         idx, values = scalar_series(contents, entity)
         np.testing.assert_array_equal(idx, [i for i, _ in logged])
         np.testing.assert_array_equal(values, [v for _, v in logged])
-    idx, values = scalar_series(contents, paths.ERROR_REJECTED)
-    np.testing.assert_array_equal(idx, sorted(REJECTED))
-    # The same series on the time timeline carries each frame's log_time_ns.
-    t_ns, _ = scalar_series(contents, paths.ERROR_REJECTED, timeline=paths.TIMELINE_TIME)
-    np.testing.assert_array_equal(t_ns, [frames[i].log_time_ns for i in sorted(REJECTED)])
+    # One marker series per reason on each plot; together they hold every rejected frame.
+    for reason in set(REJECTED.values()):
+        idx, _ = scalar_series(contents, paths.error_rejected(paths.ERROR_POSITION_MM, reason))
+        np.testing.assert_array_equal(idx, sorted(i for i, r in REJECTED.items() if r == reason))
+        # The same series on the time timeline carries each frame's log_time_ns.
+        t_ns, _ = scalar_series(contents, paths.error_rejected(paths.ERROR_POSITION_MM, reason), timeline=paths.TIMELINE_TIME)
+        np.testing.assert_array_equal(t_ns, [frames[i].log_time_ns for i in sorted(REJECTED) if REJECTED[i] == reason])
 
 
 def test_lm_columns(run):

@@ -31,16 +31,21 @@ The default run layout::
     │              │               │             │ rejections log         │
     └──────────────┴───────────────┴─────────────┴────────────────────────┘
 
-Every plot has its legend; the time panel of a run is on ``elapsed`` (seconds since the
-recording's start).
+A run's time series are on ``elapsed`` (seconds since the recording's start, ``vs t [s]`` in
+their titles); their y axes come from the whole run (:func:`run_plot_axes`); they have no legend
+(in Rerun 0.41 it sits on the data): the title names the series, and a rejected frame is a gap
+with a red × (:mod:`agvviz.viz.log_rejections`).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import rerun.blueprint as rrb
 
 from agvviz.evaluation.error_budget import INTERACTION, ErrorBudget
+from agvviz.model.frames import REJECT_REPROJECTION
 from agvviz.model.studies import CellResult
 from agvviz.replay.studies.monte_carlo_cells import PAPER_FIGURES
 from agvviz.viz import paths
@@ -55,18 +60,128 @@ from agvviz.viz.style import (
     color_name,
 )
 
-_LEGEND = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.LeftTop)
+#: A run's logs: the time in seconds and the line (no entity path column).
+_LOG_COLUMNS = rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_ELAPSED], text_log_columns=["body"])
+#: A run's time series name their series in the title (a legend in Rerun 0.41 sits on the data).
+_NO_LEGEND = rrb.PlotLegend(visible=False)
+
+# -- a run's time series: axes from the whole run's data ------------------------------------------
+#: Above a plot's highest value, a band this fraction of the data's span high holds the
+#: rejected-frame crosses (at the band's middle): they neither hide a value nor leave the axis.
+MARKER_BAND = 0.08
+#: A plot whose largest value is more than this many times its 99th percentile is clipped at that
+#: percentile (its title says so and how many values are above): a few metre-size UWB outliers
+#: (NLOS) would flatten every other value.
+CLIP_OVER_P99 = 3.0
 
 
-def _error_view(entities: list[str], name: str) -> rrb.TimeSeriesView:
-    """Time series of ``entities`` with the rejected-frame markers along the zero line and the
-    suspect-frame markers on the lines (``errors/suspect/<series>``)."""
-    suspects = [paths.error_suspect(e) for e in entities if e in paths.SUSPECT_MARKED]
+@dataclass(frozen=True)
+class PlotAxis:
+    """The y axis of one time-series plot, set from the whole run's values (Rerun's auto range
+    follows what is on screen and cut extremes off): ``low``..``high`` holds every value (or
+    says in ``note`` where it clips), ``marker_y`` is where rejected-frame crosses sit."""
+
+    low: float
+    high: float
+    marker_y: float
+    note: str = ""
+
+    def scalar_axis(self) -> rrb.ScalarAxis:
+        return rrb.ScalarAxis(range=(self.low, self.high))
+
+    def holds(self, value: float) -> bool:
+        return self.low <= value <= self.high
+
+
+def plot_axis(extents: list[tuple[float, float]], *, include_zero: bool = True, note: str = "") -> PlotAxis:
+    """The axis of a plot whose series span ``extents`` ((lowest, highest) each): every value
+    (and 0 unless ``include_zero`` is False) inside, the marker band above."""
+    lows = [low for low, _ in extents] + ([0.0] if include_zero or not extents else [])
+    highs = [high for _, high in extents] + ([0.0] if include_zero or not extents else [])
+    low, high = min(lows), max(highs)
+    span = high - low if high > low else max(abs(high), 1.0)
+    return PlotAxis(
+        low=low - 0.03 * span, high=high + 2.0 * MARKER_BAND * span, marker_y=high + MARKER_BAND * span, note=note
+    )
+
+
+def clipped_axis(values: list[float], unit: str) -> PlotAxis:
+    """:func:`plot_axis` of ``values`` (≥ 0), clipped at their 99th percentile when the largest is
+    more than CLIP_OVER_P99 times it; the note then says where and what is above."""
+    if not values:
+        return plot_axis([])
+    data = np.asarray(values, dtype=float)
+    p99, largest = float(np.quantile(data, 0.99)), float(data.max())
+    if largest <= CLIP_OVER_P99 * p99:
+        return plot_axis([(float(data.min()), largest)])
+    above = int(np.sum(data > p99))
+    return plot_axis(
+        [(float(data.min()), p99)],
+        note=f"clipped at {p99:.0f} {unit} ({above} of {len(data)} above, max {largest:.0f})",
+    )
+
+
+def run_plot_axes(
+    extents: dict[str, tuple[float, float]], *, max_reproj_px: float | None, rejection_reasons: list[str]
+) -> dict[str, PlotAxis]:
+    """The axis of the plot of each series of :data:`paths.REJECTION_MARKED` from ``extents``
+    (entity → (lowest, highest) value of the run). The reprojection plot ranges to its data: it
+    reaches up to ``max_reproj_px`` only when frames were rejected for their reprojection (their
+    crosses sit on that line), else its title says the limit is above the axis."""
+    axes = {}
+    for entity in paths.REJECTION_MARKED:
+        series = [extents[entity]] if entity in extents else []
+        note = ""
+        if entity == paths.ERROR_NEES:
+            series += [extents[e] for e in (paths.ERROR_NEES_EXPECTED, paths.ERROR_NEES_BOUND_99) if e in extents]
+        if entity == paths.ERROR_REPROJ_RMS_PX and max_reproj_px is not None:
+            if REJECT_REPROJECTION in rejection_reasons:
+                series.append((max_reproj_px, max_reproj_px))
+            elif not plot_axis(series).holds(max_reproj_px):
+                note = f"max_reproj_px {max_reproj_px:g} above the axis"
+        axes[entity] = plot_axis(series, note=note)
+    return axes
+
+
+def series_title(quantity: str, *, rejected: bool = False, suspect: bool = False, note: str = "") -> str:
+    """A time series' title: the quantity with its unit against the run's time (``t [s]``:
+    seconds since the recording's start, the timeline a run opens on), where its axis clips, and
+    what its markers mean (no legend: in Rerun 0.41 it sits on the data). Most important first:
+    a narrow view cuts the end off."""
+    parts = [f"{quantity} vs t [s]"]
+    if note:
+        parts.append(note)
+    if rejected:
+        parts.append("× rejected (hover: why)")
+    if suspect:
+        parts.append("◆ suspect")
+    return " · ".join(parts)
+
+
+def series_view(
+    entity: str,
+    quantity: str,
+    axis: PlotAxis | None,
+    *,
+    rejected: bool = False,
+    suspect: bool = False,
+    extra: tuple[str, ...] = (),
+) -> rrb.TimeSeriesView:
+    """The plot of ``entity`` (+ ``extra`` lines) against the run's time with the rejected-frame
+    crosses (``errors/rejected/<series>/*``) and, on the error plots, the suspect diamonds
+    (``errors/suspect/<series>``, at the frame's value on the line); y axis ``axis``."""
+    contents = [entity, *extra]
+    if suspect and entity in paths.SUSPECT_MARKED:
+        contents.append(paths.error_suspect(entity))
+    if rejected:
+        contents.append(paths.error_rejected_all(entity))
     return rrb.TimeSeriesView(
         origin="/",
-        contents=[f"/{e}" for e in [*entities, *suspects, paths.ERROR_REJECTED]],
-        name=name,
-        plot_legend=_LEGEND,
+        contents=[f"/{e}" for e in contents],
+        name=series_title(quantity, rejected=rejected, suspect=suspect and entity in paths.SUSPECT_MARKED,
+                          note="" if axis is None else axis.note),
+        plot_legend=_NO_LEGEND,
+        axis_y=None if axis is None else axis.scalar_axis(),
     )
 
 
@@ -115,8 +230,9 @@ def zoom_view(cam_name: str) -> rrb.Spatial2DView:
     )
 
 
-def _lm_panel(lm_iterates: bool) -> rrb.Container | rrb.View:
-    """The frame's solve in words and, for an iterating solver, its iterations (log10 bars)."""
+def _lm_panel(lm_iterates: bool, steps_axis: PlotAxis | None = None, rejected: bool = False) -> rrb.Container | rrb.View:
+    """The frame's solve in words and, for an iterating solver, its iterations (log10 bars) and
+    its trial steps per frame (y axis ``steps_axis``; crosses on ``rejected`` frames)."""
     text = rrb.TextDocumentView(origin=paths.LM_THIS_FRAME, name="solver, this frame")
     if not lm_iterates:
         return text
@@ -136,9 +252,7 @@ def _lm_panel(lm_iterates: bool) -> rrb.Container | rrb.View:
             name="log10 LM step norm per trial step",
             plot_legend=rrb.PlotLegend(visible=False),
         ),
-        rrb.TimeSeriesView(
-            origin="/", contents=[f"/{paths.LM_ITERATIONS}"], name="LM trial steps per frame", plot_legend=_LEGEND
-        ),
+        series_view(paths.LM_ITERATIONS, "LM trial steps per frame", steps_axis, rejected=rejected),
         active_tab=0,
     )
     return rrb.Vertical(text, bars, row_shares=[0.3, 0.7])
@@ -157,6 +271,8 @@ def default_blueprint(
     start_m: tuple[float, float, float] | None = None,
     budget_sources: list[str] | None = None,
     has_suspects: bool = False,
+    axes: dict[str, PlotAxis] | None = None,
+    max_reproj_px: float | None = None,
 ) -> rrb.Blueprint:
     """Build the default layout for a run with cameras ``cam_names`` (fits 1600×1000).
 
@@ -168,8 +284,11 @@ def default_blueprint(
     ``budget_sources``: the run holds an error budget of these sources (``run --budget``): its
     table is the active document and its chart and series are tabs beside the position error.
     ``has_suspects``: the suspects log (one line per suspect frame) under the summary, before
-    the rejections.
+    the rejections, and the suspect diamonds on the error plots. ``axes``: each time series' y
+    axis (:func:`run_plot_axes`; None: Rerun's auto range); ``max_reproj_px``: the limit line's
+    value, drawn only when the reprojection axis reaches it.
     """
+    axes = axes or {}
     image_views = []
     for cam_name in cam_names:
         view = image_view(cam_name, cam_name in fixed_cams)
@@ -196,21 +315,28 @@ def default_blueprint(
         active_tab=0 if budget_sources is None else 3,
     )
     logs = [
-        *([rrb.TextLogView(origin=paths.EVENTS_SUSPECTS, name="suspects (checks without truth)")] if has_suspects else []),
-        *([rrb.TextLogView(origin=paths.EVENTS_REJECTIONS, name="rejections")] if has_rejections else []),
+        *([rrb.TextLogView(origin=paths.EVENTS_SUSPECTS, name="suspects (checks without truth)", columns=_LOG_COLUMNS)]
+          if has_suspects else []),
+        *([rrb.TextLogView(origin=paths.EVENTS_REJECTIONS, name="rejections", columns=_LOG_COLUMNS)] if has_rejections else []),
     ]
     if logs:
         documents = rrb.Vertical(
             documents, logs[0] if len(logs) == 1 else rrb.Tabs(*logs, active_tab=0), row_shares=[0.62, 0.38]
         )
-    reprojection = [paths.ERROR_REPROJ_RMS_PX] + ([paths.ERROR_REPROJ_THRESHOLD_PX] if has_threshold else [])
+    reproj_axis = axes.get(paths.ERROR_REPROJ_RMS_PX)
+    limit_in_sight = has_threshold and (reproj_axis is None or max_reproj_px is None or reproj_axis.holds(max_reproj_px))
     top = rrb.Horizontal(
         world_view,
-        rrb.Vertical(image_panel, _lm_panel(lm_iterates), row_shares=[0.6, 0.4]) if lm_iterates
+        rrb.Vertical(image_panel, _lm_panel(lm_iterates, axes.get(paths.LM_ITERATIONS), has_rejections), row_shares=[0.6, 0.4])
+        if lm_iterates
         else rrb.Vertical(image_panel, _lm_panel(lm_iterates), row_shares=[0.85, 0.15]),
         column_shares=[0.52, 0.48],
     )
-    position = _error_view([paths.ERROR_POSITION_MM], "position error [mm]")
+
+    def plot(entity: str, quantity: str, extra: tuple[str, ...] = ()) -> rrb.TimeSeriesView:
+        return series_view(entity, quantity, axes.get(entity), rejected=has_rejections, suspect=has_suspects, extra=extra)
+
+    position = plot(paths.ERROR_POSITION_MM, "position error [mm]")
     if budget_sources is not None:
         position = rrb.Tabs(
             position,
@@ -219,23 +345,28 @@ def default_blueprint(
             budget_errors_view(budget_sources),
             active_tab=0,
         )
+    limit = "red: max_reproj_px" + (f" {max_reproj_px:g}" if max_reproj_px is not None else "")
     bottom = rrb.Horizontal(
         position,
         rrb.Tabs(
-            _error_view([paths.ERROR_HEADING_DEG], "heading error [deg]"),
-            _error_view([paths.ERROR_PITCH_DEG], "pitch error [deg]"),
-            _error_view([paths.ERROR_ROLL_DEG], "roll error [deg]"),
+            plot(paths.ERROR_HEADING_DEG, "heading error [deg]"),
+            plot(paths.ERROR_PITCH_DEG, "pitch error [deg]"),
+            plot(paths.ERROR_ROLL_DEG, "roll error [deg]"),
             active_tab=0,
         ),
         rrb.Tabs(
-            _error_view(reprojection, "reprojection RMS [px]" + (" vs max_reproj_px" if has_threshold else "")),
-            *([_error_view([paths.ERROR_REPROJ_RMS_PX], "reprojection RMS [px], detail")] if has_threshold else []),
-            _error_view([paths.ERROR_POSITION_OVER_CRLB], "position error ÷ CRLB"),
-            _error_view(
-                [paths.ERROR_NEES, paths.ERROR_NEES_EXPECTED, paths.ERROR_NEES_BOUND_99],
-                "NEES vs χ²(dof): mean dof, 99 % bound",
+            plot(
+                paths.ERROR_REPROJ_RMS_PX,
+                "reprojection RMS [px]" + (f", {limit}" if limit_in_sight else ""),
+                extra=(paths.ERROR_REPROJ_THRESHOLD_PX,) if limit_in_sight else (),
             ),
-            _error_view([paths.SOLVER_AMBIGUITY_RATIO], "IPPE ambiguity ratio"),
+            plot(paths.ERROR_POSITION_OVER_CRLB, "position error ÷ CRLB"),
+            plot(
+                paths.ERROR_NEES,
+                "NEES (orange), its mean dof (green) and 99 % bound (red)",
+                extra=(paths.ERROR_NEES_EXPECTED, paths.ERROR_NEES_BOUND_99),
+            ),
+            plot(paths.SOLVER_AMBIGUITY_RATIO, "IPPE ambiguity ratio (capped at 100)"),
             active_tab=0,
         ),
         documents,
@@ -258,7 +389,7 @@ def default_blueprint(
 #     │ / fused trajectories          │ detected (cyan), reprojected (magenta)   │
 #     ├──────────────────────┬────────┴───────────┬──────────────────────────────┤
 #     │ ranges per anchor    │ camera fix error   │ camera used / fused from     │
-#     │ (2×2, legends):      │ [mm]               │ (state lanes)                │
+#     │ (2×2, one key):      │ [mm]               │ (state lanes)                │
 #     │ measured, expected   ├────────────────────┼──────────────────────────────┤
 #     │ from truth / fused,  │ UWB and fused      │ switches / gates / GDOP /    │
 #     │ gated (×)            │ error [mm]         │ summary / manifest           │
@@ -269,12 +400,20 @@ def uwb_blueprint(
     fixed_cams: set[str],
     anchor_ids: list[str],
     zoom_cams: list[str] = (),
-    error_range_mm: float | None = None,
+    *,
+    camera_axis: PlotAxis | None = None,
+    camera_rejected: bool = False,
+    error_axis: PlotAxis | None = None,
+    range_axes: dict[str, PlotAxis] | None = None,
 ) -> rrb.Blueprint:
     """Layout for a run with cameras ``cam_names`` (``fixed_cams`` fixed in the world) and
     UWB anchors ``anchor_ids``. ``zoom_cams``: cameras with a zoomed view of their small code
-    (:attr:`RunLogger.zoom_cams`), shown first; ``error_range_mm``: top of the UWB/fused error
-    plot's y axis (:meth:`FusionLogger.error_range_mm`; None: fit all data)."""
+    (:attr:`RunLogger.zoom_cams`), shown first. The y axes, from the whole run
+    (:class:`PlotAxis`; None: Rerun's auto range): ``camera_axis`` of the camera fix error (with
+    the crosses of rejected frames when ``camera_rejected``), ``error_axis`` of the UWB/fused error
+    (:meth:`FusionLogger.error_axis`: clipped, and saying so, when a few NLOS fixes are far off),
+    ``range_axes`` of each anchor's ranges."""
+    range_axes = range_axes or {}
     cameras = [_camera_panel(c, c in fixed_cams, c in zoom_cams) for c in cam_names]
     if not cameras:
         image_panel = rrb.Spacer()
@@ -288,31 +427,33 @@ def uwb_blueprint(
         cam_names,
         fixed_cams,
     )
-    ranges = rrb.Grid(
-        *[
-            rrb.TimeSeriesView(
-                origin="/",
-                contents=[f"/{paths.uwb_ranges(a)}/**"],
-                name=f"range to anchor {a} [m]",
-                plot_legend=rrb.PlotLegend(visible=True),
-            )
-            for a in anchor_ids
-        ],
-        grid_columns=2,
+    range_views = [
+        rrb.TimeSeriesView(
+            origin="/",
+            contents=[f"/{paths.uwb_ranges(a)}/**"],
+            name=f"anchor {a}",
+            plot_legend=_NO_LEGEND,
+            axis_y=range_axes[a].scalar_axis() if a in range_axes else None,
+        )
+        for a in anchor_ids
+    ]
+    # One colour key for the four plots (a legend in each would cover half of it).
+    ranges = rrb.Vertical(
+        rrb.TextDocumentView(origin=paths.UWB_RANGE_KEY, name="UWB range [m] to each anchor vs t [s]"),
+        rrb.Grid(*range_views, grid_columns=2),
+        row_shares=[0.16, 0.84],
     )
-    camera_error = rrb.TimeSeriesView(
-        origin="/",
-        contents=[f"/{paths.ERROR_POSITION_MM}", f"/{paths.ERROR_REJECTED}"],
-        name="camera fix error [mm] (gaps: no camera solved)",
-        plot_legend=rrb.PlotLegend(visible=True),
+    camera_error = series_view(
+        paths.ERROR_POSITION_MM, "camera fix error [mm]", camera_axis, rejected=camera_rejected
     )
-    clamp = "" if error_range_mm is None else f" (axis ≤ {error_range_mm:.0f})"
     fused_error = rrb.TimeSeriesView(
         origin="/",
         contents=[f"/{paths.ERROR_UWB_POSITION_MM}", f"/{paths.ERROR_FUSED_POSITION_MM}"],
-        name="UWB, fused error [mm]" + clamp,
-        plot_legend=rrb.PlotLegend(visible=True),
-        axis_y=None if error_range_mm is None else rrb.ScalarAxis(range=(0.0, error_range_mm)),
+        name=series_title(
+            "UWB (blue), fused (yellow) error [mm]", note="" if error_axis is None else error_axis.note
+        ),
+        plot_legend=_NO_LEGEND,
+        axis_y=None if error_axis is None else error_axis.scalar_axis(),
     )
     states = rrb.StateTimelineView(
         origin="/",

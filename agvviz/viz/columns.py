@@ -8,6 +8,8 @@ would carry (same entities, components, values and timelines; only the chunking 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pyarrow as pa
 import rerun as rr
@@ -33,13 +35,24 @@ class Columns:
         self._transforms: dict[str, list[tuple[Stamp, np.ndarray]]] = {}
         #: (entity, kind) -> rows of one per-frame archetype (see :data:`_ROW_COLUMNS`).
         self._rows: dict[tuple[str, str], list[tuple[Stamp, tuple]]] = {}
+        #: entity -> (lowest, highest) finite per-frame scalar of the whole run (kept across
+        #: flushes): the plots' axes are set from them so no value is cut off.
+        self.extents: dict[str, tuple[float, float]] = {}
 
     def row(self, entity: str, kind: str, stamp: Stamp, *payload) -> None:
         """One frame's value of ``entity`` as an archetype of ``kind`` (a key of _ROW_COLUMNS)."""
         self._rows.setdefault((entity, kind), []).append((stamp, payload))
 
     def scalar(self, entity: str, stamp: Stamp, value: float) -> None:
-        self._scalars.setdefault(entity, []).append((stamp, float(value)))
+        value = float(value)
+        self._scalars.setdefault(entity, []).append((stamp, value))
+        if math.isfinite(value):
+            low, high = self.extents.get(entity, (value, value))
+            self.extents[entity] = (min(low, value), max(high, value))
+
+    def extend(self, entity: str, stamps: list[Stamp], value: float) -> None:
+        """The same ``value`` at each of ``stamps`` (markers drawn at one height)."""
+        self._scalars.setdefault(entity, []).extend((stamp, float(value)) for stamp in stamps)
 
     def gap(self, entity: str, stamp: Stamp) -> None:
         self._gaps.setdefault(entity, []).append(stamp)

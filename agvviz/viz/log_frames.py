@@ -22,7 +22,7 @@ from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
 from agvviz.evaluation.suspect_report import cause_words, suspect_line
 from agvviz.model.frames import FrameResult
-from agvviz.viz import paths
+from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.style import (
     COLOR_CAMERA,
@@ -32,7 +32,6 @@ from agvviz.viz.style import (
     COLOR_MARKER_FILL,
     COLOR_OBSERVED,
     COLOR_PITCH,
-    COLOR_REJECTED,
     COLOR_REPROJECTED,
     COLOR_ROLL,
     COLOR_STALE,
@@ -121,7 +120,6 @@ class Track:
         return self._xyz[: self._n]
 
 
-
 class FrameLogger:
     """Logs the static world and cameras and, per frame, images, corners, poses, trajectories and
     errors into ``rec``; per-frame values into ``columns``. ``max_reproj_px``: the run's setting,
@@ -144,6 +142,9 @@ class FrameLogger:
         self._zoom_cams: set[str] = set()
         #: Frames rejected so far.
         self.rejected_frames = 0
+        #: (stamp, reason) of every rejected frame: their markers are logged at the end
+        #: (:meth:`log_rejection_markers`), where the plots' axes are known.
+        self.rejections: list[tuple[Stamp, str]] = []
         #: Suspect frames so far (solved, but failed a check against what else the log knows).
         self.suspect_frames = 0
         #: The first estimated pose T_world_agv (the 3D view starts there); None: none yet.
@@ -175,16 +176,6 @@ class FrameLogger:
                 ),
                 static=True,
             )
-        rec.log(
-            paths.ERROR_REJECTED,
-            rr.SeriesPoints(
-                names="rejected frame (reasons: rejections log)",
-                colors=COLOR_REJECTED,
-                markers=rr.components.MarkerShape.Cross,
-                marker_sizes=4.0,
-            ),
-            static=True,
-        )
         for entity in paths.SUSPECT_MARKED:
             rec.log(
                 paths.error_suspect(entity),
@@ -447,12 +438,14 @@ class FrameLogger:
             (paths.ERROR_ROLL_DEG, frame.roll_error_deg),
             (paths.ERROR_REPROJ_RMS_PX, frame.reproj_rms_px),
         ):
-            if value is not None:
+            if not frame.solved:
+                # A rejected frame has no value (not even a reprojection RMS it was rejected
+                # for): the line breaks and a marker stands in (log_rejection_markers).
+                columns.gap(entity, stamp)
+            elif value is not None:
                 columns.scalar(entity, stamp, value)
                 if suspect is not None:  # a marker on the line, at this frame's value
                     columns.scalar(paths.error_suspect(entity), stamp, value)
-            elif not frame.solved:
-                columns.gap(entity, stamp)  # the line breaks at a rejected frame
         if suspect is not None:
             self.suspect_frames += 1
             self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(suspect_line(suspect), level=rr.TextLogLevel.WARN))
@@ -460,7 +453,7 @@ class FrameLogger:
             columns.scalar(paths.ERROR_REPROJ_THRESHOLD_PX, stamp, self.max_reproj_px)
         if not frame.solved:
             self.rejected_frames += 1
-            columns.scalar(paths.ERROR_REJECTED, stamp, 0.0)
+            self.rejections.append((stamp, frame.rejected))
             detail = f" — {frame.reject_detail}" if frame.reject_detail else ""
             self._rec.log(
                 paths.EVENTS_REJECTIONS,
@@ -469,6 +462,14 @@ class FrameLogger:
                     level=rr.TextLogLevel.WARN,
                 ),
             )
+
+    def rejection_reasons(self) -> list[str]:
+        """The reasons frames were rejected for, in order of first occurrence."""
+        return list(dict.fromkeys(reason for _, reason in self.rejections))
+
+    def log_rejection_markers(self, marker_y: dict[str, float]) -> None:
+        """The crosses of the rejected frames on every plot (:func:`log_rejections.log_rejection_markers`)."""
+        log_rejections.log_rejection_markers(self._rec, self._columns, self.rejections, marker_y, self.max_reproj_px)
 
 
 def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:

@@ -62,6 +62,8 @@ class LmLogger:
         self._columns.row(paths.LM_THIS_FRAME, "markdown", stamp, _lm_text(frame))
         if not iterations:
             self._log_points(frame, stamp, fixed, ())
+            if not frame.solved and self.iterated:
+                self._columns.gap(paths.LM_ITERATIONS, stamp)  # the steps line breaks here
             if self._bars_drawn:
                 for entity in (
                     paths.LM_LOG10_COST_PER_ITERATION,
@@ -90,7 +92,10 @@ class LmLogger:
             logged = logged[1:] if entity == paths.LM_LOG10_STEP_NORM_PER_ITERATION else logged
             self._columns.row(entity, "bar_chart", stamp, np.where(np.isfinite(logged), logged, np.nan))
         columns = self._columns
-        columns.scalar(paths.LM_ITERATIONS, stamp, len(iterations) - 1)
+        if frame.solved:  # a rejected frame has no value in the per-frame series (the text says its steps)
+            columns.scalar(paths.LM_ITERATIONS, stamp, len(iterations) - 1)
+        else:
+            columns.gap(paths.LM_ITERATIONS, stamp)
         for entity, values in (
             (paths.LM_COST, cost),
             (paths.LM_LOG10_COST, np.where(np.isfinite(log10_cost), log10_cost, np.nan)),

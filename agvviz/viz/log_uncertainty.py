@@ -91,17 +91,17 @@ class UncertaintyLogger:
             (paths.ERROR_CRLB_POSITION_M, frame.crlb_position_m),
             (paths.ERROR_POSITION_SIGMA_M, frame.position_sigma_m),
         ):
-            if value is not None and math.isfinite(value):
-                columns.scalar(entity, stamp, value)
-            elif not frame.solved:
+            if not frame.solved:  # a rejected frame has no value: the line breaks
                 columns.gap(entity, stamp)
-        if frame.nees is not None and frame.nees_dof in CHI2_99:
+            elif value is not None and math.isfinite(value):
+                columns.scalar(entity, stamp, value)
+        if frame.solved and frame.nees is not None and frame.nees_dof in CHI2_99:
             columns.scalar(paths.ERROR_NEES_EXPECTED, stamp, float(frame.nees_dof))
             columns.scalar(paths.ERROR_NEES_BOUND_99, stamp, CHI2_99[frame.nees_dof])
-        if frame.ambiguity_ratio is not None:
-            columns.scalar(paths.SOLVER_AMBIGUITY_RATIO, stamp, min(float(frame.ambiguity_ratio), AMBIGUITY_RATIO_CAP))
-        elif not frame.solved:
+        if not frame.solved:  # the ambiguity of a pose that was rejected is no value of the run
             columns.gap(paths.SOLVER_AMBIGUITY_RATIO, stamp)
+        elif frame.ambiguity_ratio is not None:
+            columns.scalar(paths.SOLVER_AMBIGUITY_RATIO, stamp, min(float(frame.ambiguity_ratio), AMBIGUITY_RATIO_CAP))
         if frame.flipped and frame.solved:
             rec.log(
                 paths.EVENTS_FLIPS,

@@ -48,10 +48,8 @@ SOURCE_STATES = {
 RANGE_COLORS = {"measured": COLOR_UWB, "predicted_truth": COLOR_TRUTH, "predicted_estimate": COLOR_FUSED}
 RANGE_NAMES = {"measured": "measured", "predicted_truth": "expected from truth", "predicted_estimate": "expected from fused"}
 POSITION_MARKER_RADIUS = rr.Radius.ui_points(6.0)
-#: The UWB/fused error plot's y axis ends at this quantile of their errors × ERROR_AXIS_MARGIN,
-#: so a few metre-size UWB outliers (NLOS) do not flatten everything else.
-ERROR_AXIS_QUANTILE = 0.95
-ERROR_AXIS_MARGIN = 1.5
+#: The colour key above the range plots (one for the four: a legend in each would cover the data).
+RANGE_KEY = "blue: measured · green: expected from truth · yellow: expected from fused · red ×: gated"
 
 
 class FusionLogger:
@@ -65,7 +63,10 @@ class FusionLogger:
         self._frame_index = 0
         self._camera_used: str | None = None
         self._source: str | None = None
-        self._errors_mm: list[float] = []
+        #: Every UWB fix and fused error (mm): the error plot's axis is set from them.
+        self.errors_mm: list[float] = []
+        #: anchor -> (shortest, longest) range of any of its series (m): each range plot's axis.
+        self.range_extents: dict[str, tuple[float, float]] = {}
         self._uwb_xyz: list[np.ndarray] = []
         self._fused_xyz: list[np.ndarray] = []
         self._cam_names: list[str] = []
@@ -76,12 +77,9 @@ class FusionLogger:
             self.recording_start_ns = int(log_time_ns)
         set_stamp(self._rec, self._frame_index, log_time_ns, self.recording_start_ns)
 
-    def error_range_mm(self) -> float | None:
-        """Top of the UWB/fused error plot's y axis (see ERROR_AXIS_QUANTILE); None before any
-        error was logged."""
-        if not self._errors_mm:
-            return None
-        return float(ERROR_AXIS_MARGIN * np.quantile(self._errors_mm, ERROR_AXIS_QUANTILE))
+    def _range_seen(self, anchor: str, range_m: float) -> None:
+        low, high = self.range_extents.get(anchor, (range_m, range_m))
+        self.range_extents[anchor] = (min(low, range_m), max(high, range_m))
 
     # -- static ---------------------------------------------------------------------------------
     def log_anchors(self, anchors_m: dict[str, np.ndarray], tag_z_m: float, cam_names: list[str]) -> None:
@@ -89,6 +87,7 @@ class FusionLogger:
         rec = self._rec
         self.anchor_ids = sorted(anchors_m)
         self._cam_names = sorted(cam_names)
+        rec.log(paths.UWB_RANGE_KEY, rr.TextDocument(RANGE_KEY, media_type=rr.MediaType.MARKDOWN), static=True)
         rec.log(
             paths.UWB_ANCHORS,
             rr.Points3D(
@@ -162,6 +161,7 @@ class FusionLogger:
             ):
                 if value is not None:
                     self._rec.log(paths.uwb_range(item.anchor_id, kind), rr.Scalars(float(value)))
+                    self._range_seen(item.anchor_id, float(value))
             for anchor, passed in item.step.range_gate.items():
                 if not passed:
                     self._rec.log(paths.uwb_range(anchor, "gated"), rr.Scalars(float(item.range_m)))
@@ -185,7 +185,7 @@ class FusionLogger:
             rec.log(paths.UWB_GDOP, rr.Scalars(float(fix.gdop)))
         if item.error_m is not None:
             rec.log(paths.ERROR_UWB_POSITION_MM, rr.Scalars(1000.0 * item.error_m))
-            self._errors_mm.append(1000.0 * item.error_m)
+            self.errors_mm.append(1000.0 * item.error_m)
         removed = []
         for anchor, gated, residual, range_m in zip(fix.anchor_ids, fix.gated, fix.residuals_m, fix.ranges_m):
             rec.log(paths.uwb_gate(anchor), rr.Scalars(0.0 if gated else 1.0))
@@ -214,4 +214,4 @@ class FusionLogger:
             self._source = step.fused.source
         if item.fused_error_m is not None:
             rec.log(paths.ERROR_FUSED_POSITION_MM, rr.Scalars(1000.0 * item.fused_error_m))
-            self._errors_mm.append(1000.0 * item.fused_error_m)
+            self.errors_mm.append(1000.0 * item.fused_error_m)

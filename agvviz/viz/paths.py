@@ -35,7 +35,10 @@ the camera is).
     errors/position_mm|heading_deg|pitch_deg|roll_deg|reproj_rms_px   Scalars per frame (when known;
                                             a Clear on rejected frames breaks the line)
     errors/reproj_threshold_px              Scalars per frame: the max_reproj_px setting
-    errors/rejected                         Scalars 0.0 on rejected frames (a marker in plots)
+    errors/rejected/<series>/<reason>       Scalars on rejected frames only, one entity per plotted
+                                            series and reason: a red cross at the limit the frame broke
+                                            (max_reproj_px on the reprojection plot) or at the top of
+                                            the plot's axis; its series name says why (hover)
     errors/suspect/position_mm|heading_deg|pitch_deg|roll_deg|reproj_rms_px   Scalars on suspect
                                             frames only: the frame's value (a marker on each plot)
     events/rejections                       TextLog (WARN) with reason and detail
@@ -89,6 +92,7 @@ ERROR_HEADING_DEG = "errors/heading_deg"
 ERROR_PITCH_DEG = "errors/pitch_deg"
 ERROR_ROLL_DEG = "errors/roll_deg"
 ERROR_REPROJ_RMS_PX = "errors/reproj_rms_px"
+#: Parent of the rejected-frame markers: ``errors/rejected/<series>/<reason>`` (:func:`error_rejected`).
 ERROR_REJECTED = "errors/rejected"
 ERROR_REPROJ_THRESHOLD_PX = "errors/reproj_threshold_px"  # the max_reproj_px setting per frame
 MARKERS_SEEN = "world/markers_seen"  # LineStrips3D: outlines and ids of this frame's codes
@@ -107,6 +111,17 @@ SUSPECT_MARKED = (ERROR_POSITION_MM, ERROR_HEADING_DEG, ERROR_PITCH_DEG, ERROR_R
 def error_suspect(error_entity: str) -> str:
     """``errors/suspect/<name>``: the suspect-frame markers of the error series ``errors/<name>``."""
     return f"{ERROR_SUSPECT}/{error_entity.rsplit('/', 1)[-1]}"
+
+
+def error_rejected(series_entity: str, reason: str) -> str:
+    """``errors/rejected/<series>/<reason>``: the markers of the frames rejected for ``reason`` on the
+    plot of ``series_entity`` (a rejected frame has no value in any series: the marker stands in)."""
+    return f"{ERROR_REJECTED}/{series_entity.rsplit('/', 1)[-1]}/{reason}"
+
+
+def error_rejected_all(series_entity: str) -> str:
+    """Query of every rejection marker on the plot of ``series_entity`` (all reasons)."""
+    return f"{ERROR_REJECTED}/{series_entity.rsplit('/', 1)[-1]}/**"
 
 
 RUN_MANIFEST = "run/manifest"
@@ -196,6 +211,7 @@ UWB_RANGE_KINDS = ("measured", "predicted_truth", "predicted_estimate", "gated")
 
 
 UWB_RANGE = "uwb/range"
+UWB_RANGE_KEY = "uwb/range_key"  # TextDocument (static): the colour key of the range plots
 UWB_GATE = "uwb/gate"
 
 
@@ -231,6 +247,15 @@ ERROR_CRLB_POSITION_M = "errors/crlb_position_m"  # Scalars: CRLB sqrt(trace) at
 ERROR_POSITION_SIGMA_M = "errors/position_sigma_m"  # Scalars: sqrt(trace) of the covariance
 SOLVER_AMBIGUITY_RATIO = "solver/ambiguity_ratio"  # Scalars: IPPE rms(other)/rms(best), capped
 EVENTS_FLIPS = "events/flips"  # TextLog (WARN): frames whose pose flipped branch
+
+#: The per-frame value series of a run's time-series plots: a rejected frame has no value in any of
+#: them (the line breaks) and each of their plots marks it (:func:`error_rejected`).
+REJECTION_MARKED = (
+    ERROR_POSITION_MM, ERROR_HEADING_DEG, ERROR_PITCH_DEG, ERROR_ROLL_DEG, ERROR_REPROJ_RMS_PX,
+    ERROR_POSITION_OVER_CRLB, ERROR_NEES, SOLVER_AMBIGUITY_RATIO, LM_ITERATIONS,
+)
+#: Reference lines drawn on every frame (a setting or a bound, not a frame's value).
+LIMIT_LINES = (ERROR_REPROJ_THRESHOLD_PX,)
 
 
 # -- agvviz audit (agvviz/viz/log_audit.py) ---------------------------------------------------------

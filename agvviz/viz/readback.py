@@ -268,3 +268,27 @@ def frame_times(src: str | os.PathLike | RrdContents, entity: str, component: st
         for row in _rows(src, entity, component)
         if row.get(paths.TIMELINE_FRAME) is not None and row.get(paths.TIMELINE_TIME) is not None
     }
+
+
+def scalar_entities(src: str | os.PathLike | RrdContents) -> dict[str, set[str]]:
+    """Every entity holding Scalars → the timelines its Scalars rows carry (e.g. ``frame``,
+    ``time``, ``elapsed``; ``lm_iter`` too for the solver's per-iteration columns)."""
+    contents = _contents(src)
+    found = {}
+    for entity in sorted(contents.entity_paths):
+        rows = _rows(contents, entity, "Scalars:scalars", required=False)
+        if rows:
+            found[entity] = {key for row in rows for key, value in row.items()
+                             if ":" not in key and key != _ROW_ID and value is not None}
+    return found
+
+
+def series_name(src: str | os.PathLike | RrdContents, entity: str) -> str:
+    """The name a plot gives the series of ``entity`` (its static SeriesPoints or SeriesLines
+    name): what its legend and a hover over it say."""
+    contents = _contents(src)
+    for component in ("SeriesPoints:names", "SeriesLines:names"):
+        rows = _rows(contents, entity, component, required=False)
+        if rows:
+            return rows[-1][component][0]
+    raise RrdReadError(f"{contents.path}: entity {entity!r} has no series name")

@@ -38,7 +38,7 @@ from agvviz.evaluation.summary_table import markdown_table, summary_rows
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
-from agvviz.viz.blueprints import default_blueprint
+from agvviz.viz.blueprints import PlotAxis, default_blueprint, run_plot_axes
 from agvviz.viz.columns import Columns, Stamp
 from agvviz.viz.log_frames import FrameLogger, RunLogError, check_frame
 from agvviz.viz.log_lm import LmLogger
@@ -214,10 +214,20 @@ class RunLogger:
         self._rec.log(paths.RUN_SUMMARY, _markdown(_summary_markdown(summary)), static=True)
 
     # -- output ----------------------------------------------------------------------------
+    def plot_axes(self) -> dict[str, PlotAxis]:
+        """The y axis of each per-frame series' plot from the frames logged so far
+        (:func:`agvviz.viz.blueprints.run_plot_axes`): every value inside, the rejected-frame
+        crosses above them."""
+        return run_plot_axes(
+            self._columns.extents, max_reproj_px=self.max_reproj_px, rejection_reasons=self.frames.rejection_reasons()
+        )
+
     def close(self) -> None:
-        """Finish the file: send the buffered columns, ship the default blueprint, write the
-        footer, move it into place."""
+        """Finish the file: log the rejected-frame crosses where the plots' axes put them, send
+        the buffered columns, ship the default blueprint, write the footer, move it into place."""
         self._check_open()
+        axes = self.plot_axes()
+        self.frames.log_rejection_markers({entity: axis.marker_y for entity, axis in axes.items()})
         self._flush()
         self._saved = True
         blueprint = self.blueprint
@@ -235,6 +245,8 @@ class RunLogger:
                 start_m=None if first_pose is None else tuple(first_pose[:3, 3]),
                 budget_sources=self._budget_sources,
                 has_suspects=self.frames.suspect_frames > 0,
+                axes=axes,
+                max_reproj_px=self.max_reproj_px,
             )
         self._file.commit(blueprint)
 

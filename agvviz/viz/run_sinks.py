@@ -11,7 +11,10 @@ from agvviz.replay.correct import CorrectionSettings
 from agvviz.replay.graph import STUDY_CNOEM, STUDY_MONTE_CARLO
 from agvviz.replay.sinks import NullSink
 from agvviz.settings import RunSettings
-from agvviz.viz.blueprints import cnoem_trials_blueprint, correction_blueprint, trials_blueprint, uwb_blueprint
+from agvviz.viz import paths
+from agvviz.viz.blueprints import (
+    clipped_axis, cnoem_trials_blueprint, correction_blueprint, plot_axis, trials_blueprint, uwb_blueprint,
+)
 from agvviz.viz.log_correction import CorrectionLogger
 from agvviz.viz.log_studies import log_cnoem_trials, log_trials
 from agvviz.viz.log_uwb import FusionLogger
@@ -88,9 +91,14 @@ class RrdSink(NullSink):
         """The layout that fits the run's kind (shipped when the logger closes)."""
         if outcome.has_uwb:
             fixed = {name for name, cam in self.cameras.items() if cam.T_agv_cam is None}
+            fusion = self.fusion_logger
             self.logger.blueprint = uwb_blueprint(
-                self.logger.cam_names, fixed, self.fusion_logger.anchor_ids,
-                zoom_cams=self.logger.zoom_cams, error_range_mm=self.fusion_logger.error_range_mm(),
+                self.logger.cam_names, fixed, fusion.anchor_ids,
+                zoom_cams=self.logger.zoom_cams,
+                camera_axis=self.logger.plot_axes().get(paths.ERROR_POSITION_MM),
+                camera_rejected=self.logger.frames.rejected_frames > 0,
+                error_axis=clipped_axis(fusion.errors_mm, "mm"),
+                range_axes={a: plot_axis([extent], include_zero=False) for a, extent in fusion.range_extents.items()},
             )
         if self.correction_logger is not None:
             self.logger.blueprint = correction_blueprint(sorted(self.cameras))
