@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -60,6 +61,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _die_with_parent() -> None:
+    """In the viewer's process, before exec: on Linux, ask for SIGKILL when this script dies (the viewer holds nothing to save), so a
+    killed script (a timeout, Ctrl-C in a pipeline) leaves no headless viewer running."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        PR_SET_PDEATHSIG = 1
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
 class HeadlessViewer:
     """A headless Rerun viewer process and a client driving it (a context manager)."""
 
@@ -68,9 +79,13 @@ class HeadlessViewer:
         self.process = subprocess.Popen(
             [rerun_exe, "--headless", "--bind", "127.0.0.1", "--port", str(self.port),
              "--window-size", window_size, "--hide-welcome-screen"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, preexec_fn=_die_with_parent,
         )
-        self.client = self._connect()
+        try:
+            self.client = self._connect()
+        except BaseException:
+            self.__exit__()
+            raise
 
     def _connect(self, timeout_s: float = 30.0):
         from rerun.experimental import ViewerClient
