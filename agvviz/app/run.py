@@ -128,6 +128,7 @@ def run_recording(
     jobs: int | None = None,
     cache_dir: Path | None | bool = None,
     error_budget=None,
+    images: bool = True,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -147,6 +148,10 @@ def run_recording(
     under these settings, from :func:`agvviz.app.budget.error_budget`) goes into
     the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
     in the ``.rrd`` (:mod:`agvviz.viz.log_budget`), with a layout that shows them.
+
+    ``images=False`` (``run --images none``) leaves the camera images out of the ``.rrd``: the
+    layers only, for long logs; the manifest says ``"images": "none"`` and ``agvviz view``
+    adds the frames from the recording (:mod:`agvviz.viz.frames`).
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":
@@ -214,6 +219,8 @@ def run_recording(
         "time_source": prepared.time_source,
         "side_files": (side or SideInputs()).describe(),
     }
+    if not images:  # only then: a default run's manifest (and file) is as before
+        manifest["images"] = "none"
 
     if study is not None:  # a Monte-Carlo or CNOEM grid study: its study stage
         return _run_study(prepared, composition, settings, out_path, inputs, manifest, recording_id, progress, on_total)
@@ -222,7 +229,7 @@ def run_recording(
     detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
     with RunLogger(
         out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs,
-        recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px,
+        recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px, images=images,
     ) as logger:
         logger.log_manifest(manifest)
         if replay.ctx.marker_map is not None:

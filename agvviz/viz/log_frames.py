@@ -122,6 +122,20 @@ class Track:
 
 
 
+def log_encoded_image(rec: rr.RecordingStream, entity: str, image_format: str, image_bytes: bytes) -> None:
+    """Log a recorded image's bytes as they are (an EncodedImage) at ``entity`` on the time set:
+    the one way a camera frame is logged (a run, :mod:`agvviz.viz.frames`)."""
+    # What rr.EncodedImage(contents=..., media_type=...) logs, without building the
+    # archetype: the blob wraps the bytes without a copy, the media type is built once.
+    data = pa.py_buffer(image_bytes)
+    blob = pa.ListArray.from_arrays(
+        pa.array([0, data.size], type=pa.int32()),
+        pa.Array.from_buffers(pa.uint8(), data.size, [None, data]),
+        type=_BLOB_TYPE,
+    )
+    rec.log(entity, [rr.DescribedComponentBatch(ArrowBatch(blob), _BLOB_DESCRIPTOR), _media_type_batch(MEDIA_TYPES[image_format])])
+
+
 class FrameLogger:
     """Logs the static world and cameras and, per frame, images, corners, poses, trajectories and
     errors into ``rec``; per-frame values into ``columns``. ``max_reproj_px``: the run's setting,
@@ -131,6 +145,9 @@ class FrameLogger:
         self._rec = rec
         self._columns = columns
         self.max_reproj_px = max_reproj_px
+        #: False: the camera images are not logged (``run --images none``, a sweep's layers);
+        #: everything drawn over them still is.
+        self.images = True
         self._cam_names: list[str] = []
         self._image_width_px: dict[str, int] = {}
         #: Cameras fixed in the world (paper 003's wall cameras).
@@ -307,19 +324,11 @@ class FrameLogger:
 
     # -- per frame -------------------------------------------------------------------------
     def log_image(self, frame: FrameResult) -> None:
-        if not frame.image_bytes:
-            return  # corner-only recordings carry no image
-        # What rr.EncodedImage(contents=..., media_type=...) logs, without building the
-        # archetype: the blob wraps the bytes without a copy, the media type is built once.
-        data = pa.py_buffer(frame.image_bytes)
-        blob = pa.ListArray.from_arrays(
-            pa.array([0, data.size], type=pa.int32()),
-            pa.Array.from_buffers(pa.uint8(), data.size, [None, data]),
-            type=_BLOB_TYPE,
-        )
-        self._rec.log(
-            paths.image(frame.cam_name, frame.cam_name in self.fixed_cams),
-            [rr.DescribedComponentBatch(ArrowBatch(blob), _BLOB_DESCRIPTOR), _media_type_batch(MEDIA_TYPES[frame.image_format])],
+        if not frame.image_bytes or not self.images:
+            return  # corner-only recordings carry no image; a layers-only run logs none
+        log_encoded_image(
+            self._rec, paths.image(frame.cam_name, frame.cam_name in self.fixed_cams), frame.image_format,
+            frame.image_bytes,
         )
 
     def log_corners(self, frame: FrameResult, stamp: Stamp) -> None:
