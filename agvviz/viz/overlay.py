@@ -278,6 +278,7 @@ def write_overlay(
     layers: dict[str, str | os.PathLike] | None = None,
     index: list[dict] | None = None,
     frames: tuple[Iterable[RecordedImage], dict[str, CameraClock]] | None = None,
+    frames_from: str | os.PathLike | None = None,
 ) -> Path:
     """Write the overlay ``.rrd`` atomically and return its path.
 
@@ -316,6 +317,9 @@ def write_overlay(
         The recording's camera images (:data:`agvviz.viz.frames.RecordedImage`) and each
         camera's clock in the first run: logged under ``image/<cam>`` for ``cam_names`` in
         place of copying them from ``source``.
+    frames_from : path, optional
+        A sweep ``.rrd`` whose frames (``image/<cam>``) are copied in place of ``source``'s
+        (a diff of two settings of one sweep: their layers hold no images).
     """
     _check(runs)
     deltas = deltas or {}
@@ -333,7 +337,13 @@ def write_overlay(
         rec = rrd.rec
         _log_static(rec, runs, truth, report_markdown, list(deltas))
         if store is not None:
-            _copy_from_source(rec, store, cam_names, fixed_cams, images=frames is None)
+            _copy_from_source(rec, store, cam_names, fixed_cams, images=frames is None and frames_from is None)
+            rrd.check()
+        if frames_from is not None:
+            frames_store = read_rrd(frames_from).store
+            for cam in cam_names:
+                rec.send_chunks(frames_store.stream().filter(content=f"/{paths.overlay_image(cam)}", is_static=False,
+                                                             components=["EncodedImage:blob", "EncodedImage:media_type"]))
             rrd.check()
         if frames is not None and cam_names:
             images, clocks = frames
