@@ -314,3 +314,48 @@ def write_junit(path: Path, command: str, suite: str, verdicts: list, *, propert
     return outputs.atomic_write_text(
         path, junit_xml(command, suite, verdicts, properties=properties, details=details), inputs=inputs
     )
+
+
+# -- the frames of a layers-only run (run --images none), for agvviz view ------------------------
+def layers_only_frames(run_file: Path, recording: Path | None, out_dir: Path) -> Path | None:
+    """For a run written with ``--images none``: its recording's camera frames as an ``.rrd`` in
+    ``out_dir`` under the run's recording id, so a viewer given both files shows the complete
+    run (:mod:`agvviz.viz.frames`); None for a run that holds its images.
+
+    ``recording`` defaults to the manifest's file name looked up beside the run, in the current
+    folder and in ``recordings/``. :class:`~agvviz.errors.InputError` (one line) when it is not
+    found or holds none of the run's frames (another recording)."""
+    from agvviz.app import run_series
+    from agvviz.replay.run import recording_images
+    from agvviz.viz import paths
+    from agvviz.viz.frames import write_frames_rrd
+    from agvviz.viz.readback import document_json, read_rrd, recording_id_of
+
+    contents = read_rrd(run_file)
+    if paths.RUN_MANIFEST not in contents.entity_paths:
+        return None
+    manifest = document_json(contents, paths.RUN_MANIFEST)
+    if manifest.get("images") != "none":
+        return None
+    name = str(manifest.get("recording", ""))
+    if recording is None:
+        candidates = [Path(run_file).parent / name, Path.cwd() / name, Path("recordings") / name]
+        recording = next((c for c in candidates if name and c.exists()), None)
+        if recording is None:
+            raise InputError(f"{run_file} holds the layers only (run --images none); its recording {name!r} is not "
+                             f"beside it, here or in recordings/: give it with --recording")
+    recording = require_recording_path(recording)
+    fixed = run_series.fixed_cameras_of(contents)
+    path, logged, _ = write_frames_rrd(
+        Path(out_dir) / f"{Path(run_file).stem}.frames.rrd",
+        recording_id=recording_id_of(run_file), recording_name=str(manifest.get("recording_name", name)),
+        images=recording_images(recording, manifest.get("roles", {}), manifest.get("time_source", "log")),
+        clocks=run_series.image_clocks(contents),
+        entity_of={cam: paths.image(cam, cam in fixed) for cam in run_series.cameras_of(contents)},
+        inputs=(run_file, recording),
+    )
+    if logged == 0:
+        path.unlink(missing_ok=True)
+        raise InputError(f"{recording} holds none of the frames of {run_file}: it is not the recording the run "
+                         f"was made from ({name})")
+    return path

@@ -355,3 +355,16 @@ def frame_stamps(src: str | os.PathLike | RrdContents, entity: str, component: s
         for row in _rows(src, entity, component)
         if row.get(paths.TIMELINE_FRAME) is not None and row.get(paths.TIMELINE_TIME) is not None
     ]
+
+
+def recording_id_of(path: str | os.PathLike) -> str:
+    """The Rerun recording id of the ``.rrd`` at ``path`` (a frames file written for it shares it)."""
+    try:
+        recordings = RrdReader(Path(path)).recordings()
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001
+        raise RrdReadError(f"cannot read {path}: {_one_line(exc)}; {_REWRITE}") from exc
+    if not recordings:
+        raise RrdReadError(f"{path} holds no recording; {_REWRITE}")
+    return recordings[0].recording_id
