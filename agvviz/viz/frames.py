@@ -5,7 +5,7 @@ run (``run --images none``) that ``agvviz view`` opens beside it, and the frames
 The run's own clock decides where each image goes: every camera logs its detected corners on
 every frame (:func:`agvviz.viz.readback.frame_stamps`), so ``(camera, time)`` → ``(frame,
 elapsed)`` is read from the run, never re-derived; the images are the recording's bytes, logged
-by :func:`agvviz.viz.log_frames.log_encoded_image` as a run logs them.
+by :func:`agvviz.viz.encoded_image.log_encoded_image` as a run logs them.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 import rerun as rr
 
 from agvviz.viz import paths
-from agvviz.viz.log_frames import log_encoded_image
+from agvviz.viz.encoded_image import log_encoded_image
 from agvviz.viz.rrd_file import AtomicRrd
 
 #: One camera image of a recording: (camera, time on the replay clock [ns], image format, bytes).

@@ -14,7 +14,6 @@ import math
 
 import cv2
 import numpy as np
-import pyarrow as pa
 import rerun as rr
 
 from agvviz.errors import RunError
@@ -23,7 +22,8 @@ from agvviz.markers.charuco import is_chessboard_id
 from agvviz.evaluation.suspect_report import cause_words, suspect_line
 from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
-from agvviz.viz.columns import ArrowBatch, Columns, Stamp
+from agvviz.viz.columns import Columns, Stamp
+from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -42,7 +42,6 @@ from agvviz.viz.style import (
 )
 
 #: Media type of each ``FrameResult.image_format``.
-MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 #: Nominal AGV body drawn around the body frame (half sizes x, y, z in m; centre on the
 #: floor-origin's vertical). A visual marker only: the recording does not carry a body size.
 AGV_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
@@ -86,21 +85,6 @@ class RunLogError(RunError):
     """Input the run logger cannot log (wrong shape, unknown image format, used after save)."""
 
 
-_BLOB_TYPE = rr.components.BlobBatch._ARROW_DATATYPE
-_BLOB_DESCRIPTOR = rr.EncodedImage.descriptor_blob()
-_MEDIA_TYPE_BATCHES: dict[str, rr.DescribedComponentBatch] = {}
-
-
-def _media_type_batch(media_type: str) -> rr.DescribedComponentBatch:
-    """``EncodedImage:media_type`` = ``media_type`` (built once per media type)."""
-    batch = _MEDIA_TYPE_BATCHES.get(media_type)
-    if batch is None:
-        batch = _MEDIA_TYPE_BATCHES[media_type] = rr.DescribedComponentBatch(
-            rr.components.MediaTypeBatch([media_type]), rr.EncodedImage.descriptor_media_type()
-        )
-    return batch
-
-
 class Track:
     """Positions (m) appended one per frame into a growing array (no list → array per frame)."""
 
@@ -120,20 +104,6 @@ class Track:
     def array(self) -> np.ndarray:
         return self._xyz[: self._n]
 
-
-
-def log_encoded_image(rec: rr.RecordingStream, entity: str, image_format: str, image_bytes: bytes) -> None:
-    """Log a recorded image's bytes as they are (an EncodedImage) at ``entity`` on the time set:
-    the one way a camera frame is logged (a run, :mod:`agvviz.viz.frames`)."""
-    # What rr.EncodedImage(contents=..., media_type=...) logs, without building the
-    # archetype: the blob wraps the bytes without a copy, the media type is built once.
-    data = pa.py_buffer(image_bytes)
-    blob = pa.ListArray.from_arrays(
-        pa.array([0, data.size], type=pa.int32()),
-        pa.Array.from_buffers(pa.uint8(), data.size, [None, data]),
-        type=_BLOB_TYPE,
-    )
-    rec.log(entity, [rr.DescribedComponentBatch(ArrowBatch(blob), _BLOB_DESCRIPTOR), _media_type_batch(MEDIA_TYPES[image_format])])
 
 
 class FrameLogger:
