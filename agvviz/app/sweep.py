@@ -19,7 +19,6 @@ import io
 import itertools
 import os
 import re
-import shutil
 import threading
 import time
 from dataclasses import dataclass, field
@@ -43,9 +42,9 @@ from agvviz.viz.readback import SETTING_SEPARATOR, RrdReadError, read_rrd
 
 #: The sweep ``.rrd`` of a recording, in its folder.
 SWEEP_FILE = "sweep.rrd"
-#: The folder (inside a recording's) where the settings' layers-only runs wait to be copied into
-#: the sweep ``.rrd``; removed once it is written.
-LAYERS_DIR = ".sweep-layers"
+#: A setting's layers-only run waits in the recording's folder under this name (hidden) until it
+#: is copied into the sweep ``.rrd``; removed then.
+LAYERS_NAME = ".{stem}-{label}.layers.rrd"
 
 #: Spellings of run settings accepted by ``sweep --set`` besides the setting names themselves.
 SETTING_ALIASES = {"lm.max_iters": "lm_max_iterations", "lm.max_iterations": "lm_max_iterations"}
@@ -276,7 +275,7 @@ def sweep(
         entries = []
         for index, s in enumerate(settings_list):
             kept = folder / f"{path.stem}-{s.label()}.rrd"
-            run_path = kept if keep_runs else folder / LAYERS_DIR / f"{path.stem}-{s.label()}.rrd"
+            run_path = kept if keep_runs else folder / LAYERS_NAME.format(stem=path.stem, label=s.label())
             out_path = kept if keep_runs else Path(f"{folder / SWEEP_FILE}{SETTING_SEPARATOR}{s.label()}")
             entries.append(SweepEntry(s.label(), s, out_path, recording=path, run_path=run_path,
                                       key=_entity_key(index, s.label())))
@@ -326,8 +325,8 @@ def sweep(
         ]
     finally:
         if not keep_runs:
-            for folder in out_dirs:
-                shutil.rmtree(folder / LAYERS_DIR, ignore_errors=True)
+            for entry in all_entries:
+                entry.run_path.unlink(missing_ok=True)
     return SweepOutcome(
         entries=[e for r in done for e in r.entries], rank_by=rank_by, overlay_path=done[0].overlay_path,
         csv_path=done[0].csv_path, markdown_path=done[0].markdown_path,
