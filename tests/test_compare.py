@@ -100,7 +100,9 @@ def test_sweep_overlay_holds_every_successful_run(swept):
         np.testing.assert_array_equal(frames, run_frames)
         np.testing.assert_allclose(values, run_values, rtol=1e-12)
         assert f"world/trajectory/{key}" in contents.entity_paths
-    assert "lm-refine=subpix" not in text_document(contents, paths.COMPARE_REPORT)
+    report = text_document(contents, paths.COMPARE_REPORT)
+    assert "Failed: lm-refine=subpix" in report and "**Best: lm**" in report
+    assert "settings/s3_" not in " ".join(contents.entity_paths)  # a failed setting has no layers
 
 
 def test_diff_of_a_run_with_itself_is_zero_and_not_significant(swept):

@@ -150,8 +150,8 @@ def run_recording(
     in the ``.rrd`` (:mod:`agvviz.viz.log_budget`), with a layout that shows them.
 
     ``images=False`` (``run --images none``) leaves the camera images out of the ``.rrd``: the
-    layers only, for long logs; the manifest says ``"images": "none"`` and ``agvviz view``
-    adds the frames from the recording (:mod:`agvviz.viz.frames`).
+    layers only, for long logs (the manifest is a full run's: a sweep's layers equal a standalone
+    run's); ``agvviz view`` adds the frames from the recording (:mod:`agvviz.viz.frames`).
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":
@@ -219,8 +219,6 @@ def run_recording(
         "time_source": prepared.time_source,
         "side_files": (side or SideInputs()).describe(),
     }
-    if not images:  # only then: a default run's manifest (and file) is as before
-        manifest["images"] = "none"
 
     if study is not None:  # a Monte-Carlo or CNOEM grid study: its study stage
         return _run_study(prepared, composition, settings, out_path, inputs, manifest, recording_id, progress, on_total)
@@ -335,7 +333,11 @@ def layers_only_frames(run_file: Path, recording: Path | None, out_dir: Path) ->
     if paths.RUN_MANIFEST not in contents.entity_paths:
         return None
     manifest = document_json(contents, paths.RUN_MANIFEST)
-    if manifest.get("images") != "none":
+    # Layers only: a camera whose images the recording has (an image role) but the run does not.
+    from agvviz.model.topics import camera_of_role
+
+    recorded = {cam[0] for role in manifest.get("roles", {}) if (cam := camera_of_role(role)) and cam[1] == "image"}
+    if not recorded & set(run_series.cameras_of(contents)) or paths.camera_images(contents.entity_paths):
         return None
     name = str(manifest.get("recording", ""))
     if recording is None:
