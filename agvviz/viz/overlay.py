@@ -350,8 +350,9 @@ def write_overlay(
             log_images(rec, images, {c: clocks.get(c, []) for c in cam_names}, {c: paths.overlay_image(c) for c in cam_names})
             rec.reset_time()
             rrd.check()
+        layer_entities = {}  # run key → the entities its layers hold (for the layout)
         for key, run_path in (layers or {}).items():
-            _copy_layers(rec, key, run_path)
+            layer_entities[key] = _copy_layers(rec, key, run_path)
             rrd.check()
         if index is not None:
             rec.log(paths.SWEEP_INDEX, rr.TextDocument(_index_markdown(index), media_type=rr.MediaType.MARKDOWN),
@@ -377,7 +378,8 @@ def write_overlay(
             _send_scalars(rec, clock, paths.overlay_delta(key), frames, time_ns, values)
             _send_zero_line(rec, clock, key, frames, time_ns)
         rrd.commit(overlay_blueprint(
-            runs, cam_names if store is not None else [], list(deltas), truth, magnification, fixed_cams
+            runs, cam_names if store is not None else [], list(deltas), truth, magnification, fixed_cams,
+            layer_entities=layer_entities,
         ))
     return out_path
 
@@ -466,9 +468,10 @@ def _log_static(
         )
 
 
-def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike) -> None:
+def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike) -> set[str]:
     """Copy every entity of the run ``.rrd`` at ``run_path`` but its camera images (and the
-    recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged."""
+    recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged. Returns the
+    run's entity paths (without the prefix)."""
     store = read_rrd(run_path).store
     entities = [p.lstrip("/") for p in store.schema().entity_paths()]
     left_out = ["/__properties/**", *[f"/{e}" for e in paths.camera_images(entities)]]
@@ -476,6 +479,7 @@ def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike)
     rec.send_chunks(
         store.stream().drop(content=left_out).map(lambda chunk: chunk.with_entity_path(prefix + chunk.entity_path))
     )
+    return set(entities)
 
 
 def _index_markdown(index: list[dict]) -> str:
