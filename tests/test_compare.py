@@ -1,8 +1,8 @@
 """agvviz diff / sweep / overlay on real replays of a small qr_floor recording, read back
 through Rerun's API; and run determinism under `rerun rrd compare`.
 
-One module-scoped sweep (lm with refine=ecc and refine=none, plus a setting made to fail)
-provides the runs most tests here use; the sweep tests of several recordings, of a missing Dask
+One module-scoped sweep (lm with refine=ecc and refine=none, plus a setting made to fail; its
+runs kept, ``keep_runs``) provides the runs most tests here use; the sweep tests of several recordings, of a missing Dask
 and of an existing Dask cluster (--scheduler) use tiny recordings and one or two workers.
 """
 
@@ -55,7 +55,7 @@ def swept(tmp_path_factory):
     out_dir.mkdir()
     # A directory where the subpix run's .rrd must go: that run is refused (OutputError), the others not.
     (out_dir / "qr_floor-lm-refine=subpix.rrd").mkdir()
-    outcome = sweep(recording, parse_grid(["refine=ecc,none,subpix"]), out_dir=out_dir, jobs=2)
+    outcome = sweep(recording, parse_grid(["refine=ecc,none,subpix"]), out_dir=out_dir, jobs=2, keep_runs=True)
     return recording, outcome
 
 
@@ -84,17 +84,25 @@ def test_sweep_ranks_reports_failure_and_writes_tables(swept):
 
 def test_sweep_overlay_holds_every_successful_run(swept):
     _, outcome = swept
+    assert outcome.overlay_path.name == "sweep.rrd"
     contents = read_rrd(outcome.overlay_path)
     ok = [e for e in outcome.entries if e.ok]
-    for rank, entry in enumerate(ok, start=1):
-        key = f"s{rank}_" + entry.label.replace("=", "_")
+    for entry in ok:
+        key = entry.key
+        assert key.endswith("_" + entry.label.replace("=", "_"))
         run = read_rrd(entry.out_path)
+        # its layers in the sweep file: the kept run's values
+        inside = read_rrd(f"{outcome.overlay_path}#{entry.label}")
+        np.testing.assert_array_equal(scalar_series(inside, paths.ERROR_POSITION_MM)[1],
+                                      scalar_series(run, paths.ERROR_POSITION_MM)[1])
         frames, values = scalar_series(contents, f"errors/position_mm/{key}")
         run_frames, run_values = scalar_series(run, paths.ERROR_POSITION_MM)
         np.testing.assert_array_equal(frames, run_frames)
         np.testing.assert_allclose(values, run_values, rtol=1e-12)
         assert f"world/trajectory/{key}" in contents.entity_paths
-    assert "lm-refine=subpix" not in text_document(contents, paths.COMPARE_REPORT)
+    report = text_document(contents, paths.COMPARE_REPORT)
+    assert "Failed: lm-refine=subpix" in report and "**Best: lm**" in report
+    assert "settings/s3_" not in " ".join(contents.entity_paths)  # a failed setting has no layers
 
 
 def test_diff_of_a_run_with_itself_is_zero_and_not_significant(swept):
@@ -237,17 +245,18 @@ def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp
         assert [e.rank for e in result.entries] == [1, 2]
         for entry in result.entries:
             assert entry.ok and entry.recording == recording
-            assert entry.out_path == out / recording.stem / f"{recording.stem}-{entry.label}.rrd"
+            assert str(entry.out_path) == f"{out / recording.stem / 'sweep.rrd'}#{entry.label}"
             assert entry.metrics["frames"] == 5
             assert entry.timing["detection_source"] == "cache"  # the group's one detection, reused
-        assert result.overlay_path == out / recording.stem / "overlay.rrd" and result.overlay_path.is_file()
+        assert result.overlay_path == out / recording.stem / "sweep.rrd" and result.overlay_path.is_file()
+        assert sorted(p.name for p in result.out_dir.iterdir()) == ["ranking.csv", "ranking.md", "sweep.rrd"]
         with open(result.csv_path, newline="") as f:
             assert [r["status"] for r in csv.DictReader(f)] == ["ok", "ok"]
     failed = next(r for r in outcome.recordings if r.recording == bad)
     assert [e.ok for e in failed.entries] == [False, False] and failed.overlay_path is None
     for entry in failed.entries:
         assert entry.error.startswith(("RecordingError", "RunError")) and "bad.mcap" in entry.error, entry.error
-        assert "\n" not in entry.error and not entry.out_path.exists()
+        assert "\n" not in entry.error and not entry.run_path.exists()
     assert "failed: RecordingError" in failed.csv_path.read_text() or "failed: RunError" in failed.csv_path.read_text()
     # The first recording's files are the outcome's own (as for a sweep of one recording).
     assert outcome.csv_path == out / "a" / "ranking.csv"
@@ -290,8 +299,7 @@ def test_sweep_on_an_existing_cluster(tmp_path):
                                           local.scheduler_address, "--out-dir", str(out), "--no-images"])
         assert result.exit_code == 0, result.output
         assert "sweep of r.mcap" in result.output and "failed" not in result.output
-        assert {p.name for p in out.iterdir()} == {"r-lm.rrd", "r-p4p.rrd", "overlay.rrd", "ranking.csv",
-                                                   "ranking.md"}
+        assert {p.name for p in out.iterdir()} == {"sweep.rrd", "ranking.csv", "ranking.md"}
         assert len(local.workers) == 1  # the cluster is the caller's: still there
         with pytest.raises(CompareError, match="--jobs .* --scheduler"):
             sweep(recording, parse_grid(["solver=lm"]), out_dir=out, jobs=1, scheduler=local.scheduler_address)

@@ -133,12 +133,16 @@ def test_run_export_sweep_never_replace_their_input(runs, tmp_path):
     result = _invoke("export", run_copy, "--format", "tum")
     assert result.exit_code == 3 and "is the input" in _one_error_line(result)
     assert run_copy.read_bytes() == a.read_bytes()
-    # sweep: a run output that is a hard link of the recording; refused before any work
+    # sweep: its sweep .rrd (or a kept run) a hard link of the recording; refused before any work
     out_dir = tmp_path / "sweep"
     out_dir.mkdir()
-    os.link(recording, out_dir / f"{recording.stem}-p4p.rrd")
+    os.link(recording, out_dir / "sweep.rrd")
     with pytest.raises(OutputError, match="refusing to write over an input"):
         sweep(recording, parse_grid(["solver=p4p,ippe"]), out_dir=out_dir, jobs=1)
+    os.unlink(out_dir / "sweep.rrd")
+    os.link(recording, out_dir / f"{recording.stem}-p4p.rrd")
+    with pytest.raises(OutputError, match="refusing to write over an input"):
+        sweep(recording, parse_grid(["solver=p4p,ippe"]), out_dir=out_dir, jobs=1, keep_runs=True)
     assert recording.read_bytes() == before
 
 

@@ -67,11 +67,13 @@ STOP_TIMEOUT_S = 5.0
 
 @dataclass(frozen=True)
 class RunTask:
-    """One run of a sweep: replay ``recording`` under ``settings`` into ``out_path``."""
+    """One run of a sweep: replay ``recording`` under ``settings`` into ``out_path``
+    (``images=False``: the layers only, what a sweep ``.rrd`` takes of a setting)."""
 
     recording: Path
     settings: "RunSettings"
     out_path: Path
+    images: bool = True
 
 
 @dataclass(frozen=True)
@@ -231,7 +233,7 @@ def detect_task(
 
 def run_task(
     recording: str, settings: "RunSettings", out_path: str, cache_dir: str | None, topic: str, stop_name: str,
-    unit: int,
+    unit: int, images: bool = True,
 ) -> TaskResult:
     """Worker: replay one setting, reusing its group's detections (from the cache)."""
     import cv2
@@ -242,7 +244,8 @@ def run_task(
     reporter = _Reporter(topic, stop_name, unit)
     extra = {"cache_dir": Path(cache_dir)} if cache_dir is not None else {}
     try:
-        outcome = run_recording(Path(recording), settings, Path(out_path), progress=reporter, jobs=1, **extra)
+        outcome = run_recording(Path(recording), settings, Path(out_path), progress=reporter, jobs=1, images=images,
+                                **extra)
     except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
         return TaskResult(error=one_line(exc))
     return TaskResult(timing=dict(outcome.timing))
@@ -494,7 +497,7 @@ def run_sweep_tasks(
                     task = tasks[i]
                     run = client.submit(
                         run_task, str(task.recording.resolve()), task.settings, str(task.out_path.resolve()),
-                        cache, topic, stop_name, len(groups) + i, key=f"agvviz-run-{token}-{i}", pure=False,
+                        cache, topic, stop_name, len(groups) + i, task.images, key=f"agvviz-run-{token}-{i}", pure=False,
                     )
                     pending[run] = len(groups) + i
             if progress is not None:

@@ -26,7 +26,7 @@ from agvviz.evaluation.comparison import DIRECT, Comparison, RunSeries, compare_
 from agvviz.evaluation.trajectory import ALIGNMENTS
 from agvviz.app import run_series
 from agvviz.viz.overlay import OverlayRun, write_overlay
-from agvviz.viz.readback import read_rrd
+from agvviz.viz.readback import read_rrd, split_setting
 
 
 class CompareError(InputError):
@@ -299,6 +299,12 @@ def diff(
 ) -> DiffOutcome:
     """Compare run B with run A (both ``.rrd``), read back through Rerun's API.
 
+    A and B are run ``.rrd`` files or settings inside a sweep ``.rrd`` (``sweep.rrd#ippe``,
+    ``sweep.rrd#solver=ippe``: :func:`agvviz.viz.readback.read_rrd`); a setting the file does not
+    hold is one line naming the ones it does. The overlay (``overlay_path``) is the two-run case
+    of the sweep ``.rrd``: both runs' layers under ``settings/a`` and ``settings/b``, so
+    ``diff OUT#A OUT#B`` reads them back.
+
     ``fail_if`` (one condition or several) is parsed before any file is read, so a typo in a
     metric name fails at once (:class:`~agvviz.evaluation.expression.ExpressionError`, listing
     the known metrics); ``failed`` is True when any holds. Besides the comparison's metrics a
@@ -318,11 +324,12 @@ def diff(
     if overlay_path is not None and Path(overlay_path).suffix != ".rrd":
         raise CompareError(f"--out must be a .rrd file, got {overlay_path}")
     if overlay_path is not None:  # before any work: never over A or B (also through links)
-        outputs.prepare_output(overlay_path, inputs=(a_path, b_path))
+        outputs.prepare_output(overlay_path, inputs=(split_setting(a_path)[0], split_setting(b_path)[0]))
     if junit_path is not None:
         if not conditions:
             raise CompareError("--junit-xml writes the verdict of --fail-if conditions; give at least one --fail-if")
-        outputs.prepare_output(junit_path, inputs=(a_path, b_path), option="--junit-xml")
+        outputs.prepare_output(junit_path, inputs=(split_setting(a_path)[0], split_setting(b_path)[0]),
+                               option="--junit-xml")
     seconds = {}
     t0 = time.perf_counter()
     a, b = run_series.load_run(a_path), run_series.load_run(b_path)
@@ -349,7 +356,8 @@ def diff(
 
         properties = {"A": str(a_path), "B": str(b_path), **({"overlay": str(overlay)} if overlay else {})}
         return write(Path(junit_path), "diff", f"agvviz diff {a.name} vs {b.name}", verdicts,
-                     properties=properties, details=diff_verdict(comparison).headline, inputs=(a_path, b_path))
+                     properties=properties, details=diff_verdict(comparison).headline,
+                     inputs=(split_setting(a_path)[0], split_setting(b_path)[0]))
 
     errors = [g for g in verdicts if g.holds is None]
     if errors:
@@ -374,6 +382,7 @@ def _write_diff_overlay(
 ) -> Path:
     ia, ib = c.matched[:, 0], c.matched[:, 1]
     a_contents = read_rrd(a_path)
+    a_file, a_setting = split_setting(a_path)
     cams = run_series.cameras_of(a_contents) if images else []
     reproj_a = run_series.reprojected_corners(a_path, cams) if images else {}
     reproj_b_own = run_series.reprojected_corners(b_path, cams) if images else {}
@@ -401,5 +410,11 @@ def _write_diff_overlay(
         fixed_cams=run_series.fixed_cameras_of(a_contents) & set(cams),
         report_markdown=comparison_markdown(c),
         deltas=deltas,
-        inputs=(a_path, b_path),
+        inputs=(split_setting(a_path)[0], split_setting(b_path)[0]),
+        # The two-run case of the sweep .rrd: both runs' layers, `diff OUT#A OUT#B` reads them back.
+        layers={"a": a_path, "b": b_path},
+        index=[{"key": "a", "label": "A", "rank": None, "settings": a.settings, "run": str(a_path)},
+               {"key": "b", "label": "B", "rank": None, "settings": b.settings, "run": str(b_path)}],
+        # A setting of a sweep .rrd has no images of its own: the sweep's frames.
+        frames_from=a_file if a_setting is not None and cams else None,
     )

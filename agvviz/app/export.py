@@ -37,7 +37,7 @@ from agvviz.conventions import WORLD_FRAME
 from agvviz.errors import InputError, OutputError
 from agvviz.geometry import se3, so3
 from agvviz.viz import paths
-from agvviz.viz.readback import RrdReadError, document_json, has_rows, read_rrd, transforms
+from agvviz.viz.readback import RrdReadError, document_json, has_rows, read_rrd, split_setting, transforms
 
 FORMATS = ("tum", "mcap")
 #: Topics of the MCAP export: PoseInFrame per trajectory (format with ``which``), FrameTransforms.
@@ -98,7 +98,8 @@ def export_run(
     Parameters
     ----------
     run_path : path
-        A run ``.rrd``.
+        A run ``.rrd``, or one setting of a sweep ``.rrd`` (``sweep.rrd#ippe``): then the files
+        are named ``<sweep stem>-<label>.*``.
     fmt : str
         One of :data:`FORMATS`.
     out_dir : path, optional
@@ -120,17 +121,22 @@ def export_run(
     unknown = [w for w in which if w not in TRAJECTORIES]
     if unknown or not which:
         raise ExportError(f"unknown trajectory {unknown}; choose from: {', '.join(TRAJECTORIES)}")
-    run_path = Path(run_path)
+    # A setting of a sweep .rrd (FILE#SETTING): its files are named <sweep stem>-<label>.*
+    run_file, setting = split_setting(run_path)
+    contents = read_rrd(run_path) if setting is not None else None
+    stem = run_file.stem if contents is None else f"{run_file.stem}-{contents.setting}"
+    shown = run_file.name if contents is None else f"{run_file.name}#{contents.setting}"
+    run_path = run_file
     out_dir = Path(out_dir) if out_dir is not None else run_path.parent
     if fmt == "mcap":
-        targets = {key: out_dir / f"{run_path.stem}.poses.mcap" for key in which}
+        targets = {key: out_dir / f"{stem}.poses.mcap" for key in which}
     else:
-        targets = {key: out_dir / f"{run_path.stem}.{key}.{fmt}" for key in which}
+        targets = {key: out_dir / f"{stem}.{key}.{fmt}" for key in which}
     for target in dict.fromkeys(targets.values()):  # before any work: never over the run, nor a folder
         outputs.check_not_input(target, (run_path,), option="the export")
         if target.is_dir():
             raise OutputError(f"cannot write {target}: it is an existing folder; remove it or choose another --out-dir")
-    contents = read_rrd(run_path)
+    contents = contents if contents is not None else read_rrd(run_path)
     manifest = document_json(contents, paths.RUN_MANIFEST) if paths.RUN_MANIFEST in contents.entity_paths else {}
     name = manifest.get("recording_name", run_path.stem)
     trajectories = {}  # which → (stamps ns, T_world_agv), all read before anything is written
@@ -164,7 +170,7 @@ def export_run(
     written = Exported(missing=missing)
     for key, (time_ns, T) in trajectories.items():
         header = [
-            f"# agvviz {key} trajectory of run {name} ({run_path.name}): T_world_agv",
+            f"# agvviz {key} trajectory of run {name} ({shown}): T_world_agv",
             "# timestamp[s] tx[m] ty[m] tz[m] qx qy qz qw",
         ]
         out_path = targets[key]

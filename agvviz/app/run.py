@@ -128,6 +128,7 @@ def run_recording(
     jobs: int | None = None,
     cache_dir: Path | None | bool = None,
     error_budget=None,
+    images: bool = True,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -147,6 +148,10 @@ def run_recording(
     under these settings, from :func:`agvviz.app.budget.error_budget`) goes into
     the run: ``summary["error_budget"]`` and the budget's table, bar chart and per-frame series
     in the ``.rrd`` (:mod:`agvviz.viz.log_budget`), with a layout that shows them.
+
+    ``images=False`` (``run --images none``) leaves the camera images out of the ``.rrd``: the
+    layers only, for long logs (the manifest is a full run's: a sweep's layers equal a standalone
+    run's); ``agvviz view`` adds the frames from the recording (:mod:`agvviz.viz.frames`).
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":
@@ -222,7 +227,7 @@ def run_recording(
     detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
     with RunLogger(
         out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs,
-        recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px,
+        recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px, images=images,
     ) as logger:
         logger.log_manifest(manifest)
         if replay.ctx.marker_map is not None:
@@ -307,3 +312,52 @@ def write_junit(path: Path, command: str, suite: str, verdicts: list, *, propert
     return outputs.atomic_write_text(
         path, junit_xml(command, suite, verdicts, properties=properties, details=details), inputs=inputs
     )
+
+
+# -- the frames of a layers-only run (run --images none), for agvviz view ------------------------
+def layers_only_frames(run_file: Path, recording: Path | None, out_dir: Path) -> Path | None:
+    """For a run written with ``--images none``: its recording's camera frames as an ``.rrd`` in
+    ``out_dir`` under the run's recording id, so a viewer given both files shows the complete
+    run (:mod:`agvviz.viz.frames`); None for a run that holds its images.
+
+    ``recording`` defaults to the manifest's file name looked up beside the run, in the current
+    folder and in ``recordings/``. :class:`~agvviz.errors.InputError` (one line) when it is not
+    found or holds none of the run's frames (another recording)."""
+    from agvviz.app import run_series
+    from agvviz.replay.run import recording_images
+    from agvviz.viz import paths
+    from agvviz.viz.frames import write_frames_rrd
+    from agvviz.viz.readback import document_json, read_rrd, recording_id_of
+
+    contents = read_rrd(run_file)
+    if paths.RUN_MANIFEST not in contents.entity_paths:
+        return None
+    manifest = document_json(contents, paths.RUN_MANIFEST)
+    # Layers only: a camera whose images the recording has (an image role) but the run does not.
+    from agvviz.model.topics import camera_of_role
+
+    recorded = {cam[0] for role in manifest.get("roles", {}) if (cam := camera_of_role(role)) and cam[1] == "image"}
+    if not recorded & set(run_series.cameras_of(contents)) or paths.camera_images(contents.entity_paths):
+        return None
+    name = str(manifest.get("recording", ""))
+    if recording is None:
+        candidates = [Path(run_file).parent / name, Path.cwd() / name, Path("recordings") / name]
+        recording = next((c for c in candidates if name and c.exists()), None)
+        if recording is None:
+            raise InputError(f"{run_file} holds the layers only (run --images none); its recording {name!r} is not "
+                             f"beside it, here or in recordings/: give it with --recording")
+    recording = require_recording_path(recording)
+    fixed = run_series.fixed_cameras_of(contents)
+    path, logged, _ = write_frames_rrd(
+        Path(out_dir) / f"{Path(run_file).stem}.frames.rrd",
+        recording_id=recording_id_of(run_file), recording_name=str(manifest.get("recording_name", name)),
+        images=recording_images(recording, manifest.get("roles", {}), manifest.get("time_source", "log")),
+        clocks=run_series.image_clocks(contents),
+        entity_of={cam: paths.image(cam, cam in fixed) for cam in run_series.cameras_of(contents)},
+        inputs=(run_file, recording),
+    )
+    if logged == 0:
+        path.unlink(missing_ok=True)
+        raise InputError(f"{recording} holds none of the frames of {run_file}: it is not the recording the run "
+                         f"was made from ({name})")
+    return path

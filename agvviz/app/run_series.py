@@ -18,11 +18,14 @@ from agvviz.viz.overlay import OverlayTruth
 from agvviz.viz.readback import (
     RrdContents,
     RrdReadError,
+    SETTING_SEPARATOR,
     document_json,
+    frame_stamps,
     frame_times,
     points2d,
     read_rrd,
     scalar_series,
+    sweep_index,
     transforms,
 )
 
@@ -59,7 +62,7 @@ def fixed_cameras_of(contents: RrdContents) -> set[str]:
     return {m["cam"] for p in contents.entity_paths if (m := _CAMERA_DETECTED[True].match(p))}
 
 
-def load_run(path: str | os.PathLike) -> RunSeries:
+def load_run(path: str | os.PathLike | RrdContents) -> RunSeries:
     """Read a run ``.rrd`` back into per-frame arrays (clock, solved, errors, poses).
 
     The frame clock comes from the detected-corner entities (logged on every frame) of the
@@ -77,8 +80,15 @@ def load_run(path: str | os.PathLike) -> RunSeries:
     RrdReadError
         The file is not a run ``.rrd`` (no manifest, no camera frames).
     """
-    contents = read_rrd(path)
+    contents = path if isinstance(path, RrdContents) else read_rrd(path)
+    path = contents.path
     if paths.RUN_MANIFEST not in contents.entity_paths:
+        index = sweep_index(contents)
+        if index:
+            raise RrdReadError(
+                f"{path} is a sweep .rrd of {len(index)} settings: name one as {path}{SETTING_SEPARATOR}LABEL "
+                f"(its settings: {', '.join(e['label'] for e in index)})"
+            )
         raise RrdReadError(f"{path} is not an agvviz run: it has no {paths.RUN_MANIFEST}")
     manifest = document_json(contents, paths.RUN_MANIFEST)
     clock: dict[int, int] = {}
@@ -133,10 +143,10 @@ def _has_temporal(contents: RrdContents, entity: str, component: str) -> bool:
     return any(chunk.num_rows > 0 for chunk in chunks)
 
 
-def reprojected_corners(path: Path, cams: list[str]) -> dict[str, dict[int, np.ndarray]]:
+def reprojected_corners(path: Path | RrdContents, cams: list[str]) -> dict[str, dict[int, np.ndarray]]:
     """Each camera's reprojected corners per frame of a run, the camera on the AGV or fixed in
     the world (as that run logged it)."""
-    contents = read_rrd(path)
+    contents = path if isinstance(path, RrdContents) else read_rrd(path)
     fixed = fixed_cameras_of(contents)
     return {
         cam: points2d(contents, paths.reprojected(cam, cam in fixed))
@@ -156,3 +166,13 @@ def overlay_truth(run: RunSeries) -> OverlayTruth | None:
     if not np.any(known):
         return None
     return OverlayTruth(run.frames[known], run.time_ns[known], run.T_truth[known])
+
+
+def image_clocks(contents: RrdContents) -> dict[str, list[tuple[int, int, int]]]:
+    """Each camera's clock in a run: ``(frame, time_ns, elapsed_ns)`` of every frame it logged
+    (its detected corners are logged on every frame), for :mod:`agvviz.viz.frames`."""
+    fixed = fixed_cameras_of(contents)
+    return {
+        cam: frame_stamps(contents, paths.detected(cam, cam in fixed), "Points2D:positions")
+        for cam in cameras_of(contents)
+    }

@@ -3,8 +3,13 @@
 :func:`sweep` replays one or several recordings under the cross product of setting values
 (:func:`parse_grid`, :func:`grid_settings`) on a Dask cluster (:mod:`agvviz.app.cluster`; each
 recording detected once per detection settings), ranks each recording's runs
-(:func:`ranking_rows`), and writes one ``.rrd`` per setting, an overlay ``.rrd`` and the
-ranking as CSV and markdown.
+(:func:`ranking_rows`), and writes per recording one sweep ``.rrd`` and the ranking as CSV and
+markdown (issue 27). The sweep ``.rrd`` (:func:`agvviz.viz.overlay.write_overlay` with
+``layers``) holds the frames and the static world once, each setting's layers under
+``settings/<key>/`` (its layers-only run, copied as chunks), the ranking with p-values and the
+verdict (:func:`agvviz.app.sweep_report.ranking_markdown`) and a layout that overlays the
+settings; ``FILE#LABEL`` reads one setting back. Self-contained per-setting ``.rrd`` runs are
+written only with ``keep_runs``.
 """
 
 from __future__ import annotations
@@ -29,8 +34,17 @@ from agvviz.evaluation.trajectory import ALIGNMENTS, EvaluationError
 from agvviz.settings import RunSettings, SettingsError, apply_overrides, field_types
 from agvviz.app.diff import CompareError, format_number, format_p
 from agvviz.app import run_series
+from agvviz.app.sweep_report import ranking_markdown
+from agvviz.replay.run import recording_images
+from agvviz.viz import paths
 from agvviz.viz.overlay import OverlayRun, write_overlay
-from agvviz.viz.readback import RrdReadError, read_rrd
+from agvviz.viz.readback import SETTING_SEPARATOR, RrdReadError, read_rrd
+
+#: The sweep ``.rrd`` of a recording, in its folder.
+SWEEP_FILE = "sweep.rrd"
+#: A setting's layers-only run waits in the recording's folder under this name (hidden) until it
+#: is copied into the sweep ``.rrd``; removed then.
+LAYERS_NAME = ".{stem}-{label}.layers.rrd"
 
 #: Spellings of run settings accepted by ``sweep --set`` besides the setting names themselves.
 SETTING_ALIASES = {"lm.max_iters": "lm_max_iterations", "lm.max_iterations": "lm_max_iterations"}
@@ -91,13 +105,15 @@ class SweepEntry:
 
     label: str
     settings: RunSettings
-    out_path: Path
+    out_path: Path  # where to read the run: ``<sweep.rrd>#<label>``, or its own .rrd (keep_runs)
     error: str | None = None  # why the setting failed, None when it ran
     metrics: dict = field(default_factory=dict)
     timing: dict = field(default_factory=dict)  # wall-clock figures (not in the .rrd)
     p_vs_best: float | None = None  # Wilcoxon p of the ranking quantity vs the best setting
     rank: int | None = None  # 1 = best among its recording's settings; None when failed
     recording: Path | None = None  # the recording replayed
+    run_path: Path | None = None  # the .rrd its run writes: its kept run or its layers-only run
+    key: str = ""  # its subtree in the sweep .rrd: settings/<key>
 
     @property
     def ok(self) -> bool:
@@ -106,7 +122,8 @@ class SweepEntry:
 
 @dataclass
 class RecordingSweep:
-    """One recording of a sweep: its ranked entries (best first, failed last) and its files."""
+    """One recording of a sweep: its ranked entries (best first, failed last) and its files;
+    ``overlay_path`` is its sweep ``.rrd`` (None when no setting ran)."""
 
     recording: Path
     out_dir: Path
@@ -195,6 +212,7 @@ def sweep(
     on_total: Callable[[int], None] | None = None,
     scheduler: str | None = None,
     cache_dir: str | os.PathLike | None = None,
+    keep_runs: bool = False,
 ) -> SweepOutcome:
     """Replay every recording under every combination of ``grid`` on a Dask cluster.
 
@@ -207,8 +225,9 @@ def sweep(
     base : RunSettings
         Settings the grid values are applied to.
     out_dir : path, optional
-        See :func:`sweep_out_dirs`. Each recording's folder gets ``<stem>-<label>.rrd`` per
-        setting, ``overlay.rrd``, ``ranking.csv`` and ``ranking.md``.
+        See :func:`sweep_out_dirs`. Each recording's folder gets ``sweep.rrd`` (every setting,
+        the frames once), ``ranking.csv`` and ``ranking.md``; with ``keep_runs`` also
+        ``<stem>-<label>.rrd`` per setting (a self-contained run).
     jobs : int, optional
         Worker processes of the local cluster (default: one per CPU, at most one per run).
     rank_by : str
@@ -220,6 +239,9 @@ def sweep(
         Address of an existing Dask cluster's scheduler; None starts a local cluster.
     cache_dir : path, optional
         Detection cache folder (default: :func:`agvviz.replay.detect.cache.default_cache_dir`).
+    keep_runs : bool
+        Also keep each setting's self-contained run ``.rrd`` (``--keep-runs``); without it each
+        setting runs layers-only into a temporary folder and lives in ``sweep.rrd`` alone.
 
     Each recording is detected once per distinct detection settings of the grid
     (:mod:`agvviz.app.cluster`), then every setting only solves. A run that fails is reported in its
@@ -250,15 +272,20 @@ def sweep(
     cluster.import_distributed()  # without Dask: one line, before anything is written
     per_recording = []
     for path, folder in zip(recordings, out_dirs):
-        entries = [
-            SweepEntry(s.label(), s, folder / f"{path.stem}-{s.label()}.rrd", recording=path) for s in settings_list
-        ]
-        for target in [e.out_path for e in entries] + [folder / n for n in ("overlay.rrd", "ranking.csv", "ranking.md")]:
+        entries = []
+        for index, s in enumerate(settings_list):
+            kept = folder / f"{path.stem}-{s.label()}.rrd"
+            run_path = kept if keep_runs else folder / LAYERS_NAME.format(stem=path.stem, label=s.label())
+            out_path = kept if keep_runs else Path(f"{folder / SWEEP_FILE}{SETTING_SEPARATOR}{s.label()}")
+            entries.append(SweepEntry(s.label(), s, out_path, recording=path, run_path=run_path,
+                                      key=_entity_key(index, s.label())))
+        targets = [e.run_path for e in entries if keep_runs]
+        for target in targets + [folder / n for n in (SWEEP_FILE, "ranking.csv", "ranking.md")]:
             outputs.check_not_input(target, recordings, option="the sweep output")
         per_recording.append(entries)
     t_start = time.perf_counter()
     all_entries = [e for entries in per_recording for e in entries]
-    tasks = [cluster.RunTask(e.recording, e.settings, e.out_path) for e in all_entries]
+    tasks = [cluster.RunTask(e.recording, e.settings, e.run_path, images=keep_runs) for e in all_entries]
     workers = min(jobs or os.cpu_count() or 1, len(tasks))
     cache = Path(cache_dir) if cache_dir is not None else None
     # On a local cluster the detections start at once, here, while the cluster starts
@@ -291,10 +318,15 @@ def sweep(
     for entry, result in zip(all_entries, results):
         entry.timing, entry.error = result.timing, result.error
 
-    done = [
-        _finish_recording(path, folder, entries, rank_by, align, rpe_delta, images)
-        for path, folder, entries in zip(recordings, out_dirs, per_recording)
-    ]
+    try:
+        done = [
+            _finish_recording(path, folder, entries, rank_by, align, rpe_delta, images)
+            for path, folder, entries in zip(recordings, out_dirs, per_recording)
+        ]
+    finally:
+        if not keep_runs:
+            for entry in all_entries:
+                entry.run_path.unlink(missing_ok=True)
     return SweepOutcome(
         entries=[e for r in done for e in r.entries], rank_by=rank_by, overlay_path=done[0].overlay_path,
         csv_path=done[0].csv_path, markdown_path=done[0].markdown_path,
@@ -306,12 +338,12 @@ def _finish_recording(
     recording: Path, out_dir: Path, entries: list[SweepEntry], rank_by: str, align: str, rpe_delta: int,
     images: bool,
 ) -> RecordingSweep:
-    """Read back one recording's runs, rank them, write its tables and overlay."""
+    """Read back one recording's runs, rank them, write its tables and its sweep ``.rrd``."""
     series: dict[int, RunSeries] = {}
     for index, entry in enumerate(entries):
         if entry.ok:
             try:
-                series[index] = run_series.load_run(entry.out_path)
+                series[index] = run_series.load_run(entry.run_path)
                 entry.metrics = run_metrics(series[index], align=align, rpe_delta=rpe_delta)
             except (RrdReadError, EvaluationError) as exc:
                 entry.error = f"{type(exc).__name__}: {exc}"
@@ -321,7 +353,7 @@ def _finish_recording(
     overlay_path = None
     ok = [e for e in ranked if e.ok]
     if ok:
-        overlay_path = _write_sweep_overlay(out_dir / "overlay.rrd", recording, ok, series, entries, rank_by, images)
+        overlay_path = _write_sweep_file(out_dir / SWEEP_FILE, recording, ranked, series, entries, rank_by, images)
     return RecordingSweep(recording, out_dir, ranked, overlay_path, csv_path, markdown_path)
 
 
@@ -370,7 +402,7 @@ def ranking_rows(entries: list[SweepEntry], rank_by: str) -> tuple[list[str], li
             format_p(e.p_vs_best),
             format_number(e.timing.get("time_per_frame_ms")),
             "ok" if e.ok else f"failed: {e.error}",
-            e.out_path.name if e.ok else "",
+            e.out_path.name if e.ok and e.out_path is not None else "",
         ])
     return header, rows
 
@@ -405,42 +437,54 @@ def _entity_key(index: int, label: str) -> str:
     return f"s{index + 1}_" + re.sub(r"[^A-Za-z0-9_-]+", "_", label)
 
 
-def _write_sweep_overlay(
-    out: Path, recording: Path, ok: list[SweepEntry], series: dict[int, RunSeries],
+def _write_sweep_file(
+    out: Path, recording: Path, ranked: list[SweepEntry], series: dict[int, RunSeries],
     entries: list[SweepEntry], rank_by: str, images: bool,
 ) -> Path:
+    """The sweep ``.rrd``: the settings that ran drawn together on the best one's clock, each
+    one's layers under ``settings/<key>/``, the frames once (from the recording, or copied from
+    the best setting's kept run), the ranking document and the index."""
     index_of = {id(e): i for i, e in enumerate(entries)}
+    ok = [e for e in ranked if e.ok]
     first = series[index_of[id(ok[0])]]
-    first_contents = read_rrd(ok[0].out_path)
+    first_contents = read_rrd(ok[0].run_path)
     cams = run_series.cameras_of(first_contents) if images else []
+    frames = None
+    if cams and not paths.camera_images(first_contents.entity_paths):  # layers-only runs: frames from the recording
+        frames = (
+            recording_images(recording, first.manifest.get("roles", {}), first.manifest.get("time_source", "log")),
+            run_series.image_clocks(first_contents),
+        )
     runs = []
-    for rank, entry in enumerate(ok):
+    for entry in ok:
         s = series[index_of[id(entry)]]
         ia, ib = match_frames(first.time_ns, s.time_ns)
         to_first = {int(s.frames[j]): int(first.frames[i]) for i, j in zip(ia, ib)}
         reprojected = {
             cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
-            for cam, per in (run_series.reprojected_corners(entry.out_path, cams) if images else {}).items()
+            for cam, per in (run_series.reprojected_corners(entry.run_path, cams) if images else {}).items()
         }
         runs.append(OverlayRun(
-            _entity_key(rank, entry.label), f"#{entry.rank} {entry.label}",
+            entry.key, f"#{entry.rank} {entry.label}",
             first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib), reprojected,
             T_truth=None if s.T_truth is None else s.T_truth[ib], short_label=f"#{entry.rank}",
         ))
-    header, rows = ranking_rows(ok, rank_by)
-    report = "\n".join([
-        f"# sweep over {recording.name}", "",
-        "| " + " | ".join(header[:6]) + " |", "| " + " | ".join("---" for _ in header[:6]) + " |",
-        *["| " + " | ".join(row[:6]) + " |" for row in rows],
-    ]) + "\n"
+    index = [
+        {"key": e.key, "label": e.label, "rank": e.rank, "settings": series[index_of[id(e)]].settings}
+        for e in ok
+    ]
+    header, rows = ranking_rows(ranked, rank_by)
     return write_overlay(
         out,
         recording_name=f"sweep {recording.stem}",
         runs=runs,
         truth=run_series.overlay_truth(first),
-        source=ok[0].out_path,
+        source=ok[0].run_path,
         cam_names=cams,
         fixed_cams=run_series.fixed_cameras_of(first_contents) & set(cams),
-        report_markdown=report,
-        inputs=(recording, *[e.out_path for e in ok]),
+        report_markdown=ranking_markdown(recording.name, ranked, rank_by, header, rows),
+        inputs=(recording, *[e.run_path for e in ok]),
+        layers={e.key: e.run_path for e in ok},
+        index=index,
+        frames=frames,
     )

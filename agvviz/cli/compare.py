@@ -25,8 +25,9 @@ from agvviz.settings import RunSettings, apply_overrides
 
 @handle_errors
 def diff(
-    a: Path = typer.Argument(..., metavar="A", help="run A .rrd (the reference)"),
-    b: Path = typer.Argument(..., metavar="B", help="run B .rrd (compared with A)"),
+    a: Path = typer.Argument(..., metavar="A", help="run A .rrd (the reference), or a setting of a sweep .rrd: "
+                             "sweep.rrd#LABEL or sweep.rrd#NAME=VALUE"),
+    b: Path = typer.Argument(..., metavar="B", help="run B .rrd (compared with A), or sweep.rrd#LABEL"),
     out: Optional[Path] = typer.Option(None, "--out", help="write the overlay .rrd (both runs on one clock) here"),
     fail_if: List[str] = typer.Option(
         [], "--fail-if", metavar="CONDITION",
@@ -111,14 +112,18 @@ def sweep(
     rank_by: str = typer.Option("position_rmse_mm", "--rank-by", help="metric to rank by (lower is better, "
                                 "except solved / solved_pct)"),
     align: str = typer.Option("none", "--align", help="APE alignment: none | se3 | se2 | yaw"),
-    images: bool = typer.Option(True, "--images/--no-images", help="camera images in the overlay"),
+    images: bool = typer.Option(True, "--images/--no-images", help="the camera frames in the sweep .rrd (once)"),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help=options.CACHE_DIR_HELP),
+    keep_runs: bool = typer.Option(False, "--keep-runs", help="also write each setting's self-contained run "
+                                   ".rrd (<recording>-<setting>.rrd; each holds every frame again)"),
 ) -> None:
     """Replay each RECORDING under every combination of the --set values on a Dask cluster; rank each recording's runs.
 
     Each recording is detected once per detection settings; every setting then only solves.
-    Writes one .rrd per setting, overlay.rrd, ranking.csv and ranking.md into --out-dir (with
-    several recordings, into --out-dir/<recording name>/). A setting that fails is reported and
+    Writes sweep.rrd (the frames once, each setting's layers under settings/<key>/, the ranking
+    and a layout that overlays the settings), ranking.csv and ranking.md into --out-dir (with
+    several recordings, into --out-dir/<recording name>/); --keep-runs adds one run .rrd per
+    setting. `agvviz diff sweep.rrd#lm sweep.rrd#ippe` compares two settings. A setting that fails is reported and
     the others go on. Names are the run settings of `agvviz run --help` (lm.max_iters is accepted
     for lm_max_iterations). Needs Dask: pip install 'agvviz\\[distributed]'.
 
@@ -144,7 +149,7 @@ def sweep(
         outcome = sweep_runs(
             recordings[0] if len(recordings) == 1 else recordings, grid, out_dir=out_dir, jobs=jobs,
             rank_by=rank_by, align=align, images=images, progress=on_progress, on_total=on_total,
-            scheduler=scheduler, cache_dir=cache_dir,
+            scheduler=scheduler, cache_dir=cache_dir, keep_runs=keep_runs,
         )
     wanted = ["rank", "setting", outcome.rank_by, "solved", "position_p95_mm",
               "heading_rmse_deg", "p_vs_best", "time_per_frame_ms", "status"]
@@ -165,7 +170,7 @@ def sweep(
                 err_console.print(f"[bold red]setting {escape(entry.label)}{escape(where)} failed:[/] "
                                   f"{escape(entry.error)}")
         console.print(f"runs in [bold]{escape(str(result.out_dir))}[/]; table: {result.csv_path.name}, "
-                      f"{result.markdown_path.name}" + (f"; overlay: [bold]{escape(str(result.overlay_path))}[/]"
+                      f"{result.markdown_path.name}" + (f"; sweep: [bold]{escape(str(result.overlay_path))}[/]"
                                                         if result.overlay_path else ""))
     console.print(f"sweep took {outcome.wall_time_s:.1f} s")
     if not any(entry.ok for entry in outcome.entries):  # nothing to rank: say so in the exit code
@@ -306,7 +311,7 @@ def audit(
 
 @handle_errors
 def export(
-    run_file: Path = typer.Argument(..., metavar="RUN", help="run .rrd"),
+    run_file: Path = typer.Argument(..., metavar="RUN", help="run .rrd, or a setting of a sweep .rrd: sweep.rrd#LABEL"),
     format_: str = typer.Option("tum", "--format", help="output format: tum (evo, TUM tools) or mcap (Foxglove)"),
     out_dir: Optional[Path] = typer.Option(None, "--out-dir",
                                            help="output folder, created if missing (default: the run's folder)"),

@@ -152,6 +152,7 @@ def _run(
     topics: list[str] = (), roles: Optional[Path] = None, markers: Optional[Path] = None,
     calibration: list[str] = (), extrinsic: list[str] = (), jobs: Optional[int] = None,
     cache_dir=None, budget: bool = False, fail_if: list[str] = (), junit_xml: Optional[Path] = None,
+    images: str = "all",
 ) -> Path:
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
@@ -161,6 +162,8 @@ def _run(
     from agvviz.app.run import check_gates
 
     options.check_detect_jobs(jobs)
+    if images not in ("all", "none"):
+        fail(f"--images {images!r}: choose all (the frames in the .rrd) or none (the layers only)")
     require_recording_path(recording)  # one line, before a progress bar is drawn
     if junit_xml is not None and not fail_if:
         fail("--junit-xml writes the verdict of --fail-if conditions; give at least one --fail-if")
@@ -198,6 +201,7 @@ def _run(
         outcome = run_recording(
             recording, settings, out, progress=on_frame, topics=topic_map, roles_file=roles,
             side=side, on_total=on_total, jobs=jobs, cache_dir=cache_dir, error_budget=error_budget,
+            images=images == "all",
         )
     except NoUsableFrameError as exc:
         _stop_started(progress)
@@ -287,9 +291,13 @@ def run(
     budget: bool = typer.Option(False, "--budget", help=options.BUDGET_HELP),
     fail_if: List[str] = typer.Option([], "--fail-if", metavar="CONDITION", help=options.RUN_FAIL_IF_HELP),
     junit_xml: Optional[Path] = typer.Option(None, "--junit-xml", metavar="FILE", help=options.JUNIT_XML_HELP),
+    images: str = typer.Option("all", "--images", metavar="all|none",
+                               help="none: leave the camera images out of the .rrd (the layers only, for long logs); "
+                                    "`agvviz view` adds them from the recording"),
 ) -> None:
     _run(recording, solver, set_, out, topic, roles, markers, calibration, extrinsic,
-         jobs=jobs, cache_dir=(cache_dir if cache else False), budget=budget, fail_if=fail_if, junit_xml=junit_xml)
+         jobs=jobs, cache_dir=(cache_dir if cache else False), budget=budget, fail_if=fail_if, junit_xml=junit_xml,
+         images=images)
 
 
 @handle_errors

@@ -51,8 +51,9 @@ def viewer_url(address: str) -> str:
     return text
 
 
-def _send_to_viewer(run_file: Path, address: str) -> str:
-    """Send the run (its recording and blueprint) to the Rerun viewer at ``address``; returns its URL."""
+def _send_to_viewer(run_files: list[Path], address: str) -> str:
+    """Send the run (its recording and blueprint; a layers-only run's frames too) to the Rerun
+    viewer at ``address``; returns its URL."""
     import socket
     from urllib.parse import urlsplit
 
@@ -65,7 +66,8 @@ def _send_to_viewer(run_file: Path, address: str) -> str:
     except OSError as exc:
         fail(f"no Rerun viewer answers at {url} ({exc.strerror or exc}); start one there with `rerun` "
              f"(it listens on port {GRPC_PORT}) or give its address to --connect")
-    send_rrd(run_file, url)
+    for run_file in run_files:
+        send_rrd(run_file, url)
     return url
 
 
@@ -98,7 +100,7 @@ def _stop_group(process: subprocess.Popen) -> None:
             continue
 
 
-def _serve_web(run_file: Path, bind: str, web_port: int, grpc_port: int) -> None:
+def _serve_web(run_files: list[Path], bind: str, web_port: int, grpc_port: int) -> None:
     """Serve the run in Rerun's web viewer until Ctrl-C (exit 130)."""
     import socket
     from urllib.parse import quote
@@ -109,7 +111,7 @@ def _serve_web(run_file: Path, bind: str, web_port: int, grpc_port: int) -> None
         _port_free(bind, port, option)
     host = socket.gethostname() if bind in ("0.0.0.0", "::") else bind
     command = [_rerun_executable(), "--web-viewer", "--bind", bind, "--web-viewer-port", str(web_port),
-               "--port", str(grpc_port), str(run_file)]
+               "--port", str(grpc_port), *map(str, run_files)]
     # Its own process group: the `rerun` script runs the viewer binary as a child, and both must
     # stop with us (Ctrl-C, SIGTERM), whoever gets the signal.
     server = subprocess.Popen(command, env={**os.environ, "RUST_LOG": "warn"}, start_new_session=True)
@@ -118,7 +120,7 @@ def _serve_web(run_file: Path, bind: str, web_port: int, grpc_port: int) -> None
             return f"http://{at}:{web_port}/?url={quote(f'rerun+http://{at}:{grpc_port}/proxy', safe='')}"
 
         local = f"; on this machine: {url('127.0.0.1')}" if host != "127.0.0.1" else ""
-        console.print(f"serving {run_file} in Rerun's web viewer; open in a browser:\n  {url(host)}\n"
+        console.print(f"serving {run_files[0]} in Rerun's web viewer; open in a browser:\n  {url(host)}\n"
                       f"(Ctrl-C stops it{local})", highlight=False, markup=False, soft_wrap=True)
         code = server.wait()
     except KeyboardInterrupt:
@@ -139,6 +141,9 @@ def view(
     grpc_port: int = typer.Option(GRPC_PORT, "--grpc-port", help="--web: the port the browser fetches the run from"),
     bind: str = typer.Option("0.0.0.0", "--bind",
                              help="--web: the address to listen on (127.0.0.1: this machine only)"),
+    recording: Optional[Path] = typer.Option(None, "--recording", help="a run written with --images none: its "
+                                             "recording, whose frames are shown with it (default: the recording's "
+                                             "file name beside the run, here or in recordings/)"),
 ) -> None:
     """Open a run in the Rerun viewer (with its default layout); --web serves it to a browser, --connect sends it to a viewer elsewhere.
 
@@ -147,6 +152,8 @@ def view(
     Example (on a robot without a screen): agvviz view runs/qr_floor-lm.rrd --web
 
     Example: agvviz view runs/qr_floor-lm.rrd --connect laptop:9876
+
+    A run written with `agvviz run --images none` is opened together with its recording's frames.
     """
     from agvviz.viz.rrd_file import looks_complete
 
@@ -156,17 +163,41 @@ def view(
         fail(f"{run_file} is not a complete .rrd file (no Rerun header or footer); write it again with `agvviz run`")
     if web and connect is not None:
         fail("give --web (serve it here) or --connect (send it to a viewer elsewhere), not both")
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="agvviz-view-") as scratch:
+        run_files = [run_file] + _frames_of_layers_only_run(run_file, recording, Path(scratch))
+        _open(run_files, web, connect, port, grpc_port, bind)
+
+
+def _frames_of_layers_only_run(run_file: Path, recording: Optional[Path], scratch: Path) -> list[Path]:
+    """A run written with ``--images none``: its recording's frames as a second ``.rrd`` (same
+    recording id) in ``scratch``; [] for a run that holds its images."""
+    from agvviz.app.run import layers_only_frames
+
+    frames = layers_only_frames(run_file, recording, scratch)
+    if frames is None:
+        if recording is not None:
+            fail(f"--recording is for a run written with --images none; {run_file} holds its own frames")
+        return []
+    console.print(f"{run_file} holds the layers only: its frames come from the recording", highlight=False,
+                  markup=False, soft_wrap=True)
+    return [frames]
+
+
+def _open(run_files: list[Path], web: bool, connect: Optional[str], port: int, grpc_port: int, bind: str) -> None:
+    run_file = run_files[0]
     if connect is not None:
-        url = _send_to_viewer(run_file, connect)
+        url = _send_to_viewer(run_files, connect)
         console.print(f"sent {run_file} to the Rerun viewer at {url}", highlight=False, markup=False, soft_wrap=True)
         return
     if web:
-        _serve_web(run_file, bind, port, grpc_port)
+        _serve_web(run_files, bind, port, grpc_port)
         return
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         fail(f"no display to open the viewer on (DISPLAY and WAYLAND_DISPLAY are unset): serve it to a browser "
              f"with `agvviz view {run_file} --web`, or send it to a viewer elsewhere with "
              f"`agvviz view {run_file} --connect HOST:{GRPC_PORT}`")
-    code = subprocess.call([_rerun_executable(), str(run_file)])
+    code = subprocess.call([_rerun_executable(), *map(str, run_files)])
     if code != 0:
         fail(f"the Rerun viewer could not open {run_file} (it exited with code {code}; see its messages above)")

@@ -391,3 +391,35 @@ class _DetectedCount(NullSink):
         self.frames += 1
         if self.progress is not None:
             self.progress(self.frames)
+
+
+def recording_images(recording_path, roles: dict[str, str], time_source: str) -> Iterator[tuple[str, int, str, bytes]]:
+    """``(camera, time_ns, image_format, bytes)`` of every camera image of a recording, in file
+    order, as a run whose manifest has ``roles`` (role → topic) and ``time_source`` read them:
+    the time is the replay clock's (the header stamp under ``time_source="header"``, else the
+    log time); undecodable images are left out (the run rejected them too). For the frames of a
+    layers-only run and of a sweep ``.rrd`` (:mod:`agvviz.viz.frames`)."""
+    from agvviz.model.messages import CompressedFrame
+    from agvviz.model.topics import camera_of_role
+    from agvviz.recording.formats import decode
+    from agvviz.recording.raw import MessageDecodeError, RawMetadata
+
+    recording = open_recording(recording_path)
+    cam_of_topic = {}
+    for role, topic in roles.items():
+        cam = camera_of_role(role)
+        if cam is not None and cam[1] == "image":
+            cam_of_topic[topic] = cam[0]
+    for item in recording.iter_raw(ReadReport(), set(cam_of_topic)):
+        if isinstance(item, RawMetadata) or item.topic not in cam_of_topic:
+            continue
+        try:
+            value = decode(item)
+        except MessageDecodeError:
+            continue
+        if not isinstance(value, CompressedFrame):
+            continue
+        time_ns = item.log_time_ns
+        if time_source == "header" and getattr(value, "stamp_ns", 0):
+            time_ns = value.stamp_ns
+        yield cam_of_topic[item.topic], int(time_ns), value.image_format, value.data

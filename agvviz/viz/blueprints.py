@@ -42,6 +42,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import rerun as rr
 import rerun.blueprint as rrb
 
 from agvviz.evaluation.error_budget import INTERACTION, ErrorBudget
@@ -58,6 +59,7 @@ from agvviz.viz.style import (
     COLOR_UWB,
     LEGEND,
     color_name,
+    color_of,
 )
 
 #: A run's logs: the time in seconds and the line (no entity path column).
@@ -698,6 +700,7 @@ def overlay_blueprint(
     truth=None,
     magnification: float | None = None,
     fixed_cams: set[str] | frozenset[str] = frozenset(),
+    layer_entities: dict[str, set[str]] | None = None,
 ) -> rrb.Blueprint:
     """Default layout: 3D trajectories (with each run's magnified error arrows when
     ``magnification`` is given, and a close-up that follows the truth AGV) and the image with
@@ -759,7 +762,9 @@ def overlay_blueprint(
     else:
         plots = [error_views[0], rrb.Tabs(*error_views[1:])]
         shares = [0.22, 0.22, 0.56]
-    bottom = rrb.Horizontal(*plots, rrb.TextDocumentView(origin=paths.COMPARE_REPORT, name="comparison"), column_shares=shares)
+    report = rrb.TextDocumentView(origin=paths.COMPARE_REPORT, name="comparison")
+    layer_views = _layer_views(runs, layer_entities or {}, legend)
+    bottom = rrb.Horizontal(*plots, rrb.Tabs(report, *layer_views) if layer_views else report, column_shares=shares)
     return rrb.Blueprint(
         rrb.Vertical(top, bottom, row_shares=[0.58, 0.42]),
         rrb.BlueprintPanel(state="collapsed"),
@@ -767,6 +772,27 @@ def overlay_blueprint(
         rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_FRAME, play_state="paused"),
         auto_views=False,
     )
+
+
+def _layer_views(runs: list, layer_entities: dict[str, set[str]], legend) -> list:
+    """Tabs beside the report of a sweep ``.rrd`` (each run's layers under ``settings/<key>/``):
+    the LM trial steps per frame, a series per run in its colour, and each run's suspects log."""
+    keyed = [(i, r) for i, r in enumerate(runs) if r.key in layer_entities]
+    views = []
+    with_lm = [(i, r) for i, r in keyed if paths.LM_ITERATIONS in layer_entities[r.key]]
+    if with_lm:
+        views.append(rrb.TimeSeriesView(
+            origin="/", name="LM trial steps per frame", plot_legend=legend,
+            contents=[f"/{paths.sweep_layer(r.key, paths.LM_ITERATIONS)}" for _, r in with_lm],
+            overrides={
+                paths.sweep_layer(r.key, paths.LM_ITERATIONS): rr.SeriesLines.from_fields(colors=[color_of(i)], names=r.label)
+                for i, r in with_lm
+            },
+        ))
+    for _, r in keyed:
+        if paths.EVENTS_SUSPECTS in layer_entities[r.key]:
+            views.append(rrb.TextLogView(origin=paths.sweep_layer(r.key, paths.EVENTS_SUSPECTS), name=f"suspects {r.label}"))
+    return views
 
 
 # -- studies: p4p Monte-Carlo and CNOEM grid ---------------------------------------------------------

@@ -14,7 +14,6 @@ import math
 
 import cv2
 import numpy as np
-import pyarrow as pa
 import rerun as rr
 
 from agvviz.errors import RunError
@@ -24,6 +23,7 @@ from agvviz.evaluation.suspect_report import cause_words, suspect_line
 from agvviz.model.frames import FrameResult
 from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
+from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -41,7 +41,6 @@ from agvviz.viz.style import (
 )
 
 #: Media type of each ``FrameResult.image_format``.
-MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 #: Nominal AGV body drawn around the body frame (half sizes x, y, z in m; centre on the
 #: floor-origin's vertical). A visual marker only: the recording does not carry a body size.
 AGV_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
@@ -85,21 +84,6 @@ class RunLogError(RunError):
     """Input the run logger cannot log (wrong shape, unknown image format, used after save)."""
 
 
-_BLOB_TYPE = rr.components.BlobBatch._ARROW_DATATYPE
-_BLOB_DESCRIPTOR = rr.EncodedImage.descriptor_blob()
-_MEDIA_TYPE_BATCHES: dict[str, rr.DescribedComponentBatch] = {}
-
-
-def _media_type_batch(media_type: str) -> rr.DescribedComponentBatch:
-    """``EncodedImage:media_type`` = ``media_type`` (built once per media type)."""
-    batch = _MEDIA_TYPE_BATCHES.get(media_type)
-    if batch is None:
-        batch = _MEDIA_TYPE_BATCHES[media_type] = rr.DescribedComponentBatch(
-            rr.components.MediaTypeBatch([media_type]), rr.EncodedImage.descriptor_media_type()
-        )
-    return batch
-
-
 class Track:
     """Positions (m) appended one per frame into a growing array (no list → array per frame)."""
 
@@ -129,6 +113,9 @@ class FrameLogger:
         self._rec = rec
         self._columns = columns
         self.max_reproj_px = max_reproj_px
+        #: False: the camera images are not logged (``run --images none``, a sweep's layers);
+        #: everything drawn over them still is.
+        self.images = True
         self._cam_names: list[str] = []
         self._image_width_px: dict[str, int] = {}
         #: Cameras fixed in the world (paper 003's wall cameras).
@@ -298,19 +285,11 @@ class FrameLogger:
 
     # -- per frame -------------------------------------------------------------------------
     def log_image(self, frame: FrameResult) -> None:
-        if not frame.image_bytes:
-            return  # corner-only recordings carry no image
-        # What rr.EncodedImage(contents=..., media_type=...) logs, without building the
-        # archetype: the blob wraps the bytes without a copy, the media type is built once.
-        data = pa.py_buffer(frame.image_bytes)
-        blob = pa.ListArray.from_arrays(
-            pa.array([0, data.size], type=pa.int32()),
-            pa.Array.from_buffers(pa.uint8(), data.size, [None, data]),
-            type=_BLOB_TYPE,
-        )
-        self._rec.log(
-            paths.image(frame.cam_name, frame.cam_name in self.fixed_cams),
-            [rr.DescribedComponentBatch(ArrowBatch(blob), _BLOB_DESCRIPTOR), _media_type_batch(MEDIA_TYPES[frame.image_format])],
+        if not frame.image_bytes or not self.images:
+            return  # corner-only recordings carry no image; a layers-only run logs none
+        log_encoded_image(
+            self._rec, paths.image(frame.cam_name, frame.cam_name in self.fixed_cams), frame.image_format,
+            frame.image_bytes,
         )
 
     def log_corners(self, frame: FrameResult, stamp: Stamp) -> None:

@@ -22,7 +22,17 @@ frame index (the callers map the other runs' frames onto it). Entity tree::
     errors/<quantity>/<key>                 Scalars per frame: position_mm, heading_deg, ...
     delta/<quantity>                        Scalars per frame, B − A of |error| (diff only)
     delta/<quantity>/zero                   Scalars: the zero line (no difference) across it
-    compare/report                          TextDocument: the comparison table (static)
+    compare/report                          TextDocument: the comparison table (static); in a
+                                            sweep the ranking with p-values and the verdict
+    settings/<key>/...                      each run's layers, every entity of its run .rrd
+                                            under the prefix except the camera images
+                                            (``layers=``; a sweep, ``diff --out``)
+    sweep/index                             TextDocument (static): JSON, one entry per run:
+                                            key, label, rank, settings (``index=``)
+
+With ``layers`` and ``index`` the file is a sweep ``.rrd`` (issue 27): ``FILE#LABEL`` reads one
+run back (:func:`agvviz.viz.readback.read_rrd`). With ``frames`` the images come from the
+recording (logged once, :mod:`agvviz.viz.frames`) instead of being copied from ``source``.
 
 Timelines: ``frame`` (what the viewer opens on), ``elapsed`` (seconds since the source run's
 recording start, or since the first frame drawn when that is unknown) and ``time`` (the
@@ -34,16 +44,19 @@ from __future__ import annotations
 
 from agvviz.errors import InputError
 
+import json
 import math
 import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import rerun as rr
 
 from agvviz.viz import paths
+from agvviz.viz.frames import CameraClock, RecordedImage, log_images
 from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_blueprint
 from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
 from agvviz.viz.readback import read_rrd
@@ -262,6 +275,10 @@ def write_overlay(
     deltas: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
     inputs: tuple[str | os.PathLike, ...] = (),
     fixed_cams: set[str] | frozenset[str] = frozenset(),
+    layers: dict[str, str | os.PathLike] | None = None,
+    index: list[dict] | None = None,
+    frames: tuple[Iterable[RecordedImage], dict[str, CameraClock]] | None = None,
+    frames_from: str | os.PathLike | None = None,
 ) -> Path:
     """Write the overlay ``.rrd`` atomically and return its path.
 
@@ -291,6 +308,18 @@ def write_overlay(
         Those of ``cam_names`` fixed in the world (``world/cameras/cam_<name>``, e.g.
         uwb_room's wall cameras): their images and detected corners are read from there, not
         from under the AGV. The reprojected corners of each run are in its ``reprojected``.
+    layers : dict, optional
+        Run key → run ``.rrd`` (full or layers-only) whose every entity but the camera images
+        is copied under ``settings/<key>/`` (:func:`paths.sweep_setting`), chunk by chunk.
+    index : list of dict, optional
+        One entry per run of ``layers`` (key, label, rank, settings): ``sweep/index``.
+    frames : (images, clocks), optional
+        The recording's camera images (:data:`agvviz.viz.frames.RecordedImage`) and each
+        camera's clock in the first run: logged under ``image/<cam>`` for ``cam_names`` in
+        place of copying them from ``source``.
+    frames_from : path, optional
+        A sweep ``.rrd`` whose frames (``image/<cam>``) are copied in place of ``source``'s
+        (a diff of two settings of one sweep: their layers hold no images).
     """
     _check(runs)
     deltas = deltas or {}
@@ -308,8 +337,26 @@ def write_overlay(
         rec = rrd.rec
         _log_static(rec, runs, truth, report_markdown, list(deltas))
         if store is not None:
-            _copy_from_source(rec, store, cam_names, fixed_cams)
+            _copy_from_source(rec, store, cam_names, fixed_cams, images=frames is None and frames_from is None)
             rrd.check()
+        if frames_from is not None:
+            frames_store = read_rrd(frames_from).store
+            for cam in cam_names:
+                rec.send_chunks(frames_store.stream().filter(content=f"/{paths.overlay_image(cam)}", is_static=False,
+                                                             components=["EncodedImage:blob", "EncodedImage:media_type"]))
+            rrd.check()
+        if frames is not None and cam_names:
+            images, clocks = frames
+            log_images(rec, images, {c: clocks.get(c, []) for c in cam_names}, {c: paths.overlay_image(c) for c in cam_names})
+            rec.reset_time()
+            rrd.check()
+        layer_entities = {}  # run key → the entities its layers hold (for the layout)
+        for key, run_path in (layers or {}).items():
+            layer_entities[key] = _copy_layers(rec, key, run_path)
+            rrd.check()
+        if index is not None:
+            rec.log(paths.SWEEP_INDEX, rr.TextDocument(_index_markdown(index), media_type=rr.MediaType.MARKDOWN),
+                    static=True)
         if truth is not None:
             _send_transforms(rec, clock, paths.AGV_TRUTH, truth.frames, truth.time_ns, truth.T_world_agv)
         for index, run in enumerate(runs):
@@ -331,7 +378,8 @@ def write_overlay(
             _send_scalars(rec, clock, paths.overlay_delta(key), frames, time_ns, values)
             _send_zero_line(rec, clock, key, frames, time_ns)
         rrd.commit(overlay_blueprint(
-            runs, cam_names if store is not None else [], list(deltas), truth, magnification, fixed_cams
+            runs, cam_names if store is not None else [], list(deltas), truth, magnification, fixed_cams,
+            layer_entities=layer_entities,
         ))
     return out_path
 
@@ -420,19 +468,44 @@ def _log_static(
         )
 
 
+def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike) -> set[str]:
+    """Copy every entity of the run ``.rrd`` at ``run_path`` but its camera images (and the
+    recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged. Returns the
+    run's entity paths (without the prefix)."""
+    store = read_rrd(run_path).store
+    entities = [p.lstrip("/") for p in store.schema().entity_paths()]
+    left_out = ["/__properties/**", *[f"/{e}" for e in paths.camera_images(entities)]]
+    prefix = "/" + paths.sweep_setting(key)
+    rec.send_chunks(
+        store.stream().drop(content=left_out).map(lambda chunk: chunk.with_entity_path(prefix + chunk.entity_path))
+    )
+    return set(entities)
+
+
+def _index_markdown(index: list[dict]) -> str:
+    """``sweep/index``: the runs of a sweep ``.rrd`` as a table and a JSON block (read back by
+    :func:`agvviz.viz.readback.sweep_index`)."""
+    rows = [f"| {e.get('rank') or '—'} | {e['label']} | `{paths.sweep_setting(e['key'])}` |" for e in index]
+    block = json.dumps({"settings": index}, indent=2, sort_keys=True)
+    return "\n".join(["# settings in this file", "", "| rank | setting | entity root |", "| --- | --- | --- |", *rows,
+                      "", "```json", block, "```", ""])
+
+
 def _copy_from_source(
-    rec: rr.RecordingStream, store, cam_names: list[str], fixed_cams: set[str] | frozenset[str] = frozenset()
+    rec: rr.RecordingStream, store, cam_names: list[str], fixed_cams: set[str] | frozenset[str] = frozenset(),
+    images: bool = True,
 ) -> None:
-    """Copy the marker map, each camera's images and detected corners of a run (its store),
-    chunk by chunk (the JPEG bytes are never decoded or re-encoded); a camera of
-    ``fixed_cams`` from its world-fixed entity."""
+    """Copy the marker map, each camera's images (unless ``images`` is False) and detected
+    corners of a run (its store), chunk by chunk (the JPEG bytes are never decoded or
+    re-encoded); a camera of ``fixed_cams`` from its world-fixed entity."""
     rec.send_chunks(store.stream().filter(content=[f"/{paths.MARKERS}", f"/{paths.MARKERS_FILL}"]))
-    for cam in cam_names:
+    for cam in cam_names if images else []:
         rec.send_chunks(
             store.stream()
             .filter(content=f"/{paths.image(cam, cam in fixed_cams)}", is_static=False)
             .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_image(cam)}"))
         )
+    for cam in cam_names:
         rec.send_chunks(
             store.stream()
             .filter(content=f"/{paths.detected(cam, cam in fixed_cams)}", is_static=False,

@@ -473,3 +473,31 @@ def overlay_delta(quantity: str) -> str:
 
 def overlay_delta_zero(quantity: str) -> str:
     return f"{overlay_delta(quantity)}/zero"
+
+
+# -- the sweep .rrd: agvviz sweep, diff --out (agvviz/viz/overlay.py, issue 27) -------------------
+#: A sweep ``.rrd`` holds the overlay above (frames once under ``image/<cam>``, the settings drawn
+#: together) and, under ``settings/<key>/``, each setting's layers: every entity of a run
+#: ``.rrd`` at its own path below the prefix (``settings/<key>/world/agv/camera``,
+#: ``settings/<key>/errors/position_mm``, ``settings/<key>/run/manifest``, ...) except the
+#: camera images, which are under ``image/<cam>`` once.
+SWEEP_SETTINGS = "settings"
+SWEEP_INDEX = "sweep/index"  # TextDocument (static): JSON block, one entry per setting: key, label, rank, settings
+
+
+def sweep_setting(key: str) -> str:
+    """``settings/<key>``: root of one setting's layers in a sweep ``.rrd``."""
+    return f"{SWEEP_SETTINGS}/{key}"
+
+
+def sweep_layer(key: str, entity: str) -> str:
+    """``settings/<key>/<entity>``: a run entity (e.g. :data:`ERROR_POSITION_MM`) of setting ``key``."""
+    return f"{sweep_setting(key)}/{entity}"
+
+
+_CAMERA_IMAGE = re.compile(rf"^({re.escape(AGV_CAMERA)}|{re.escape(FIXED_CAMERAS)})/{re.escape(camera_frame(''))}[^/]+/image$")
+
+
+def camera_images(entity_paths) -> list[str]:
+    """The camera image entities (:func:`image`) among ``entity_paths``, sorted (zoom crops are not)."""
+    return sorted(p for p in entity_paths if _CAMERA_IMAGE.match(p))

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-from rerun.chunk import LazyStore, RrdReader
+from rerun.chunk import ChunkStore, LazyStore, RrdReader
 
 from agvviz.viz import paths
 
@@ -30,16 +30,37 @@ class RrdReadError(InputError):
 
 @dataclass
 class RrdContents:
-    """An opened run ``.rrd``: its recording store and the entity paths it holds."""
+    """An opened run ``.rrd``: its recording store and the entity paths it holds. For one
+    setting of a sweep ``.rrd`` (``FILE#SETTING``), that setting's layers with the
+    ``settings/<key>/`` prefix taken off, as in a run ``.rrd``; ``setting`` its label."""
 
     path: Path
-    store: LazyStore
+    store: LazyStore | ChunkStore
     entity_paths: set[str]
+    setting: str | None = None
+
+
+#: ``FILE#SETTING`` names one setting inside a sweep ``.rrd`` (``sweep.rrd#ippe``,
+#: ``sweep.rrd#solver=ippe``): wherever a run ``.rrd`` is read (diff, export, readback).
+SETTING_SEPARATOR = "#"
+
+
+def split_setting(path: str | os.PathLike) -> tuple[Path, str | None]:
+    """``"runs/s.rrd#ippe"`` → ``(Path("runs/s.rrd"), "ippe")``; a path without ``#`` (or a
+    file whose name holds one) → ``(path, None)``."""
+    text = os.fspath(path)
+    if SETTING_SEPARATOR not in text or Path(text).exists():
+        return Path(text), None
+    file, _, setting = text.rpartition(SETTING_SEPARATOR)
+    return Path(file), setting.strip()
 
 
 def read_rrd(path: str | os.PathLike) -> RrdContents:
-    """Open the recording in ``path`` (chunk data stays on disk until queried)."""
-    path = Path(path)
+    """Open the recording in ``path`` (chunk data stays on disk until queried); ``FILE#SETTING``
+    opens one setting of a sweep ``.rrd`` (:func:`setting_contents`)."""
+    path, setting = split_setting(path)
+    if setting is not None:
+        return setting_contents(read_rrd(path), setting)
     if not path.is_file():
         raise RrdReadError(f"no .rrd file at {path}" + (" (that is a folder)" if path.is_dir() else ""))
     _check_magic(path)
@@ -78,6 +99,62 @@ def _check_magic(path: Path) -> None:
                            "give a run written by `agvviz run`")
     if b"RRF2FOOT" not in tail:
         raise RrdReadError(f"{path} is incomplete (cut short: it has no .rrd footer); {_REWRITE}")
+
+
+def sweep_index(src: str | os.PathLike | RrdContents) -> list[dict]:
+    """The settings of a sweep ``.rrd`` (:data:`paths.SWEEP_INDEX`): one dict per setting with
+    ``key``, ``label``, ``rank`` and ``settings``; empty for a file that is no sweep."""
+    contents = _contents(src)
+    if paths.SWEEP_INDEX not in contents.entity_paths:
+        return []
+    return list(document_json(contents, paths.SWEEP_INDEX).get("settings", []))
+
+
+def select_setting(index: list[dict], setting: str, where: str = "the sweep") -> dict:
+    """The entry of ``index`` that ``setting`` names: its label (``ippe``,
+    ``lm-lm_max_iterations=3``) or key (``s2_ippe``), else ``name=value`` pairs joined by
+    ``,`` that exactly one setting has (``solver=ippe``). One-line :class:`RrdReadError` otherwise."""
+    labels = ", ".join(entry["label"] for entry in index) or "none"
+    for entry in index:
+        if setting in (entry["label"], entry["key"]):
+            return entry
+    pairs = [part.partition("=") for part in setting.split(",") if part.strip()]
+    if pairs and all(sep and name.strip() for name, sep, _ in pairs):
+        matches = [
+            entry for entry in index
+            if all(name.strip() in entry["settings"] and str(entry["settings"][name.strip()]) == value.strip()
+                   for name, _, value in pairs)
+        ]
+        if len(matches) == 1:
+            return matches[0]
+        if len(matches) > 1:
+            raise RrdReadError(f"{where}: {setting!r} fits {len(matches)} settings "
+                               f"({', '.join(m['label'] for m in matches)}); give one label")
+    raise RrdReadError(f"{where} has no setting {setting!r}; its settings: {labels}")
+
+
+def setting_contents(contents: RrdContents, setting: str) -> RrdContents:
+    """One setting of the sweep ``.rrd`` ``contents``: its layers (``settings/<key>/...``)
+    re-pathed as in a run ``.rrd``, in memory (the layers hold no images: small)."""
+    index = sweep_index(contents)
+    if not index:
+        raise RrdReadError(f"{contents.path} is no sweep .rrd (it has no {paths.SWEEP_INDEX}); "
+                           f"'{SETTING_SEPARATOR}{setting}' picks a setting inside one")
+    entry = select_setting(index, setting, str(contents.path))
+    prefix = "/" + paths.sweep_setting(entry["key"])
+    try:
+        store = (
+            contents.store.stream()
+            .filter(content=f"{prefix}/**")
+            .map(lambda chunk: chunk.with_entity_path(chunk.entity_path[len(prefix):] or "/"))
+            .collect()
+        )
+        entity_paths = {p.lstrip("/") for p in store.schema().entity_paths()}
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001 — Rerun raises RuntimeError, or panics, on damage
+        raise RrdReadError(f"cannot read setting {entry['label']} of {contents.path}: {_one_line(exc)}") from exc
+    return RrdContents(path=contents.path, store=store, entity_paths=entity_paths, setting=entry["label"])
 
 
 def _contents(src: str | os.PathLike | RrdContents) -> RrdContents:
@@ -292,3 +369,26 @@ def series_name(src: str | os.PathLike | RrdContents, entity: str) -> str:
         if rows:
             return rows[-1][component][0]
     raise RrdReadError(f"{contents.path}: entity {entity!r} has no series name")
+
+
+def frame_stamps(src: str | os.PathLike | RrdContents, entity: str, component: str) -> list[tuple[int, int, int]]:
+    """``(frame, time_ns, elapsed_ns)`` of every row of ``entity`` carrying ``component``, in
+    logging order: on a run's detected corners, the clock its frames were logged on."""
+    return [
+        (int(row[paths.TIMELINE_FRAME]), int(row[paths.TIMELINE_TIME]), int(row.get(paths.TIMELINE_ELAPSED) or 0))
+        for row in _rows(src, entity, component)
+        if row.get(paths.TIMELINE_FRAME) is not None and row.get(paths.TIMELINE_TIME) is not None
+    ]
+
+
+def recording_id_of(path: str | os.PathLike) -> str:
+    """The Rerun recording id of the ``.rrd`` at ``path`` (a frames file written for it shares it)."""
+    try:
+        recordings = RrdReader(Path(path)).recordings()
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001
+        raise RrdReadError(f"cannot read {path}: {_one_line(exc)}; {_REWRITE}") from exc
+    if not recordings:
+        raise RrdReadError(f"{path} holds no recording; {_REWRITE}")
+    return recordings[0].recording_id

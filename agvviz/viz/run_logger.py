@@ -73,6 +73,10 @@ class RunLogger:
     max_reproj_px : float, optional
         The run's ``max_reproj_px`` setting, drawn as a threshold line on the reprojection
         plot; None: no line.
+    images : bool
+        False: the camera images are left out (``run --images none`` and a sweep's layers:
+        every other entity is logged as in a full run; :mod:`agvviz.viz.frames` adds the
+        frames from the recording).
     """
 
     def __init__(
@@ -84,6 +88,7 @@ class RunLogger:
         inputs: tuple[str | os.PathLike, ...] = (),
         recording_start_ns: int | None = None,
         max_reproj_px: float | None = None,
+        images: bool = True,
     ):
         # OutputError (from agvviz.errors) when out_path is an input or cannot be written.
         self._file = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=inputs)
@@ -99,6 +104,7 @@ class RunLogger:
         self._frames_buffered = 0
         #: The modality loggers.
         self.frames = FrameLogger(self._rec, self._columns, self.max_reproj_px)
+        self.frames.images = bool(images)
         self.lm = LmLogger(self._rec, self._columns)
         self.uncertainty = UncertaintyLogger(self._rec, self._columns)
         self._budget_sources: list[str] | None = None  # an error budget was logged: its sources

@@ -1,0 +1,128 @@
+"""The issue 27 figures of the sweep `.rrd`: whole `agvviz` processes on the default qr_floor
+recording (200 frames, `typical`), paired in one run, each from an empty detection cache.
+
+Usage:  python bench/bench_sweep.py [--workdir DIR] [--repeats 3] [--solvers lm,ippe,p4p,sqpnp]
+                                    [--python PYTHON] [--baseline-tree DIR] [--skip-rmse]
+
+1. Output bytes: everything `agvviz sweep --set solver=<solvers>` writes into its folder
+   (sweep.rrd, ranking.csv, ranking.md; before issue 27: a run per setting and overlay.rrd)
+   ÷ the `.rrd` of one `agvviz run`. Target ≤ 1.5 (before: 5 files of 44 MB, ≈5).
+2. Wall time: the sweep (`--jobs 2`) ÷ one cold `agvviz run`, measured in pairs (run, sweep,
+   each with a fresh empty AGVVIZ_CACHE_DIR); the ratio of each pair, their median and spread.
+   Target ≤ 1.3 (before: 1.98 on a quiet machine). The machine is shared: quote the pairs.
+   With ``--baseline-tree DIR`` every repeat also measures that checkout's pair (e.g. the tree
+   before issue 27), alternating with this one, so before and after meet the same load.
+3. Each solver's position RMSE inside the sweep file (ranking.csv) against a standalone
+   `agvviz run --set solver=S` (its summary): they must be equal.
+
+Every measurement is a child process (`PYTHON -m agvviz ...`, run in the measured checkout so
+`-m` finds its agvviz) timed from start to exit; its output goes to DIR/logs/. The recording is
+kept in DIR and reused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--workdir", type=Path, default=Path("/tmp/agvviz-bench-sweep"))
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--solvers", default="lm,ippe,p4p,sqpnp")
+    parser.add_argument("--python", default=sys.executable)
+    parser.add_argument("--baseline-tree", type=Path, default=None, help="another checkout measured in turn")
+    parser.add_argument("--skip-rmse", action="store_true", help="leave figure 3 out")
+    args = parser.parse_args()
+    work = args.workdir.resolve()
+    for sub in ("caches", "runs", "logs", "tmp"):
+        shutil.rmtree(work / sub, ignore_errors=True)
+        (work / sub).mkdir(parents=True)
+    recording = work / "qr_floor.mcap"
+    counter = iter(range(10_000))
+
+    def agvviz(tree: Path, *argv: str, cold: bool = True) -> float:
+        n = next(counter)
+        env = dict(os.environ, PYTHONPATH=str(tree), TMPDIR=str(work / "tmp"))
+        if cold:
+            env["AGVVIZ_CACHE_DIR"] = str(work / "caches" / f"c{n}")
+        log = work / "logs" / f"{n:03d}-{argv[0]}.log"
+        print(f"  $ agvviz {' '.join(argv)}   (in {tree})", flush=True)
+        t0 = time.perf_counter()
+        with open(log, "w") as out:
+            done = subprocess.run([args.python, "-m", "agvviz", *argv], env=env, cwd=tree, stdout=out,
+                                  stderr=subprocess.STDOUT, check=False)
+        wall = time.perf_counter() - t0
+        if done.returncode != 0:
+            sys.exit(f"agvviz {' '.join(argv)} failed (exit {done.returncode}); see {log}")
+        return wall
+
+    if not recording.exists():
+        agvviz(ROOT, "record", "qr_floor", "--out", str(recording), cold=False)
+    trees = {"this tree": ROOT}
+    if args.baseline_tree is not None:
+        trees["baseline"] = args.baseline_tree.resolve()
+    pairs = {name: [] for name in trees}
+    written = {}
+    for _ in range(args.repeats):
+        for name, tree in trees.items():
+            run_rrd = work / "runs" / f"{name.replace(' ', '_')}-run.rrd"
+            sweep_dir = work / "runs" / f"{name.replace(' ', '_')}-sweep"
+            run_s = agvviz(tree, "run", str(recording), "--out", str(run_rrd))
+            shutil.rmtree(sweep_dir, ignore_errors=True)
+            sweep_s = agvviz(tree, "sweep", str(recording), "--set", f"solver={args.solvers}", "--jobs", "2",
+                             "--out-dir", str(sweep_dir))
+            pairs[name].append((run_s, sweep_s))
+            written[name] = (run_rrd, sweep_dir)
+            print(f"  {name}: run {run_s:.1f} s, sweep {sweep_s:.1f} s, ratio {sweep_s / run_s:.2f}", flush=True)
+
+    n_solvers = len(args.solvers.split(","))
+    print()
+    for name in trees:
+        run_rrd, sweep_dir = written[name]
+        files = sorted(p for p in sweep_dir.iterdir() if p.is_file())
+        sweep_bytes = sum(p.stat().st_size for p in files)
+        ratios = [s / r for r, s in pairs[name]]
+        print(f"{name} ({trees[name]}):")
+        print(f"1. output bytes: sweep of {n_solvers} solvers, {len(files)} files, {sweep_bytes / 1e6:.1f} MB "
+              f"({', '.join(f'{p.name} {p.stat().st_size / 1e6:.2f}' for p in files)}) ÷ one run "
+              f"{run_rrd.stat().st_size / 1e6:.1f} MB = {sweep_bytes / run_rrd.stat().st_size:.2f}   (target ≤ 1.5)")
+        print(f"2. wall: sweep ÷ one cold run, {len(ratios)} pairs {', '.join(f'{r:.2f}' for r in ratios)}: "
+              f"median {statistics.median(ratios):.2f}; run median {statistics.median(r for r, _ in pairs[name]):.1f} s, "
+              f"sweep median {statistics.median(s for _, s in pairs[name]):.1f} s   (target ≤ 1.3)")
+    if args.skip_rmse:
+        return
+    _, sweep_dir = written["this tree"]
+    with open(sweep_dir / "ranking.csv", newline="") as f:
+        ranking = {row["setting"]: row for row in csv.DictReader(f)}
+    print("3. position RMSE [mm], in the sweep file vs a standalone run:")
+    for solver in args.solvers.split(","):
+        alone = work / "runs" / f"{solver}.rrd"
+        agvviz(ROOT, "run", str(recording), "--set", f"solver={solver}", "--out", str(alone), cold=False)
+        rmse = _summary(alone, args.python, ROOT)["position_error_mm"]["rmse"]
+        inside = float(ranking[solver]["position_rmse_mm"])
+        same = f"{rmse:.4g}" == f"{inside:.4g}"
+        print(f"   {solver:6s} sweep {inside:.4g}  run {rmse:.4g}  {'equal' if same else 'DIFFERENT'}")
+
+
+def _summary(rrd: Path, python: str, tree: Path) -> dict:
+    code = ("import json,sys; from agvviz.viz.readback import document_json; from agvviz.viz import paths; "
+            "print(json.dumps(document_json(sys.argv[1], paths.RUN_SUMMARY)))")
+    out = subprocess.run([python, "-c", code, str(rrd)], env=dict(os.environ, PYTHONPATH=str(tree)), cwd=tree,
+                         capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)
+
+
+if __name__ == "__main__":
+    main()
