@@ -302,6 +302,14 @@ class RunSettings:
     checks_odom_deg_per_deg: float = setting(
         0.02, "checks: odometry heading σ per degree turned (deg/deg)", min=0.0, max=10.0
     )
+    checks_floor_tilt_deg: float = setting(
+        0.35, "checks: with planar (wheel) odometry, σ of the floor's tilt between two poses (deg): the odometry "
+        "carries no roll, pitch or height", min=0.0, max=90.0,
+    )
+    checks_floor_height_m: float = setting(
+        0.005, "checks: with planar (wheel) odometry, σ of the floor's height between two poses (m; plus distance × tilt)",
+        min=0.0, max=10.0,
+    )
     checks_ambiguity_ratio: float = setting(
         4.0, "checks: IPPE ambiguity ratio below which the mirror pose is tested against the motion", min=1.0, max=1e6
     )
