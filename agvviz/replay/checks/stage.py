@@ -279,8 +279,10 @@ class CheckStage(ClockChecks):
         odometry by the same body-frame offset while the codes change is the camera's
         **extrinsic** (a map entry moves the pose only while its code is in view)."""
         last, last_frame = state.last_suspect, state.last_suspect_frame
-        if last is None or last_frame is None or last.cause == suspects.CAUSE_MIRROR_FLIP or last.check != suspects.CHECK_MOTION:
+        if last is None or last_frame is None or last.cause == suspects.CAUSE_MIRROR_FLIP:
             return None
+        if not any(r.check == suspects.CHECK_MOTION and r.failed for r in last.checks):
+            return None  # (its pose was not doubted: it failed a marker, payload or stamp check only)
         camera_level = last.marker_id is None and last.cause in (suspects.CAUSE_UNKNOWN, suspects.CAUSE_EXTRINSIC)
         code_level = last.marker_id is not None and last.cause in (suspects.CAUSE_MAP_ENTRY, suspects.CAUSE_PAYLOAD)
         if not (camera_level or code_level) and set(frame.used_marker_ids) != set(last_frame.used_marker_ids):
