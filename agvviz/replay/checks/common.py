@@ -151,16 +151,26 @@ def _left_cov(frame: FrameResult) -> np.ndarray:
     return cov if cov is not None and np.all(np.isfinite(cov)) else np.zeros((6, 6))
 
 
-def carried_difference_cov(ref: FrameResult, T_carried: np.ndarray, frame: FrameResult, cs: CheckSettings) -> np.ndarray:
+def unambiguous(frame: FrameResult, cs: CheckSettings) -> bool:
+    """Whether the frame's pose is clear of its mirror pose (no ghost, or an IPPE ratio of at
+    least ``ambiguity_ratio``): only then is its first-order covariance, linearised at that
+    pose, trusted to say which errors it shares with another frame."""
+    return frame.T_world_agv_ghost is None or frame.ambiguity_ratio is None or frame.ambiguity_ratio >= cs.ambiguity_ratio
+
+
+def carried_difference_cov(
+    ref: FrameResult, T_carried: np.ndarray, frame: FrameResult, cs: CheckSettings, common: bool = True
+) -> np.ndarray:
     """(6, 6) covariance of ``pose_difference(T_carried, frame.T_world_agv)``, ``T_carried`` the
     reference's pose carried on by a step (``ref.T_world_agv · step``; the step's own noise not
     included): the two covariances with the sources they share cancelling as far as their
     geometry agrees (the camera's calibration and extrinsic, the map entries and corners of the
     codes both used: :func:`agvviz.solvers.uncertainty.difference_covariance`), plus each pose's
-    floor — the reference's carried to the carried origin, so its rotation swings the step."""
+    floor — the reference's carried to the carried origin, so its rotation swings the step.
+    ``common=False`` takes the two as independent (their covariances add)."""
     C = uncertainty.difference_covariance(
-        _left_cov(ref), ref.cov_common_factors, T_carried[:3, 3],
-        _left_cov(frame), frame.cov_common_factors, frame.T_world_agv[:3, 3],
+        _left_cov(ref), ref.cov_common_factors if common else None, T_carried[:3, 3],
+        _left_cov(frame), frame.cov_common_factors if common else None, frame.T_world_agv[:3, 3],
     )
     J = _lever(T_carried[:3, 3] - ref.T_world_agv[:3, 3])
     return C + J @ floor_cov(cs) @ J.T + floor_cov(cs)

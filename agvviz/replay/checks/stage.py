@@ -26,6 +26,7 @@ from agvviz.replay.checks.common import (
     carried_difference_cov,
     chi2_sigma,
     odometry_cov,
+    unambiguous,
     mahalanobis_sigma,
     pose_cov,
     pose_difference,
@@ -112,6 +113,7 @@ class CheckStage(ClockChecks):
         finding = None  # (cause, message, marker_id, cam_name) of the first explained failure
         if motion is not None:
             result, delta, predicted, ref = motion
+            motion_at = len(results)
             results.append(result)
             ambiguity = self._ambiguity(frame, predicted, ref, odometry, result)
             if ambiguity is not None:
@@ -120,7 +122,7 @@ class CheckStage(ClockChecks):
                     finding = (suspects.CAUSE_MIRROR_FLIP, f"mirror-pose flip: {ambiguity.detail}", None, None)
             carried = self._persisting(frame, state, odometry, delta, result) if finding is None else None
             if carried is not None:
-                results[-1] = carried[0]
+                results[motion_at] = carried[0]
                 finding = carried[1]
                 motion = (carried[0],) + motion[1:]  # the pose is doubted: its error persists
             elif result.failed and finding is None:
@@ -129,7 +131,10 @@ class CheckStage(ClockChecks):
         if offset is not None:
             results.append(offset[0])
             if offset[0].failed:
-                finding = finding or offset[1]
+                # a stamp offset fitted over many steps outweighs a camera-level guess from one stretch
+                camera_level = finding is not None and finding[2] is None and finding[0] in (
+                    suspects.CAUSE_UNKNOWN, suspects.CAUSE_EXTRINSIC)
+                finding = offset[1] if finding is None or camera_level else finding
         marker_results, marker_finding = self._markers(frame)
         results += marker_results
         motion_failed = motion is not None and motion[0].failed
@@ -242,10 +247,11 @@ class CheckStage(ClockChecks):
             return None
         cs = self.settings
         T_ref = ref.frame.T_world_agv
+        common = unambiguous(frame, cs) and unambiguous(ref.frame, cs)
         if odometry is not None and ref.odometry is not None:
             step = np.linalg.inv(ref.odometry) @ odometry
             predicted = T_ref @ step
-            C = carried_difference_cov(ref.frame, predicted, frame, cs) + odometry_cov(step, cs)
+            witness_cov = odometry_cov(step, cs)
             witness = "odometry"
         elif ref.velocity is not None:
             dt = (frame.log_time_ns - ref.frame.log_time_ns) / 1e9
@@ -255,18 +261,21 @@ class CheckStage(ClockChecks):
             predicted = T_ref.copy()
             predicted[:3, 3] = T_ref[:3, 3] + v[:3] * dt
             predicted[:3, :3] = so3.exp(v[3:] * dt) @ T_ref[:3, :3]
-            C = carried_difference_cov(ref.frame, predicted, frame, cs)
-            C[:3, :3] += np.eye(3) * (0.5 * CV_ACCEL_MPS2 * dt * dt + cs.pose_floor_m) ** 2
-            C[3:, 3:] += np.eye(3) * (0.5 * CV_ANGULAR_ACCEL_RADPS2 * dt * dt + cs.pose_floor_rad) ** 2
+            witness_cov = np.diag([(0.5 * CV_ACCEL_MPS2 * dt * dt + cs.pose_floor_m) ** 2] * 3
+                                  + [(0.5 * CV_ANGULAR_ACCEL_RADPS2 * dt * dt + cs.pose_floor_rad) ** 2] * 3)
             witness = "constant-velocity model"
         else:
             return None
+        C = carried_difference_cov(ref.frame, predicted, frame, cs, common) + witness_cov
+        # The mirror pose and the offset explanations are judged against the two covariances
+        # taken as independent: the shared errors were linearised at the chosen pose, not theirs.
+        C_apart = carried_difference_cov(ref.frame, predicted, frame, cs, False) + witness_cov if common else C
         delta = pose_difference(predicted, frame.T_world_agv)
         sigma = mahalanobis_sigma(delta, C)
         detail = (
             f"pose {size_text(delta)} from frame {ref.frame.index} carried by the {witness}"
         )
-        return suspects.CheckResult(suspects.CHECK_MOTION, sigma, cs.limit_sigma, detail), delta, (predicted, C), ref
+        return suspects.CheckResult(suspects.CHECK_MOTION, sigma, cs.limit_sigma, detail), delta, (predicted, C_apart), ref
 
     def _persisting(self, frame: FrameResult, state: _CameraState, odometry, delta, motion: suspects.CheckResult):
         """The suspect frame before this one, carried on by the odometry, agrees with this frame:
@@ -283,6 +292,8 @@ class CheckStage(ClockChecks):
             return None
         if not any(r.check == suspects.CHECK_MOTION and r.failed for r in last.checks):
             return None  # (its pose was not doubted: it failed a marker, payload or stamp check only)
+        if not (unambiguous(frame, self.settings) and unambiguous(last_frame, self.settings)):
+            return None  # near its mirror pose a frame's error need not persist: judged on its own
         camera_level = last.marker_id is None and last.cause in (suspects.CAUSE_UNKNOWN, suspects.CAUSE_EXTRINSIC)
         code_level = last.marker_id is not None and last.cause in (suspects.CAUSE_MAP_ENTRY, suspects.CAUSE_PAYLOAD)
         if not (camera_level or code_level) and set(frame.used_marker_ids) != set(last_frame.used_marker_ids):
