@@ -95,8 +95,8 @@ class CheckSettings:
     """The check stage's parameters (``checks_*`` run settings, docs/suspects.md)."""
 
     limit_sigma: float = 5.0
-    pose_floor_m: float = 0.002
-    pose_floor_rad: float = math.radians(0.1)
+    pose_floor_m: float = 0.0005
+    pose_floor_rad: float = math.radians(0.02)
     odom_m_per_m: float = 0.02
     odom_rad_per_m: float = math.radians(0.5)
     odom_rad_per_rad: float = 0.02
