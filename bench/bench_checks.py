@@ -34,6 +34,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from agvviz import scenarios
 from agvviz.app.run import run_recording
 from agvviz.replay.run import replay_frames
@@ -85,6 +87,35 @@ def checked_offline(path: Path, folder: Path, settings: RunSettings):
     stage = CheckStage(CheckSettings.of(settings), lambda t: odometry.at(t, ODOMETRY_MAX_GAP_NS, ODOMETRY_MAX_GAP_NS),
                        lambda: qr_map)
     return [stage.check(f) for f in frames]
+
+
+#: Floors (checks_pose_floor_m, checks_pose_floor_deg) whose clean motion d² ``--offline`` prints.
+FLOORS = ((0.002, 0.1), (0.0005, 0.02), (0.0, 0.0))
+
+
+def clean_motion_d2(paths: list[Path], folder: Path, floor_m: float, floor_deg: float):
+    """Every motion check's d² = δᵀC⁻¹δ (6 dof) on the clean recordings under these floors, and
+    the frames flagged."""
+    from agvviz.replay.checks import CheckSettings, CheckStage
+    from agvviz.replay.sync import ODOMETRY_MAX_GAP_NS
+
+    settings = RunSettings(checks_pose_floor_m=floor_m, checks_pose_floor_deg=floor_deg)
+    d2, flagged = [], 0
+    for path in paths:
+        frames, odometry, qr_map = solved_frames(path, folder)
+        stage = CheckStage(CheckSettings.of(settings),
+                           lambda t, o=odometry: o.at(t, ODOMETRY_MAX_GAP_NS, ODOMETRY_MAX_GAP_NS), lambda q=qr_map: q)
+        motion = stage._motion
+
+        def recorded(frame, state, odometry_now, motion=motion, stage=stage):
+            out = motion(frame, state, odometry_now)
+            if out is not None and state in stage.cameras.values():  # (not a stretch's own test)
+                d2.append(stage.last_motion_d2)
+            return out
+
+        stage._motion = recorded
+        flagged += sum(stage.check(f).suspect is not None for f in frames)
+    return np.array(d2), flagged
 
 
 def main() -> None:
@@ -143,6 +174,12 @@ def main() -> None:
               f"({100 * flagged / max(affected, 1):.1f} %), cause named right {named}/{flagged} "
               f"({100 * named / max(flagged, 1):.1f} %)")
     print(f"clean typical: {clean[0]}/{clean[1]} solved frames flagged ({100 * clean[0] / max(clean[1], 1):.2f} %)")
+    if args.offline:
+        for floor_m, floor_deg in FLOORS:
+            d2, flagged = clean_motion_d2(clean_paths, work / "solved", floor_m, floor_deg)
+            print(f"floors {floor_m * 1000:g} mm, {floor_deg:g}°: clean frames flagged {flagged}; motion-check d² "
+                  f"mean {d2.mean():.2f}, p99 {np.percentile(d2, 99):.1f}, max {d2.max():.1f} over {len(d2)} "
+                  f"(χ²₆: mean 6, 99 % 16.8; the 5σ limit 41.0)")
     rec = clean_paths[0]
     run_recording(rec, RunSettings(), work / "warm.rrd")  # fill the detection cache
     ratios = []

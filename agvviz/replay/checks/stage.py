@@ -272,6 +272,7 @@ class CheckStage(ClockChecks):
         C_apart = carried_difference_cov(ref.frame, predicted, frame, cs, False) + witness_cov if common else C
         delta = pose_difference(predicted, frame.T_world_agv)
         sigma = mahalanobis_sigma(delta, C)
+        self.last_motion_d2 = float(delta @ np.linalg.solve(C, delta))  # (for benches: bench_checks.py)
         detail = (
             f"pose {size_text(delta)} from frame {ref.frame.index} carried by the {witness}"
         )
