@@ -287,11 +287,12 @@ class RunSettings:
         5.0, "checks: a frame is a suspect when a check's disagreement exceeds this many σ", min=1.0, max=100.0
     )
     checks_pose_floor_m: float = setting(
-        0.002, "checks: systematic position σ added to every pose's covariance (calibration, map placement; m)",
+        0.0005, "checks: position σ added per axis to every pose's covariance, a margin on top of its own (m)",
         min=0.0, max=10.0,
     )
     checks_pose_floor_deg: float = setting(
-        0.1, "checks: systematic rotation σ added to every pose's covariance (deg)", min=0.0, max=90.0
+        0.02, "checks: rotation σ added per axis to every pose's covariance, a margin on top of its own (deg)",
+        min=0.0, max=90.0,
     )
     checks_odom_m_per_m: float = setting(
         0.02, "checks: odometry position σ per metre travelled (m/m)", min=0.0, max=10.0
@@ -301,6 +302,14 @@ class RunSettings:
     )
     checks_odom_deg_per_deg: float = setting(
         0.02, "checks: odometry heading σ per degree turned (deg/deg)", min=0.0, max=10.0
+    )
+    checks_floor_tilt_deg: float = setting(
+        0.35, "checks: with planar (wheel) odometry, σ of the floor's tilt between two poses (deg): the odometry "
+        "carries no roll, pitch or height", min=0.0, max=90.0,
+    )
+    checks_floor_height_m: float = setting(
+        0.005, "checks: with planar (wheel) odometry, σ of the floor's height between two poses (m; plus distance × tilt)",
+        min=0.0, max=10.0,
     )
     checks_ambiguity_ratio: float = setting(
         4.0, "checks: IPPE ambiguity ratio below which the motion's likelihood ratio may name a mirror flip",

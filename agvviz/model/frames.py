@@ -111,6 +111,11 @@ class FrameResult:
     #: (6, 6) covariance of T_world_agv, left perturbation in the world frame, δ = (ρ, φ).
     cov_world_agv: np.ndarray | None = None
     position_cov_world_m2: np.ndarray | None = None  # (3, 3) of the AGV origin in the world
+    #: The covariance's common-mode factors, signed (6, p) in the same tangent space: "camera" (its
+    #: intrinsics, distortion, extrinsic) and "marker:<id>" per used marker (its corners and map entry),
+    #: whose errors recur in other frames of the camera; cov_world_agv includes Σ S Sᵀ. None: all of
+    #: cov_world_agv is independent between frames (agvviz.solvers.uncertainty.frame_covariance_split).
+    cov_common_factors: dict | None = None
     position_sigma_m: float | None = None  # sqrt(trace(position_cov_world_m2))
     #: sqrt(trace) of the Cramér–Rao bound on the AGV position at the true pose (m).
     crlb_position_m: float | None = None

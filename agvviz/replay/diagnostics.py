@@ -198,13 +198,15 @@ class PoseDiagnostics:
         camera_on_agv: bool,
         markers: list[tuple[np.ndarray, np.ndarray]] | None = None,
         T_frame_marker: np.ndarray | None = None,
+        marker_ids: list[str] | None = None,
     ) -> None:
         """Covariance, bound and NEES of a solved frame; then remember it for the next one.
 
         ``points_marker_m`` are in the frame of ``T_cam_marker``, whose pose in the frame F the
         markers are fixed in is ``T_frame_marker`` (identity for a joint solve, whose points are
         in F); ``markers`` lists every used marker's mapped ``T_F_marker`` and its points in its
-        own frame, in the order of the points (default: one marker, ``T_frame_marker``)."""
+        own frame, in the order of the points (default: one marker, ``T_frame_marker``), and
+        ``marker_ids`` their ids (for the covariance's common-mode factors)."""
         T_world_cam, T_world_agv = result.T_world_cam, result.T_world_agv
         T_world_marker = T_world_cam @ T_cam_marker
         is_planar = self.solver == "planar"
@@ -244,12 +246,17 @@ class PoseDiagnostics:
                     )
                 else:
                     T_F_m = np.eye(4) if T_frame_marker is None else np.asarray(T_frame_marker, dtype=float)
-                    cov, _ = uncertainty.frame_covariance_full(
-                        T_cam_marker @ se3.inverse(T_F_m),
-                        markers if markers is not None else [(T_F_m, points_marker_m)],
+                    used = markers if markers is not None else [(T_F_m, points_marker_m)]
+                    ids = list(marker_ids) if marker_ids is not None and len(marker_ids) == len(used) else [
+                        f"#{i}" for i in range(len(used))]  # unnamed: shared with no other frame
+                    cov, result.cov_common_factors = uncertainty.frame_covariance_split(
+                        T_cam_marker @ se3.inverse(T_F_m), used, ids,
                         K, sigma, self.systematic, T_world_cam, T_world_agv,
                         T_agv_cam if camera_on_agv else T_world_cam, camera_on_agv, objective,
                     )
+                    if marker_ids is None or len(marker_ids) != len(used):
+                        result.cov_common_factors = {
+                            g: S for g, S in result.cov_common_factors.items() if g == uncertainty.CAMERA_GROUP}
             result.cov_world_agv = cov
             result.position_cov_world_m2 = uncertainty.position_covariance(cov, T_world_agv)
             result.position_sigma_m = uncertainty.position_bound_m(result.position_cov_world_m2)

@@ -498,6 +498,7 @@ class Replay:
         )
         result.used_marker_ids = (observation.marker_id,)
         used_markers = [(T_frame_marker, points_marker_m)]  # each used marker's pose in its frame and points
+        used_ids = [observation.marker_id]
         same_frame = [c for c in candidates if c[3] == marker_frame]
         if self.settings.solver != "planar":
             self._diagnostics.note_single_marker(solved.T_cam_marker, points_marker_m, ideal_px, camera.K)
@@ -534,6 +535,7 @@ class Replay:
                 ideal_px = np.vstack([c[1] for c in used])
                 points_marker_m = np.vstack([se3.transform_points(c[4], c[2]) for c in used])
                 used_markers = [(c[4], c[2]) for c in used]
+                used_ids = [c[0].marker_id for c in used]
                 T_frame_marker = np.eye(4)
                 solved = SolveResult(joint.T_cam_F, "", joint.iterations, joint.reproj_rms_px, joint.path)
                 result.used_marker_ids = joint.used
@@ -585,7 +587,7 @@ class Replay:
             result.roll_error_deg = float(roll_err)
         self._diagnostics.finish(
             result, solved.T_cam_marker, points_marker_m, ideal_px, camera.K, cam.T_agv_cam, camera_on_agv,
-            used_markers, T_frame_marker,
+            used_markers, T_frame_marker, used_ids,
         )
         return result
 

@@ -281,22 +281,29 @@ class _View:
     def systematic_parts(self, H: np.ndarray, sigmas: SystematicSigmas) -> dict[str, np.ndarray]:
         """``H B Σ_θ Bᵀ Hᵀ`` (k, k) of corner bias, intrinsics, distortion and map for the
         sensitivity ``H`` (k, 2N) of the estimate's k parameters to the residuals."""
+        factors = self.systematic_factors(H, sigmas)
+        k = H.shape[0]
+        return {
+            name: sum((S @ S.T for S in (value if isinstance(value, list) else [value])), np.zeros((k, k)))
+            for name, value in factors.items()
+        }
+
+    def systematic_factors(self, H: np.ndarray, sigmas: SystematicSigmas) -> dict:
+        """Signed factors of the systematic sources: each column is the change of the estimate's
+        k parameters for a one-σ error of one source parameter, ``−H B_j σ_j`` (dδ = −H dr):
+        ``intrinsics`` (k, 4: fx, fy, cx, cy), ``distortion`` (k, 4: k1, k2, p1, p2) and, one per
+        marker in the order of ``markers``, ``corner_bias`` (k, 2n: each corner's offset along the
+        marker's x and y) and ``map`` (k, 7: position x, y, z, tilt x, y, yaw, scale). A source's
+        covariance is S Sᵀ (summed over the markers)."""
         k, n = H.shape[0], self.n
         H_pt = H.reshape(k, n, 2).transpose(1, 0, 2)  # (N, k, 2): H's columns of each point
-
-        def part(B: np.ndarray, variances: np.ndarray) -> np.ndarray:
-            HB = H @ B
-            return (HB * variances) @ HB.T
-
-        parts = {}
+        factors = {}
         # Intrinsics: u = fx·x/z + cx, v = fy·y/z + cy (ideal pixels: no skew, no distortion).
         xn, yn = self.w_cam[:, 0] / self.w_cam[:, 2], self.w_cam[:, 1] / self.w_cam[:, 2]
         B_K = np.zeros((n, 2, 4))
         B_K[:, 0, 0], B_K[:, 1, 1], B_K[:, 0, 2], B_K[:, 1, 3] = xn, yn, 1.0, 1.0
-        parts["intrinsics"] = part(
-            B_K.reshape(-1, 4),
-            np.array([sigmas.focal_px, sigmas.focal_px, sigmas.principal_point_px, sigmas.principal_point_px]) ** 2,
-        )
+        sigma_K = np.array([sigmas.focal_px, sigmas.focal_px, sigmas.principal_point_px, sigmas.principal_point_px])
+        factors["intrinsics"] = -(H @ B_K.reshape(-1, 4)) * sigma_K
         r2 = xn**2 + yn**2
         f = np.array([self.K[0, 0], self.K[1, 1]])
         xy = np.stack([xn, yn], axis=1)
@@ -305,16 +312,17 @@ class _View:
         B_D[:, :, 1] = r2[:, None] ** 2 * xy * f
         B_D[:, :, 2] = np.stack([2 * xn * yn, r2 + 2 * yn**2], axis=1) * f
         B_D[:, :, 3] = np.stack([r2 + 2 * xn**2, 2 * xn * yn], axis=1) * f
-        parts["distortion"] = part(B_D.reshape(-1, 4), np.array([sigmas.k1, sigmas.k2, sigmas.p1, sigmas.p2]) ** 2)
+        factors["distortion"] = -(H @ B_D.reshape(-1, 4)) * np.array([sigmas.k1, sigmas.k2, sigmas.p1, sigmas.p2])
         # Per marker: points in F move by dX_F; pixels by J_px_wrt_F · dX_F.
-        bias, placement = np.zeros((k, k)), np.zeros((k, k))
-        map_var = np.array([sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,
-                            sigmas.map_tilt_rad, sigmas.map_tilt_rad, sigmas.map_yaw_rad, sigmas.map_scale]) ** 2
+        sigma_map = np.array([sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,
+                              sigmas.map_tilt_rad, sigmas.map_tilt_rad, sigmas.map_yaw_rad, sigmas.map_scale])
+        factors["corner_bias"], factors["map"] = [], []
         for (T_F_marker, points_marker_m), rows in zip(self.markers, self.slices):
             R = np.asarray(T_F_marker, dtype=float)[:3, :3]
             x = np.asarray(points_marker_m, dtype=float)
             Jm = self.J_px_wrt_F[rows]  # (n_i, 2, 3)
             Hm = H_pt[rows]  # (n_i, k, 2)
+            bias = np.zeros((k, 2 * len(x)))
             if sigmas.corner_bias_px > 0.0 and len(x) >= 2:
                 spread_m = np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1)))
                 px = self.pixels[rows]
@@ -322,17 +330,15 @@ class _View:
                 if spread_px > 0.0:
                     sigma_m = sigmas.corner_bias_px * spread_m / spread_px
                     HB = Hm @ (Jm @ R[:, :2])  # (n_i, k, 2): each corner's in-plane offset
-                    bias += sigma_m**2 * np.einsum("nij,nkj->ik", HB, HB)
-            if np.any(map_var > 0.0):
-                dX = np.zeros((len(x), 3, 7))
-                dX[:, :, :3] = np.eye(3)
-                dX[:, :, 3:6] = -np.einsum("ij,njk->nik", R, _hat_rows(x))  # R·Exp(φ)·x: −R·x^·φ
-                dX[:, :, 6] = x @ R.T
-                HB = np.einsum("nij,njk->ik", Hm, Jm @ dX)  # (k, 7): summed over the marker's points
-                placement += (HB * map_var) @ HB.T
-        parts["corner_bias"] = bias
-        parts["map"] = placement
-        return parts
+                    bias = -sigma_m * HB.transpose(1, 0, 2).reshape(k, -1)
+            factors["corner_bias"].append(bias)
+            dX = np.zeros((len(x), 3, 7))
+            dX[:, :, :3] = np.eye(3)
+            dX[:, :, 3:6] = -np.einsum("ij,njk->nik", R, _hat_rows(x))  # R·Exp(φ)·x: −R·x^·φ
+            dX[:, :, 6] = x @ R.T
+            HB = np.einsum("nij,njk->ik", Hm, Jm @ dX)  # (k, 7): summed over the marker's points
+            factors["map"].append(-HB * sigma_map)
+        return factors
 
 
 def planar_covariance_full(
@@ -369,10 +375,12 @@ def _hat_rows(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def extrinsic_covariance_world(
+def extrinsic_factor_world(
     T_world_agv: np.ndarray, T_parent_cam: np.ndarray, camera_on_agv: bool, sigmas: SystematicSigmas
 ) -> np.ndarray:
-    """Covariance (6, 6) of ``T_world_agv`` (left, world, (ρ, φ)) from the camera's extrinsic.
+    """Signed factor (6, 6) of the extrinsic's share of ``T_world_agv``'s covariance (left,
+    world, (ρ, φ)): column j is the pose's change for a one-σ error of the extrinsic's
+    parameter j = (δt x, y, z, δφ x, y, z); the share is S Sᵀ.
 
     The recorded ``T_parent_cam = [Exp(δφ)·R, t + δt]`` is ``Exp(ξ)·T_parent_cam`` with
     ``ξ = (δt + t^·δφ, δφ)`` to first order. A camera on the AGV (parent = AGV):
@@ -383,9 +391,17 @@ def extrinsic_covariance_world(
     G = np.eye(6)
     G[:3, 3:] = so3.hat(t)
     if camera_on_agv:
-        G = se3.adjoint(np.asarray(T_world_agv, dtype=float)) @ G
-    variances = np.array([sigmas.extrinsic_translation_m] * 3 + [sigmas.extrinsic_rotation_rad] * 3) ** 2
-    cov = (G * variances) @ G.T
+        G = -se3.adjoint(np.asarray(T_world_agv, dtype=float)) @ G
+    return G * np.array([sigmas.extrinsic_translation_m] * 3 + [sigmas.extrinsic_rotation_rad] * 3)
+
+
+def extrinsic_covariance_world(
+    T_world_agv: np.ndarray, T_parent_cam: np.ndarray, camera_on_agv: bool, sigmas: SystematicSigmas
+) -> np.ndarray:
+    """Covariance (6, 6) of ``T_world_agv`` (left, world, (ρ, φ)) from the camera's extrinsic
+    (:func:`extrinsic_factor_world`)."""
+    S = extrinsic_factor_world(T_world_agv, T_parent_cam, camera_on_agv, sigmas)
+    cov = S @ S.T
     return 0.5 * (cov + cov.T)
 
 
@@ -415,3 +431,98 @@ def frame_covariance_full(
     )
     total = sum(parts.values())
     return 0.5 * (total + total.T), parts
+
+
+# -- common-mode split: what two poses of one camera share ---------------------------------------
+#: Key of the camera's own factor in :func:`frame_covariance_split`; each marker's is ``marker:<id>``.
+CAMERA_GROUP = "camera"
+
+
+def marker_group(marker_id: str) -> str:
+    return f"marker:{marker_id}"
+
+
+def frame_covariance_split(
+    T_cam_F: np.ndarray,
+    markers: list[tuple[np.ndarray, np.ndarray]],
+    marker_ids: list[str],
+    K: np.ndarray,
+    sigma_px: float,
+    sigmas: SystematicSigmas,
+    T_world_cam: np.ndarray,
+    T_world_agv: np.ndarray,
+    T_parent_cam: np.ndarray | None,
+    camera_on_agv: bool,
+    objective: str = "pixel",
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """:func:`frame_covariance_full`'s covariance (6, 6) of ``T_world_agv`` and its **common-mode
+    factors** ``{group: S (6, p)}``, signed, in the same tangent space: the sources whose
+    parameters recur in another frame — :data:`CAMERA_GROUP`, the camera's intrinsics,
+    distortion and extrinsic (4 + 4 + 6 columns), the same in every frame of the camera; and
+    ``marker:<id>`` (:func:`marker_group`, ``marker_ids`` in the order of ``markers``), the
+    marker's corner offsets and map entry (2n + 7 columns), the same in every frame that uses
+    it. Column j is the pose's change for a one-σ error of parameter j, so a group's share is
+    S Sᵀ; the rest (pixel noise) is independent between frames. Two poses sharing a group's
+    parameters have correlated errors: :func:`difference_covariance`."""
+    if len(marker_ids) != len(markers):
+        raise ValueError(f"{len(marker_ids)} marker ids for {len(markers)} markers")
+    if objective not in OBJECTIVES:
+        raise ValueError(f"unknown objective {objective!r}; valid: {', '.join(OBJECTIVES)}")
+    view = _View(np.asarray(T_cam_F, dtype=float), markers, np.asarray(K, dtype=float))
+    J = (view.J_px_wrt_w @ se3.J_point_wrt_left_perturbation(view.w_cam)).reshape(-1, 6)
+    weight = np.ones(2 * view.n) if objective == "pixel" else np.repeat(view.w_cam[:, 2] ** 2, 2)
+    bread = _inverse_information(J.T @ (weight[:, None] * J), "covariance")
+    H = bread @ (J * weight[:, None]).T
+    # A left perturbation δ of T_cam_F moves T_world_agv by −Ad(T_world_cam)·δ when the markers are
+    # fixed in the world (camera on the AGV), by +Ad(T_world_cam)·δ when they ride on the AGV.
+    to_world = (-1.0 if camera_on_agv else 1.0) * se3.adjoint(np.asarray(T_world_cam, dtype=float))
+    noise = covariance_world_agv(sigma_px**2 * H @ H.T, T_world_cam)
+    factors = view.systematic_factors(H, sigmas)
+    camera = [to_world @ factors["intrinsics"], to_world @ factors["distortion"]]
+    camera.append(
+        np.zeros((6, 6)) if T_parent_cam is None
+        else extrinsic_factor_world(T_world_agv, T_parent_cam, camera_on_agv, sigmas)
+    )
+    groups = {CAMERA_GROUP: np.hstack(camera)}
+    for marker_id, bias, placement in zip(marker_ids, factors["corner_bias"], factors["map"]):
+        groups[marker_group(marker_id)] = to_world @ np.hstack([bias, placement])
+    total = noise + sum(S @ S.T for S in groups.values())
+    return 0.5 * (total + total.T), groups
+
+
+def _point_jacobian(point_world_m: np.ndarray) -> np.ndarray:
+    """(6, 6) from a left perturbation (ρ, φ) of a pose to (the change of a world point rigidly
+    attached to it, φ): ``[[I, −p^], [0, I]]``."""
+    J = np.eye(6)
+    J[:3, 3:] = -so3.hat(np.asarray(point_world_m, dtype=float))
+    return J
+
+
+def difference_covariance(
+    cov_a: np.ndarray, factors_a: dict[str, np.ndarray] | None, point_a_m: np.ndarray,
+    cov_b: np.ndarray, factors_b: dict[str, np.ndarray] | None, point_b_m: np.ndarray,
+) -> np.ndarray:
+    """Covariance (6, 6) of the difference (``point_b − point_a``, rotation vector of
+    ``R_b·R_aᵀ``) between two pose estimates a and b, each with its covariance (left, world,
+    (ρ, φ)) and common-mode factors (:func:`frame_covariance_split`; None: all independent).
+    ``point_*_m`` is the world point compared, rigidly attached to its pose (the AGV origin; for a
+    pose carried on by a step, ``T_a·step``, the carried origin: a left perturbation of ``T_a``
+    is one of ``T_a·step``). A group both share contributes ``(J_b S_b − J_a S_a)(…)ᵀ`` — the same
+    error moves both poses alike and cancels as far as their geometry agrees; the rest of each
+    covariance is independent. First order, like the covariances themselves."""
+    factors_a, factors_b = factors_a or {}, factors_b or {}
+    J_a, J_b = _point_jacobian(point_a_m), _point_jacobian(point_b_m)
+    own_a = np.asarray(cov_a, dtype=float) - sum((S @ S.T for S in factors_a.values()), np.zeros((6, 6)))
+    own_b = np.asarray(cov_b, dtype=float) - sum((S @ S.T for S in factors_b.values()), np.zeros((6, 6)))
+    C = J_a @ own_a @ J_a.T + J_b @ own_b @ J_b.T
+    for group in set(factors_a) | set(factors_b):
+        S_a, S_b = factors_a.get(group), factors_b.get(group)
+        if S_a is not None and S_b is not None and S_a.shape == S_b.shape:
+            D = J_b @ S_b - J_a @ S_a
+            C += D @ D.T
+        else:  # only one of them has it (or the parameters differ): independent
+            for S, J in ((S_a, J_a), (S_b, J_b)):
+                if S is not None:
+                    JS = J @ S
+                    C += JS @ JS.T
+    return 0.5 * (C + C.T)

@@ -11,13 +11,19 @@ frame is skipped.
 
 1. **motion** — the pose against the last clean pose of the same camera carried forward by the
    odometry (``SyncState.odometry_at``), or by a constant-velocity model without odometry: the
-   6-DoF difference (position in the world, rotation vector) against both poses' covariances,
-   each with a systematic floor (``checks_pose_floor_m`` / ``_deg``: a margin chosen when the
-   covariance modelled pixel noise only), plus the odometry's noise per metre and per degree
-   turned. A failing frame does not become the reference, so a stretch of frames on a wrong map
-   entry keeps failing (a rigid error of the map leaves frame-to-frame steps intact: only the
-   carried reference sees it). After ``REANCHOR_M`` of travel in one failing stretch the reference
-   moves on (the odometry itself may have jumped).
+   6-DoF difference (position in the world, rotation vector) against the covariance of the
+   difference — the two poses' covariances with the sources they share cancelling (the camera's
+   calibration and extrinsic, the shared codes' map entries and corners:
+   ``FrameResult.cov_common_factors``), each pose with a small floor (``checks_pose_floor_m`` /
+   ``_deg``) — plus the odometry's noise per metre and per degree turned, in the floor's plane
+   only for a planar (wheel) odometry step, whose roll, pitch and height stay the reference's up
+   to the floor's flatness (``checks_floor_tilt_deg``, ``checks_floor_height_m``). A failing frame
+   does not become the reference, so a stretch of frames on a wrong map entry keeps failing (a
+   rigid error of the map leaves frame-to-frame steps intact: only the carried reference sees
+   it); a frame whose step from the suspect frame before it agrees with the odometry carries its
+   error on — a code's error while the code is in view, a camera-level offset across changing
+   codes as the camera's **extrinsic**. After ``REANCHOR_M`` of travel in one failing stretch the
+   reference moves on (the odometry itself may have jumped).
 2. **markers** — the joint solve's χ² test of each marker against the joint pose
    (:class:`~agvviz.solvers.joint.MarkerCheck`): a marker left out names itself.
 3. **ambiguity** — the rejected mirror pose (``T_world_agv_ghost``) and the chosen one against

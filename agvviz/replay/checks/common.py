@@ -26,9 +26,13 @@ from agvviz.model.suspects import (
     CHECK_UWB,
 )
 from agvviz.settings import RunSettings
+from agvviz.solvers import uncertainty
 
 #: A failing stretch longer than this (metres of odometry travel) moves the motion check's reference on.
 REANCHOR_M = 5.0
+#: With planar (wheel) odometry: the distance over which the floor's tilt and height under the AGV
+#: change by their full σ (``checks_floor_tilt_deg``, ``checks_floor_height_m``): about a wheelbase.
+FLOOR_LENGTH_M = 0.5
 #: Without odometry: the constant-velocity model's σ of acceleration (m/s², rad/s²).
 CV_ACCEL_MPS2 = 2.0
 CV_ANGULAR_ACCEL_RADPS2 = 2.0
@@ -91,14 +95,16 @@ class CheckSettings:
     """The check stage's parameters (``checks_*`` run settings, docs/suspects.md)."""
 
     limit_sigma: float = 5.0
-    pose_floor_m: float = 0.002
-    pose_floor_rad: float = math.radians(0.1)
+    pose_floor_m: float = 0.0005
+    pose_floor_rad: float = math.radians(0.02)
     odom_m_per_m: float = 0.02
     odom_rad_per_m: float = math.radians(0.5)
     odom_rad_per_rad: float = 0.02
     ambiguity_ratio: float = 4.0
     map_sigma_m: float = 0.005
     uwb_sigma_m: float = 0.1
+    floor_tilt_rad: float = math.radians(0.35)
+    floor_height_m: float = 0.005
 
     @classmethod
     def of(cls, settings: RunSettings) -> "CheckSettings":
@@ -108,6 +114,7 @@ class CheckSettings:
             odom_rad_per_m=math.radians(settings.checks_odom_deg_per_m),
             odom_rad_per_rad=settings.checks_odom_deg_per_deg, ambiguity_ratio=settings.checks_ambiguity_ratio,
             map_sigma_m=settings.checks_map_sigma_m, uwb_sigma_m=settings.uwb_sigma_m,
+            floor_tilt_rad=math.radians(settings.checks_floor_tilt_deg), floor_height_m=settings.checks_floor_height_m,
         )
 
 
@@ -125,6 +132,75 @@ def pose_cov(frame: FrameResult, cs: CheckSettings) -> np.ndarray:
     C[:3, :3] += np.eye(3) * cs.pose_floor_m**2
     C[3:, 3:] += np.eye(3) * cs.pose_floor_rad**2
     return C
+
+
+def floor_cov(cs: CheckSettings) -> np.ndarray:
+    """(6, 6) the systematic floors of one pose in (position, rotation vector)."""
+    return np.diag([cs.pose_floor_m**2] * 3 + [cs.pose_floor_rad**2] * 3)
+
+
+def _lever(offset_m: np.ndarray) -> np.ndarray:
+    """(6, 6): (position, rotation) of a pose to those of a point ``offset_m`` away, rigidly attached."""
+    J = np.eye(6)
+    J[:3, 3:] = -so3.hat(offset_m)
+    return J
+
+
+def _left_cov(frame: FrameResult) -> np.ndarray:
+    cov = frame.cov_world_agv
+    return cov if cov is not None and np.all(np.isfinite(cov)) else np.zeros((6, 6))
+
+
+def unambiguous(frame: FrameResult, cs: CheckSettings) -> bool:
+    """Whether the frame's pose is clear of its mirror pose (no ghost, or an IPPE ratio of at
+    least ``ambiguity_ratio``): only then is its first-order covariance, linearised at that
+    pose, trusted to say which errors it shares with another frame."""
+    return frame.T_world_agv_ghost is None or frame.ambiguity_ratio is None or frame.ambiguity_ratio >= cs.ambiguity_ratio
+
+
+def carried_difference_cov(
+    ref: FrameResult, T_carried: np.ndarray, frame: FrameResult, cs: CheckSettings, common: bool = True
+) -> np.ndarray:
+    """(6, 6) covariance of ``pose_difference(T_carried, frame.T_world_agv)``, ``T_carried`` the
+    reference's pose carried on by a step (``ref.T_world_agv · step``; the step's own noise not
+    included): the two covariances with the sources they share cancelling as far as their
+    geometry agrees (the camera's calibration and extrinsic, the map entries and corners of the
+    codes both used: :func:`agvviz.solvers.uncertainty.difference_covariance`), plus each pose's
+    floor — the reference's carried to the carried origin, so its rotation swings the step.
+    ``common=False`` takes the two as independent (their covariances add)."""
+    C = uncertainty.difference_covariance(
+        _left_cov(ref), ref.cov_common_factors if common else None, T_carried[:3, 3],
+        _left_cov(frame), frame.cov_common_factors if common else None, frame.T_world_agv[:3, 3],
+    )
+    J = _lever(T_carried[:3, 3] - ref.T_world_agv[:3, 3])
+    return C + J @ floor_cov(cs) @ J.T + floor_cov(cs)
+
+
+def is_planar_step(step: np.ndarray) -> bool:
+    """An odometry step that stays in its plane: a rotation about z only and no z motion (wheel
+    odometry of a floor vehicle; DESIGN §3: the floor is z = 0, z up)."""
+    return bool(abs(step[2, 0]) <= 1e-9 and abs(step[2, 1]) <= 1e-9 and abs(step[2, 3]) <= 1e-6)
+
+
+def odometry_cov(step: np.ndarray, cs: CheckSettings) -> np.ndarray:
+    """(6, 6) covariance (world position, rotation vector) of an odometry step's error: σ of
+    heading ``odom_rad_per_m``·distance + ``odom_rad_per_rad``·angle turned, σ of position
+    ``odom_m_per_m``·distance + distance·σ of heading. A planar step (:func:`is_planar_step`:
+    wheel odometry) drifts only in the floor's plane (x, y, yaw); the AGV's tilt and height stay
+    the reference's up to the floor's flatness, which changes over about :data:`FLOOR_LENGTH_M`:
+    σ of tilt about x and y ``floor_tilt_rad``·min(1, distance ÷ FLOOR_LENGTH_M), σ of height
+    ``floor_height_m``·min(1, distance ÷ FLOOR_LENGTH_M) + distance·``floor_tilt_rad`` (the step
+    is carried along the reference's own tilt). A 3-D step drifts alike about every axis."""
+    distance_m = float(np.linalg.norm(step[:3, 3]))
+    turned_rad = float(np.linalg.norm(so3.log(step[:3, :3])))
+    sigma_rot = cs.odom_rad_per_m * distance_m + cs.odom_rad_per_rad * turned_rad
+    sigma_pos = cs.odom_m_per_m * distance_m + distance_m * sigma_rot
+    if not is_planar_step(step):
+        return np.diag([sigma_pos**2] * 3 + [sigma_rot**2] * 3)
+    share = min(1.0, distance_m / FLOOR_LENGTH_M)
+    sigma_tilt = cs.floor_tilt_rad * share
+    sigma_z = cs.floor_height_m * share + distance_m * cs.floor_tilt_rad
+    return np.diag([sigma_pos**2, sigma_pos**2, sigma_z**2, sigma_tilt**2, sigma_tilt**2, sigma_rot**2])
 
 
 def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:

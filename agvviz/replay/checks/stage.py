@@ -24,7 +24,10 @@ from agvviz.replay.checks.common import (
     TIME_HISTORY,
     UWB_MAX_DT_NS,
     CheckSettings,
+    carried_difference_cov,
     chi2_sigma,
+    odometry_cov,
+    unambiguous,
     mahalanobis_sigma,
     pose_cov,
     pose_difference,
@@ -59,6 +62,8 @@ class _CameraState:
     last_suspect_frame: FrameResult | None = None
     last_suspect_odometry: np.ndarray | None = None
     stretch_n: int = 0  # suspect frames in the current failing stretch
+    stretch_first: int | None = None  # index of its first frame
+    stretch_codes: set = None  # the codes its frames used
     uwb_failed: tuple = (None, False)  # (stamp of the UWB fix last compared, whether it failed)
     #: time offset against the odometry, least squares r ≈ w·dt: Σw·r, Σw·w, Σr·r, point count
     offset_sums: list = None
@@ -71,6 +76,7 @@ class _CameraState:
         self.steps_ns = deque(maxlen=TIME_HISTORY)
         self.pair_counts = {}
         self.offset_sums = [0.0, 0.0, 0.0, 0]
+        self.stretch_codes = set()
 
 
 class CheckStage(ClockChecks):
@@ -117,6 +123,7 @@ class CheckStage(ClockChecks):
         finding = None  # (cause, message, marker_id, cam_name) of the first explained failure
         if motion is not None:
             result, delta, predicted, ref = motion
+            motion_at = len(results)
             results.append(result)
             ambiguity = self._ambiguity(frame, state, predicted, result)
             if ambiguity is not None:
@@ -124,18 +131,21 @@ class CheckStage(ClockChecks):
                 results.append(ambiguity)
                 if ambiguity.failed:
                     finding = (suspects.CAUSE_MIRROR_FLIP, f"mirror-pose flip: {ambiguity.detail}", None, None)
-            if result.failed and finding is None:
+            carried = self._persisting(frame, state, odometry, delta, result) if finding is None else None
+            if carried is not None:
+                results[motion_at] = carried[0]
+                finding = carried[1]
+                motion = (carried[0],) + motion[1:]  # the pose is doubted: its error persists
+            elif result.failed and finding is None:
                 finding = self._explain_motion(frame, state, ref.frame, delta, result, predicted)
-            elif not result.failed:
-                inherited = self._persisting(frame, state, odometry, delta)
-                if inherited is not None:
-                    results[-1] = inherited[0]
-                    finding = inherited[1]
         offset = self._odometry_offset(frame, state, odometry, motion)
         if offset is not None:
             results.append(offset[0])
             if offset[0].failed:
-                finding = finding or offset[1]
+                # a stamp offset fitted over many steps outweighs a camera-level guess from one stretch
+                camera_level = finding is not None and finding[2] is None and finding[0] in (
+                    suspects.CAUSE_UNKNOWN, suspects.CAUSE_EXTRINSIC)
+                finding = offset[1] if finding is None or camera_level else finding
         marker_results, marker_finding = self._markers(frame)
         results += marker_results
         motion_failed = motion is not None and motion[0].failed
@@ -221,11 +231,16 @@ class CheckStage(ClockChecks):
         state.last_suspect = None
         state.last_suspect_frame = None
         state.stretch_n = 0
+        state.stretch_first = None
+        state.stretch_codes = set()
 
     def _failed(self, frame, state: _CameraState, odometry, suspect: suspects.Suspect) -> None:
         state.last_suspect = suspect
         state.last_suspect_frame, state.last_suspect_odometry = frame, odometry
+        if state.stretch_n == 0:
+            state.stretch_first = frame.index
         state.stretch_n += 1
+        state.stretch_codes |= set(frame.used_marker_ids)
         if odometry is None or state.reference is None:
             if state.reference is None:
                 state.reference = _Reference(frame, odometry)
@@ -239,24 +254,20 @@ class CheckStage(ClockChecks):
 
     # -- (1) motion -----------------------------------------------------------------------------
     def _motion(self, frame: FrameResult, state: _CameraState, odometry: np.ndarray | None):
-        """(suspects.CheckResult, delta, predicted pose, reference) or None (no reference, no witness)."""
+        """(suspects.CheckResult, delta, (predicted pose, covariance of delta), reference) or None
+        (no reference, no witness). The covariance is the difference's: the two poses' own
+        covariances with the sources they share cancelling (common.carried_difference_cov), plus
+        the witness's noise (common.odometry_cov, or the constant-velocity model's)."""
         ref = state.reference
         if ref is None:
             return None
         cs = self.settings
-        C = pose_cov(frame, cs) + pose_cov(ref.frame, cs)
         T_ref = ref.frame.T_world_agv
+        common = unambiguous(frame, cs) and unambiguous(ref.frame, cs)
         if odometry is not None and ref.odometry is not None:
             step = np.linalg.inv(ref.odometry) @ odometry
             predicted = T_ref @ step
-            distance_m = float(np.linalg.norm(step[:3, 3]))
-            turned_rad = float(np.linalg.norm(so3.log(step[:3, :3])))
-            sigma_rot = cs.odom_rad_per_m * distance_m + cs.odom_rad_per_rad * turned_rad
-            sigma_pos = cs.odom_m_per_m * distance_m + distance_m * sigma_rot
-            # the reference's own heading error swings the carried step
-            ref_rot_var = float(np.trace(pose_cov(ref.frame, cs)[3:, 3:]))
-            C[:3, :3] += np.eye(3) * (sigma_pos**2 + distance_m**2 * ref_rot_var)
-            C[3:, 3:] += np.eye(3) * sigma_rot**2
+            witness_cov = odometry_cov(step, cs)
             witness = "odometry"
         elif ref.velocity is not None:
             dt = (frame.log_time_ns - ref.frame.log_time_ns) / 1e9
@@ -266,46 +277,97 @@ class CheckStage(ClockChecks):
             predicted = T_ref.copy()
             predicted[:3, 3] = T_ref[:3, 3] + v[:3] * dt
             predicted[:3, :3] = so3.exp(v[3:] * dt) @ T_ref[:3, :3]
-            C[:3, :3] += np.eye(3) * (0.5 * CV_ACCEL_MPS2 * dt * dt + cs.pose_floor_m) ** 2
-            C[3:, 3:] += np.eye(3) * (0.5 * CV_ANGULAR_ACCEL_RADPS2 * dt * dt + cs.pose_floor_rad) ** 2
+            witness_cov = np.diag([(0.5 * CV_ACCEL_MPS2 * dt * dt + cs.pose_floor_m) ** 2] * 3
+                                  + [(0.5 * CV_ANGULAR_ACCEL_RADPS2 * dt * dt + cs.pose_floor_rad) ** 2] * 3)
             witness = "constant-velocity model"
         else:
             return None
+        C = carried_difference_cov(ref.frame, predicted, frame, cs, common) + witness_cov
+        # The mirror pose and the offset explanations are judged against the two covariances
+        # taken as independent: the shared errors were linearised at the chosen pose, not theirs.
+        C_apart = carried_difference_cov(ref.frame, predicted, frame, cs, False) + witness_cov if common else C
         delta = pose_difference(predicted, frame.T_world_agv)
         sigma = mahalanobis_sigma(delta, C)
+        self.last_motion_d2 = float(delta @ np.linalg.solve(C, delta))  # (for benches: bench_checks.py)
         detail = (
             f"pose {size_text(delta)} from frame {ref.frame.index} carried by the {witness}"
         )
-        return suspects.CheckResult(suspects.CHECK_MOTION, sigma, cs.limit_sigma, detail), delta, (predicted, C), ref
+        return suspects.CheckResult(suspects.CHECK_MOTION, sigma, cs.limit_sigma, detail), delta, (predicted, C_apart), ref
 
-    def _persisting(self, frame: FrameResult, state: _CameraState, odometry, delta):
-        """A frame that passes the motion check only because the odometry's σ grew, while it sees
-        the same codes as the suspect frame before it and its step from that frame agrees with the
-        odometry: the suspect frame's error is carried on (a wrong map entry or mount moves every
-        pose of the stretch alike). (suspects.CheckResult, finding) or None."""
+    def _persisting(self, frame: FrameResult, state: _CameraState, odometry, delta, motion: suspects.CheckResult):
+        """The suspect frame before this one, carried on by the odometry, agrees with this frame:
+        its error persists here — whether or not the carried reference still sees it (its σ grows
+        with the travel). (suspects.CheckResult, finding) or None.
+
+        A map entry's (or payload's) error is tied to its code: carried on while the frame sees
+        the same codes. An error of the camera's pose on the AGV — unknown at the jump, with the
+        same codes in view — is carried on across changing codes: a pose that stays off the
+        odometry by the same body-frame offset while the codes change is the camera's
+        **extrinsic** (a map entry moves the pose only while its code is in view)."""
         last, last_frame = state.last_suspect, state.last_suspect_frame
-        if last is None or last_frame is None or last.cause == suspects.CAUSE_MIRROR_FLIP or last.check != suspects.CHECK_MOTION:
+        if last is None or last_frame is None or last.cause == suspects.CAUSE_MIRROR_FLIP:
             return None
-        if set(frame.used_marker_ids) != set(last_frame.used_marker_ids):
+        if not any(r.check == suspects.CHECK_MOTION and r.failed for r in last.checks):
+            return None  # (its pose was not doubted: it failed a marker, payload or stamp check only)
+        if not (unambiguous(frame, self.settings) and unambiguous(last_frame, self.settings)):
+            return None  # near its mirror pose a frame's error need not persist: judged on its own
+        camera_level = last.marker_id is None and last.cause in (suspects.CAUSE_UNKNOWN, suspects.CAUSE_EXTRINSIC)
+        code_level = last.marker_id is not None and last.cause in (suspects.CAUSE_MAP_ENTRY, suspects.CAUSE_PAYLOAD)
+        if not (camera_level or code_level) and set(frame.used_marker_ids) != set(last_frame.used_marker_ids):
             return None
         step = self._motion(frame, _CameraState(reference=_Reference(last_frame, state.last_suspect_odometry)), odometry)
         if step is None or step[0].failed:
             return None
+        n = state.stretch_n + 1
+        codes = ", ".join(frame.used_marker_ids)
+        plural = "s" if len(frame.used_marker_ids) > 1 else ""
         detail = (
-            f"same code{'s' if len(frame.used_marker_ids) > 1 else ''} {', '.join(frame.used_marker_ids)} as suspect frame "
-            f"{last_frame.index} and a step that agrees with it ({step[0].sigma:.1f}σ): its error persists "
-            f"(now {size_text(delta)} from the carried pose)"
+            f"code{plural} {codes}: a step from suspect frame {last_frame.index} that agrees with the odometry "
+            f"({step[0].sigma:.1f}σ): its error persists (now {size_text(delta)} from the carried pose"
+            + (f", {motion.sigma:.1f}σ)" if not motion.failed else ")")
         )
-        result = suspects.CheckResult(suspects.CHECK_MOTION, float(last.sigma), self.settings.limit_sigma, detail)
-        cause, marker, cam = last.cause, last.marker_id, None if last.marker_id else last.cam_name
-        message = last.message
-        if cause == suspects.CAUSE_UNKNOWN and marker is None and state.stretch_n + 1 >= 3:
-            cause = suspects.CAUSE_EXTRINSIC
-            message = (
-                f"pose of camera {frame.cam_name} stays {size_text(delta)} off the pose the odometry carries for "
-                f"{state.stretch_n + 1} frames with the same codes in view: camera {frame.cam_name}'s extrinsic (mount)?"
-            )
-        return result, (cause, message, marker, cam)
+        result = suspects.CheckResult(
+            suspects.CHECK_MOTION, max(float(last.sigma), motion.sigma), self.settings.limit_sigma, detail)
+        if not camera_level and (not code_level or last.marker_id in frame.used_marker_ids):
+            cause, marker, cam = last.cause, last.marker_id, None if last.marker_id else last.cam_name
+            return result, (cause, last.message, marker, cam)
+        seen = state.stretch_codes | set(frame.used_marker_ids)
+        across = f"across codes {', '.join(sorted(seen))}" if len(seen) > 1 else f"with code {codes} in view"
+        left = f" (code {last.marker_id} is out of view: not its {'map entry' if last.cause == suspects.CAUSE_MAP_ENTRY else 'payload'})" if code_level else ""
+        message = (
+            f"pose of camera {frame.cam_name} stays off the pose the odometry carries ({size_text(delta)} now) "
+            f"for {n} frames since frame {state.stretch_first}, {across}{left}: camera {frame.cam_name}'s extrinsic "
+            f"(mount) changed?" + self._off_floor_note(delta, state)
+        )
+        return result, (suspects.CAUSE_EXTRINSIC, message, None, frame.cam_name)
+
+    def _off_the_floor(self, frame: FrameResult, marker: str, delta, C) -> bool:
+        """Whether the pose's jump leaves the floor's plane (height, roll, pitch beyond the limit on
+        their own, 3 dof) while code ``marker`` lies on the floor: a floor code whose map entry
+        (or payload) is wrong along the floor — moved, turned — moves the pose within the plane
+        (x, y, heading) only, so such a jump is not its map entry."""
+        obs = next((o for o in frame.observations if o.marker_id == marker), None)
+        if obs is None or obs.points_frame != "world" or len(obs.points_world_m) < 3:
+            return False
+        if float(np.max(np.abs(np.asarray(obs.points_world_m)[:, 2]))) > 0.01:
+            return False
+        out = [2, 3, 4]
+        try:
+            d2 = float(delta[out] @ np.linalg.solve(C[np.ix_(out, out)], delta[out]))
+        except np.linalg.LinAlgError:
+            return False
+        return chi2_sigma(d2, 3) > self.settings.limit_sigma
+
+    def _off_floor_note(self, delta, state: _CameraState) -> str:
+        """With planar odometry an offset only along the floor (x, y, heading) could also be a wheel slip."""
+        if state.reference is None or state.reference.odometry is None:
+            return ""
+        cs = self.settings
+        tilt_z = np.array([delta[2] / max(cs.floor_height_m, 1e-9), delta[3] / max(cs.floor_tilt_rad, 1e-9),
+                           delta[4] / max(cs.floor_tilt_rad, 1e-9)])
+        if float(np.max(np.abs(tilt_z))) >= 3.0:
+            return ""
+        return " (the offset lies along the floor: a wheel slip of the odometry would look alike)"
 
     def _explain_motion(self, frame, state: _CameraState, ref_frame: FrameResult, delta, result: suspects.CheckResult, predicted=None):
         """(cause, message, marker id, camera) of a motion failure."""
@@ -317,6 +379,9 @@ class CheckStage(ClockChecks):
             new = [m for m in frame.used_marker_ids if m not in set(ref_frame.used_marker_ids)]
             marker = new[0] if len(new) == 1 else (frame.used_marker_id if new else None)
         size = size_text(delta)
+        if marker is not None and (last is None or last.marker_id != marker) and predicted is not None:
+            if self._off_the_floor(frame, marker, delta, predicted[1]):
+                marker = None  # a code misplaced along the floor cannot tilt or lift the pose
         if marker is not None:
             others = ", ".join(m for m in ref_frame.used_marker_ids if m != marker) or "the codes before"
             mapped = marker in self.qr_map()
@@ -339,11 +404,16 @@ class CheckStage(ClockChecks):
                     f"its time stamps {'lag' if offset_s > 0 else 'lead'}?",
                     None, frame.cam_name,
                 )
+        new = [m for m in frame.used_marker_ids if m not in set(ref_frame.used_marker_ids)]
+        view = (
+            f"with code{'s' if len(new) > 1 else ''} {', '.join(new)} new in view but off the floor's plane (a misplaced floor "
+            f"code moves the pose along the floor only)" if new else
+            f"with the same code{'s' if len(frame.used_marker_ids) > 1 else ''} {markers} in view"
+        )
         return (
             suspects.CAUSE_UNKNOWN,
             f"pose of camera {frame.cam_name} jumped by {size} against the {result.detail.split('carried by the ')[-1]} "
-            f"({result.sigma:.1f}σ) with the same code{'s' if len(frame.used_marker_ids) > 1 else ''} {markers} in view: "
-            f"a bad detection, camera {frame.cam_name}'s extrinsic (mount) or the odometry?",
+            f"({result.sigma:.1f}σ) {view}: a bad detection, camera {frame.cam_name}'s extrinsic (mount) or the odometry?",
             None, frame.cam_name,
         )
 
