@@ -189,6 +189,17 @@ class RunLogger:
         self._columns.flush(self._rec)
         self._frames_buffered = 0
 
+    def log_run_findings(self, findings) -> None:
+        """The check stage's run-level findings (``GraphOutcome.findings``): a row each in the
+        suspects log at its first frame, and the suspect markers at every frame it covers
+        (:meth:`FrameLogger.log_run_findings`)."""
+        self._check_open()
+
+        def stamp_of(index: int, log_time_ns: int) -> None:
+            set_stamp(self._rec, index, log_time_ns, self.recording_start_ns if self.recording_start_ns is not None else log_time_ns)
+
+        self.frames.log_run_findings(findings, stamp_of)
+
     # -- run documents ---------------------------------------------------------------------
     def log_manifest(self, manifest: dict) -> None:
         """Log the run manifest (settings, recording hash, version) as static markdown."""

@@ -50,6 +50,16 @@ TIME_OFFSET_MAX_S = 0.5
 ODOMETRY_OFFSET_MIN_STEPS = 20
 ODOMETRY_OFFSET_MIN_S = 0.01
 ODOMETRY_VELOCITY_NS = 20_000_000
+TWIST_WINDOW_NS = (ODOMETRY_VELOCITY_NS, ODOMETRY_VELOCITY_NS)  # (before, after) a stamp
+#: The run-level time offset (a finding on every frame of the camera, at the end of the run) needs at
+#: least RUN_OFFSET_MIN_TURNING steps whose change of twist |w| (weighted, m/s and rad/s) is at
+#: least OFFSET_TURNING_TWIST: turns, starts and stops are what make an offset observable.
+OFFSET_TURNING_TWIST = 0.1
+RUN_OFFSET_MIN_TURNING = 2
+#: The run-level fit: Gauss–Newton iterations from the streaming fit, and the half step (s) of
+#: the central differences of the residual by dt (the odometry is piecewise linear between samples).
+RUN_OFFSET_ITERATIONS = 4
+RUN_OFFSET_EPS_S = 0.005
 #: Weights of (position m, rotation rad) in the time-offset fits: 1 mm ~ 0.06° (1 mrad).
 OFFSET_WEIGHT = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
 
