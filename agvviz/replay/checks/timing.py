@@ -145,7 +145,7 @@ class ClockChecks:
         message = (
             f"camera {cam_name}'s poses {lag} the odometry by {abs(dt) * 1000:.0f} ± {sigma_dt * 1000:.0f} ms "
             f"(from {steps} steps, {turning} of them turning, starting or stopping): its stamps {lag}? "
-            "A constant offset misplaces every frame of the camera, the straight ones unseen"
+            "A constant offset misplaces every frame of the camera, also where driving straight hides it"
         )
         indices, times = zip(*state.solved_frames)
         return RunFinding(
