@@ -20,10 +20,11 @@ import rerun as rr
 from agvviz.errors import RunError
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
-from agvviz.evaluation.suspect_report import cause_words, finding_line, suspect_line
+from agvviz.evaluation.suspect_report import cause_words, suspect_line
 from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
+from agvviz.viz.log_findings import error_values
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -144,12 +145,8 @@ class FrameLogger:
         self._zoom_cams: set[str] = set()
         #: Frames rejected so far.
         self.rejected_frames = 0
-        #: Suspect frames so far (solved, but failed a check against what else the log knows, or
-        #: covered by a run-level finding).
+        #: Suspect frames so far (solved, but failed a check against what else the log knows).
         self.suspect_frames = 0
-        #: (camera, frame index) -> (stamp, ((entity, value), …) of the marked series, marked) of
-        #: each solved frame on the error plots: a run-level finding marks them at the end.
-        self._plotted: dict[tuple[str, int], tuple[Stamp, tuple, bool]] = {}
         #: The first estimated pose T_world_agv (the 3D view starts there); None: none yet.
         self.first_pose: np.ndarray | None = None
 
@@ -444,14 +441,7 @@ class FrameLogger:
     def log_errors(self, frame: FrameResult, stamp: Stamp) -> None:
         columns = self._columns
         suspect = frame.suspect if frame.solved else None
-        values = (
-            (paths.ERROR_POSITION_MM, None if frame.position_error_m is None else 1000.0 * frame.position_error_m),
-            (paths.ERROR_HEADING_DEG, frame.heading_error_deg),
-            (paths.ERROR_PITCH_DEG, frame.pitch_error_deg),
-            (paths.ERROR_ROLL_DEG, frame.roll_error_deg),
-            (paths.ERROR_REPROJ_RMS_PX, frame.reproj_rms_px),
-        )
-        for entity, value in values:
+        for entity, value in error_values(frame):
             if value is not None:
                 columns.scalar(entity, stamp, value)
                 if suspect is not None:  # a marker on the line, at this frame's value
@@ -461,9 +451,6 @@ class FrameLogger:
         if suspect is not None:
             self.suspect_frames += 1
             self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(suspect_line(suspect), level=rr.TextLogLevel.WARN))
-        if frame.solved:
-            plotted = tuple((entity, value) for entity, value in values if value is not None and entity in paths.SUSPECT_MARKED)
-            self._plotted[(frame.cam_name, frame.index)] = (stamp, plotted, suspect is not None)
         if self.max_reproj_px is not None:
             columns.scalar(paths.ERROR_REPROJ_THRESHOLD_PX, stamp, self.max_reproj_px)
         if not frame.solved:
@@ -477,28 +464,6 @@ class FrameLogger:
                     level=rr.TextLogLevel.WARN,
                 ),
             )
-
-    def log_run_findings(self, findings, stamp_of) -> None:
-        """The check stage's run-level findings (:class:`~agvviz.model.suspects.RunFinding`), at the
-        end of the run: one row each in the suspects log at its first frame (``stamp_of(index,
-        log_time_ns)`` sets the timelines there), and the suspect marker on the error plots at
-        every frame it covers that had none (its value of each line)."""
-        for finding in findings:
-            if not finding.frame_indices:
-                continue
-            first = finding.frame_indices.index(finding.first_frame)
-            stamp_of(finding.first_frame, finding.times_ns[first])
-            self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(finding_line(finding), level=rr.TextLogLevel.WARN))
-            for index in finding.frame_indices:
-                key = (finding.cam_name, index)
-                plotted = self._plotted.get(key)
-                if plotted is None or plotted[2]:
-                    continue  # not on the plots (another camera's stamp), or marked already
-                stamp, values, _ = plotted
-                for entity, value in values:
-                    self._columns.scalar(paths.error_suspect(entity), stamp, value)
-                self._plotted[key] = (stamp, values, True)
-                self.suspect_frames += 1
 
 
 def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
