@@ -59,7 +59,7 @@ OFFSET_TURNING_TWIST = 0.1
 RUN_OFFSET_MIN_TURNING = 2
 #: The run-level fit: Gauss–Newton iterations from the streaming fit, and the half step (s) of
 #: the central differences of the residual by dt (the odometry is piecewise linear between samples).
-RUN_OFFSET_ITERATIONS = 4
+RUN_OFFSET_ITERATIONS = 2
 RUN_OFFSET_EPS_S = 0.005
 #: Weights of (position m, rotation rad) in the time-offset fits: 1 mm ~ 0.06° (1 mrad).
 OFFSET_WEIGHT = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
