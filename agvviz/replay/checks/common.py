@@ -50,7 +50,6 @@ TIME_OFFSET_MAX_S = 0.5
 ODOMETRY_OFFSET_MIN_STEPS = 20
 ODOMETRY_OFFSET_MIN_S = 0.01
 ODOMETRY_VELOCITY_NS = 20_000_000
-TWIST_WINDOW_NS = (ODOMETRY_VELOCITY_NS, ODOMETRY_VELOCITY_NS)  # (before, after) a stamp
 #: The run-level time offset (a finding on every frame of the camera, at the end of the run) needs at
 #: least RUN_OFFSET_MIN_TURNING steps whose change of twist |∂r/∂dt| (weighted, m/s and rad/s) is at
 #: least OFFSET_TURNING_TWIST: turns, starts and stops are what make an offset observable, and the

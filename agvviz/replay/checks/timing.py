@@ -24,7 +24,7 @@ from agvviz.replay.checks.common import (
     TIME_JITTER_SHARE,
     TIME_OFFSET_MAX_S,
     TIME_OFFSET_MIN_S,
-    TWIST_WINDOW_NS,
+    ODOMETRY_VELOCITY_NS,
     angle_deg,
     mahalanobis_sigma,
     pose_difference,
@@ -203,14 +203,12 @@ class ClockChecks:
             return None
         return pose_difference(T_carried, T_ref @ np.linalg.inv(a) @ b)
 
-    def _offset_direction(self, t_ns: int, T_world_agv: np.ndarray, t_ref_ns: int, T_ref: np.ndarray,
-                          window: tuple[int, int] = TWIST_WINDOW_NS) -> np.ndarray | None:
+    def _offset_direction(self, t_ns: int, T_world_agv: np.ndarray, t_ref_ns: int, T_ref: np.ndarray) -> np.ndarray | None:
         """(6,) w with (pose − carried pose) ≈ w·dt for a stamp ``dt`` late: −(twist now − twist at
         the reference) + (ω_ref × the step, 0), twists (velocity, angular velocity) from the
-        odometry over ``window`` (ns before, after each stamp), in the world (first order in dt:
-        exact to second order when the window is [t − dt, t])."""
-        now = self._odometry_twist(t_ns, T_world_agv, window)
-        then = self._odometry_twist(t_ref_ns, T_ref, window)
+        odometry, in the world (first order in dt)."""
+        now = self._odometry_twist(t_ns, T_world_agv)
+        then = self._odometry_twist(t_ref_ns, T_ref)
         if now is None or then is None:
             return None
         w = -(now - then)
@@ -218,32 +216,30 @@ class ClockChecks:
         w[:3] += np.cross(then[3:], T_world_agv[:3, 3] - T_ref[:3, 3])
         return w
 
-    def _odometry_twist(self, t_ns: int, T_world_agv: np.ndarray,
-                        window: tuple[int, int] = TWIST_WINDOW_NS) -> np.ndarray | None:
-        """(6,) the vehicle's mean velocity (m/s) and angular velocity (rad/s) over [t − before,
-        t + after] (``window``) in the world: the odometry's step over it, turned into the world by
-        the pose's rotation; None unless the window lies inside the odometry's span (past its ends
+    def _odometry_twist(self, t_ns: int, T_world_agv: np.ndarray) -> np.ndarray | None:
+        """(6,) the vehicle's velocity (m/s) and angular velocity (rad/s) at ``t_ns`` in the world:
+        the odometry's step over ±ODOMETRY_VELOCITY_NS, turned into the world by the pose's
+        rotation; None unless that window lies inside the odometry's span (past its ends
         ``odometry_at`` holds the end pose: a vehicle driving through the log's start or end would
-        seem to start or stop). The body-frame twist is kept per stamp and window (a reference's
-        is asked for again)."""
-        before, after = window
+        seem to start or stop). The body-frame twist is kept per stamp (a reference's is asked for
+        again)."""
+        h = ODOMETRY_VELOCITY_NS
         span = self.odometry_span()
-        if span is not None and not (span[0] <= t_ns - before and t_ns + after <= span[1]):
+        if span is not None and not (span[0] <= t_ns - h and t_ns + h <= span[1]):
             return None
-        key = (t_ns, before, after)
-        local = self._twists.get(key, False)
+        local = self._twists.get(t_ns, False)
         if local is False:
-            a = self.odometry_at(t_ns - before)
-            b = self.odometry_at(t_ns + after)
-            now = self.odometry_at(t_ns)
+            a = self.odometry_at(t_ns - h)
+            b = self.odometry_at(t_ns + h)
+            mid = self.odometry_at(t_ns)
             local = None
-            if a is not None and b is not None and now is not None and before + after > 0:
+            if a is not None and b is not None and mid is not None:
                 step = np.linalg.inv(a) @ b
-                R = now[:3, :3].T @ a[:3, :3]  # body at t ← odometry frame at t − before
-                local = np.concatenate([R @ step[:3, 3], R @ so3.log(step[:3, :3])]) / ((before + after) / 1e9)
+                R = mid[:3, :3].T @ a[:3, :3]  # body at t ← odometry frame at t − h
+                local = np.concatenate([R @ step[:3, 3], R @ so3.log(step[:3, :3])]) / (2 * h / 1e9)
             if len(self._twists) > 64:
                 self._twists.clear()
-            self._twists[key] = local
+            self._twists[t_ns] = local
         if local is None:
             return None
         R = T_world_agv[:3, :3]
