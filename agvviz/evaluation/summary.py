@@ -152,7 +152,7 @@ class RunStatistics(NullSink):
         self.study_outcome = outcome
 
     def finished(self, outcome: GraphOutcome) -> None:
-        self.outcome = outcome  # whether UWB was tracked, whether the correct stage ran
+        self.outcome = outcome  # whether UWB was tracked, whether the correct stage ran, run-level findings
 
     def _score(self, frame: FrameResult) -> None:
         self.scores.append(FrameScore.of(frame))
@@ -173,7 +173,8 @@ class RunStatistics(NullSink):
         """The run summary (stored in the ``.rrd``, printed by the CLI). A study's: its own
         summary, the recording's damage and the warnings. A camera or correction run's: the
         frame statistics (none for a correction run without camera frames), ``suspects`` (the check
-        stage's findings, :func:`agvviz.replay.checks.suspects_summary`) with camera frames, ``fusion`` with
+        stage's findings, per frame and about the whole run, :func:`agvviz.replay.checks.suspects_summary`)
+        with camera frames, ``fusion`` with
         UWB, ``correction`` when the correct stage ran, then ``recording_damage``,
         ``detection``, ``warnings``, ``truth`` and, when given, ``error_budget``."""
         if self.study_outcome is not None:
@@ -182,7 +183,8 @@ class RunStatistics(NullSink):
         has_uwb, corrected = self.outcome.has_uwb, self.outcome.corrected
         summary = summarize(self.scores) if self.scores or not corrected else {}
         if self.checked:
-            summary["suspects"] = suspects_summary(self.checked, checked=settings.checks == "on")
+            summary["suspects"] = suspects_summary(self.checked, checked=settings.checks == "on",
+                                                   findings=self.outcome.findings)
         if has_uwb:
             summary["fusion"] = {"uwb": settings.uwb, "fusion": settings.fusion, **self.fusion_stats.summary()}
         if corrected:

@@ -1,6 +1,6 @@
-"""Suspect frames in words (issue 25): the line of one suspect frame (the ``.rrd``'s
-``events/suspects`` log), the suspect rows of the run's summary table, and the table of suspect
-stretches the terminal prints after it. Pure: no printing, no Rerun.
+"""Suspect frames in words (issue 25): the line of one suspect frame or run-level finding (the
+``.rrd``'s ``events/suspects`` log), the suspect rows of the run's summary table, and the table of
+suspect stretches the terminal prints after it. Pure: no printing, no Rerun.
 
 The stretches are grouped by the check stage (:mod:`agvviz.replay.checks`) into
 ``summary["suspects"]["stretches"]`` (the fields of :class:`agvviz.model.suspects.SuspectStretch`);
@@ -9,7 +9,7 @@ this module only says them.
 
 from __future__ import annotations
 
-from agvviz.model.suspects import CAUSES, Suspect
+from agvviz.model.suspects import CAUSES, RunFinding, Suspect
 
 #: At most this many stretches are listed; the rest are counted ("… and N more").
 MAX_STRETCH_ROWS = 20
@@ -58,6 +58,21 @@ def suspect_line(suspect: Suspect) -> str:
     return text
 
 
+def finding_line(finding: RunFinding) -> str:
+    """One line on a run-level finding: the frames it covers, the check and its σ against its
+    limit, the likely cause, the finding and the next step, e.g. ``frames 0–57 (58, the whole run;
+    camera front): time check 14.2σ (limit 5σ), likely cause: camera time offset — camera front's
+    poses lag …; next: …``."""
+    first, last = finding.first_frame, finding.last_frame
+    text = (
+        f"frames {first}–{last} ({finding.n_frames}, the whole run; camera {finding.cam_name}): {finding.check} check "
+        f"{finding.sigma:.1f}σ (limit {finding.limit_sigma:g}σ), likely cause: {cause_words(finding.cause)} — {finding.message}"
+    )
+    if finding.next_step:
+        text += f"; next: {finding.next_step}"
+    return text
+
+
 def summary_rows(summary: dict) -> list[tuple[str, str]]:
     """The suspect rows of the summary table: suspect frames (of the solved), stretches, then
     the frames per cause (causes with none left out); none without a ``suspects`` section."""
@@ -73,6 +88,11 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
     if not n:
         return rows
     rows.append(("suspect stretches", str(len(section.get("stretches") or []))))
+    findings = section.get("findings") or []
+    if findings:
+        said = "; ".join(f"{cause_words(f.get('cause', 'unknown'))}, camera {f.get('cam_name')} ({f.get('n_frames')} frames)"
+                         for f in findings)
+        rows.append(("  run-level findings (whole log)", f"{len(findings)}: {said}"))
     by_cause = section.get("by_cause") or {}
     ordered = [c for c in CAUSES if c in by_cause] + sorted(c for c in by_cause if c not in CAUSES)
     rows += [(f"  {cause_words(cause)}", str(by_cause[cause])) for cause in ordered if by_cause[cause]]
@@ -94,10 +114,11 @@ def stretch_rows(summary: dict, start_ns: int | None = None,
     for s in stretches[:max_rows]:
         first, last = int(s["first_frame"]), int(s["last_frame"])
         frames = str(first) if first == last else f"{first}–{last}"
+        whole = ", the whole run" if s.get("run_level") else ""
         t0, t1 = _seconds(s["first_time_ns"], start_ns), _seconds(s["last_time_ns"], start_ns)
         n = int(s.get("n_frames", last - first + 1))
         rows.append([
-            f"{frames} ({n})",
+            f"{frames} ({n}{whole})",
             f"{t0:.2f}" if first == last else f"{t0:.2f}–{t1:.2f}",
             cause_words(s.get("cause", "unknown")),
             _where(s.get("cam_name"), s.get("marker_id")),

@@ -8,6 +8,12 @@ standard deviations (a Mahalanobis distance with both sides' covariances, or the
 turned into its equivalent normal σ). The frame is a suspect when the worst check exceeds its
 limit; the suspect names the check, the size of the disagreement, the likely cause in plain
 words, the evidence, and the next step a user can take.
+
+Some faults are a property of the whole log, not of a frame: a camera's stamps offset from the
+odometry by a constant is seen only where the vehicle's twist changes, but it misplaces every
+frame of that camera. The check stage states it at the end of the run as a :class:`RunFinding`
+(the graph's outcome carries it) that covers every solved frame of the camera; the per-frame
+suspects stay as they were.
 """
 
 from __future__ import annotations
@@ -92,3 +98,50 @@ class SuspectStretch:
     cam_name: str = ""
     marker_id: str | None = None
     max_sigma: float = 0.0
+    run_level: bool = False  # a run-level finding's stretch (:class:`RunFinding`): every frame of the camera
+
+
+@dataclass(frozen=True)
+class RunFinding:
+    """A finding about the whole run, made at its end from every frame (e.g. a camera's stamps
+    lag the odometry by a constant): it covers ``frame_indices`` (every solved frame of
+    ``cam_name``, at ``times_ns``), whether or not a frame has a :class:`Suspect` of its own.
+
+    ``check`` and ``cause`` as a suspect's; ``sigma`` the estimate's size in its standard
+    deviations, against ``limit_sigma``; ``message`` the finding with its evidence ("camera
+    front's poses lag the odometry by 29 ± 2 ms (from 180 steps): its stamps lag?");
+    ``offset_s`` / ``offset_sigma_s`` the estimated stamp offset and its σ (s, > 0: the poses
+    lag), ``steps`` the steps it was estimated from."""
+
+    cam_name: str
+    check: str
+    cause: str
+    sigma: float
+    limit_sigma: float
+    message: str
+    next_step: str = ""
+    offset_s: float | None = None
+    offset_sigma_s: float | None = None
+    steps: int = 0
+    frame_indices: tuple[int, ...] = ()
+    times_ns: tuple[int, ...] = ()
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_indices)
+
+    @property
+    def first_frame(self) -> int:
+        return min(self.frame_indices)
+
+    @property
+    def last_frame(self) -> int:
+        return max(self.frame_indices)
+
+    @property
+    def first_time_ns(self) -> int:
+        return min(self.times_ns)
+
+    @property
+    def last_time_ns(self) -> int:
+        return max(self.times_ns)

@@ -12,7 +12,8 @@
   computed ahead by :class:`agvviz.replay.detect.pool.DetectionFeed` or read from the cache;
 * solve — :class:`agvviz.replay.solve.Replay` (detections → :class:`~agvviz.model.frames.FrameResult`);
 * checks — :class:`agvviz.replay.checks.CheckStage` (sets ``FrameResult.suspect`` before the frame
-  reaches the sinks; ``checks=off`` leaves it out; it is handed the fuse stage's UWB fixes);
+  reaches the sinks; ``checks=off`` leaves it out; it is handed the fuse stage's UWB fixes); at the
+  end its run-level findings (a camera's stamp offset) go to the sinks in ``GraphOutcome.findings``;
 * fuse — :class:`agvviz.replay.fuse.FusionReplay`;
 * correct — :class:`agvviz.replay.correct.CorrectionReplay`;
 * study — :func:`agvviz.replay.studies.monte_carlo.replay_trials` or
@@ -206,9 +207,16 @@ class ReplayGraph:
         if self.correct is not None:
             for step in self.correct.finish():
                 self.sinks.corrected(step)
-        return self._finished(
-            GraphOutcome(has_uwb=self.fuse is not None and self.fuse.has_uwb, corrected=self.correct is not None)
-        )
+        return self._finished(GraphOutcome(
+            has_uwb=self.fuse is not None and self.fuse.has_uwb, corrected=self.correct is not None,
+            findings=self.run_findings(),
+        ))
+
+    def run_findings(self) -> tuple:
+        """The check stage's findings about the whole run (:class:`~agvviz.model.suspects.RunFinding`),
+        from the frames solved so far: :meth:`run` hands them to the sinks at the end; after
+        :meth:`frames` is exhausted, ask here. Empty without the check stage."""
+        return self.checks.run_findings() if self.checks is not None else ()
 
     def _finished(self, outcome: GraphOutcome) -> GraphOutcome:
         self.sinks.finished(outcome)

@@ -3,7 +3,8 @@
 :func:`prepare` opens and scans a recording, resolves its role map and fills the sync stage
 (shared by ``run``, ``inspect`` and the audit); :func:`detection_plan` is the detect stage's
 feed (worker pool or cache); :func:`run_graph` drives :class:`agvviz.replay.graph.ReplayGraph`
-over the recording into the sinks it is given; :func:`replay_frames` and
+over the recording into the sinks it is given; :func:`replay_frames` (and :func:`replay_checked`,
+with the run-level findings) and
 :func:`detect_recording` are the solve-only and detect-only runs. The application run (the
 manifest, the ``.rrd`` and its sinks, the summary) is :func:`agvviz.app.run.run_recording`.
 """
@@ -19,6 +20,7 @@ import numpy as np
 from agvviz.conventions import camera_frame
 from agvviz.errors import InputError, OutputError, RunError
 from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC, FrameResult
+from agvviz.model.suspects import RunFinding
 from agvviz.model.frames import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
 from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
 from agvviz.model.messages import CalibrationMsg, FrameTransformMsg
@@ -345,6 +347,24 @@ def replay_frames(
     report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     graph = ReplayGraph(prepared.replay, until="solve")
     yield from graph.frames(iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report))
+
+
+def replay_checked(
+    recording_path: Path,
+    settings: RunSettings,
+    *,
+    topics: dict[str, str] | None = None,
+    roles_file: Path | None = None,
+    side: SideInputs | None = None,
+) -> tuple[list[FrameResult], tuple[RunFinding, ...]]:
+    """:func:`replay_frames` as a list, with the check stage's run-level findings
+    (:class:`~agvviz.model.suspects.RunFinding`: a camera's stamp offset, covering frames of the
+    list) — what benches and tests of the checks compare. Raises like :func:`prepare`."""
+    prepared = prepare(require_recording_path(recording_path), settings, topics, roles_file, side)
+    report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    graph = ReplayGraph(prepared.replay, until="solve")
+    frames = list(graph.frames(iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report)))
+    return frames, graph.run_findings()
 
 
 def detect_recording(

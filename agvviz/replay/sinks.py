@@ -15,6 +15,7 @@ import numpy as np
 from agvviz.model.frames import FrameResult
 from agvviz.model.detections import FrameDetections
 from agvviz.model.cameras import CameraState
+from agvviz.model.suspects import RunFinding
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,9 @@ class GraphOutcome:
 
     has_uwb: bool = False  # the fuse stage started UWB tracking (anchors and tag mount known)
     corrected: bool = False  # the correct stage ran
-
+    #: the check stage's findings about the whole run (e.g. a camera's stamp offset), each covering
+    #: frames the sinks were handed before (their FrameResults keep their own suspects)
+    findings: tuple[RunFinding, ...] = ()
 
 
 class Sink(Protocol):
@@ -63,7 +66,8 @@ class Sink(Protocol):
         """A study's outcome (every trial solved and scored)."""
 
     def finished(self, outcome: GraphOutcome) -> None:
-        """Every message went through the stages (the graph's last call)."""
+        """Every message went through the stages (the graph's last call); ``outcome.findings``
+        the check stage's run-level findings, over frames handed before."""
 
     def close(self) -> None:
         """The run is over (called by whoever made the sink, after the graph ran)."""

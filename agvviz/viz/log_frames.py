@@ -24,6 +24,7 @@ from agvviz.model.frames import FrameResult
 from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
+from agvviz.viz.log_findings import error_values
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -410,13 +411,7 @@ class FrameLogger:
     def log_errors(self, frame: FrameResult, stamp: Stamp) -> None:
         columns = self._columns
         suspect = frame.suspect if frame.solved else None
-        for entity, value in (
-            (paths.ERROR_POSITION_MM, None if frame.position_error_m is None else 1000.0 * frame.position_error_m),
-            (paths.ERROR_HEADING_DEG, frame.heading_error_deg),
-            (paths.ERROR_PITCH_DEG, frame.pitch_error_deg),
-            (paths.ERROR_ROLL_DEG, frame.roll_error_deg),
-            (paths.ERROR_REPROJ_RMS_PX, frame.reproj_rms_px),
-        ):
+        for entity, value in error_values(frame):
             if not frame.solved:
                 # A rejected frame has no value (not even a reprojection RMS it was rejected
                 # for): the line breaks and a marker stands in (log_rejection_markers).

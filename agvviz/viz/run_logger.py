@@ -3,7 +3,8 @@
 :class:`RunLogger` owns the file and holds one logger per modality of a frame —
 :class:`~agvviz.viz.log_frames.FrameLogger` (map, cameras, images, corners, poses, trajectories,
 errors), :class:`~agvviz.viz.log_lm.LmLogger` (the solver's iterations) and
-:class:`~agvviz.viz.log_uncertainty.UncertaintyLogger` (covariance, NEES, CRLB, ambiguity) — and
+:class:`~agvviz.viz.log_uncertainty.UncertaintyLogger` (covariance, NEES, CRLB, ambiguity) — plus
+:class:`~agvviz.viz.log_findings.FindingLogger` (the check stage's run-level findings, at the end), and
 logs the run's documents (manifest, summary, error budget). UWB and correction runs add their
 loggers (:mod:`agvviz.viz.log_uwb`, :mod:`agvviz.viz.log_correction`) on :attr:`RunLogger.stream`;
 study runs log with :mod:`agvviz.viz.log_studies`.
@@ -40,6 +41,7 @@ from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
 from agvviz.viz.blueprints import PlotAxis, default_blueprint, run_plot_axes
 from agvviz.viz.columns import Columns, Stamp
+from agvviz.viz.log_findings import FindingLogger
 from agvviz.viz.log_frames import FrameLogger, RunLogError, check_frame
 from agvviz.viz.log_lm import LmLogger
 from agvviz.viz.log_uncertainty import GHOST_MAX_AMBIGUITY_RATIO, UncertaintyLogger
@@ -107,6 +109,7 @@ class RunLogger:
         self.frames.images = bool(images)
         self.lm = LmLogger(self._rec, self._columns)
         self.uncertainty = UncertaintyLogger(self._rec, self._columns)
+        self.findings = FindingLogger(self._rec, self._columns)  # run-level findings, at the end
         self._budget_sources: list[str] | None = None  # an error budget was logged: its sources
         try:
             self.frames.log_styles()
@@ -185,6 +188,7 @@ class RunLogger:
         frames.log_markers_seen(frame, stamp)
         frames.log_poses(frame, stamp)
         frames.log_errors(frame, stamp)
+        self.findings.plotted(frame, stamp)
         self.lm.log(frame, stamp, frame.cam_name in frames.fixed_cams)
         self.uncertainty.log(frame, stamp)
         self._frames_buffered += 1
@@ -194,6 +198,18 @@ class RunLogger:
     def _flush(self) -> None:
         self._columns.flush(self._rec)
         self._frames_buffered = 0
+
+    def log_run_findings(self, findings) -> None:
+        """The check stage's run-level findings (``GraphOutcome.findings``): a row each in the
+        suspects log at its first frame, and the suspect markers at every frame it covers
+        (:class:`~agvviz.viz.log_findings.FindingLogger`)."""
+        self._check_open()
+
+        def stamp_at(index: int, log_time_ns: int) -> None:
+            start_ns = self.recording_start_ns if self.recording_start_ns is not None else log_time_ns
+            set_stamp(self._rec, index, log_time_ns, start_ns)
+
+        self.findings.log(findings, stamp_at)
 
     # -- run documents ---------------------------------------------------------------------
     def log_manifest(self, manifest: dict) -> None:
@@ -250,7 +266,7 @@ class RunLogger:
                 cov_scale=self.uncertainty.cov_scale,
                 start_m=None if first_pose is None else tuple(first_pose[:3, 3]),
                 budget_sources=self._budget_sources,
-                has_suspects=self.frames.suspect_frames > 0,
+                has_suspects=self.frames.suspect_frames > 0 or self.findings.findings_logged > 0,
                 axes=axes,
                 max_reproj_px=self.max_reproj_px,
             )

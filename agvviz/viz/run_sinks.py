@@ -88,7 +88,10 @@ class RrdSink(NullSink):
             self.logger.stream.flush()  # bounded memory: see RRD_FLUSH_EVERY_FRAMES
 
     def finished(self, outcome) -> None:
-        """The layout that fits the run's kind (shipped when the logger closes)."""
+        """The check stage's run-level findings (suspects log, markers on the error plots), then
+        the layout that fits the run's kind (shipped when the logger closes)."""
+        if outcome.findings:
+            self.logger.log_run_findings(outcome.findings)
         if outcome.has_uwb:
             fixed = {name for name, cam in self.cameras.items() if cam.T_agv_cam is None}
             fusion = self.fusion_logger

@@ -45,13 +45,27 @@ frame is skipped.
 
 :func:`suspect_stretches` groups consecutive suspects of one cause (what the terminal lists and
 the plots mark); :func:`suspects_summary` is the run summary's ``suspects`` entry.
+
+**Run-level findings**: a fault of the whole log is stated once, at the end of the run
+(:meth:`CheckStage.run_findings`, handed to the sinks in the graph's outcome): a camera's stamp
+offset against the odometry, estimated from all its clean steps, covers every solved frame of
+the camera (a constant offset misplaces each of them, but shows only where the twist changes).
+The summary counts the frames it covers and lists it as one stretch (:func:`all_stretches`).
 """
 
 from agvviz.replay.checks.common import NEXT_STEP, CheckSettings, chi2_sigma, mahalanobis_sigma, pose_cov, pose_difference
 from agvviz.replay.checks.stage import CheckStage, check_stage
-from agvviz.replay.checks.stretches import stretch_dict, suspect_stretches, suspects_summary
+from agvviz.replay.checks.stretches import (
+    all_stretches,
+    finding_dict,
+    finding_stretch,
+    stretch_dict,
+    suspect_stretches,
+    suspects_summary,
+)
 
 __all__ = [
     "NEXT_STEP", "CheckSettings", "CheckStage", "check_stage", "chi2_sigma", "mahalanobis_sigma", "pose_cov",
-    "pose_difference", "stretch_dict", "suspect_stretches", "suspects_summary",
+    "pose_difference", "all_stretches", "finding_dict", "finding_stretch", "stretch_dict", "suspect_stretches",
+    "suspects_summary",
 ]

@@ -54,6 +54,16 @@ TIME_OFFSET_MAX_S = 0.5
 ODOMETRY_OFFSET_MIN_STEPS = 20
 ODOMETRY_OFFSET_MIN_S = 0.01
 ODOMETRY_VELOCITY_NS = 20_000_000
+#: The run-level time offset (a finding on every frame of the camera, at the end of the run) needs at
+#: least RUN_OFFSET_MIN_TURNING steps whose change of twist |∂r/∂dt| (weighted, m/s and rad/s) is at
+#: least OFFSET_TURNING_TWIST: turns, starts and stops are what make an offset observable, and the
+#: fit is not to rest on one step (one turn of qr_floor gives 3–5 such steps at 10 Hz).
+OFFSET_TURNING_TWIST = 0.1
+RUN_OFFSET_MIN_TURNING = 2
+#: The run-level fit: Gauss–Newton iterations from the streaming fit, and the half step (s) of
+#: the central differences of the residual by dt (the odometry is piecewise linear between samples).
+RUN_OFFSET_ITERATIONS = 2
+RUN_OFFSET_EPS_S = 0.005
 #: Weights of (position m, rotation rad) in the time-offset fits: 1 mm ~ 0.06° (1 mrad).
 OFFSET_WEIGHT = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
 

@@ -64,6 +64,9 @@ class _CameraState:
     uwb_failed: tuple = (None, False)  # (stamp of the UWB fix last compared, whether it failed)
     #: time offset against the odometry, least squares r ≈ w·dt: Σw·r, Σw·w, Σr·r, point count
     offset_sums: list = None
+    #: those clean steps, for the run-level fit: (t_ns, reference t_ns, reference T_world_agv, carried pose, residual)
+    offset_steps: list = None
+    solved_frames: list = None  # (index, log_time_ns) of every solved frame: what a run-level finding covers
     last_time_ns: int | None = None
     steps_ns: deque = None
     pair_counts: dict = None  # other camera -> [compared, failed]
@@ -74,17 +77,23 @@ class _CameraState:
         self.pair_counts = {}
         self.offset_sums = [0.0, 0.0, 0.0, 0]
         self.stretch_codes = set()
+        self.offset_steps = []
+        self.solved_frames = []
 
 
 class CheckStage(ClockChecks, WitnessChecks):
     """The check stage (module docstring). :meth:`check` takes each solve-stage frame in file order
     and returns it, with ``suspect`` set when a check failed; :meth:`uwb_fix` takes the fuse stage's
-    UWB fixes. ``odometry_at(t_ns)`` the sync stage's odometry (``T_odom_agv`` or None);
-    ``qr_map()`` the marker map in use (id → world corners), read at each frame."""
+    UWB fixes; :meth:`run_findings`, at the end of the run, the findings about the whole run.
+    ``odometry_at(t_ns)`` the sync stage's odometry (``T_odom_agv`` or None);
+    ``qr_map()`` the marker map in use (id → world corners), read at each frame;
+    ``odometry_span()`` the (first, last) stamp of the odometry (ns) or None — a velocity is taken
+    from the odometry only inside it (before and after it, ``odometry_at`` holds the end pose)."""
 
-    def __init__(self, settings: CheckSettings, odometry_at=None, qr_map=None):
+    def __init__(self, settings: CheckSettings, odometry_at=None, qr_map=None, odometry_span=None):
         self.settings = settings
         self.odometry_at = odometry_at if odometry_at is not None else (lambda t_ns: None)
+        self.odometry_span = odometry_span if odometry_span is not None else (lambda: None)
         self.qr_map = qr_map if qr_map is not None else (lambda: {})
         self.cameras: dict[str, _CameraState] = {}
         self._stamp_ns: int | None = None
@@ -112,6 +121,7 @@ class CheckStage(ClockChecks, WitnessChecks):
         if not frame.solved or frame.T_world_agv is None:
             return frame
         self.frames_checked += 1
+        state.solved_frames.append((frame.index, frame.log_time_ns))
         if time_result is not None:
             results.append(time_result)
         odometry = self.odometry_at(frame.log_time_ns)
@@ -213,6 +223,13 @@ class CheckStage(ClockChecks, WitnessChecks):
             self._at_stamp.append(frame)  # (a doubted pose is no witness for the other cameras)
         self.frames_suspect += 1
         return replace(frame, suspect=suspect)
+
+    def run_findings(self) -> tuple[suspects.RunFinding, ...]:
+        """The findings about the whole run, from every frame checked so far (the graph asks at
+        the end): each camera's stamp offset against the odometry, when significant
+        (:meth:`~agvviz.replay.checks.timing.ClockChecks._run_offset_finding`). By camera name."""
+        found = (self._run_offset_finding(name, self.cameras[name]) for name in sorted(self.cameras))
+        return tuple(f for f in found if f is not None)
 
     # -- bookkeeping ----------------------------------------------------------------------------
     def _clean(self, frame: FrameResult, state: _CameraState, odometry: np.ndarray | None) -> None:
@@ -484,4 +501,4 @@ def check_stage(settings: RunSettings, sync, ctx) -> CheckStage | None:
     stage ``sync``, the marker map from the solve stage's context ``ctx``."""
     if settings.checks == "off":
         return None
-    return CheckStage(CheckSettings.of(settings), sync.odometry_at, lambda: ctx.qr_map)
+    return CheckStage(CheckSettings.of(settings), sync.odometry_at, lambda: ctx.qr_map, lambda: sync.odometry.span_ns)
