@@ -51,25 +51,8 @@ from agvviz.replay.studies.monte_carlo_cells import SOLVERS
 from agvviz.viz import paths
 from agvviz.viz.blueprints import cnoem_report_blueprint, mc_default_tab, study_blueprint
 from agvviz.viz.rrd_file import AtomicRrd
+from agvviz.viz.style import CNOEM_COLORS, SOLVER_COLORS, solver_color
 
-SOLVER_COLORS = {
-    "p4p": (60, 120, 255),
-    "lm": (230, 40, 40),
-    "lm_pixel": (255, 160, 0),
-    "lm_amb": (0, 220, 220),
-    "ippe": (40, 200, 90),
-    "sqpnp": (200, 120, 255),
-    "crlb": (230, 230, 230),
-}
-CNOEM_COLORS = {
-    "cnoem": (230, 40, 40),
-    "cnoem_multistart": (255, 120, 120),
-    "bundle": (255, 160, 0),
-    "ippe_first": (40, 200, 90),
-    "ippe_first_nav": (60, 120, 255),
-    "ippe_mean_nav": (200, 120, 255),
-    "crlb": (230, 230, 230),
-}
 
 
 # -- p4p Monte-Carlo ---------------------------------------------------------------------------
@@ -90,7 +73,7 @@ def log_study(rec: rr.RecordingStream, results: dict[str, CellResult], report_md
             ok = np.flatnonzero(np.isfinite(errors_mm))
             rec.log(
                 f"{base}/{name}",
-                rr.SeriesPoints(names=name, colors=SOLVER_COLORS.get(name, (200, 200, 200)), marker_sizes=2.0),
+                rr.SeriesPoints(names=name, colors=solver_color(name), marker_sizes=2.0),
                 static=True,
             )
             if len(ok):
