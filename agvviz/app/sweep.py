@@ -30,6 +30,7 @@ from agvviz.settings import RunSettings, SettingsError, apply_overrides, field_t
 from agvviz.app.diff import CompareError, format_number, format_p
 from agvviz.app import run_series
 from agvviz.viz.overlay import OverlayRun, write_overlay
+from agvviz.viz.style import color_name
 from agvviz.viz.readback import RrdReadError, read_rrd
 
 #: Spellings of run settings accepted by ``sweep --set`` besides the setting names themselves.
@@ -375,6 +376,50 @@ def ranking_rows(entries: list[SweepEntry], rank_by: str) -> tuple[list[str], li
     return header, rows
 
 
+#: p below which a setting is called worse than the best (Wilcoxon, two-sided).
+SWEEP_ALPHA = 0.05
+#: The ranking's columns the viewer's report shows (every column: ranking.md / ranking.csv).
+REPORT_METRICS = ("solved", "position_p95_mm", "heading_rmse_deg")
+
+
+def sweep_verdict(entry: SweepEntry, best: SweepEntry, alpha: float = SWEEP_ALPHA) -> str:
+    """One setting against the best: ``best``, ``worse than #1 (p < 0.001)``, ``not told apart
+    from #1 (p 0.4)``, or ``no common frames`` when the test had nothing to compare."""
+    if entry is best:
+        return "best"
+    if entry.p_vs_best is None or not np.isfinite(entry.p_vs_best):
+        return f"no paired test with #{best.rank} (no frame both solved)"
+    p = format_p(entry.p_vs_best)
+    shown = f"p {p}" if p.startswith("<") else f"p = {p}"
+    if entry.p_vs_best < alpha:
+        return f"worse than #{best.rank} ({shown})"
+    return f"not told apart from #{best.rank} ({shown} ≥ {alpha:g})"
+
+
+def sweep_report_markdown(recording_name: str, entries: list[SweepEntry], rank_by: str) -> str:
+    """The sweep's ranking as the viewer shows it (the overlay's "comparison" panel): rank, the
+    colour of the run in the overlay, the setting, the ranking metric and a few others, p vs the
+    best and the verdict it gives; failed settings below. ``entries`` in rank order."""
+    ok = [e for e in entries if e.ok]
+    direction = "higher" if rank_by in HIGHER_IS_BETTER else "lower"
+    metrics = list(dict.fromkeys([rank_by, *REPORT_METRICS]))
+    header = ["rank", "colour", "setting", *metrics, "p vs best", "verdict"]
+    lines = [
+        f"### Sweep over {recording_name}: ranked by `{rank_by}` ({direction} is better)", "",
+        "| " + " | ".join(header) + " |", "| " + " | ".join("---" for _ in header) + " |",
+    ]
+    for index, e in enumerate(ok):
+        cells = [f"#{e.rank}", color_name(index), e.label, *[format_number(e.metrics.get(m)) for m in metrics],
+                 format_p(e.p_vs_best) if e is not ok[0] else "—", sweep_verdict(e, ok[0])]
+        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    lines += ["", f"p vs best: Wilcoxon signed-rank of the per-frame errors against #1, on the frames both "
+              f"solved; worse when p < {SWEEP_ALPHA:g}. Every column: ranking.md / ranking.csv."]
+    failed = [e for e in entries if not e.ok]
+    if failed:
+        lines += ["", "Failed settings:", *[f"- {e.label}: {e.error}" for e in failed]]
+    return "\n".join(lines) + "\n"
+
+
 def _atomic_write(path: Path, text: str) -> None:
     outputs.atomic_write_text(path, text)
 
@@ -427,12 +472,7 @@ def _write_sweep_overlay(
             first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib), reprojected,
             T_truth=None if s.T_truth is None else s.T_truth[ib], short_label=f"#{entry.rank}",
         ))
-    header, rows = ranking_rows(ok, rank_by)
-    report = "\n".join([
-        f"# sweep over {recording.name}", "",
-        "| " + " | ".join(header[:6]) + " |", "| " + " | ".join("---" for _ in header[:6]) + " |",
-        *["| " + " | ".join(row[:6]) + " |" for row in rows],
-    ]) + "\n"
+    report = sweep_report_markdown(recording.name, [*ok, *[e for e in entries if not e.ok]], rank_by)
     return write_overlay(
         out,
         recording_name=f"sweep {recording.stem}",

@@ -144,6 +144,11 @@ def _lm_panel(lm_iterates: bool) -> rrb.Container | rrb.View:
     return rrb.Vertical(text, bars, row_shares=[0.3, 0.7])
 
 
+def summary_json_view() -> rrb.TextDocumentView:
+    """The whole run summary as JSON (SI units): a tab behind the summary table, for tools."""
+    return rrb.TextDocumentView(origin=paths.RUN_SUMMARY_JSON, name="summary (JSON)")
+
+
 def default_blueprint(
     cam_names: list[str],
     *,
@@ -193,6 +198,7 @@ def default_blueprint(
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
         rrb.TextLogView(origin=paths.EVENTS_FLIPS, name="flips"),
         *([budget_table_view()] if budget_sources is not None else []),
+        summary_json_view(),
         active_tab=0 if budget_sources is None else 3,
     )
     logs = [
@@ -326,6 +332,7 @@ def uwb_blueprint(
         rrb.TimeSeriesView(origin=paths.UWB_GDOP, name="GDOP", plot_legend=rrb.PlotLegend(visible=False)),
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        summary_json_view(),
         active_tab=0,
     )
     top = rrb.Horizontal(world, image_panel, column_shares=[0.45, 0.55])
@@ -422,6 +429,7 @@ def correction_blueprint(cam_names: list[str]) -> rrb.Blueprint:
         ),
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        summary_json_view(),
         active_tab=0,
     )
     top = rrb.Horizontal(world, rrb.Vertical(*cameras) if cameras else rrb.Spacer(), column_shares=[0.58, 0.42])
@@ -728,7 +736,7 @@ def trials_blueprint(outcome) -> rrb.Blueprint:
     return study_blueprint(
         outcome.results,
         active="trials",
-        documents=((paths.RUN_SUMMARY, "summary"), (paths.RUN_MANIFEST, "manifest")),
+        documents=((paths.RUN_SUMMARY, "summary"), (paths.RUN_MANIFEST, "manifest"), (paths.RUN_SUMMARY_JSON, "summary (JSON)")),
     )
 
 
@@ -760,6 +768,7 @@ def cnoem_trials_blueprint(outcome) -> rrb.Blueprint:
     texts += [
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        summary_json_view(),
     ]
     return rrb.Blueprint(
         rrb.Horizontal(

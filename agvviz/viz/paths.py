@@ -110,7 +110,8 @@ def error_suspect(error_entity: str) -> str:
 
 
 RUN_MANIFEST = "run/manifest"
-RUN_SUMMARY = "run/summary"
+RUN_SUMMARY = "run/summary"  # TextDocument (static): the terminal's table (mm, °, px), damage, warnings
+RUN_SUMMARY_JSON = "run/summary_json"  # TextDocument (static): the whole summary as a ```json block
 
 
 def camera(cam_name: str, fixed: bool = False) -> str:
