@@ -68,7 +68,7 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
     markers = est.markers
     rec.log(paths.AUDIT_MARKERS_RECORDED, rr.LineStrips3D(
         [_outline(f.corners_world_mapped) for f in markers], colors=style.COLOR_MARKER, radii=OUTLINE_RADIUS_M,
-        labels=[f.marker_id for f in markers], show_labels=False), static=True)
+        labels=[f.marker_id for f in markers], show_labels=True), static=True)
     colors = [style.COLOR_FLAGGED if f.flagged else (style.COLOR_SEEN_TOO_LITTLE if f.status == "seen too little" else style.COLOR_OK)
               for f in markers]
     radii = [FLAGGED_RADIUS_M if f.flagged else OUTLINE_RADIUS_M for f in markers]

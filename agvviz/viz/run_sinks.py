@@ -14,7 +14,7 @@ from agvviz.settings import RunSettings
 from agvviz.viz.blueprints import cnoem_trials_blueprint, correction_blueprint, trials_blueprint, uwb_blueprint
 from agvviz.viz.log_correction import CorrectionLogger
 from agvviz.viz.log_studies import log_cnoem_trials, log_trials
-from agvviz.viz.log_uwb import FusionLogger
+from agvviz.viz.log_uwb import FusionLogger, log_room_outline
 from agvviz.viz.run_logger import RunLogger
 
 #: Every this many frames the ``.rrd`` stream is flushed (waiting until Rerun has written what
@@ -44,6 +44,7 @@ class RrdSink(NullSink):
             if settings.correction != "none" else None
         )
         self._cameras_logged: set[str] = set()
+        self.room_m = None  # the UWB room's (low, high) corners, once its anchors are known
 
     def cameras_changed(self, cameras: Mapping) -> None:
         """Log each camera once both its calibration and its extrinsic are known."""
@@ -74,6 +75,7 @@ class RrdSink(NullSink):
         if uwb is not None:
             if not self.fusion_logger.anchor_ids:
                 self.fusion_logger.log_anchors(uwb.anchors_m, uwb.tag_z_m, list(self.cameras))
+                self.room_m = log_room_outline(self.logger.stream, uwb.anchors_m)
             self.fusion_logger.log(item)
 
     def corrected(self, step) -> None:
@@ -91,6 +93,7 @@ class RrdSink(NullSink):
             self.logger.blueprint = uwb_blueprint(
                 self.logger.cam_names, fixed, self.fusion_logger.anchor_ids,
                 zoom_cams=self.logger.zoom_cams, error_range_mm=self.fusion_logger.error_range_mm(),
+                room_m=self.room_m,
             )
         if self.correction_logger is not None:
             self.logger.blueprint = correction_blueprint(sorted(self.cameras))

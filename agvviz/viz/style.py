@@ -88,6 +88,23 @@ COLOR_OTHER = (200, 200, 200)
 COLOR_BUDGET_SOURCE = (255, 140, 0)
 COLOR_BUDGET_NEGATIVE = (90, 200, 230)
 COLOR_BUDGET_INTERACTION = (150, 150, 150)
+#: Each error source's line in the budget's per-frame plots (``agvviz.sim.realism.SOURCES``;
+#: ``imaging.<effect>`` takes imaging's), the recording's own error (all on) and the floor.
+BUDGET_SOURCE_COLORS = {
+    "calibration": (230, 40, 40),
+    "map": (80, 160, 255),
+    "timing": (240, 220, 60),
+    "bumps": (170, 110, 255),
+    "slip": (0, 200, 180),
+    "imaging": (255, 0, 200),
+}
+COLOR_BUDGET_ALL_ON = (255, 255, 255)
+COLOR_BUDGET_FLOOR = COLOR_ZERO
+
+
+def budget_source_color(source: str) -> tuple[int, int, int]:
+    """The colour of error source ``source`` in the budget's per-frame plots."""
+    return BUDGET_SOURCE_COLORS.get(source.split(".")[0], COLOR_OTHER)
 
 
 def solver_color(name: str) -> tuple[int, int, int]:
