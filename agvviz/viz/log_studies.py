@@ -4,17 +4,21 @@ report files (``bench/bench_monte_carlo.py``, ``bench/bench_cnoem.py``).
 
 p4p Monte-Carlo (:mod:`agvviz.replay.studies.monte_carlo`, :mod:`agvviz.replay.studies.monte_carlo_cells`):
 one implementation for both outputs, :func:`log_study` (timelines: ``trial`` = trial index within
-its cell; ``snr_db`` for the paper cells; ``sigma_mpx`` = σ in milli-pixels for the CRLB cells)::
+its cell; ``sigma_mpx`` = the cell's σ in milli-pixels, for every cell; ``snr_db`` for the paper cells too)::
 
     mc/report                                      TextDocument: the markdown report (static)
     mc/trials/<cell>/error_mm/<solver>             Scalars over trial: ‖t̂ − t‖ (mm) of each
-                                                   trial (failed solves left out)
+                                                   trial (failed solves left out); no tab shows it
     mc/trials/<cell>/error_mm/crlb                 Scalars at the first and last trial: the
                                                    cell's CRLB (sqrt trace, mm), a flat line
-    mc/paper/h<h>_z<z>_n<N>/t<i>_mean/<solver>     Scalars: mean of t_i (m) over snr_db
-    mc/paper/h<h>_z<z>_n<N>/rmse_mm/<solver>|crlb  Scalars: RMSE of t and its CRLB (mm)
-    mc/paper/h<h>_z<z>_n<N>/rmse_over_crlb/<solver>   Scalars: RMSE ÷ CRLB over snr_db
-    mc/crlb/tilt<t>_h<h>_z<z>_n<N>/rmse_over_crlb/<solver>   Scalars over sigma_mpx
+    <group> = mc/paper/h<h>_z<z>_n<N> (paper cells) or mc/crlb/tilt<t>_h<h>_z<z>_n<N> (CRLB cells);
+    every figure below is at the cell's σ on ``sigma_mpx``, paper cells also at ``snr_db``:
+    <group>/rmse_mm/<solver>                       Scalars ×3: RMSE of t (mm), its 95 % interval
+                                                   low and high (statistics.rmse_ci), one colour
+                                                   and one legend name
+    <group>/rmse_mm/crlb                           Scalars: the cell's CRLB (mm)
+    <group>/rmse_over_crlb/<solver>                Scalars: RMSE ÷ CRLB
+    mc/paper/h<h>_z<z>_n<N>/t<i>_mean/<solver>     Scalars: mean of t_i (m)
 
 CNOEM grid run (:mod:`agvviz.replay.studies.cnoem`), timeline ``trial`` = the trial's index within
 its cell::
