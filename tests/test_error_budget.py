@@ -101,7 +101,7 @@ def test_budget_rrd(budget, tmp_path):
     # the chart: one labelled bar per source and interaction/other, each with its interval
     from agvviz.viz.readback import _rows
 
-    labels = _rows(contents, paths.BUDGET_SHARE_BARS, "Boxes2D:labels")[0]["Boxes2D:labels"]
+    labels = _rows(contents, paths.BUDGET_SHARE_LABELS, "Points2D:labels")[0]["Points2D:labels"]
     assert [label.split(" ")[0] for label in labels] == [*CHECKED, INTERACTION]
     assert labels[0].startswith(f"calibration {100 * calibration.share:.1f} % [")
     assert paths.BUDGET_SHARE_CI in contents.entity_paths
@@ -146,7 +146,7 @@ def test_run_with_budget(one_source, tmp_path):
     # the chart: one labelled bar per source and interaction/other, each with its interval
     from agvviz.viz.readback import _rows
 
-    labels = _rows(contents, paths.BUDGET_SHARE_BARS, "Boxes2D:labels")[0]["Boxes2D:labels"]
+    labels = _rows(contents, paths.BUDGET_SHARE_LABELS, "Points2D:labels")[0]["Points2D:labels"]
     assert [label.split(" ")[0] for label in labels] == [*CHECKED, INTERACTION]
     assert labels[0].startswith(f"calibration {100 * calibration.share:.1f} % [")
     assert paths.BUDGET_SHARE_CI in contents.entity_paths

@@ -304,7 +304,7 @@ def uwb_blueprint(
         f"{LEGEND[COLOR_FUSED]} (yellow); UWB anchors, room outline (grey)",
         cam_names,
         fixed_cams,
-        eye=None if room_m is None else framing_eye(*room_m, direction=(-0.2, -0.75, 0.75)),
+        eye=None if room_m is None else framing_eye(*room_m, direction=(-0.25, -0.95, 0.9)),
     )
     ranges = rrb.Grid(
         *[

@@ -14,6 +14,7 @@ Entity tree (timelines: ``frame`` = the run's frame index; ``time`` = the frame'
                                            share in %, y = row; orange ≥ 0, blue < 0, grey rest)
     budget/shares_pct/ci                   LineStrips2D: each share's 95 % bootstrap interval
                                            over frames (evaluation.error_budget.share_intervals)
+    budget/shares_pct/labels               Points2D right of the bars: each bar's label
     budget/shares_pct/axis|ticks           the 0 % line, a grid every 25 % and its labels
     budget/all_on/position_error_mm        Scalars per frame: the recording's position error
     budget/all_off/position_error_mm       Scalars: the floor (every source off) — its RMSE,
@@ -95,6 +96,8 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns:
 ROW = 10.0
 BAR_HALF_HEIGHT = 3.5
 GRID_STEP_PCT = 25.0
+#: Where the labels' centres sit, right of the grid's last line (%); long enough for "interaction/other 11.2 % [-13.9, 48.6]".
+LABEL_OFFSET_PCT = 45.0
 
 
 def share_chart_rows(intervals: list[ShareInterval]) -> list[tuple[str, float, float, float, tuple]]:
@@ -122,7 +125,8 @@ def log_share_chart(rec: rr.RecordingStream, intervals: list[ShareInterval]) -> 
     mins = np.stack([np.minimum(shares, 0.0), y - BAR_HALF_HEIGHT], axis=1)
     sizes = np.stack([np.abs(shares), np.full(len(rows), 2 * BAR_HALF_HEIGHT)], axis=1)
     rec.log(paths.BUDGET_SHARE_BARS, rr.Boxes2D(mins=mins, sizes=sizes, colors=[r[4] for r in rows],
-                                                labels=[r[0] for r in rows], show_labels=True), static=True)
+                                                radii=rr.Radius.ui_points(2.0), labels=[r[0] for r in rows],
+                                                show_labels=False), static=True)
     whiskers = [[[r[2], yk], [r[3], yk]] for r, yk in zip(rows, y) if np.isfinite(r[2]) and np.isfinite(r[3])]
     whiskers += [[[x, yk - 1.5], [x, yk + 1.5]] for r, yk in zip(rows, y) if np.isfinite(r[2]) for x in (r[2], r[3])]
     if whiskers:
@@ -134,8 +138,13 @@ def log_share_chart(rec: rr.RecordingStream, intervals: list[ShareInterval]) -> 
     top, bottom = -ROW / 2, y[-1] + ROW / 2
     rec.log(paths.BUDGET_SHARE_AXIS, rr.LineStrips2D([[[x, top], [x, bottom]] for x in grid],
                                                      colors=COLOR_ZERO, radii=[rr.Radius.ui_points(1.5 if x == 0 else 0.5) for x in grid]), static=True)
-    rec.log(paths.BUDGET_SHARE_TICKS, rr.Points2D([[x, bottom + 2.5] for x in grid], colors=COLOR_ZERO, radii=0.1,
-                                                  labels=[f"{x:.0f} %" for x in grid], show_labels=True), static=True)
+    # each bar's label at the chart's right, in its row: a box's own label wraps to its width
+    rec.log(paths.BUDGET_SHARE_LABELS, rr.Points2D([[grid[-1] + LABEL_OFFSET_PCT, yk] for yk in y], colors=[r[4] for r in rows],
+                                                   radii=0.1, labels=[r[0] for r in rows], show_labels=True), static=True)
+    # the last, unlabelled tick widens the view's bounds over the labels' right half
+    ticks = [[x, bottom + 2.5] for x in grid] + [[grid[-1] + 2 * LABEL_OFFSET_PCT, bottom + 2.5]]
+    rec.log(paths.BUDGET_SHARE_TICKS, rr.Points2D(ticks, colors=COLOR_ZERO, radii=0.1,
+                                                  labels=[f"{x:.0f} %" for x in grid] + [""], show_labels=True), static=True)
 
 
 def write_budget_rrd(out_path: str | os.PathLike, budget: ErrorBudget) -> Path:

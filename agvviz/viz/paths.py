@@ -325,6 +325,7 @@ BUDGET_SHARES = f"{BUDGET}/shares_pct"  # the chart of shares (%), a 2D view (st
 BUDGET_SHARE_BARS = f"{BUDGET_SHARES}/bars"  # Boxes2D: one bar per source, then interaction/other, labelled
 BUDGET_SHARE_CI = f"{BUDGET_SHARES}/ci"  # LineStrips2D: each bar's bootstrap interval (a whisker)
 BUDGET_SHARE_AXIS = f"{BUDGET_SHARES}/axis"  # LineStrips2D: the 0 % line and the grid at every 25 %
+BUDGET_SHARE_LABELS = f"{BUDGET_SHARES}/labels"  # Points2D right of the bars: each bar's label
 BUDGET_SHARE_TICKS = f"{BUDGET_SHARES}/ticks"  # Points2D: the grid's labels ("0 %", "25 %", …)
 #: Series names of the recording's own error (every source on) and of the floor (all off).
 BUDGET_ALL_ON = "all_on"
