@@ -153,7 +153,7 @@ def _lm_panel(lm_iterates: bool) -> rrb.Container | rrb.View:
 
 
 def summary_json_view() -> rrb.TextDocumentView:
-    """The whole run summary as JSON (SI units): a tab behind the summary table, for tools."""
+    """The whole run summary as JSON (unrounded): a tab behind the summary table, for tools."""
     return rrb.TextDocumentView(origin=paths.RUN_SUMMARY_JSON, name="summary (JSON)")
 
 

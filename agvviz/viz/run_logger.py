@@ -214,7 +214,7 @@ class RunLogger:
         self._check_open()
         self._rec.log(paths.RUN_SUMMARY, _markdown(_summary_markdown(summary)), static=True)
         block = _json_block("run summary", summary)
-        self._rec.log(paths.RUN_SUMMARY_JSON, _markdown(f"### Run summary (JSON, SI units)\n\n```json\n{block}\n```\n"), static=True)
+        self._rec.log(paths.RUN_SUMMARY_JSON, _markdown(f"### Run summary (JSON, every figure unrounded)\n\n```json\n{block}\n```\n"), static=True)
 
     # -- output ----------------------------------------------------------------------------
     def close(self) -> None:
@@ -273,7 +273,7 @@ def _summary_markdown(summary: dict) -> str:
     parts = ["### Run summary", markdown_table(rows)]
     if notes:
         parts.append("\n".join(notes))
-    parts.append("*The whole summary (every figure, SI units): the tab \"summary (JSON)\".*")
+    parts.append("*The whole summary (every figure unrounded): the tab \"summary (JSON)\".*")
     return "\n\n".join(parts)
 
 
