@@ -147,8 +147,8 @@ def test_run_with_budget(one_source, tmp_path):
     from agvviz.viz.readback import _rows
 
     labels = _rows(contents, paths.BUDGET_SHARE_LABELS, "Points2D:labels")[0]["Points2D:labels"]
-    assert [label.split(" ")[0] for label in labels] == [*CHECKED, INTERACTION]
-    assert labels[0].startswith(f"calibration {100 * calibration.share:.1f} % [")
+    assert [label.split(" ")[0] for label in labels] == ["calibration", INTERACTION]
+    assert labels[0].startswith(f"calibration {100 * calibration['share']:.1f} % [")
     assert paths.BUDGET_SHARE_CI in contents.entity_paths
 
 def test_run_budget_refusals(one_source, tmp_path):
