@@ -23,7 +23,8 @@ from agvviz.cli.main import app
 from agvviz.app import cluster
 from agvviz.app.diff import COMPACT_METRICS, CompareError, diff, diff_table, diff_table_title, diff_verdict, format_p
 from agvviz.app.run_series import cameras_of, fixed_cameras_of, load_run
-from agvviz.app.sweep import parse_grid, sweep
+from agvviz.app.sweep import SweepEntry, parse_grid, sweep
+from agvviz.app.sweep_report import ranking_markdown, sweep_verdict
 from agvviz.errors import InputError
 from agvviz.evaluation.comparison import DIRECT, RunSeries, compare_runs
 from agvviz.evaluation.expression import ExpressionError
@@ -101,8 +102,34 @@ def test_sweep_overlay_holds_every_successful_run(swept):
         np.testing.assert_allclose(values, run_values, rtol=1e-12)
         assert f"world/trajectory/{key}" in contents.entity_paths
     report = text_document(contents, paths.COMPARE_REPORT)
-    assert "Failed: lm-refine=subpix" in report and "**Best: lm**" in report
     assert "settings/s3_" not in " ".join(contents.entity_paths)  # a failed setting has no layers
+    table, failed = report.split("Failed settings:")
+    assert "lm-refine=subpix" not in table and "lm-refine=subpix" in failed  # no row for a failed run
+    # the ranking, the run's colour in the overlay and the verdict vs the best, in the viewer
+    none = _entry(outcome, "lm-refine=none")
+    assert "| #1 | orange | lm |" in table and "| best |" in table
+    assert f"| #2 | magenta | lm-refine=none |" in table
+    assert f"| {format_p(none.p_vs_best)} | worse than #1 (p" in table
+
+
+def test_sweep_verdicts():
+    """The viewer's verdict per setting: worse below α, not told apart at or above it."""
+    def entry(label, rank, p):
+        e = SweepEntry(label, RunSettings(), Path(f"{label}.rrd"), metrics={"position_rmse_mm": float(rank)})
+        e.rank, e.p_vs_best = rank, p
+        return e
+
+    best, worse, same, untested = entry("a", 1, None), entry("b", 2, 0.0004), entry("c", 3, 0.2), entry("d", 4, None)
+    assert sweep_verdict(best, best) == "best"
+    assert sweep_verdict(worse, best) == "worse than #1 (p <0.001)"
+    assert sweep_verdict(same, best) == "not told apart from #1 (p = 0.2 ≥ 0.05)"
+    assert sweep_verdict(entry("e", 2, 0.049), best).startswith("worse")
+    assert sweep_verdict(entry("e", 2, 0.05), best).startswith("not told apart")
+    assert sweep_verdict(untested, best).startswith("no paired test")
+    failed = SweepEntry("f", RunSettings(), Path("f.rrd"), error="OutputError: x")
+    report = ranking_markdown("rec.mcap", [best, worse, same, untested, failed], "position_rmse_mm")
+    assert report.count("\n| #") == 4 and "- f: OutputError: x" in report
+    assert "| #3 | yellow | c | 3 |" in report
 
 
 def test_diff_of_a_run_with_itself_is_zero_and_not_significant(swept):

@@ -98,7 +98,13 @@ def test_budget_rrd(budget, tmp_path):
     assert np.allclose(np.sort(values), np.sort(calibration.position_error_off_mm[np.isfinite(calibration.position_error_off_mm)]))
     _, on = scalar_series(contents, paths.budget_series("all_on"))
     assert len(on) == budget.solved_all
-    assert paths.BUDGET_SHARES in contents.entity_paths
+    # the chart: one labelled bar per source and interaction/other, each with its interval
+    from agvviz.viz.readback import _rows
+
+    labels = _rows(contents, paths.BUDGET_SHARE_LABELS, "Points2D:labels")[0]["Points2D:labels"]
+    assert [label.split(" ")[0] for label in labels] == [*CHECKED, INTERACTION]
+    assert labels[0].startswith(f"calibration {100 * calibration.share:.1f} % [")
+    assert paths.BUDGET_SHARE_CI in contents.entity_paths
 
 @pytest.fixture(scope="module")
 def one_source(tmp_path_factory):
@@ -137,7 +143,13 @@ def test_run_with_budget(one_source, tmp_path):
     frames, on = scalar_series(contents, paths.budget_series("all_on"))
     run_frames, run_errors = scalar_series(contents, paths.ERROR_POSITION_MM)
     assert list(frames) == list(run_frames) and np.allclose(on, run_errors)
-    assert paths.BUDGET_SHARES in contents.entity_paths
+    # the chart: one labelled bar per source and interaction/other, each with its interval
+    from agvviz.viz.readback import _rows
+
+    labels = _rows(contents, paths.BUDGET_SHARE_LABELS, "Points2D:labels")[0]["Points2D:labels"]
+    assert [label.split(" ")[0] for label in labels] == ["calibration", INTERACTION]
+    assert labels[0].startswith(f"calibration {100 * calibration['share']:.1f} % [")
+    assert paths.BUDGET_SHARE_CI in contents.entity_paths
 
 def test_run_budget_refusals(one_source, tmp_path):
     ideal = tmp_path / "ideal.mcap"
@@ -171,3 +183,51 @@ def test_errors_on_bad_input(tmp_path):
     result = CliRunner().invoke(app, ["budget", str(ideal), "--out", str(tmp_path / "b.rrd")])
     assert result.exit_code == 2
     assert "nothing to budget" in result.output and not (tmp_path / "b.rrd").exists()
+
+
+# -- issue 26: the shares' bootstrap intervals and the labelled chart --------------------------------
+def _synthetic_budget(rng, n=300):
+    """A budget of one source over n independent frames whose true share is 1/2: the error with the
+    source off is |N(0, 1)|, with it on sqrt(off² + d²), d ~ N(0, 1) independent of it."""
+    from pathlib import Path
+
+    from agvviz.evaluation.error_budget import ErrorBudget, SourceBudget, share
+
+    t = np.arange(n, dtype=np.int64) * 100_000_000
+    off = np.abs(rng.normal(size=n))
+    on = np.sqrt(off**2 + rng.normal(size=n) ** 2)
+    rmse_on, rmse_off = float(np.sqrt(np.mean(on**2))), float(np.sqrt(np.mean(off**2)))
+    source = SourceBudget("calibration", rmse_off, share(rmse_on, rmse_off), n, t, off, on - off)
+    return ErrorBudget(Path("x.mcap"), "qr_floor", 0, "typical", "", {}, rmse_on, n, None, t, np.arange(n),
+                       on, [source])
+
+
+def test_share_interval_matches_a_seeded_reference():
+    """The bootstrap interval of a share has the width of the share's sampling distribution (the
+    reference: 2000 seeded independent budgets of the same world) within 20 %, covers the true
+    share (1/2), is the same for the same seed, and interaction/other is 1 − Σ shares."""
+    from agvviz.evaluation.error_budget import INTERACTION, share_intervals
+
+    budget = _synthetic_budget(np.random.default_rng(7))
+    source, interaction = share_intervals(budget)
+    reference = [_synthetic_budget(np.random.default_rng(1000 + k)).sources[0].share for k in range(2000)]
+    ref_low, ref_high = np.percentile(reference, [2.5, 97.5])
+    assert source.name == "calibration" and source.share == budget.sources[0].share
+    assert source.low < 0.5 < source.high and source.low < source.share < source.high
+    assert (source.high - source.low) == pytest.approx(ref_high - ref_low, rel=0.2)
+    assert share_intervals(budget) == [source, interaction]  # seeded
+    assert share_intervals(budget, seed=1)[0] != source
+    assert interaction.name == INTERACTION and interaction.share == pytest.approx(1 - source.share)
+    assert interaction.low == pytest.approx(1 - source.high, abs=1e-9) and interaction.high == pytest.approx(1 - source.low, abs=1e-9)
+    assert "95 % CI over frames" in budget.markdown() and "negative share" in budget.markdown().lower()
+
+
+def test_share_chart_labels_and_colours():
+    from agvviz.evaluation.error_budget import INTERACTION, ShareInterval
+    from agvviz.viz import style
+
+    rows = log_budget.share_chart_rows([ShareInterval("calibration", 0.613, 0.48, 0.721),
+                                        ShareInterval("map", -0.285, -0.4, -0.1), ShareInterval(INTERACTION, 0.672, 0.5, 0.9)])
+    assert [r[0] for r in rows] == ["calibration 61.3 % [48.0, 72.1]", "map -28.5 % [-40.0, -10.0]",
+                                    f"{INTERACTION} 67.2 % [50.0, 90.0]"]
+    assert [r[4] for r in rows] == [style.COLOR_BUDGET_SOURCE, style.COLOR_BUDGET_NEGATIVE, style.COLOR_BUDGET_INTERACTION]

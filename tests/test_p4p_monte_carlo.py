@@ -12,7 +12,7 @@ from agvviz import scenarios as scenario_registry
 from agvviz.recording.contract import inspect_recording
 from agvviz.recording.reader import iter_messages
 from agvviz.replay.studies.monte_carlo import collect
-from agvviz.replay.studies.monte_carlo_cells import PAPER_FIGURES, checks, evaluate_cell, report_markdown
+from agvviz.replay.studies.monte_carlo_cells import PAPER_FIGURES, SOLVERS, checks, evaluate_cell, report_markdown
 from agvviz.viz.log_studies import write_monte_carlo_report_rrd
 from agvviz.viz.readback import read_rrd, scalar_series, text_document
 from agvviz.scenarios import p4p_monte_carlo as mc
@@ -92,3 +92,66 @@ def test_a_study_refuses_truth_ignore(study, tmp_path):
     with pytest.raises(InputError, match="truth=ignore"):
         run_recording(study, RunSettings(truth="ignore"), out)
     assert not out.exists()
+
+
+# -- issue 26: the paper-vs-ours verdict and the RMSE interval of the study's lines -------------
+def _stats(mean, var, n):
+    from agvviz.model.studies import SolverStats
+
+    return SolverStats(n_ok=n, n_failed=0, mean_t_m=np.array(mean, float), var_t_m2=np.array(var, float), rmse_t_m=0.0)
+
+
+def test_paper_agreement_verdict():
+    """Agree within 3 standard errors of the difference; disagree (naming the component) beyond."""
+    from agvviz.replay.studies.monte_carlo_cells import AGREEMENT_Z, paper_agreement
+
+    paper_mean, paper_var = (0.05, 0.05, 2.0), (1e-4, 1e-4, 1e-2)
+    assert paper_agreement(_stats(paper_mean, paper_var, 1000), paper_mean, paper_var) == (True, [])
+    # t3 mean off by 2.9 and 3.1 standard errors of the difference (both sides: 1000 trials)
+    se = np.sqrt(2 * 1e-2 / 1000)
+    assert paper_agreement(_stats((0.05, 0.05, 2.0 + 2.9 * se), paper_var, 1000), paper_mean, paper_var)[0]
+    agree, reasons = paper_agreement(_stats((0.05, 0.05, 2.0 + 3.1 * se), paper_var, 1000), paper_mean, paper_var)
+    assert not agree and reasons == ["t3 mean z=+3.1"]
+    # variance: ln ratio over sqrt(2/999 + 2/999) = 0.0633; a ratio of 1.25 is z = 3.5
+    agree, reasons = paper_agreement(_stats(paper_mean, (1.25e-4, 1e-4, 1e-2), 1000), paper_mean, paper_var)
+    assert not agree and reasons == ["t1 var z=+3.5"] and AGREEMENT_Z == 3.0
+    # with few trials of ours the same shift is within the noise
+    assert paper_agreement(_stats(paper_mean, (1.25e-4, 1e-4, 1e-2), 40), paper_mean, paper_var)[0]
+
+
+def test_paper_table_has_a_verdict_per_figure():
+    """Figures 3 (p4p) and 4 (lm) share a cell: ours equal to the paper's agrees, t3 off by 5 cm
+    (far beyond 3 standard errors) disagrees, each on its own verdict row."""
+    from agvviz.model.studies import CellResult
+
+    cid, _, p4p_mean, p4p_var = PAPER_FIGURES[3]
+    _, _, lm_mean, lm_var = PAPER_FIGURES[4]
+
+    def verdicts(p4p_t3_shift_m):
+        stats = {s: _stats(lm_mean, lm_var, 1000) for s in SOLVERS}
+        stats["p4p"] = _stats((p4p_mean[0], p4p_mean[1], p4p_mean[2] + p4p_t3_shift_m), p4p_var, 1000)
+        result = CellResult(cid, 19.78, 4, 0.0, 208.0, 0.1, np.array(p4p_var), stats,
+                            errors_t_m={s: np.full(10, 0.1) for s in SOLVERS})
+        return [line for line in report_markdown({cid: result}, 1000).splitlines() if "| verdict |" in line]
+
+    fig3, fig4 = verdicts(0.0)
+    assert "**agree**" in fig3 and "**agree**" in fig4
+    fig3, fig4 = verdicts(0.05)
+    assert "**disagree**: t3 mean z=+" in fig3 and "**agree**" in fig4
+
+
+def test_rmse_interval_covers_at_its_level():
+    """rmse_ci's 95 % interval covers the true RMSE in 95 % ± 2 % of 2000 seeded samples of 200
+    Gaussian errors (binomial SE of the rate 0.5 %)."""
+    from agvviz.evaluation.statistics import rmse_ci
+
+    rng = np.random.default_rng(26)
+    sigma = 0.01
+    true_rmse = sigma  # zero-mean errors: the RMSE is σ
+    covered = 0
+    for _ in range(2000):
+        _, lo, hi = rmse_ci(rng.normal(0.0, sigma, 200))
+        covered += lo <= true_rmse <= hi
+    assert abs(covered / 2000 - 0.95) < 0.02
+    rmse, lo, hi = rmse_ci(np.array([3.0, np.nan, 4.0]))
+    assert rmse == pytest.approx(np.sqrt(12.5)) and lo < rmse < hi

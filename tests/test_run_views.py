@@ -202,14 +202,32 @@ def test_gaps_at_rejected_frames_and_threshold_line(run):
     np.testing.assert_array_equal(idx, [5, 71])
 
 
-def test_summary_is_the_terminal_table_then_json(run):
-    _, summary, contents = run
+def test_summary_is_the_terminal_table_in_its_units(run):
+    """The summary panel is the terminal's table in mm, degrees and px, its figures computed here
+    from the frames (independently of RunStatistics/summarize); the JSON is a tab of its own."""
+    frames, summary, contents = run
     text = text_document(contents, paths.RUN_SUMMARY)
-    rmse = summary["position_error_mm"]["rmse"]
-    assert f"| position RMSE / median / p95 (mm) | {rmse:.2f} /" in text
-    assert text.index("position RMSE") < text.index("```json")  # the table first, JSON below
+    solved = [f for f in frames if f.rejected is None]
+    position_mm = np.array([f.position_error_m for f in solved]) * 1000.0
+    heading_deg = np.abs([f.heading_error_deg for f in solved])
+    reproj_px = np.array([f.reproj_rms_px for f in solved])
+
+    def stats(x):
+        return np.sqrt(np.mean(x**2)), np.median(x), np.percentile(x, 95)
+
+    rmse, median, p95 = stats(position_mm)
+    assert f"| position RMSE / median / p95 (mm) | {rmse:.2f} / {median:.2f} / {p95:.2f} |" in text
+    rmse, median, p95 = stats(heading_deg)
+    assert f"| heading RMSE / median / p95 (deg) | {rmse:.3f} / {median:.3f} / {p95:.3f} |" in text
+    assert f"| reprojection RMS median (px) | {np.median(reproj_px):.3f} |" in text
+    assert f"| frames | {N_FRAMES} |" in text and f"| solved | {len(solved)} |" in text
+    assert f"| rejected: {REJECT_NO_MARKER} | 2 |" in text and f"| rejected: {REJECT_REPROJECTION} | 1 |" in text
+    assert "```json" not in text and "position_error_mm" not in text  # no raw JSON beside the table
     assert "time per frame" not in text  # wall-clock figures are not stored
+    # the whole summary, SI units and all, in its own document (its own tab)
+    assert "```json" in text_document(contents, paths.RUN_SUMMARY_JSON)
     assert document_json(contents, paths.RUN_SUMMARY) == summary
+    assert document_json(contents, paths.RUN_SUMMARY_JSON) == summary
 
 
 def test_small_code_is_zoomed(run):

@@ -34,7 +34,7 @@ from agvviz.evaluation.trajectory import ALIGNMENTS, EvaluationError
 from agvviz.settings import RunSettings, SettingsError, apply_overrides, field_types
 from agvviz.app.diff import CompareError, format_number, format_p
 from agvviz.app import run_series
-from agvviz.app.sweep_report import ranking_markdown
+from agvviz.app.sweep_report import HIGHER_IS_BETTER, ranking_markdown
 from agvviz.replay.run import recording_images
 from agvviz.viz import paths
 from agvviz.viz.overlay import OverlayRun, write_overlay
@@ -48,8 +48,6 @@ LAYERS_NAME = ".{stem}-{label}.layers.rrd"
 
 #: Spellings of run settings accepted by ``sweep --set`` besides the setting names themselves.
 SETTING_ALIASES = {"lm.max_iters": "lm_max_iterations", "lm.max_iterations": "lm_max_iterations"}
-#: Metrics for which a larger value ranks higher.
-HIGHER_IS_BETTER = {"solved", "solved_pct"}
 
 
 # -- sweep -----------------------------------------------------------------------------------
@@ -473,7 +471,6 @@ def _write_sweep_file(
         {"key": e.key, "label": e.label, "rank": e.rank, "settings": series[index_of[id(e)]].settings}
         for e in ok
     ]
-    header, rows = ranking_rows(ranked, rank_by)
     return write_overlay(
         out,
         recording_name=f"sweep {recording.stem}",
@@ -482,7 +479,7 @@ def _write_sweep_file(
         source=ok[0].run_path,
         cam_names=cams,
         fixed_cams=run_series.fixed_cameras_of(first_contents) & set(cams),
-        report_markdown=ranking_markdown(recording.name, ranked, rank_by, header, rows),
+        report_markdown=ranking_markdown(recording.name, ranked, rank_by),
         inputs=(recording, *[e.run_path for e in ok]),
         layers={e.key: e.run_path for e in ok},
         index=index,

@@ -114,18 +114,89 @@ class ErrorBudget:
             + (f" (already off: `{self.realism_off}`)" if self.realism_off else "")
             + f"; run settings `{_settings_text(self.settings)}`.",
             "",
-            "| source | position RMSE with it off (mm) | share of the error (%) |",
-            "|---|---:|---:|",
+            f"| source | position RMSE with it off (mm) | share of the error (%) | {100 * SHARE_CONFIDENCE:g} % CI over frames (%) |",
+            "|---|---:|---:|---:|",
         ]
-        lines += [f"| {a} | {b} | {c} |" for a, b, c in self.rows()]
+        intervals = {i.name: i for i in share_intervals(self)}
+        for a, b, c in self.rows():
+            i = intervals.get(a)
+            ci = f"[{_pct(i.low)}, {_pct(i.high)}]" if i is not None and math.isfinite(i.low) else ""
+            lines.append(f"| {a} | {b} | {c} | {ci} |")
         lines += [
             "",
             "share = (RMSE_all² − RMSE_off²) / RMSE_all² — a share of the mean squared error. "
             f"Sources interact, so the shares need not sum to 100 %; `{INTERACTION}` is the remainder "
             "(1 − Σ shares). The floor's share is RMSE_floor² / RMSE_all²: what remains with every source off.",
+            "",
+            NEGATIVE_SHARE_NOTE,
+            "",
+            f"CI: block bootstrap over the recording's {len(self.time_ns)} frames ({SHARE_RESAMPLES} resamples, seed "
+            f"{SHARE_SEED}); few frames give wide intervals.",
         ]
         lines += [f"\n*warning:* {w}" for w in self.warnings]
         return "\n".join(lines) + "\n"
+
+
+#: The bootstrap of the shares' intervals: confidence, resamples and the seed of its draws.
+SHARE_CONFIDENCE = 0.95
+SHARE_RESAMPLES = 2000
+SHARE_SEED = 0
+
+#: One line under the chart and the table: what a negative share means.
+NEGATIVE_SHARE_NOTE = (
+    "A negative share: with that source off the error grew — sources interact (one error can "
+    "cancel part of another), so the shares need not add up; interaction/other is the rest."
+)
+
+
+@dataclass(frozen=True)
+class ShareInterval:
+    """A share and its bootstrap interval over frames (fractions, not %)."""
+
+    name: str  # the source, or INTERACTION
+    share: float
+    low: float
+    high: float
+
+
+def share_intervals(budget: ErrorBudget, confidence: float = SHARE_CONFIDENCE,
+                    n_resamples: int = SHARE_RESAMPLES, seed: int = SHARE_SEED) -> list[ShareInterval]:
+    """Each source's share, then interaction/other, with a bootstrap interval over the frames.
+
+    The frames of the recording's run (``budget.time_ns``) are resampled with a circular block
+    bootstrap (:func:`agvviz.evaluation.statistics.block_bootstrap_indices`: neighbouring frames
+    see the same code, so blocks of ⌈n^(1/3)⌉ keep that correlation); in each resample every
+    share is recomputed from the mean squared errors of the resampled frames — all on, and the
+    same stamps with the source off (a frame one of the two runs did not solve is left out of
+    that run's mean) — and interaction/other as 1 − Σ shares. The interval is the percentile
+    interval of those; the share itself is the budget's (every frame each run solved). Seeded:
+    the same budget gives the same intervals. NaN bounds when fewer than 2 frames were solved."""
+    from agvviz.evaluation.statistics import block_bootstrap_indices, default_block_length
+
+    n = len(budget.time_ns)
+    shares = [(s.source, s.share) for s in budget.sources] + [(INTERACTION, budget.interaction)]
+    all_on = np.asarray(budget.position_error_all_mm, dtype=float)
+    if n < 2 or np.sum(np.isfinite(all_on)) < 2:
+        return [ShareInterval(name, value, math.nan, math.nan) for name, value in shares]
+    rng = np.random.default_rng(seed)
+    idx = block_bootstrap_indices(n, n_resamples, default_block_length(n), rng)  # (R, n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mse_all = np.nanmean(all_on[idx] ** 2, axis=1)  # (R,)
+        resampled = []
+        for s in budget.sources:
+            where = {int(t): k for k, t in enumerate(s.time_ns)}
+            off = np.array([s.position_error_off_mm[where[int(t)]] if int(t) in where else np.nan
+                            for t in budget.time_ns], dtype=float)
+            mse_off = np.nanmean(off[idx] ** 2, axis=1)
+            resampled.append((mse_all - mse_off) / mse_all)
+        resampled.append(1.0 - np.sum(resampled, axis=0) if resampled else np.ones(n_resamples))
+    tail = 100.0 * (1.0 - confidence) / 2.0
+    out = []
+    for (name, value), draws in zip(shares, resampled):
+        draws = draws[np.isfinite(draws)]
+        low, high = (np.percentile(draws, [tail, 100.0 - tail]) if draws.size else (math.nan, math.nan))
+        out.append(ShareInterval(name, value, float(low), float(high)))
+    return out
 
 
 def _finite_or_none(value: float) -> float | None:
@@ -167,4 +238,4 @@ def matched_difference(time_a: np.ndarray, err_a: np.ndarray, time_b: np.ndarray
     return out
 
 
-__all__ = ["INTERACTION", "ErrorBudget", "SourceBudget", "matched_difference", "share"]
+__all__ = ["INTERACTION", "ErrorBudget", "ShareInterval", "SourceBudget", "matched_difference", "share", "share_intervals"]

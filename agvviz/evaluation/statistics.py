@@ -137,3 +137,19 @@ def wilcoxon_paired(a: np.ndarray, b: np.ndarray) -> float:
     from scipy import stats as scipy_stats  # here, not at import: scipy.stats costs ~1 s of start-up
 
     return float(scipy_stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
+
+
+def rmse_ci(errors: np.ndarray, confidence: float = 0.95) -> tuple[float, float, float]:
+    """RMSE of independent ``errors`` (NaN left out) and its ``confidence`` interval: the
+    normal interval of the mean of the squared errors (central limit theorem; independent
+    trials, so no blocks), its ends' square roots — (nan, nan, nan) without a finite error; the
+    interval is (rmse, rmse) for one error. Used by the Monte-Carlo study's lines per solver."""
+    from scipy.stats import norm
+
+    e2 = np.asarray(errors, dtype=float) ** 2
+    e2 = e2[np.isfinite(e2)]
+    if e2.size == 0:
+        return math.nan, math.nan, math.nan
+    mean = float(np.mean(e2))
+    half = 0.0 if e2.size < 2 else float(norm.ppf(0.5 + confidence / 2) * np.std(e2, ddof=1) / math.sqrt(e2.size))
+    return math.sqrt(mean), math.sqrt(max(mean - half, 0.0)), math.sqrt(mean + half)

@@ -45,10 +45,9 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from agvviz.evaluation.error_budget import INTERACTION, ErrorBudget
+from agvviz.evaluation.error_budget import ErrorBudget
 from agvviz.model.frames import REJECT_REPROJECTION
 from agvviz.model.studies import CellResult
-from agvviz.replay.studies.monte_carlo_cells import PAPER_FIGURES
 from agvviz.viz import paths
 from agvviz.viz.style import (
     COLOR_CAMERA,
@@ -199,13 +198,13 @@ def world_3d_view(
     fixed_cams: set[str] = frozenset(),
     track: str | None = None,
     start_m: tuple[float, float, float] | None = None,
+    eye: rrb.EyeControls3D | None = None,
 ) -> rrb.Spatial3DView:
     """The 3D world view; ``track``: an entity the eye follows (e.g. the estimated AGV), from
     EYE_OFFSET_M off ``start_m`` (its first position). The 2D overlays of the images (corners,
     ids, LM path: UI-point sizes that would swamp the small frustum images) stay in the 2D
     image views."""
     excluded = [f"- /{e}" for c in cam_names for e in paths.image_overlays(c, c in fixed_cams)]
-    eye = None
     if track is not None:
         start = None if start_m is None else [float(v) for v in start_m]
         eye = rrb.EyeControls3D(
@@ -214,6 +213,15 @@ def world_3d_view(
             position=None if start is None else [a + b for a, b in zip(start, EYE_OFFSET_M)],
         )
     return rrb.Spatial3DView(origin=paths.WORLD, name=name, contents=["+ $origin/**", *excluded], eye_controls=eye)
+
+
+def framing_eye(low_m, high_m, direction=(-0.45, -0.9, 1.0), min_extent_m: float = 2.0) -> rrb.EyeControls3D:
+    """An eye that frames the box ``low_m``..``high_m`` (world, m): looking at its centre from
+    ``direction`` × its largest side (default: from the south-west, above), z up."""
+    low, high = np.asarray(low_m, dtype=float), np.asarray(high_m, dtype=float)
+    center = (low + high) / 2.0
+    extent = max(float(np.max(high - low)), min_extent_m)
+    return rrb.EyeControls3D(position=center + np.asarray(direction) * extent, look_target=center, eye_up=(0.0, 0.0, 1.0))
 
 
 def image_view(cam_name: str, fixed: bool = False) -> rrb.Spatial2DView:
@@ -258,6 +266,11 @@ def _lm_panel(lm_iterates: bool, steps_axis: PlotAxis | None = None, rejected: b
         active_tab=0,
     )
     return rrb.Vertical(text, bars, row_shares=[0.3, 0.7])
+
+
+def summary_json_view() -> rrb.TextDocumentView:
+    """The whole run summary as JSON (unrounded): a tab behind the summary table, for tools."""
+    return rrb.TextDocumentView(origin=paths.RUN_SUMMARY_JSON, name="summary (JSON)")
 
 
 def default_blueprint(
@@ -314,6 +327,7 @@ def default_blueprint(
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
         rrb.TextLogView(origin=paths.EVENTS_FLIPS, name="flips"),
         *([budget_table_view()] if budget_sources is not None else []),
+        summary_json_view(),
         active_tab=0 if budget_sources is None else 3,
     )
     logs = [
@@ -407,6 +421,7 @@ def uwb_blueprint(
     camera_rejected: bool = False,
     error_axis: PlotAxis | None = None,
     range_axes: dict[str, PlotAxis] | None = None,
+    room_m: tuple | None = None,
 ) -> rrb.Blueprint:
     """Layout for a run with cameras ``cam_names`` (``fixed_cams`` fixed in the world) and
     UWB anchors ``anchor_ids``. ``zoom_cams``: cameras with a zoomed view of their small code
@@ -414,7 +429,8 @@ def uwb_blueprint(
     (:class:`PlotAxis`; None: Rerun's auto range): ``camera_axis`` of the camera fix error (with
     the crosses of rejected frames when ``camera_rejected``), ``error_axis`` of the UWB/fused error
     (:meth:`FusionLogger.error_axis`: clipped, and saying so, when a few NLOS fixes are far off),
-    ``range_axes`` of each anchor's ranges."""
+    ``range_axes`` of each anchor's ranges. ``room_m``: the room's (low, high) corners
+    (:func:`agvviz.viz.log_uwb.log_room_outline`), which the 3D view frames."""
     range_axes = range_axes or {}
     cameras = [_camera_panel(c, c in fixed_cams, c in zoom_cams) for c in cam_names]
     if not cameras:
@@ -425,9 +441,10 @@ def uwb_blueprint(
         image_panel = rrb.Grid(*cameras, grid_columns=2)
     world = world_3d_view(
         f"3D: {LEGEND[COLOR_TRUTH]} (green), {LEGEND[COLOR_CAMERA]} (orange), {LEGEND[COLOR_UWB]} (blue), "
-        f"{LEGEND[COLOR_FUSED]} (yellow); UWB anchors",
+        f"{LEGEND[COLOR_FUSED]} (yellow); UWB anchors, room outline (grey)",
         cam_names,
         fixed_cams,
+        eye=None if room_m is None else framing_eye(*room_m, direction=(-0.25, -0.95, 0.9)),
     )
     range_views = [
         rrb.TimeSeriesView(
@@ -469,6 +486,7 @@ def uwb_blueprint(
         rrb.TimeSeriesView(origin=paths.UWB_GDOP, name="GDOP", plot_legend=rrb.PlotLegend(visible=False)),
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        summary_json_view(),
         active_tab=0,
     )
     top = rrb.Horizontal(world, image_panel, column_shares=[0.45, 0.55])
@@ -565,6 +583,7 @@ def correction_blueprint(cam_names: list[str]) -> rrb.Blueprint:
         ),
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        summary_json_view(),
         active_tab=0,
     )
     top = rrb.Horizontal(world, rrb.Vertical(*cameras) if cameras else rrb.Spacer(), column_shares=[0.58, 0.42])
@@ -603,9 +622,13 @@ def budget_table_view() -> rrb.TextDocumentView:
     return rrb.TextDocumentView(origin=paths.BUDGET_TABLE, name="error budget")
 
 
-def budget_shares_view(sources: list[str]) -> rrb.BarChartView:
-    """The bar chart of shares, its bars named in the title (the table names them too)."""
-    return rrb.BarChartView(origin=paths.BUDGET_SHARES, name=f"share of the position error (%): {', '.join(list(sources) + [INTERACTION])}")
+def budget_shares_view(sources: list[str]) -> rrb.Spatial2DView:
+    """The shares as labelled bars with their bootstrap intervals (:func:`agvviz.viz.log_budget.log_share_chart`);
+    the title says what a negative share is."""
+    return rrb.Spatial2DView(
+        origin=paths.BUDGET_SHARES,
+        name="share of the position error (%), 95 % CI over frames; negative: the error grew with the source off (interaction)",
+    )
 
 
 def budget_errors_view(sources: list[str]) -> rrb.TimeSeriesView:
@@ -634,17 +657,37 @@ def budget_blueprint(budget: ErrorBudget) -> rrb.Blueprint:
 
 
 # -- agvviz audit ------------------------------------------------------------------------------------
+def audit_eye(result) -> rrb.EyeControls3D | None:
+    """From above and a little south, framing every mapped marker and the solved path."""
+    points = [f.corners_world_mapped for f in result.estimate.markers] + [result.estimate.T_world_agv[:, :3, 3]]
+    points = np.concatenate([np.asarray(p, dtype=float).reshape(-1, 3) for p in points])
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if not len(points):
+        return None
+    return framing_eye(points.min(axis=0), points.max(axis=0), direction=(0.0, -0.45, 1.05))
+
+
 def audit_blueprint(result) -> rrb.Blueprint:
-    """The 3D map (recorded vs estimated) beside the report and the residual plots."""
+    """The 3D map (recorded vs estimated, framed whole, ids shown) beside the report and the
+    residual plots: corner residuals (flagged markers red), odometry in mm and in degrees
+    apart."""
+    legend = rrb.PlotLegend(visible=False)
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin=paths.WORLD, name="map: mapped (blue) vs estimated (red: flagged); "
+            rrb.Spatial3DView(origin=paths.WORLD, eye_controls=audit_eye(result),
+                              name="map: mapped (blue, ids) vs estimated (red: flagged, magenta: agrees, grey: seen too little); "
                               "path: solved (magenta), start (orange), truth (green)"),
             rrb.Vertical(
                 rrb.TextDocumentView(origin=paths.AUDIT_REPORT, name="audit"),
-                rrb.TimeSeriesView(origin=paths.AUDIT_RESIDUALS, name="corner residual per marker (px RMS)"),
-                rrb.TimeSeriesView(origin=paths.AUDIT_ODOMETRY, name="odometry step residuals (mm, deg)"),
+                rrb.TimeSeriesView(origin=paths.AUDIT_RESIDUALS, name="corner residual per marker (px RMS): flagged red, others grey",
+                                   plot_legend=legend),
+                rrb.Horizontal(
+                    rrb.TimeSeriesView(origin=paths.AUDIT_ODOMETRY_XY_MM, name="odometry step residual, position (mm)", plot_legend=legend),
+                    rrb.TimeSeriesView(origin=paths.AUDIT_ODOMETRY_HEADING_DEG, name="odometry step residual, heading (deg)", plot_legend=legend),
+                ),
+                row_shares=[0.45, 0.3, 0.25],
             ),
+            column_shares=[0.6, 0.4],
         ),
         collapse_panels=True,
     )
@@ -796,106 +839,121 @@ def _layer_views(runs: list, layer_entities: dict[str, set[str]], legend) -> lis
 
 
 # -- studies: p4p Monte-Carlo and CNOEM grid ---------------------------------------------------------
-#: Monte-Carlo cells whose error-against-trial plot gets a tab of its own (the others: change a
-#: view's origin).
-MC_MAX_FEATURED_CELLS = 8
-#: Which tab a Monte-Carlo layout opens on, and the timeline it needs.
-MC_TAB_TIMELINES = {"trials": paths.TIMELINE_TRIAL, "figures": paths.TIMELINE_SNR_DB, "crlb": paths.TIMELINE_SIGMA_MPX}
+#: The tabs of a Monte-Carlo layout. Rerun plots a time series against the time panel's one
+#: timeline, so every tab plots against σ (``sigma_mpx``, the timeline the layout opens on): no
+#: tab opens empty. Paper cells are also on ``snr_db``, the paper's own axis for figures 9–11.
+MC_TABS = ("figures", "rmse", "crlb", "report")
 #: The multi-frame methods, plotted against the bound apart from the (much worse) IPPE baselines.
 CNOEM_WINDOW_METHODS = ("cnoem", "cnoem_multistart", "bundle")
 #: Cells whose error-against-trial plots get a tab of their own (the others: change a view's origin).
 CNOEM_MAX_FEATURED_CELLS = 8
 
 
-def mc_featured_cells(results: dict[str, CellResult]) -> list[str]:
-    """The cells whose error-against-trial plot the layout shows: the cells of the paper's
-    figures present in ``results``, then the others in recording order, at most
-    :data:`MC_MAX_FEATURED_CELLS`."""
-    figure_cells = [cid for cid, *_ in PAPER_FIGURES.values() if cid in results]
-    ordered = list(dict.fromkeys(figure_cells + list(results)))
-    return ordered[:MC_MAX_FEATURED_CELLS]
-
-
 def mc_default_tab(results: dict[str, CellResult]) -> str:
-    """The tab a study file opens on: the paper's figures when it has paper cells, else the CRLB
-    cells, else the trials."""
-    if any(paths.mc_paper_group(cid) for cid in results):
+    """The tab a study opens on: the paper's figures 9–11 when it has their cells, else the
+    RMSE per solver."""
+    if any(paths.mc_paper_group(cid) == paths.MC_FIG9_11 for cid in results):
         return "figures"
-    if any(paths.mc_crlb_group(cid) for cid in results):
-        return "crlb"
-    return "trials"
+    return "rmse"
+
+
+def _mc_groups(results: dict[str, CellResult]) -> list[str]:
+    """Every cell group (paper groups, then CRLB groups), in recording order."""
+    paper = [g for cid in results if (g := paths.mc_paper_group(cid))]
+    crlb = [g for cid in results if (g := paths.mc_crlb_group(cid))]
+    return list(dict.fromkeys(paper + crlb))
+
+
+def _mc_group_title(group: str) -> str:
+    """``mc/crlb/tilt30_h0.2667_z2_n4`` → ``tilt 30°, h 0.2667 m, z 2 m, N 4``."""
+    words = []
+    for part in group.rsplit("/", 1)[-1].split("_"):
+        for key, unit in (("tilt", "°"), ("h", " m"), ("z", " m"), ("n", "")):
+            if part.startswith(key) and part[len(key):].replace(".", "").isdigit():
+                words.append(f"{'N' if key == 'n' else key} {part[len(key):]}{unit}")
+                break
+    return ", ".join(words)
+
+
+def _mc_axis(results: dict[str, CellResult], group: str) -> rrb.TimeAxis:
+    """The x axis of a study plot: the σ (mpx) of the group's cells and 5 % beyond, wherever the
+    time cursor is (by default the axis follows the cursor)."""
+    sigmas = [round(r.sigma_px * 1000) for cid, r in results.items()
+              if group in (paths.mc_paper_group(cid), paths.mc_crlb_group(cid))]
+    margin = max(1, round(0.05 * (max(sigmas) - min(sigmas))))
+    return rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.absolute(seq=min(sigmas) - margin),
+                                                 end=rrb.TimeRangeBoundary.absolute(seq=max(sigmas) + margin)))
+
+
+def _mc_plot(origin: str, name: str, legend: bool, axis: rrb.TimeAxis) -> rrb.TimeSeriesView:
+    return rrb.TimeSeriesView(
+        origin=origin, name=name, axis_x=axis,
+        plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=legend),
+    )
 
 
 def study_blueprint(
-    results: dict[str, CellResult], *, active: str = "trials", documents: tuple[tuple[str, str], ...] = ()
+    results: dict[str, CellResult], *, active: str | None = None, documents: tuple[tuple[str, str], ...] = ()
 ) -> rrb.Blueprint:
-    """The study's layout; ``active`` is the tab it opens on (trials, figures or crlb; its
-    timeline is selected), ``documents`` extra (origin, name) text documents beside the report
-    (a run's summary and manifest)."""
-    if active not in MC_TAB_TIMELINES:
-        raise ValueError(f"unknown tab {active!r}; valid: {', '.join(MC_TAB_TIMELINES)}")
-    trial_views = [
-        rrb.TimeSeriesView(
-            origin=paths.mc_trial_errors(cid), name=f"{cid}: ‖t̂ − t‖ (mm) per trial, CRLB (grey)",
-            plot_legend=rrb.PlotLegend(visible=True),
-        )
-        for cid in mc_featured_cells(results)
-    ]
-    texts = [rrb.TextDocumentView(origin=paths.MC_REPORT, name="report")]
-    texts += [rrb.TextDocumentView(origin=origin, name=name) for origin, name in documents]
-    tabs = {
-        "trials": rrb.Horizontal(
-            rrb.Tabs(*trial_views) if trial_views else rrb.Spacer(),
-            rrb.Tabs(*texts),
-            column_shares=[0.6, 0.4],
-            name="trials (timeline trial)",
-        )
-    }
-    if any(paths.mc_paper_group(cid) for cid in results):
+    """The study's layout, every plot against σ in milli-pixels (timeline ``sigma_mpx``) with
+    one legend per tab; ``active`` the tab it opens on (figures, rmse, crlb or report; default
+    :func:`mc_default_tab`), ``documents`` extra (origin, name) text documents beside the
+    report (a run's summary and manifest)."""
+    active = mc_default_tab(results) if active is None else active
+    if active not in MC_TABS:
+        raise ValueError(f"unknown tab {active!r}; valid: {', '.join(MC_TABS)}")
+    x = "vs σ (mpx, x axis)"
+    groups = _mc_groups(results)
+
+    def axis(group: str) -> rrb.TimeAxis:
+        return _mc_axis(results, group)
+
+    tabs = {}
+    if paths.MC_FIG9_11 in groups:
+        g = paths.MC_FIG9_11
         tabs["figures"] = rrb.Vertical(
+            rrb.Horizontal(*[_mc_plot(f"{g}/t{i}_mean", f"fig {8 + i}: mean t{i} (m) {x}", False, axis(g)) for i in (1, 2, 3)]),
             rrb.Horizontal(
-                *[
-                    rrb.TimeSeriesView(origin=f"{paths.MC_FIG9_11}/t{i}_mean", name=f"fig {8 + i}: mean t{i} (m) vs SNR dB, h 0.2667 z 2 N 4")
-                    for i in (1, 2, 3)
-                ]
+                _mc_plot(f"{g}/rmse_mm", f"RMSE of t (mm) with 95 % CI, CRLB (grey) {x}", True, axis(g)),
+                _mc_plot(f"{g}/rmse_over_crlb", f"RMSE ÷ CRLB {x}", False, axis(g)),
             ),
-            rrb.Horizontal(
-                rrb.TimeSeriesView(origin=f"{paths.MC_FIG9_11}/rmse_mm", name="RMSE of t (mm) vs SNR dB, and the CRLB"),
-                rrb.TimeSeriesView(origin=f"{paths.MC_FIG9_11}/rmse_over_crlb", name="RMSE ÷ CRLB vs SNR dB, h 0.2667 z 2 N 4"),
-                rrb.TextDocumentView(origin=paths.MC_REPORT, name="report"),
-            ),
-            name="paper figures 9–11 (timeline snr_db)",
+            name=f"paper figures 9–11 ({_mc_group_title(g)}; SNR dB: timeline snr_db)",
         )
-    crlb_groups = list(dict.fromkeys(g for cid in results if (g := paths.mc_crlb_group(cid))))
-    if crlb_groups:
+    if groups:
+        tabs["rmse"] = rrb.Grid(
+            *[_mc_plot(f"{g}/rmse_mm", f"{_mc_group_title(g)}: RMSE of t (mm), 95 % CI, CRLB {x}", i == 0, axis(g))
+              for i, g in enumerate(groups)],
+            name="RMSE per solver vs σ",
+        )
         tabs["crlb"] = rrb.Grid(
-            *[
-                rrb.TimeSeriesView(origin=f"{g}/rmse_over_crlb", name=f"{g.split('/')[-1]}: RMSE ÷ CRLB vs σ (mpx)")
-                for g in crlb_groups
-            ],
-            name="CRLB cells (timeline sigma_mpx)",
+            *[_mc_plot(f"{g}/rmse_over_crlb", f"{_mc_group_title(g)}: RMSE ÷ CRLB {x}", i == 0, axis(g))
+              for i, g in enumerate(groups)],
+            name="RMSE ÷ CRLB vs σ",
         )
+    texts = [rrb.TextDocumentView(origin=paths.MC_REPORT, name="report (paper vs ours, every cell)")]
+    texts += [rrb.TextDocumentView(origin=origin, name=name) for origin, name in documents]
+    tabs["report"] = rrb.Tabs(*texts, active_tab=0, name="report")
     if active not in tabs:
-        active = "trials"
+        active = "report"
     names = list(tabs)
     return rrb.Blueprint(
         rrb.Tabs(*tabs.values(), active_tab=names.index(active)),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="collapsed", timeline=MC_TAB_TIMELINES[active]),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_SIGMA_MPX),
         auto_views=False,
     )
 
 
 def trials_blueprint(outcome) -> rrb.Blueprint:
     """The layout of a Monte-Carlo study run (``outcome``: its
-    :class:`~agvviz.model.studies.TrialsOutcome`): error against trial of the featured
-    cells (timeline ``trial``), the report, summary and manifest; the paper figures and CRLB
-    cells in tabs of their own."""
+    :class:`~agvviz.model.studies.TrialsOutcome`): :func:`study_blueprint` with the run's summary
+    and manifest beside the report. The per-trial errors (``mc/trials/...``, timeline ``trial``)
+    stay in the ``.rrd`` for a view added by hand; no tab shows them (a cloud of dots per trial
+    index told the solvers apart worse than a line per solver with its interval)."""
     return study_blueprint(
         outcome.results,
-        active="trials",
-        documents=((paths.RUN_SUMMARY, "summary"), (paths.RUN_MANIFEST, "manifest")),
+        documents=((paths.RUN_SUMMARY, "summary"), (paths.RUN_MANIFEST, "manifest"), (paths.RUN_SUMMARY_JSON, "summary (JSON)")),
     )
 
 
@@ -927,6 +985,7 @@ def cnoem_trials_blueprint(outcome) -> rrb.Blueprint:
     texts += [
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
+        summary_json_view(),
     ]
     return rrb.Blueprint(
         rrb.Horizontal(

@@ -68,8 +68,8 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
     markers = est.markers
     rec.log(paths.AUDIT_MARKERS_RECORDED, rr.LineStrips3D(
         [_outline(f.corners_world_mapped) for f in markers], colors=style.COLOR_MARKER, radii=OUTLINE_RADIUS_M,
-        labels=[f.marker_id for f in markers], show_labels=False), static=True)
-    colors = [style.COLOR_REJECTED if f.flagged else (style.COLOR_STALE if f.status == "seen too little" else style.COLOR_CORRECTED)
+        labels=[f.marker_id for f in markers], show_labels=True), static=True)
+    colors = [style.COLOR_FLAGGED if f.flagged else (style.COLOR_SEEN_TOO_LITTLE if f.status == "seen too little" else style.COLOR_OK)
               for f in markers]
     radii = [FLAGGED_RADIUS_M if f.flagged else OUTLINE_RADIUS_M for f in markers]
     rec.log(paths.AUDIT_MARKERS_ESTIMATED, rr.LineStrips3D(
@@ -80,10 +80,10 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
         centres = np.array([f.corners_world_estimated.mean(axis=0) for f in flagged])
         mapped = np.array([f.corners_world_mapped.mean(axis=0) for f in flagged])
         labels = [f"{f.marker_id}: {', '.join(f.reasons)}" for f in flagged]
-        rec.log(paths.AUDIT_MARKERS_FLAGGED, rr.Points3D(centres + [0, 0, 0.02], colors=style.COLOR_REJECTED, radii=0.05,
+        rec.log(paths.AUDIT_MARKERS_FLAGGED, rr.Points3D(centres + [0, 0, 0.02], colors=style.COLOR_FLAGGED, radii=0.05,
                                                          labels=labels, show_labels=True), static=True)
         rec.log(paths.AUDIT_MARKERS_SHIFT, rr.Arrows3D(origins=mapped + [0, 0, 0.01], vectors=centres - mapped,
-                                                       colors=style.COLOR_REJECTED, radii=0.006), static=True)
+                                                       colors=style.COLOR_FLAGGED, radii=0.006), static=True)
     T = est.T_world_agv
     rec.log(paths.AUDIT_TRAJECTORY_ESTIMATED, rr.LineStrips3D([T[:, :3, 3]], colors=style.COLOR_CORRECTED, radii=0.01,
                                                               labels=["audit: solved vehicle path"], show_labels=False), static=True)
@@ -96,7 +96,7 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
     for c in est.cameras:
         for which, T_agv_cam, color in (("recorded", c.T_agv_cam_recorded, style.COLOR_MARKER),
                                         ("estimated", c.T_agv_cam_estimated,
-                                         style.COLOR_REJECTED if c.flagged else style.COLOR_CORRECTED)):
+                                         style.COLOR_FLAGGED if c.flagged else style.COLOR_OK)):
             entity = paths.audit_camera(c.cam_name, which)
             rec.log(entity, rr.Transform3D(translation=T_agv_cam[:3, 3], mat3x3=T_agv_cam[:3, :3]), static=True)
             rec.log(entity, rr.TransformAxes3D(0.3), static=True)
@@ -117,6 +117,12 @@ def log_audit(rec: rr.RecordingStream, result) -> None:
             continue
         i = data.obs_frame[sel]
         order = np.argsort(i, kind="stable")
+        # one colour per verdict, not per marker: flagged markers red, the others grey
+        flagged = f.flagged
+        rec.log(paths.audit_marker_residual(f.marker_id),
+                rr.SeriesLines(names=f"{f.marker_id}{' (flagged)' if flagged else ''}",
+                               colors=style.COLOR_FLAGGED if flagged else style.COLOR_SEEN_TOO_LITTLE,
+                               widths=2.0 if flagged else 1.0), static=True)
         _send_scalars(rec, paths.audit_marker_residual(f.marker_id), frames[i[order]], stamps[i[order]], rms[sel][order])
     # odometry step residuals, from consecutive solved poses
     if data.has_odom.any() and len(T) > 1:

@@ -8,9 +8,14 @@ Entity tree (timelines: ``frame`` = the run's frame index; ``time`` = the frame'
 ``elapsed`` = seconds since the run's start, or the budget's first frame)::
 
     budget/table                           TextDocument: the budget as a markdown table (static)
-    budget/shares_pct                      BarChart: share of the position error (%), one bar
-                                           per source in table order, then interaction/other
-                                           (static; abscissa 0, 1, …; the table names them)
+    budget/shares_pct/bars                 Boxes2D: share of the position error (%), one bar per
+                                           source in table order, then interaction/other, each
+                                           labelled "<source> 61.3 % [48.0, 72.1]" (static; x =
+                                           share in %, y = row; orange ≥ 0, blue < 0, grey rest)
+    budget/shares_pct/ci                   LineStrips2D: each share's 95 % bootstrap interval
+                                           over frames (evaluation.error_budget.share_intervals)
+    budget/shares_pct/labels               Points2D right of the bars: each bar's label
+    budget/shares_pct/axis|ticks           the 0 % line, a grid every 25 % and its labels
     budget/all_on/position_error_mm        Scalars per frame: the recording's position error
     budget/all_off/position_error_mm       Scalars: the floor (every source off) — its RMSE,
                                            a flat line over the recording's frames
@@ -30,8 +35,17 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
-from agvviz.evaluation.error_budget import ErrorBudget
+from agvviz.evaluation.error_budget import INTERACTION, ErrorBudget, ShareInterval, share_intervals
 from agvviz.viz import paths
+from agvviz.viz.style import (
+    COLOR_BUDGET_ALL_ON,
+    COLOR_BUDGET_FLOOR,
+    COLOR_BUDGET_INTERACTION,
+    COLOR_BUDGET_NEGATIVE,
+    COLOR_BUDGET_SOURCE,
+    COLOR_ZERO,
+    budget_source_color,
+)
 from agvviz.viz.blueprints import budget_blueprint
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.timelines import elapsed_s
@@ -59,9 +73,13 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns:
     budget's first frame)."""
     start_ns = int(recording_start_ns) if recording_start_ns is not None else int(min(budget.time_ns, default=0))
     rec.log(paths.BUDGET_TABLE, rr.TextDocument(budget.markdown(), media_type=rr.MediaType.MARKDOWN), static=True)
-    shares = [s.share for s in budget.sources] + [budget.interaction]
-    values = np.array([100.0 * v if np.isfinite(v) else 0.0 for v in shares], dtype=float)
-    rec.log(paths.BUDGET_SHARES, rr.BarChart(values, abscissa=np.arange(len(values), dtype=float)), static=True)
+    log_share_chart(rec, share_intervals(budget))
+    rec.log(paths.budget_series(paths.BUDGET_ALL_ON), rr.SeriesLines(names="all on (the recording)", colors=COLOR_BUDGET_ALL_ON, widths=2.0), static=True)
+    rec.log(paths.budget_series(paths.BUDGET_ALL_OFF), rr.SeriesLines(names="floor: all off (RMSE)", colors=COLOR_BUDGET_FLOOR, widths=1.5), static=True)
+    for s in budget.sources:
+        color = budget_source_color(s.source)
+        rec.log(paths.budget_series(s.source), rr.SeriesLines(names=f"{s.source} off", colors=color, widths=1.0), static=True)
+        rec.log(paths.budget_series(s.source, "delta_mm"), rr.SeriesLines(names=s.source, colors=color, widths=1.0), static=True)
     # frames are numbered by the recording's run; a counterfactual frame is placed at the
     # recording's frame with the same stamp (a dropped frame has none and is left out).
     frame_of = {int(t): int(f) for t, f in zip(budget.time_ns, budget.frames)}
@@ -72,6 +90,61 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns:
     for s in budget.sources:
         _send(rec, paths.budget_series(s.source), s.time_ns, s.position_error_off_mm, frame_of, start_ns)
         _send(rec, paths.budget_series(s.source, "delta_mm"), budget.time_ns, s.delta_mm, frame_of, start_ns)
+
+
+#: Height of a bar's row in the share chart, in the chart's units (1 unit = 1 % along x).
+ROW = 10.0
+BAR_HALF_HEIGHT = 3.5
+GRID_STEP_PCT = 25.0
+#: Where the labels' centres sit, right of the grid's last line (%); long enough for "interaction/other 11.2 % [-13.9, 48.6]".
+LABEL_OFFSET_PCT = 45.0
+
+
+def share_chart_rows(intervals: list[ShareInterval]) -> list[tuple[str, float, float, float, tuple]]:
+    """(label, share %, low %, high %, colour) per bar, in table order: a source's bar is orange
+    when its share is ≥ 0, blue when negative; interaction/other grey. NaN shares are drawn at 0."""
+    rows = []
+    for i in intervals:
+        share, low, high = (100.0 * v for v in (i.share, i.low, i.high))
+        ci = f" [{low:.1f}, {high:.1f}]" if np.isfinite(low) and np.isfinite(high) else ""
+        value = f"{share:.1f} %" if np.isfinite(share) else "—"
+        color = COLOR_BUDGET_INTERACTION if i.name == INTERACTION else (
+            COLOR_BUDGET_NEGATIVE if np.isfinite(share) and share < 0 else COLOR_BUDGET_SOURCE)
+        rows.append((f"{i.name} {value}{ci}", share if np.isfinite(share) else 0.0, low, high, color))
+    return rows
+
+
+def log_share_chart(rec: rr.RecordingStream, intervals: list[ShareInterval]) -> None:
+    """The shares as labelled horizontal bars with their intervals (x: share in %, one row per
+    source; the view, :func:`agvviz.viz.blueprints.budget_shares_view`, is a 2D view)."""
+    rows = share_chart_rows(intervals)
+    if not rows:
+        return
+    y = np.arange(len(rows)) * ROW
+    shares = np.array([r[1] for r in rows])
+    mins = np.stack([np.minimum(shares, 0.0), y - BAR_HALF_HEIGHT], axis=1)
+    sizes = np.stack([np.abs(shares), np.full(len(rows), 2 * BAR_HALF_HEIGHT)], axis=1)
+    rec.log(paths.BUDGET_SHARE_BARS, rr.Boxes2D(mins=mins, sizes=sizes, colors=[r[4] for r in rows],
+                                                radii=rr.Radius.ui_points(2.0), labels=[r[0] for r in rows],
+                                                show_labels=False), static=True)
+    whiskers = [[[r[2], yk], [r[3], yk]] for r, yk in zip(rows, y) if np.isfinite(r[2]) and np.isfinite(r[3])]
+    whiskers += [[[x, yk - 1.5], [x, yk + 1.5]] for r, yk in zip(rows, y) if np.isfinite(r[2]) for x in (r[2], r[3])]
+    if whiskers:
+        rec.log(paths.BUDGET_SHARE_CI, rr.LineStrips2D(whiskers, colors=COLOR_BUDGET_ALL_ON, radii=rr.Radius.ui_points(1.0)), static=True)
+    values = np.concatenate([shares, [r[2] for r in rows if np.isfinite(r[2])], [r[3] for r in rows if np.isfinite(r[3])]])
+    low = GRID_STEP_PCT * np.floor(min(0.0, values.min()) / GRID_STEP_PCT)
+    high = GRID_STEP_PCT * np.ceil(max(values.max(), GRID_STEP_PCT) / GRID_STEP_PCT)
+    grid = np.arange(low, high + 1e-9, GRID_STEP_PCT)
+    top, bottom = -ROW / 2, y[-1] + ROW / 2
+    rec.log(paths.BUDGET_SHARE_AXIS, rr.LineStrips2D([[[x, top], [x, bottom]] for x in grid],
+                                                     colors=COLOR_ZERO, radii=[rr.Radius.ui_points(1.5 if x == 0 else 0.5) for x in grid]), static=True)
+    # each bar's label at the chart's right, in its row: a box's own label wraps to its width
+    rec.log(paths.BUDGET_SHARE_LABELS, rr.Points2D([[grid[-1] + LABEL_OFFSET_PCT, yk] for yk in y], colors=[r[4] for r in rows],
+                                                   radii=0.1, labels=[r[0] for r in rows], show_labels=True), static=True)
+    # the last, unlabelled tick widens the view's bounds over the labels' right half
+    ticks = [[x, bottom + 2.5] for x in grid] + [[grid[-1] + 2 * LABEL_OFFSET_PCT, bottom + 2.5]]
+    rec.log(paths.BUDGET_SHARE_TICKS, rr.Points2D(ticks, colors=COLOR_ZERO, radii=0.1,
+                                                  labels=[f"{x:.0f} %" for x in grid] + [""], show_labels=True), static=True)
 
 
 def write_budget_rrd(out_path: str | os.PathLike, budget: ErrorBudget) -> Path:

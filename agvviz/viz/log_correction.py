@@ -49,6 +49,7 @@ from agvviz.viz.log_frames import trajectory
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_CORRECTED,
+    COLOR_IMAGE_FRAME,
     COLOR_NAV,
     COLOR_OBSERVED,
     COLOR_THEORETICAL,
@@ -228,7 +229,7 @@ class CorrectionLogger:
             return
         self._rec.log(
             paths.correction_border(cam_name),
-            rr.Boxes2D(mins=[[0.0, 0.0]], sizes=[[camera.width_px, camera.height_px]], colors=(110, 110, 110),
+            rr.Boxes2D(mins=[[0.0, 0.0]], sizes=[[camera.width_px, camera.height_px]], colors=COLOR_IMAGE_FRAME,
                        radii=rr.Radius.ui_points(1.0)),
             static=True,
         )

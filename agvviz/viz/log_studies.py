@@ -4,17 +4,21 @@ report files (``bench/bench_monte_carlo.py``, ``bench/bench_cnoem.py``).
 
 p4p Monte-Carlo (:mod:`agvviz.replay.studies.monte_carlo`, :mod:`agvviz.replay.studies.monte_carlo_cells`):
 one implementation for both outputs, :func:`log_study` (timelines: ``trial`` = trial index within
-its cell; ``snr_db`` for the paper cells; ``sigma_mpx`` = σ in milli-pixels for the CRLB cells)::
+its cell; ``sigma_mpx`` = the cell's σ in milli-pixels, for every cell; ``snr_db`` for the paper cells too)::
 
     mc/report                                      TextDocument: the markdown report (static)
     mc/trials/<cell>/error_mm/<solver>             Scalars over trial: ‖t̂ − t‖ (mm) of each
-                                                   trial (failed solves left out)
+                                                   trial (failed solves left out); no tab shows it
     mc/trials/<cell>/error_mm/crlb                 Scalars at the first and last trial: the
                                                    cell's CRLB (sqrt trace, mm), a flat line
-    mc/paper/h<h>_z<z>_n<N>/t<i>_mean/<solver>     Scalars: mean of t_i (m) over snr_db
-    mc/paper/h<h>_z<z>_n<N>/rmse_mm/<solver>|crlb  Scalars: RMSE of t and its CRLB (mm)
-    mc/paper/h<h>_z<z>_n<N>/rmse_over_crlb/<solver>   Scalars: RMSE ÷ CRLB over snr_db
-    mc/crlb/tilt<t>_h<h>_z<z>_n<N>/rmse_over_crlb/<solver>   Scalars over sigma_mpx
+    <group> = mc/paper/h<h>_z<z>_n<N> (paper cells) or mc/crlb/tilt<t>_h<h>_z<z>_n<N> (CRLB cells);
+    every figure below is at the cell's σ on ``sigma_mpx``, paper cells also at ``snr_db``:
+    <group>/rmse_mm/<solver>                       Scalars ×3: RMSE of t (mm), its 95 % interval
+                                                   low and high (statistics.rmse_ci), one colour
+                                                   and one legend name
+    <group>/rmse_mm/crlb                           Scalars: the cell's CRLB (mm)
+    <group>/rmse_over_crlb/<solver>                Scalars: RMSE ÷ CRLB
+    mc/paper/h<h>_z<z>_n<N>/t<i>_mean/<solver>     Scalars: mean of t_i (m)
 
 CNOEM grid run (:mod:`agvviz.replay.studies.cnoem`), timeline ``trial`` = the trial's index within
 its cell::
@@ -48,28 +52,12 @@ import rerun as rr
 from agvviz.model.studies import CellResult, CnoemCellResult, CnoemTrialsOutcome, TrialsOutcome
 from agvviz.replay.studies.cnoem_cells import METHODS as CNOEM_METHODS
 from agvviz.replay.studies.monte_carlo_cells import SOLVERS
+from agvviz.evaluation.statistics import rmse_ci
 from agvviz.viz import paths
 from agvviz.viz.blueprints import cnoem_report_blueprint, mc_default_tab, study_blueprint
 from agvviz.viz.rrd_file import AtomicRrd
+from agvviz.viz.style import CNOEM_COLORS, SOLVER_COLORS, solver_color
 
-SOLVER_COLORS = {
-    "p4p": (60, 120, 255),
-    "lm": (230, 40, 40),
-    "lm_pixel": (255, 160, 0),
-    "lm_amb": (0, 220, 220),
-    "ippe": (40, 200, 90),
-    "sqpnp": (200, 120, 255),
-    "crlb": (230, 230, 230),
-}
-CNOEM_COLORS = {
-    "cnoem": (230, 40, 40),
-    "cnoem_multistart": (255, 120, 120),
-    "bundle": (255, 160, 0),
-    "ippe_first": (40, 200, 90),
-    "ippe_first_nav": (60, 120, 255),
-    "ippe_mean_nav": (200, 120, 255),
-    "crlb": (230, 230, 230),
-}
 
 
 # -- p4p Monte-Carlo ---------------------------------------------------------------------------
@@ -90,7 +78,7 @@ def log_study(rec: rr.RecordingStream, results: dict[str, CellResult], report_md
             ok = np.flatnonzero(np.isfinite(errors_mm))
             rec.log(
                 f"{base}/{name}",
-                rr.SeriesPoints(names=name, colors=SOLVER_COLORS.get(name, (200, 200, 200)), marker_sizes=2.0),
+                rr.SeriesPoints(names=name, colors=solver_color(name), marker_sizes=2.0),
                 static=True,
             )
             if len(ok):
@@ -109,31 +97,48 @@ def log_study(rec: rr.RecordingStream, results: dict[str, CellResult], report_md
 
     styled: set[str] = set()
 
-    def scalar(entity: str, value: float, series: str) -> None:
+    def style(entity: str, series: str | list[str], colors, widths) -> None:
         if entity not in styled:
-            rec.log(entity, rr.SeriesLines(names=series, colors=SOLVER_COLORS[series], widths=2.0), static=True)
+            rec.log(entity, rr.SeriesLines(names=series, colors=colors, widths=widths), static=True)
             styled.add(entity)
+
+    def scalar(entity: str, value: float, series: str) -> None:
+        style(entity, series, solver_color(series), 2.0)
         rec.log(entity, rr.Scalars(float(value)))
 
+    def rmse_with_band(entity: str, errors_m: np.ndarray, series: str) -> None:
+        """RMSE (mm) and its 95 % interval over the cell's trials: a line and a thin band
+        above and below it, one colour, one legend name."""
+        rmse, lo, hi = rmse_ci(errors_m)
+        color = solver_color(series)
+        # the band's lines carry the solver's name: the legend shows one entry per name
+        style(entity, [series, series, series], [color, color, color], [2.0, 0.5, 0.5])
+        rec.log(entity, rr.Scalars(np.array([rmse, lo, hi]) * 1000.0))
+
+    # Every per-cell figure is placed at its σ (milli-pixels, the ``sigma_mpx`` timeline the
+    # layout opens on, so every tab has data); paper cells at their SNR (``snr_db``) too.
     for cid, r in results.items():
         rec.reset_time()
-        group = paths.mc_paper_group(cid)
-        if group is not None:
-            rec.set_time(paths.TIMELINE_SNR_DB, sequence=int(paths.MC_PAPER_CELL.fullmatch(cid)["snr"]))
-            for name in SOLVERS:
-                s = r.stats[name]
-                for i in range(3):
-                    scalar(f"{group}/t{i + 1}_mean/{name}", s.mean_t_m[i], name)
-                scalar(f"{group}/rmse_mm/{name}", s.rmse_t_m * 1000.0, name)
-                scalar(f"{group}/rmse_over_crlb/{name}", s.rmse_t_m / r.crlb_t_m, name)
-            scalar(f"{group}/rmse_mm/crlb", r.crlb_t_m * 1000.0, "crlb")
+        group = paths.mc_paper_group(cid) or paths.mc_crlb_group(cid)
+        if group is None:
             continue
-        group = paths.mc_crlb_group(cid)
-        if group is not None:
-            rec.set_time(paths.TIMELINE_SIGMA_MPX, sequence=int(round(float(paths.MC_CRLB_CELL.fullmatch(cid)["s"]) * 1000)))
+        rec.set_time(paths.TIMELINE_SIGMA_MPX, sequence=sigma_mpx(r.sigma_px))
+        paper = paths.MC_PAPER_CELL.fullmatch(cid)
+        if paper is not None:
+            rec.set_time(paths.TIMELINE_SNR_DB, sequence=int(paper["snr"]))
             for name in SOLVERS:
-                scalar(f"{group}/rmse_over_crlb/{name}", r.stats[name].rmse_t_m / r.crlb_t_m, name)
+                for i in range(3):
+                    scalar(f"{group}/t{i + 1}_mean/{name}", r.stats[name].mean_t_m[i], name)
+        for name in SOLVERS:
+            rmse_with_band(f"{group}/rmse_mm/{name}", r.errors_t_m.get(name, np.array([r.stats[name].rmse_t_m])), name)
+            scalar(f"{group}/rmse_over_crlb/{name}", r.stats[name].rmse_t_m / r.crlb_t_m, name)
+        scalar(f"{group}/rmse_mm/crlb", r.crlb_t_m * 1000.0, "crlb")
     rec.reset_time()
+
+
+def sigma_mpx(sigma_px: float) -> int:
+    """σ in milli-pixels, the ``sigma_mpx`` timeline's sequence value."""
+    return int(round(float(sigma_px) * 1000))
 
 
 def write_monte_carlo_report_rrd(out_path: str | os.PathLike, results: dict[str, CellResult], report_md: str) -> None:

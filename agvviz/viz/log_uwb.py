@@ -31,6 +31,7 @@ from agvviz.viz.style import (
     COLOR_STALE,
     COLOR_TRUTH,
     COLOR_UWB,
+    COLOR_ZERO,
     LEGEND,
 )
 from agvviz.viz.timelines import set_stamp
@@ -215,3 +216,24 @@ class FusionLogger:
         if item.fused_error_m is not None:
             rec.log(paths.ERROR_FUSED_POSITION_MM, rr.Scalars(1000.0 * item.fused_error_m))
             self.errors_mm.append(1000.0 * item.fused_error_m)
+
+
+def log_room_outline(rec: rr.RecordingStream, anchors_m: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The room as a grey wire box (static, :data:`~agvviz.viz.paths.UWB_ROOM`): the anchors'
+    extent in x and y (they hang on the walls), from the floor to their highest. Returns its
+    (low, high) corners for the 3D view to frame; None with fewer than two anchors or a flat
+    extent."""
+    points = np.array([np.asarray(p, dtype=float) for p in anchors_m.values()]).reshape(-1, 3)
+    if len(points) < 2:
+        return None
+    low = np.array([points[:, 0].min(), points[:, 1].min(), 0.0])
+    high = np.array([points[:, 0].max(), points[:, 1].max(), max(points[:, 2].max(), 0.0)])
+    if np.any((high - low)[:2] <= 0.0):
+        return None
+    (x0, y0, z0), (x1, y1, z1) = low, high
+    floor = [[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0], [x0, y0, z0]]
+    ceiling = [[x, y, z1] for x, y, _ in floor]
+    edges = [[[x, y, z0], [x, y, z1]] for x, y, _ in floor[:4]]
+    rec.log(paths.UWB_ROOM, rr.LineStrips3D([floor, ceiling, *edges], colors=COLOR_ZERO, radii=rr.Radius.ui_points(1.0),
+                                           labels=["room (from the anchors)"], show_labels=False), static=True)
+    return low, high

@@ -61,11 +61,9 @@ from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_bl
 from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
 from agvviz.viz.readback import read_rrd
 from agvviz.viz.rrd_file import AtomicRrd
-from agvviz.viz.style import COLOR_DETECTED, COLOR_TRUTH, color_of
+from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_of
 
 #: The per-frame Δ series and its zero line.
-COLOR_DELTA = (235, 235, 235)
-COLOR_ZERO = (130, 130, 130)
 AXIS_LENGTH_M = 0.4
 TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 #: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about

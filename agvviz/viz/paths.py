@@ -125,7 +125,8 @@ def error_rejected_all(series_entity: str) -> str:
 
 
 RUN_MANIFEST = "run/manifest"
-RUN_SUMMARY = "run/summary"
+RUN_SUMMARY = "run/summary"  # TextDocument (static): the terminal's table (mm, °, px), damage, warnings
+RUN_SUMMARY_JSON = "run/summary_json"  # TextDocument (static): the whole summary as a ```json block
 
 
 def camera(cam_name: str, fixed: bool = False) -> str:
@@ -196,6 +197,7 @@ def zoom_reprojected(cam_name: str) -> str:
 #: World-fixed cameras: ``world/cameras/cam_<name>`` (Transform3D T_world_cam + Pinhole, static).
 FIXED_CAMERAS = "world/cameras"
 UWB_ANCHORS = "world/uwb/anchors"  # Points3D with ids (static)
+UWB_ROOM = "world/uwb/room"  # LineStrips3D (static): the room's outline, from the anchors' extent
 AGV_UWB = "world/agv/uwb"  # Transform3D: the latest UWB fix (position only)
 AGV_FUSED = "world/agv/fused"  # Transform3D: the latest fused position
 TRAJECTORY_UWB = "world/trajectory/uwb"
@@ -344,7 +346,12 @@ def correction_border(cam_name: str) -> str:
 # -- error budget (agvviz/viz/log_budget.py) --------------------------------------------------------
 BUDGET = "budget"
 BUDGET_TABLE = f"{BUDGET}/table"  # TextDocument (static): the budget as a markdown table
-BUDGET_SHARES = f"{BUDGET}/shares_pct"  # BarChart (static): share of the position error (%)
+BUDGET_SHARES = f"{BUDGET}/shares_pct"  # the chart of shares (%), a 2D view (static), below:
+BUDGET_SHARE_BARS = f"{BUDGET_SHARES}/bars"  # Boxes2D: one bar per source, then interaction/other, labelled
+BUDGET_SHARE_CI = f"{BUDGET_SHARES}/ci"  # LineStrips2D: each bar's bootstrap interval (a whisker)
+BUDGET_SHARE_AXIS = f"{BUDGET_SHARES}/axis"  # LineStrips2D: the 0 % line and the grid at every 25 %
+BUDGET_SHARE_LABELS = f"{BUDGET_SHARES}/labels"  # Points2D right of the bars: each bar's label
+BUDGET_SHARE_TICKS = f"{BUDGET_SHARES}/ticks"  # Points2D: the grid's labels ("0 %", "25 %", …)
 #: Series names of the recording's own error (every source on) and of the floor (all off).
 BUDGET_ALL_ON = "all_on"
 BUDGET_ALL_OFF = "all_off"

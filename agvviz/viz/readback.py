@@ -276,7 +276,13 @@ def text_documents(src: str | os.PathLike | RrdContents, entity: str) -> dict[in
 
 
 def document_json(src: str | os.PathLike | RrdContents, entity: str) -> dict:
-    """The JSON block of a run document (``run/manifest`` or ``run/summary``) as a dict."""
+    """The JSON block of a run document (``run/manifest`` or ``run/summary``) as a dict. The
+    summary's JSON is its own entity (``run/summary_json``); an ``.rrd`` written before the split
+    holds it under the table in ``run/summary``."""
+    if entity == paths.RUN_SUMMARY:
+        contents = _contents(src)
+        if paths.RUN_SUMMARY_JSON in contents.entity_paths:
+            src, entity = contents, paths.RUN_SUMMARY_JSON
     text = text_document(src, entity)
     start = text.find("```json\n")
     end = text.find("\n```", start + 1)

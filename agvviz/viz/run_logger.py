@@ -229,11 +229,14 @@ class RunLogger:
         self._budget_sources = [s.source for s in budget.sources]
 
     def log_summary(self, summary: dict) -> None:
-        """Log the run summary as static markdown: the terminal's table
-        (:func:`agvviz.evaluation.summary_table.summary_rows`, without the wall-clock rows),
-        recording damage and warnings, then the whole summary as a JSON block."""
+        """Log the run summary as static markdown: the terminal's table in its units (mm, °, px;
+        :func:`agvviz.evaluation.summary_table.summary_rows`, without the wall-clock rows),
+        recording damage and warnings into ``run/summary``; the whole summary as a JSON block
+        into ``run/summary_json`` (a tab of its own, behind the table)."""
         self._check_open()
         self._rec.log(paths.RUN_SUMMARY, _markdown(_summary_markdown(summary)), static=True)
+        block = _json_block("run summary", summary)
+        self._rec.log(paths.RUN_SUMMARY_JSON, _markdown(f"### Run summary (JSON, every figure unrounded)\n\n```json\n{block}\n```\n"), static=True)
 
     # -- output ----------------------------------------------------------------------------
     def plot_axes(self) -> dict[str, PlotAxis]:
@@ -294,17 +297,17 @@ class RunLogger:
 
 def _summary_markdown(summary: dict) -> str:
     """The run summary panel: the terminal table when the summary has its sections (any other
-    dict: key/value rows), damage and warnings, then the JSON block."""
+    dict: key/value rows), damage and warnings; the JSON goes to its own tab
+    (``run/summary_json``)."""
     rows = summary_rows(summary, {})
     if not rows:
-        return _markdown_document("Run summary", summary)
+        return _markdown_document("Run summary", summary, with_json=False)
     notes = [f"- recording damage: {p}" for p in summary.get("recording_damage", [])]
     notes += [f"- warning: {w}" for w in summary.get("warnings", [])]
-    block = _json_block("run summary", summary)
     parts = ["### Run summary", markdown_table(rows)]
     if notes:
         parts.append("\n".join(notes))
-    parts.append(f"#### Full summary (JSON)\n\n```json\n{block}\n```\n")
+    parts.append("*The whole summary (every figure unrounded): the tab \"summary (JSON)\".*")
     return "\n\n".join(parts)
 
 
@@ -331,8 +334,9 @@ def _json_block(what: str, content: dict) -> str:
         raise RunLogError(f"{what} is not JSON serialisable: {exc}") from exc
 
 
-def _markdown_document(title: str, content: dict) -> str:
-    """Markdown: a key/value table (nested dicts flattened with dots) and a JSON block."""
+def _markdown_document(title: str, content: dict, with_json: bool = True) -> str:
+    """Markdown: a key/value table (nested dicts flattened with dots) and a JSON block (unless
+    ``with_json`` is False)."""
     block = _json_block(title.lower(), content)
     rows = []
     for key, value in _flatten(json.loads(block)):
@@ -343,6 +347,8 @@ def _markdown_document(title: str, content: dict) -> str:
         escaped = text.replace("|", "\\|")
         rows.append(f"| {key} | {escaped} |")
     table = "\n".join(["| key | value |", "| --- | --- |", *rows])
+    if not with_json:
+        return f"# {title}\n\n{table}\n"
     return f"# {title}\n\n{table}\n\n```json\n{block}\n```\n"
 
 

@@ -17,7 +17,7 @@ from agvviz.viz.blueprints import (
 )
 from agvviz.viz.log_correction import CorrectionLogger
 from agvviz.viz.log_studies import log_cnoem_trials, log_trials
-from agvviz.viz.log_uwb import FusionLogger
+from agvviz.viz.log_uwb import FusionLogger, log_room_outline
 from agvviz.viz.run_logger import RunLogger
 
 #: Every this many frames the ``.rrd`` stream is flushed (waiting until Rerun has written what
@@ -47,6 +47,7 @@ class RrdSink(NullSink):
             if settings.correction != "none" else None
         )
         self._cameras_logged: set[str] = set()
+        self.room_m = None  # the UWB room's (low, high) corners, once its anchors are known
 
     def cameras_changed(self, cameras: Mapping) -> None:
         """Log each camera once both its calibration and its extrinsic are known."""
@@ -77,6 +78,7 @@ class RrdSink(NullSink):
         if uwb is not None:
             if not self.fusion_logger.anchor_ids:
                 self.fusion_logger.log_anchors(uwb.anchors_m, uwb.tag_z_m, list(self.cameras))
+                self.room_m = log_room_outline(self.logger.stream, uwb.anchors_m)
             self.fusion_logger.log(item)
 
     def corrected(self, step) -> None:
@@ -102,6 +104,7 @@ class RrdSink(NullSink):
                 camera_rejected=self.logger.frames.rejected_frames > 0,
                 error_axis=clipped_axis(fusion.errors_mm, "mm"),
                 range_axes={a: plot_axis([extent], include_zero=False) for a, extent in fusion.range_extents.items()},
+                room_m=self.room_m,
             )
         if self.correction_logger is not None:
             self.logger.blueprint = correction_blueprint(sorted(self.cameras))

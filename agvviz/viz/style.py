@@ -1,8 +1,9 @@
-"""One palette for every view of every run: a colour means the same thing in 3D, on images
-and in plots, and the legend names it (``LEGEND``).
+"""The palette: every colour of every view, defined once. A colour means the same thing in 3D,
+on images and in plots, and the legend names it (``LEGEND``).
 
 Colours are RGB on the viewer's dark background. Pick from here; do not define colours in a
-logger.
+logger: ``tests/test_palette.py`` scans agvviz/ and fails on an RGB or hex literal anywhere else.
+The table in docs/architecture.md ("The palette") lists them; keep it in step.
 """
 
 from __future__ import annotations
@@ -46,6 +47,71 @@ COLOR_GHOST = (150, 110, 255)
 COLOR_OBSERVED = (255, 255, 255)
 COLOR_THEORETICAL = (255, 170, 0)
 
+#: Background lines of a chart: the zero of a difference, an image's frame.
+COLOR_ZERO = (130, 130, 130)
+COLOR_IMAGE_FRAME = (110, 110, 110)
+#: A difference B − A (``agvviz diff``).
+COLOR_DELTA = (235, 235, 235)
+
+#: Audit (``agvviz audit``): a marker or camera found misplaced, one that agrees with the map
+#: (its estimated outline), one seen too little to judge; the recorded map is COLOR_MARKER.
+COLOR_FLAGGED = COLOR_REJECTED
+COLOR_OK = COLOR_CORRECTED
+COLOR_SEEN_TOO_LITTLE = COLOR_STALE
+
+#: Each pose solver of a study (p4p Monte-Carlo), and the CRLB they are held against. Told apart
+#: by hue: lm and its variants are warm, closed forms cool, the bound a light grey.
+SOLVER_COLORS = {
+    "p4p": (60, 120, 255),
+    "lm": (230, 40, 40),
+    "lm_pixel": (255, 160, 0),
+    "lm_amb": (255, 110, 200),
+    "ippe": (40, 200, 90),
+    "sqpnp": (0, 210, 230),
+    "crlb": (230, 230, 230),
+}
+#: Each method of a CNOEM study (multi-frame correction), and its CRLB.
+CNOEM_COLORS = {
+    "cnoem": (230, 40, 40),
+    "cnoem_multistart": (255, 120, 120),
+    "bundle": (255, 160, 0),
+    "ippe_first": (40, 200, 90),
+    "ippe_first_nav": (60, 120, 255),
+    "ippe_mean_nav": (200, 120, 255),
+    "crlb": (230, 230, 230),
+}
+#: A solver or method not in the tables above.
+COLOR_OTHER = (200, 200, 200)
+
+#: Error-budget sources (``agvviz budget``): a source that adds to the error, one whose share is
+#: negative (switching it off made the error larger: interaction), and interaction/other.
+COLOR_BUDGET_SOURCE = (255, 140, 0)
+COLOR_BUDGET_NEGATIVE = (90, 200, 230)
+COLOR_BUDGET_INTERACTION = (150, 150, 150)
+#: Each error source's line in the budget's per-frame plots (``agvviz.sim.realism.SOURCES``;
+#: ``imaging.<effect>`` takes imaging's), the recording's own error (all on) and the floor.
+BUDGET_SOURCE_COLORS = {
+    "calibration": (230, 40, 40),
+    "map": (80, 160, 255),
+    "timing": (240, 220, 60),
+    "bumps": (170, 110, 255),
+    "slip": (0, 200, 180),
+    "imaging": (255, 0, 200),
+}
+COLOR_BUDGET_ALL_ON = (255, 255, 255)
+COLOR_BUDGET_FLOOR = COLOR_ZERO
+
+
+def budget_source_color(source: str) -> tuple[int, int, int]:
+    """The colour of error source ``source`` in the budget's per-frame plots."""
+    return BUDGET_SOURCE_COLORS.get(source.split(".")[0], COLOR_OTHER)
+
+
+def solver_color(name: str) -> tuple[int, int, int]:
+    """The colour of study solver or CNOEM method ``name``."""
+    return SOLVER_COLORS.get(name) or CNOEM_COLORS.get(name) or COLOR_OTHER
+
+
 #: Legend names of the shared colours, for series names and view titles.
 LEGEND = {
     COLOR_TRUTH: "truth",
@@ -61,13 +127,17 @@ LEGEND = {
 }
 
 #: The runs of an overlay (``agvviz diff``, ``sweep``) in order, with their names for view
-#: titles. The first two (a diff's A and B) stand out from the truth green, the blue markers and
-#: the white codes of the images.
+#: titles. Every one stands apart from the colours the overlay also draws: truth green, the
+#: markers' blue, the UWB blue, the detected cyan and the white codes of the images
+#: (``tests/test_palette.py`` holds the distance). No blue and no green among them.
 PALETTE = (
-    (255, 140, 0), (255, 0, 200), (30, 144, 255), (240, 220, 60),
-    (170, 110, 255), (0, 200, 180), (230, 60, 60), (160, 230, 120),
+    (255, 140, 0), (255, 0, 200), (240, 220, 60), (170, 110, 255),
+    (230, 60, 60), (255, 170, 200), (150, 75, 30), (170, 170, 30),
 )
-PALETTE_NAMES = ("orange", "magenta", "blue", "yellow", "violet", "teal", "red", "light green")
+PALETTE_NAMES = ("orange", "magenta", "yellow", "violet", "red", "pink", "brown", "olive")
+#: A diff's runs: A and B.
+COLOR_RUN_A = PALETTE[0]
+COLOR_RUN_B = PALETTE[1]
 
 
 def color_of(index: int) -> tuple[int, int, int]:

@@ -19,6 +19,8 @@ are counted and left out of the statistics.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from agvviz.model.studies import CellResult, CellTrials, SolverStats
@@ -163,6 +165,39 @@ def checks(results: dict[str, CellResult]) -> dict:
     }
 
 
+#: Trials per cell behind the paper's numbers (paper 000 §6).
+PAPER_TRIALS = 1000
+#: |z| above which ours and the paper's figure are called different (3: a false "disagree" in
+#: about 1 of 370 comparisons of a component when both estimate the same quantity).
+AGREEMENT_Z = 3.0
+
+
+def paper_agreement(ours: SolverStats, paper_mean: tuple, paper_var: tuple, paper_trials: int = PAPER_TRIALS) -> tuple[bool, list[str]]:
+    """Does our cell agree with a paper figure? Per component of t:
+
+    - the means: z = (ours − paper) / sqrt(var_ours/n_ours + var_paper/n_paper), both means of
+      independent trials (standard errors from each side's own sample variance);
+    - the variances: z = ln(var_ours / var_paper) / sqrt(2/(n_ours − 1) + 2/(n_paper − 1)), the
+      large-sample standard error of a log sample variance;
+
+    disagreement when any |z| > :data:`AGREEMENT_Z`. Returns (agree, the failing components as
+    ``"t3 mean z=5.1"``)."""
+    n = ours.n_ok
+    if n < 2:
+        return False, ["fewer than 2 solved trials"]
+    reasons = []
+    for i in range(3):
+        se = math.sqrt(ours.var_t_m2[i] / n + paper_var[i] / paper_trials)
+        z_mean = (ours.mean_t_m[i] - paper_mean[i]) / se if se > 0 else 0.0
+        if abs(z_mean) > AGREEMENT_Z:
+            reasons.append(f"t{i + 1} mean z={z_mean:+.1f}")
+        if ours.var_t_m2[i] > 0 and paper_var[i] > 0:
+            z_var = math.log(ours.var_t_m2[i] / paper_var[i]) / math.sqrt(2 / (n - 1) + 2 / (paper_trials - 1))
+            if abs(z_var) > AGREEMENT_Z:
+                reasons.append(f"t{i + 1} var z={z_var:+.1f}")
+    return not reasons, reasons
+
+
 def _fmt3(values, spec: str) -> str:
     return "[" + ", ".join(format(float(v), spec) for v in values) + "]"
 
@@ -184,7 +219,11 @@ def report_markdown(results: dict[str, CellResult], trials: int) -> str:
         "",
         "## Against the paper's figures 3–8, 12–15",
         "",
-        "| fig | cell | σ px | solver | paper mean t | ours mean t | paper var t | ours var t | CRLB var t |",
+        f"Verdict per figure: *agree* when every component's mean and variance lie within "
+        f"{AGREEMENT_Z:g} standard errors of the paper's ({PAPER_TRIALS} trials there, ours per cell above); "
+        "else *disagree* with the components that do not.",
+        "",
+        "| fig | solver, cell | σ px | t | paper mean | ours mean | paper var | ours var | CRLB var |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for fig, (cid, solver, mean, var) in PAPER_FIGURES.items():
@@ -192,10 +231,16 @@ def report_markdown(results: dict[str, CellResult], trials: int) -> str:
             continue
         r = results[cid]
         s = r.stats[solver]
-        lines.append(
-            f"| {fig} | {cid} | {r.sigma_px:.2f} | {solver} | {_fmt3(mean, '.4f')} | {_fmt3(s.mean_t_m, '.4f')} "
-            f"| {_fmt3(var, '.2g')} | {_fmt3(s.var_t_m2, '.2g')} | {_fmt3(r.crlb_var_t_m2, '.2g')} |"
-        )
+        agree, reasons = paper_agreement(s, mean, var)
+        verdict = "**agree**" if agree else "**disagree**: " + ", ".join(reasons)
+        short = cid.removeprefix("paper_").replace("_", " ")
+        for i in range(3):
+            head = f"| {fig} | {solver}, {short} | {r.sigma_px:.2f} |" if i == 0 else "| | | |"
+            lines.append(
+                f"{head} t{i + 1} | {mean[i]:.4f} | {s.mean_t_m[i]:.4f} | {var[i]:.2g} | {s.var_t_m2[i]:.2g} "
+                f"| {r.crlb_var_t_m2[i]:.2g} |"
+            )
+        lines.append(f"| | | | verdict | {verdict} | | | | |")
     lines += [
         "",
         "Figures 9–11 (t1, t2, t3 of p4p and lm over SNR 15–24 dB, h = 0.2667 m, z = 2 m, 4 points) "
