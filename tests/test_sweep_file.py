@@ -68,8 +68,9 @@ def test_a_sweep_writes_one_file_with_the_frames_once(swept):
     assert sweep_file.stat().st_size < 1.5 * standalone["lm"].stat().st_size
     # The ranking document: verdict and p-value.
     report = text_document(contents, paths.COMPARE_REPORT)
-    best, other = outcome.entries
-    assert f"**Best: {best.label}**" in report and other.label in report and "p_vs_best" in report
+    best, other = sorted(outcome.entries, key=lambda e: e.rank)
+    assert f"| #1 | orange | {best.label} |" in report and "| best |" in report
+    assert f"| #2 | magenta | {other.label} |" in report and "p vs best" in report
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
