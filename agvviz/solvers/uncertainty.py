@@ -316,13 +316,15 @@ class _View:
             Jm = self.J_px_wrt_F[rows]  # (n_i, 2, 3)
             Hm = H_pt[rows]  # (n_i, k, 2)
             if sigmas.corner_bias_px > 0.0 and len(x) >= 2:
-                spread_m = np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1)))
                 px = self.pixels[rows]
                 spread_px = np.sqrt(np.mean(np.sum((px - px.mean(axis=0)) ** 2, axis=1)))
                 if spread_px > 0.0:
-                    sigma_m = sigmas.corner_bias_px * spread_m / spread_px
-                    HB = Hm @ (Jm @ R[:, :2])  # (n_i, k, 2): each corner's in-plane offset
-                    bias += sigma_m**2 * np.einsum("nij,nkj->ik", HB, HB)
+                    # The outline grown or shrunk: every point moves away from the marker's
+                    # centre by a common fraction s, σ_s = corner_bias_px ÷ its RMS pixel radius.
+                    sigma_s = sigmas.corner_bias_px / spread_px
+                    d_px = np.einsum("nij,nj->ni", Jm, (x - x.mean(axis=0)) @ R.T)  # (n_i, 2) per unit s
+                    HB = np.einsum("nij,nj->i", Hm, d_px)  # (k,)
+                    bias += sigma_s**2 * np.outer(HB, HB)
             if np.any(map_var > 0.0):
                 dX = np.zeros((len(x), 3, 7))
                 dX[:, :, :3] = np.eye(3)
