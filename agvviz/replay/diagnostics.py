@@ -229,7 +229,7 @@ class PoseDiagnostics:
                     planar.pixel_jacobian_planar(T_world_agv, T_agv_cam, points_world, K),
                     planar.pixel_jacobian_planar_wrt_extrinsic(T_world_agv, T_agv_cam, points_world, K),
                     se3.inverse(T_world_cam),
-                    markers if markers is not None else [(T_world_marker, points_marker_m)],
+                    self._with_outlines(result, markers if markers is not None else [(T_world_marker, points_marker_m)]),
                     K, sigma, self.systematic,
                 )
                 cov = planar.embed_world_left(cov3, T_world_agv)
@@ -246,7 +246,7 @@ class PoseDiagnostics:
                     T_F_m = np.eye(4) if T_frame_marker is None else np.asarray(T_frame_marker, dtype=float)
                     cov, _ = uncertainty.frame_covariance_full(
                         T_cam_marker @ se3.inverse(T_F_m),
-                        markers if markers is not None else [(T_F_m, points_marker_m)],
+                        self._with_outlines(result, markers if markers is not None else [(T_F_m, points_marker_m)]),
                         K, sigma, self.systematic, T_world_cam, T_world_agv,
                         T_agv_cam if camera_on_agv else T_world_cam, camera_on_agv, objective,
                     )
@@ -278,6 +278,20 @@ class PoseDiagnostics:
                 result.position_over_crlb = result.position_error_m / result.crlb_position_m
         except (uncertainty.UncertaintyError, np.linalg.LinAlgError) as exc:
             result.uncertainty_note = f"no covariance: {exc}"
+
+    def _with_outlines(self, result: FrameResult, markers: list) -> list:
+        """``markers`` with each one's outline shift σ (px) third: ``qr_outline_px`` for a QR
+        code (its observation carries a payload), ``corner_bias_px`` for every other marker
+        (ArUco, AprilTag, board squares: a solid border). Markers are matched to
+        ``result.used_marker_ids`` in order; any mismatch keeps ``corner_bias_px`` for all."""
+        ids = tuple(getattr(result, "used_marker_ids", ()) or ())
+        payloads = {o.marker_id: o.payload for o in (getattr(result, "observations", None) or ())}
+        if len(ids) != len(markers):
+            return markers
+        return [
+            (m[0], m[1], self.systematic.qr_outline_px if payloads.get(i) else self.systematic.corner_bias_px)
+            for m, i in zip(markers, ids)
+        ]
 
     def _remember(self, result: FrameResult) -> None:
         """Keep this solved frame's chosen and rejected poses and odometry for the next frame."""
