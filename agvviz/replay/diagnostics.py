@@ -16,8 +16,9 @@ Uncertainty (every solved frame): pixel σ is the ``sigma_px`` setting, or with 
 pooled residual estimate sqrt(Σ‖r‖² / Σ dof) over all solved frames so far, this one included
 (one frame of 4 points has only 2 degrees of freedom — far too few for a per-frame σ). The
 covariance of ``T_world_agv`` is in the left tangent space in the world frame, (ρ, φ). With
-``covariance=full`` (``systematic`` given) it adds each marker's systematic corner error, the
-intrinsics and distortion, the camera's extrinsic and every used marker's map placement,
+``covariance=full`` (``systematic`` given) it adds each marker's systematic corner error (its
+outline seen grown or shrunk: ``qr_outline_px`` for a QR code, ``corner_bias_px`` for any other
+marker), the intrinsics and distortion, the camera's extrinsic and every used marker's map placement,
 propagated through the solution (:func:`agvviz.solvers.uncertainty.frame_covariance_full`;
 their σ's are the run's settings); with ``covariance=pixel`` the map and the extrinsics are
 taken as exact and pixel noise is the only source. The ``planar`` solver's (x, y, ψ) take the
