@@ -134,7 +134,9 @@ class RunSettings:
         0.3,
         "each marker's systematic corner error σ (px): added to the pixel noise in the joint "
         "solve's chi-square test across markers, and a source of the pose covariance "
-        "(covariance=full) (0.3 px measured on real photos: docs/joint-solve.md)",
+        "(covariance=full: the marker's outline seen grown or shrunk by this much, an apparent "
+        "scale its pose's fit cannot see; docs/uncertainty.md) (0.3 px measured on real photos: "
+        "docs/joint-solve.md)",
         min=0.0, max=100.0,
     )
     covariance: str = setting(
@@ -142,6 +144,13 @@ class RunSettings:
         "pose covariance: full (pixel noise + corner bias + calibration + extrinsic + map, the cov_* "
         "settings; docs/uncertainty.md) or pixel (pixel noise only, as before issue 25)",
         ("full", "pixel"),
+    )
+    cov_qr_outline_px: float = setting(
+        0.07,
+        "covariance=full: a QR symbol's outline shift σ (px), in place of corner_bias_px for QR codes "
+        "(no solid border: its ECC-refined outline moves less; measured on the typical world's "
+        "renders: docs/uncertainty.md)",
+        min=0.0, max=100.0,
     )
     # The cov_* defaults are the `typical` realism profile's σ's (agvviz.sim.realism.PROFILES
     # ["typical"]: a carefully calibrated and surveyed AGV); tests/test_uncertainty.py holds
@@ -362,6 +371,7 @@ class RunSettings:
             return None
         return SystematicSigmas(
             corner_bias_px=self.corner_bias_px,
+            qr_outline_px=self.cov_qr_outline_px,
             focal_px=self.cov_focal_px,
             principal_point_px=self.cov_principal_point_px,
             k1=self.cov_k1, k2=self.cov_k2, p1=self.cov_tangential, p2=self.cov_tangential,

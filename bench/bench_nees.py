@@ -16,6 +16,8 @@ NEES of a seed's frames share them, so the figures need many seeds, not long rec
     python bench/bench_nees.py                               # 20 seeds, the scenarios' lengths
     python bench/bench_nees.py --seeds 8 --duration-s 5      # shorter
     python bench/bench_nees.py --first-seed 8 --seeds 8 --worlds qr_floor   # seeds 8..15
+    python bench/bench_nees.py --keep-dir runs/nees_recordings   # record once, replay again later
+    python bench/bench_nees.py --modes full                  # the full covariance only
 """
 
 from __future__ import annotations
@@ -61,30 +63,38 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=0, help="seeds FIRST..FIRST+N-1")
     parser.add_argument("--duration-s", type=float, default=None, help="recording length (default: the scenario's)")
     parser.add_argument("--worlds", default=",".join(WORLDS))
+    parser.add_argument("--modes", default=",".join(MODES), help="covariance modes to replay with: pixel,full")
+    parser.add_argument("--keep-dir", type=Path, default=None,
+                        help="keep the recordings here and reuse those already there (same world, seed, length)")
     args = parser.parse_args()
     worlds = [w for w in args.worlds.split(",") if w]
-    nees: dict[tuple[str, str], list[tuple[float, int, bool]]] = {(w, m): [] for w in worlds for m in MODES}
+    modes = [m for m in args.modes.split(",") if m]
+    nees: dict[tuple[str, str], list[tuple[float, int, bool]]] = {(w, m): [] for w in worlds for m in modes}
     options = [] if args.duration_s is None else [f"duration_s={args.duration_s}"]
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     print(f"typical {', '.join(worlds)}; seeds {seeds[0]}..{seeds[-1]}; {' '.join(options) or 'scenario lengths'}; solver lm")
     with tempfile.TemporaryDirectory() as tmp:
+        folder = args.keep_dir or Path(tmp)
+        folder.mkdir(parents=True, exist_ok=True)
         for world in worlds:
             for seed in seeds:
-                path = Path(tmp) / f"{world}-{seed}.mcap"
+                path = folder / f"{world}-{seed}-{args.duration_s or 'default'}.mcap"
                 t0 = time.perf_counter()
-                record(world, path, seed=seed, overrides=options)
+                if not path.exists():
+                    record(world, path, seed=seed, overrides=options)
                 line = f"  {world} seed {seed:2d} ({time.perf_counter() - t0:.0f} s):"
-                for mode in MODES:
+                for mode in modes:
                     settings = apply_overrides(RunSettings(), ["solver=lm", f"covariance={mode}"])
                     frame_nees = [(f.nees, f.nees_dof, f.flipped) for f in replay_frames(path, settings) if f.nees is not None]
                     nees[world, mode] += frame_nees
                     mean = float(np.mean([v for v, _, _ in frame_nees])) if frame_nees else float("nan")
                     line += f"  {mode} mean {mean:.1f}"
                 print(line, flush=True)
-                path.unlink()
+                if args.keep_dir is None:
+                    path.unlink()
     print()
     for world in worlds:
-        for mode in MODES:
+        for mode in modes:
             print(f"{world:9s} covariance={mode:5s}  {figures(nees[world, mode])}")
     print("(goal with covariance=full: mean 4.5–8, ≥ 95 % under χ² 99 %)")
 

@@ -61,10 +61,10 @@ def _solve(points_F, pixels, objective, start=T_CAM_WORLD):
     return result.T_cam_marker[0]
 
 
-def _spread_ratio(points_m, pixels_px):
-    s_m = np.sqrt(np.mean(np.sum((points_m - points_m.mean(0)) ** 2, axis=1)))
-    s_px = np.sqrt(np.mean(np.sum((pixels_px - pixels_px.mean(0)) ** 2, axis=1)))
-    return s_m / s_px
+def _outline_sigma(pixels_px):
+    """σ of a marker's apparent scale about its centre: ``corner_bias_px`` ÷ the RMS distance of
+    its pixels from their mean (the model's outline shift)."""
+    return SIGMAS.corner_bias_px / np.sqrt(np.mean(np.sum((pixels_px - pixels_px.mean(0)) ** 2, axis=1)))
 
 
 def _numeric_parts(objective):
@@ -111,16 +111,16 @@ def _numeric_parts(objective):
                     moved.append((T, x))
                 return _solve(_points_F(moved), px_true, objective)
             add("map", sigma, 1e-5, at)
-    # Corner bias: one corner of one marker off by e along the marker's x or y.
+    # Corner bias: one marker's outline grown by a fraction e about its centre (the pixels show
+    # the grown outline, the map keeps the printed one).
     for m, (T, x) in enumerate(MARKERS):
-        sigma_m = SIGMAS.corner_bias_px * _spread_ratio(x, _pixels(T_CAM_WORLD, se3.transform_points(T, x)))
-        for c in range(len(x)):
-            for axis in (0, 1):
-                def at(e, m=m, c=c, axis=axis):
-                    moved = [(Ti, xi.copy()) for Ti, xi in MARKERS]
-                    moved[m][1][c, axis] += e
-                    return _solve(_points_F(moved), px_true, objective)
-                add("corner_bias", sigma_m, 1e-5, at)
+        sigma_s = _outline_sigma(_pixels(T_CAM_WORLD, se3.transform_points(T, x)))
+
+        def at(e, m=m):
+            moved = [(Ti, xi.mean(0) + (xi - xi.mean(0)) / (1.0 + e) if i == m else xi)
+                     for i, (Ti, xi) in enumerate(MARKERS)]
+            return _solve(_points_F(moved), px_true, objective)
+        add("corner_bias", sigma_s, 1e-5, at)
     return parts
 
 
@@ -167,8 +167,9 @@ def test_extrinsic_part_matches_finite_differences(camera_on_agv):
 
 
 def test_nees_is_consistent_when_errors_follow_the_model():
-    """400 seeded draws of every modelled error (noise, corner bias, intrinsics, distortion, map,
-    extrinsic) on the two-marker frame, each solved by LM: NEES ~ χ²₆ to first order, so its
+    """400 seeded draws of every modelled error (noise, each marker's outline, intrinsics,
+    distortion, map, extrinsic) on the two-marker frame, each solved by LM: NEES ~ χ²₆ to first
+    order, so its
     mean is 6 with standard error sqrt(2·6/400) = 0.17; the band 6 ± 0.75 is ±4.4 standard
     errors (first-order and estimate-vs-truth effects are ≲ 1 % here)."""
     rng = np.random.default_rng(2025)
@@ -179,12 +180,10 @@ def test_nees_is_consistent_when_errors_follow_the_model():
     for _ in range(trials):
         moved = []
         for T, x in MARKERS:
-            px_m = _pixels(T_CAM_WORLD, se3.transform_points(T, x))
-            sigma_m = SIGMAS.corner_bias_px * _spread_ratio(x, px_m)
+            outline = _outline_sigma(_pixels(T_CAM_WORLD, se3.transform_points(T, x))) * rng.standard_normal()
             d = rng.standard_normal(7) * [SIGMAS.map_position_m, SIGMAS.map_position_m, SIGMAS.map_height_m,
                                           SIGMAS.map_tilt_rad, SIGMAS.map_tilt_rad, SIGMAS.map_yaw_rad, SIGMAS.map_scale]
-            x_true = x * (1.0 + d[6])
-            x_true = x_true + np.column_stack([rng.standard_normal((len(x), 2)) * sigma_m, np.zeros(len(x))])
+            x_true = x * (1.0 + d[6]) * (1.0 + outline)  # CORNERS are centred on the marker's origin
             T_true = se3.make(T[:3, :3] @ Rz(d[5]) @ Rx(d[3]) @ Ry(d[4]), T[:3, 3] + d[:3])
             moved.append((T_true, x_true))
         K_true = K.copy()
@@ -295,3 +294,55 @@ def test_planar_full_covariance_adds_to_the_pixel_one():
     none = unc.planar_covariance_full(J3, J_ext, T_CAM_WORLD, MARKERS, K, SIGMA_PX, unc.SystematicSigmas())
     np.testing.assert_allclose(none, pixel, rtol=1e-9)
     assert np.all(np.linalg.eigvalsh(full - pixel) > 0)
+
+
+def test_pooled_residual_sigma_already_holds_each_corners_own_fixed_offset():
+    """Corner offsets fixed per marker but independent between corners are, within each frame,
+    indistinguishable from noise: the dof-corrected pooled residual σ² estimates noise² +
+    offset², and the noise covariance at that σ alone is consistent (so the model adds no
+    separate per-corner term). 120 markers (one offset draw each, 0.25 px) seen in 5 frames
+    each, noise 0.1 px: σ² = 0.0725 px²; the pooled estimate over 1200 dof has a relative
+    standard error ≈ 8 % (the 960 offset draws dominate), the band ± 25 % is ± 3 SE. NEES mean
+    6 over 600 frames, correlated in fives: standard error ≈ sqrt(2·6·5/600) ≈ 0.32, band 6 ± 1.3."""
+    rng = np.random.default_rng(7)
+    noise_px, offset_px = 0.1, 0.25
+    T_marker = se3.make(Rz(0.3), [1.2, 0.1, 0.0])
+    points = se3.transform_points(T_marker, CORNERS)
+    starts, truths, pixels = [], [], []
+    for _ in range(120):
+        offsets = offset_px * rng.standard_normal((4, 2))
+        for _ in range(5):
+            T_true = se3.make(so3.exp(0.05 * rng.standard_normal(3)) @ T_CAM_WORLD[:3, :3],
+                              T_CAM_WORLD[:3, 3] + 0.1 * rng.standard_normal(3))
+            pixels.append(_pixels(T_true, points) + offsets + noise_px * rng.standard_normal((4, 2)))
+            truths.append(T_true)
+    n = len(truths)
+    result = refine_lm_batch(np.array(truths), np.broadcast_to(points, (n,) + points.shape), np.array(pixels), K,
+                             objective="pixel", max_iterations=100, step_tol=1e-14, cost_rel_tol=1e-16)
+    assert result.ok.all()
+    sums = [unc.residual_sum_sq_px2(T, points, px, K) for T, px in zip(result.T_cam_marker, pixels)]
+    sigma = unc.residual_sigma_px(sum(s for s, _ in sums), sum(d for _, d in sums))
+    assert sigma**2 == pytest.approx(noise_px**2 + offset_px**2, rel=0.25)
+    nees = [unc.nees(T, T_true, unc.covariance(T, points, K, sigma)) for T, T_true in zip(result.T_cam_marker, truths)]
+    assert 4.7 <= np.mean(nees) <= 7.3, np.mean(nees)
+
+
+def test_qr_codes_take_their_own_outline_shift():
+    """PoseDiagnostics gives a QR code (its observation carries a payload) ``qr_outline_px`` and
+    any other marker ``corner_bias_px``; markers it cannot match keep ``corner_bias_px``."""
+    from agvviz.replay.diagnostics import PoseDiagnostics
+    from agvviz.solvers.registry import SolverOptions
+
+    sigmas = unc.SystematicSigmas(corner_bias_px=0.3, qr_outline_px=0.07)
+    diag = PoseDiagnostics("lm", "pixel", "lowest_error", None, SolverOptions(), sigmas)
+    observations = [SimpleNamespace(marker_id="Q001", payload="x=1;y=2"), SimpleNamespace(marker_id="7", payload="")]
+    result = SimpleNamespace(used_marker_ids=("Q001", "7"), observations=observations)
+    outlines = [m[2] for m in diag._with_outlines(result, MARKERS)]
+    assert outlines == [0.07, 0.3]
+    unmatched = SimpleNamespace(used_marker_ids=("Q001",), observations=observations)
+    assert diag._with_outlines(unmatched, MARKERS) == MARKERS
+    assert RunSettings().systematic_sigmas.qr_outline_px == 0.07
+    # Each marker's part scales as the square of its outline σ.
+    parts = [unc.frame_covariance_parts(T_CAM_WORLD, [(T, x, b) for T, x in MARKERS], K, SIGMA_PX, sigmas)["corner_bias"]
+             for b in (0.07, 0.3)]
+    np.testing.assert_allclose(parts[0] * (0.3 / 0.07) ** 2, parts[1], rtol=1e-9)

@@ -16,8 +16,9 @@ Uncertainty (every solved frame): pixel σ is the ``sigma_px`` setting, or with 
 pooled residual estimate sqrt(Σ‖r‖² / Σ dof) over all solved frames so far, this one included
 (one frame of 4 points has only 2 degrees of freedom — far too few for a per-frame σ). The
 covariance of ``T_world_agv`` is in the left tangent space in the world frame, (ρ, φ). With
-``covariance=full`` (``systematic`` given) it adds each marker's systematic corner error, the
-intrinsics and distortion, the camera's extrinsic and every used marker's map placement,
+``covariance=full`` (``systematic`` given) it adds each marker's systematic corner error (its
+outline seen grown or shrunk: ``qr_outline_px`` for a QR code, ``corner_bias_px`` for any other
+marker), the intrinsics and distortion, the camera's extrinsic and every used marker's map placement,
 propagated through the solution (:func:`agvviz.solvers.uncertainty.frame_covariance_full`;
 their σ's are the run's settings); with ``covariance=pixel`` the map and the extrinsics are
 taken as exact and pixel noise is the only source. The ``planar`` solver's (x, y, ψ) take the
@@ -231,7 +232,7 @@ class PoseDiagnostics:
                     planar.pixel_jacobian_planar(T_world_agv, T_agv_cam, points_world, K),
                     planar.pixel_jacobian_planar_wrt_extrinsic(T_world_agv, T_agv_cam, points_world, K),
                     se3.inverse(T_world_cam),
-                    markers if markers is not None else [(T_world_marker, points_marker_m)],
+                    self._with_outlines(result, markers if markers is not None else [(T_world_marker, points_marker_m)]),
                     K, sigma, self.systematic,
                 )
                 cov = planar.embed_world_left(cov3, T_world_agv)
@@ -250,7 +251,7 @@ class PoseDiagnostics:
                     ids = list(marker_ids) if marker_ids is not None and len(marker_ids) == len(used) else [
                         f"#{i}" for i in range(len(used))]  # unnamed: shared with no other frame
                     cov, result.cov_common_factors = uncertainty.frame_covariance_split(
-                        T_cam_marker @ se3.inverse(T_F_m), used, ids,
+                        T_cam_marker @ se3.inverse(T_F_m), self._with_outlines(result, used), ids,
                         K, sigma, self.systematic, T_world_cam, T_world_agv,
                         T_agv_cam if camera_on_agv else T_world_cam, camera_on_agv, objective,
                     )
@@ -285,6 +286,20 @@ class PoseDiagnostics:
                 result.position_over_crlb = result.position_error_m / result.crlb_position_m
         except (uncertainty.UncertaintyError, np.linalg.LinAlgError) as exc:
             result.uncertainty_note = f"no covariance: {exc}"
+
+    def _with_outlines(self, result: FrameResult, markers: list) -> list:
+        """``markers`` with each one's outline shift σ (px) third: ``qr_outline_px`` for a QR
+        code (its observation carries a payload), ``corner_bias_px`` for every other marker
+        (ArUco, AprilTag, board squares: a solid border). Markers are matched to
+        ``result.used_marker_ids`` in order; any mismatch keeps ``corner_bias_px`` for all."""
+        ids = tuple(getattr(result, "used_marker_ids", ()) or ())
+        payloads = {o.marker_id: o.payload for o in (getattr(result, "observations", None) or ())}
+        if len(ids) != len(markers):
+            return markers
+        return [
+            (m[0], m[1], self.systematic.qr_outline_px if payloads.get(i) else self.systematic.corner_bias_px)
+            for m, i in zip(markers, ids)
+        ]
 
     def _remember(self, result: FrameResult) -> None:
         """Keep this solved frame's chosen and rejected poses and odometry for the next frame."""

@@ -37,14 +37,18 @@ Systematic sources (:func:`frame_covariance_full`)
     residuals are computed from (a single marker's pose absorbs its placement exactly: the
     first-order result is that rigid shift). Per frame:
 
-    * noise — independent σ (px) on every ideal pixel coordinate (the pooled residual estimate);
-    * corner bias — each corner of marker i sits off by an offset (a, b) in the marker's own
-      plane (along its x and y axes), drawn once per marker and kept in every frame (a corner
-      printed or detected slightly off: it does not average out over frames), independent
-      between corners and markers, σ per axis = ``corner_bias_px`` × the marker's metres per
-      pixel in this frame (RMS spread of its points in metres ÷ in pixels), so about
-      ``corner_bias_px`` in the image; within one frame it therefore acts as corner noise that
-      the pose's own fit cannot see in 6 of every 8 dimensions of a 4-corner marker;
+    * noise — independent σ (px) on every ideal pixel coordinate (the pooled residual estimate).
+      Any error independent between corners — the detector's noise AND a corner's own printed
+      or refined offset, even one that stays the same in every frame — is in the residuals in
+      the same proportion (2N − 6 of 2N dimensions), so the dof-corrected residual σ already
+      holds it: it is not added again;
+    * corner bias — what the residuals cannot hold: each marker's outline seen grown or shrunk
+      (ink spread, light bleeding into dark areas, the refiner's template against a blurred
+      edge), every point moved away from the marker's centre by a common fraction s — an
+      apparent scale the pose's fit turns into range without a residual (for one marker
+      exactly). σ_s = ``corner_bias_px`` ÷ the marker's RMS pixel distance of its points from
+      their mean in this frame, so the outline moves by about ``corner_bias_px`` in the image;
+      drawn once per marker (independent between markers) and kept in every frame;
     * intrinsics — fx, fy (σ ``focal_px`` each), cx, cy (σ ``principal_point_px`` each), through
       the projection ``u = fx·x/z + cx``;
     * distortion — k1, k2, p1, p2 of the undistortion that made the ideal pixels: an error δk1
@@ -206,7 +210,10 @@ class SystematicSigmas:
     """σ of each systematic error source of a frame's pose (module docstring; 0 = exact).
     Angles in radians, lengths in metres, pixels in px, scale and distortion unitless."""
 
-    corner_bias_px: float = 0.0
+    corner_bias_px: float = 0.0  # each marker's outline shift (px): an apparent scale about its centre
+    #: The outline shift of a QR symbol (px), for the caller to give per marker (``markers``'
+    #: third element): no solid border, so its refined outline moves less (docs/uncertainty.md).
+    qr_outline_px: float = 0.0
     focal_px: float = 0.0
     principal_point_px: float = 0.0
     k1: float = 0.0
@@ -229,7 +236,7 @@ SOURCES = ("noise", "corner_bias", "intrinsics", "distortion", "map")
 def _stack(markers) -> tuple[np.ndarray, list[slice]]:
     """Points in F (N, 3) and each marker's row slice of them."""
     points_F, slices, start = [], [], 0
-    for T_F_marker, points_marker_m in markers:
+    for T_F_marker, points_marker_m, *_ in markers:
         pts = se3.transform_points(np.asarray(T_F_marker, dtype=float), np.asarray(points_marker_m, dtype=float))
         points_F.append(pts)
         slices.append(slice(start, start + len(pts)))
@@ -248,7 +255,8 @@ def frame_covariance_parts(
     """Covariance (6, 6) of ``T_cam_F`` (left, (ρ, φ)) from each source of :data:`SOURCES`.
 
     ``markers`` lists each marker's mapped pose ``T_F_marker`` (4, 4) and its points (n, 3) in
-    its own frame, in the order of the residual rows; ``T_cam_F`` is the solution. The
+    its own frame, in the order of the residual rows, and optionally third its outline shift σ
+    (px; default ``sigmas.corner_bias_px``); ``T_cam_F`` is the solution. The
     estimator is the ``objective``'s (weights 1 or z², as :func:`covariance`): each part is
     ``H B Σ_θ Bᵀ Hᵀ`` with ``H = (JᵀWJ)⁻¹JᵀW`` and B the pixels' Jacobian w.r.t. θ.
     """
@@ -292,8 +300,8 @@ class _View:
         """Signed factors of the systematic sources: each column is the change of the estimate's
         k parameters for a one-σ error of one source parameter, ``−H B_j σ_j`` (dδ = −H dr):
         ``intrinsics`` (k, 4: fx, fy, cx, cy), ``distortion`` (k, 4: k1, k2, p1, p2) and, one per
-        marker in the order of ``markers``, ``corner_bias`` (k, 2n: each corner's offset along the
-        marker's x and y) and ``map`` (k, 7: position x, y, z, tilt x, y, yaw, scale). A source's
+        marker in the order of ``markers``, ``corner_bias`` (k, 1: the marker's outline grown or
+        shrunk by its outline σ in px — a marker's third element, else ``corner_bias_px``) and ``map`` (k, 7: position x, y, z, tilt x, y, yaw, scale). A source's
         covariance is S Sᵀ (summed over the markers)."""
         k, n = H.shape[0], self.n
         H_pt = H.reshape(k, n, 2).transpose(1, 0, 2)  # (N, k, 2): H's columns of each point
@@ -317,20 +325,22 @@ class _View:
         sigma_map = np.array([sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,
                               sigmas.map_tilt_rad, sigmas.map_tilt_rad, sigmas.map_yaw_rad, sigmas.map_scale])
         factors["corner_bias"], factors["map"] = [], []
-        for (T_F_marker, points_marker_m), rows in zip(self.markers, self.slices):
+        for (T_F_marker, points_marker_m, *outline), rows in zip(self.markers, self.slices):
             R = np.asarray(T_F_marker, dtype=float)[:3, :3]
             x = np.asarray(points_marker_m, dtype=float)
             Jm = self.J_px_wrt_F[rows]  # (n_i, 2, 3)
             Hm = H_pt[rows]  # (n_i, k, 2)
-            bias = np.zeros((k, 2 * len(x)))
-            if sigmas.corner_bias_px > 0.0 and len(x) >= 2:
-                spread_m = np.sqrt(np.mean(np.sum((x - x.mean(axis=0)) ** 2, axis=1)))
+            bias = np.zeros((k, 1))
+            outline_px = float(outline[0]) if outline else sigmas.corner_bias_px
+            if outline_px > 0.0 and len(x) >= 2:
                 px = self.pixels[rows]
                 spread_px = np.sqrt(np.mean(np.sum((px - px.mean(axis=0)) ** 2, axis=1)))
                 if spread_px > 0.0:
-                    sigma_m = sigmas.corner_bias_px * spread_m / spread_px
-                    HB = Hm @ (Jm @ R[:, :2])  # (n_i, k, 2): each corner's in-plane offset
-                    bias = -sigma_m * HB.transpose(1, 0, 2).reshape(k, -1)
+                    # The outline grown or shrunk: every point moves away from the marker's
+                    # centre by a common fraction s, σ_s = outline_px ÷ its RMS pixel radius.
+                    sigma_s = outline_px / spread_px
+                    d_px = np.einsum("nij,nj->ni", Jm, (x - x.mean(axis=0)) @ R.T)  # (n_i, 2) per unit s
+                    bias = -sigma_s * np.einsum("nij,nj->i", Hm, d_px)[:, None]  # (k, 1)
             factors["corner_bias"].append(bias)
             dX = np.zeros((len(x), 3, 7))
             dX[:, :, :3] = np.eye(3)
