@@ -16,7 +16,7 @@ from agvviz.geometry.euler import Rx, Ry, Rz
 from agvviz.solvers import uncertainty as unc
 from agvviz.solvers.lm_batch import refine_lm_batch
 from tests.test_uncertainty_systematic import (
-    K, MARKERS, SIGMA_PX, SIGMAS, T_AGV_CAM, T_CAM_WORLD, T_WORLD_AGV, _pixels, _points_F, _solve, _spread_ratio,
+    K, MARKERS, SIGMA_PX, SIGMAS, T_AGV_CAM, T_CAM_WORLD, T_WORLD_AGV, _outline_sigma, _pixels, _points_F, _solve,
 )
 
 IDS = ["A", "B"]
@@ -35,7 +35,7 @@ def test_split_adds_up_to_the_full_covariance(objective):
                                         T_AGV_CAM, True, objective)
     np.testing.assert_allclose(cov, full, rtol=1e-9, atol=1e-12 * np.max(np.abs(full)))
     assert set(groups) == {unc.CAMERA_GROUP, "marker:A", "marker:B"}
-    assert groups[unc.CAMERA_GROUP].shape == (6, 14) and groups["marker:A"].shape == (6, 2 * 4 + 7)
+    assert groups[unc.CAMERA_GROUP].shape == (6, 14) and groups["marker:A"].shape == (6, 1 + 7)  # the outline, the map entry
 
 
 def _world_agv(T_cam_F, T_agv_cam=T_AGV_CAM):
@@ -80,15 +80,17 @@ def test_signed_factors_match_finite_differences_of_re_solving():
     np.testing.assert_allclose(groups[unc.CAMERA_GROUP], camera, atol=2e-3 * scale)
 
     T, x = MARKERS[0]
-    sigma_m = SIGMAS.corner_bias_px * _spread_ratio(x, _pixels(T_CAM_WORLD, se3.transform_points(T, x)))
+    # The marker's outline grown by a fraction e about its centre (its corners are centred on its
+    # origin), σ of e = corner_bias_px ÷ its RMS pixel radius: one column.
+    sigma_s = _outline_sigma(_pixels(T_CAM_WORLD, se3.transform_points(T, x)))
     numeric = []
-    for c in range(len(x)):
-        for axis in (0, 1):
-            def at(e, c=c, axis=axis):
-                moved = [(Ti, xi.copy()) for Ti, xi in MARKERS]
-                moved[0][1][c, axis] += e  # the recorded corner off by e
-                return _world_agv(_solve(_points_F(moved), px_true, "pixel"))
-            numeric.append(column(sigma_m, 1e-5, at))
+
+    # (the sign convention of the map's columns below: the recorded outline grown, the pixels true)
+    def at_outline(e):
+        moved = [(T, x * (1.0 + e))] + MARKERS[1:]
+        return _world_agv(_solve(_points_F(moved), px_true, "pixel"))
+
+    numeric.append(column(sigma_s, 1e-5, at_outline))
     map_sigmas = (SIGMAS.map_position_m, SIGMAS.map_position_m, SIGMAS.map_height_m,
                   SIGMAS.map_tilt_rad, SIGMAS.map_tilt_rad, SIGMAS.map_yaw_rad, SIGMAS.map_scale)
     for p, sigma in enumerate(map_sigmas):
@@ -127,7 +129,7 @@ def test_difference_covariance_matches_monte_carlo_of_two_frames():
         for name, (T, x) in shapes.items():
             d = rng.standard_normal(7) * [sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,
                                           sigmas.map_tilt_rad, sigmas.map_tilt_rad, sigmas.map_yaw_rad, sigmas.map_scale]
-            bias = rng.standard_normal((len(x), 2))  # in units of σ: the same corners in both frames
+            bias = rng.standard_normal()  # the outline's shift in units of its σ: the same in both frames
             true[name] = (se3.make(T[:3, :3] @ Rz(d[5]) @ Rx(d[3]) @ Ry(d[4]), T[:3, 3] + d[:3]), x * (1.0 + d[6]), bias)
         K_true = K.copy()
         K_true[0, 0] += sigmas.focal_px * rng.standard_normal()
@@ -141,9 +143,9 @@ def test_difference_covariance_matches_monte_carlo_of_two_frames():
             for name in names:
                 T_true, x_true, bias = true[name]
                 x_map = shapes[name][1]
-                sigma_m = sigmas.corner_bias_px * _spread_ratio(
-                    x_map, _pixels(T_cam_F, se3.transform_points(shapes[name][0], x_map)))
-                points.append(se3.transform_points(T_true, x_true + np.column_stack([bias * sigma_m, np.zeros(len(x_true))])))
+                # the outline grown by `bias` σ: a fixed shift in pixels, a fraction of each frame's view
+                sigma_s = _outline_sigma(_pixels(T_cam_F, se3.transform_points(shapes[name][0], x_map)))
+                points.append(se3.transform_points(T_true, x_true * (1.0 + bias * sigma_s)))
             raw = _pixels(T_cam_F, np.vstack(points), K_true) + SIGMA_PX * rng.standard_normal((4 * len(names), 2))
             pixels[frame].append(PinholeCamera(K, dist=dist).undistort_pixels(raw))
         dphi = rng.standard_normal(3) * sigmas.extrinsic_rotation_rad
