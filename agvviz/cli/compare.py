@@ -169,9 +169,10 @@ def sweep(
                 where = f" of {result.recording.name}" if len(outcome.recordings) > 1 else ""
                 err_console.print(f"[bold red]setting {escape(entry.label)}{escape(where)} failed:[/] "
                                   f"{escape(entry.error)}")
-        console.print(f"runs in [bold]{escape(str(result.out_dir))}[/]; table: {result.csv_path.name}, "
-                      f"{result.markdown_path.name}" + (f"; sweep: [bold]{escape(str(result.overlay_path))}[/]"
-                                                        if result.overlay_path else ""))
+        console.print(f"written in [bold]{escape(str(result.out_dir))}[/]: "
+                      + (f"[bold]{escape(result.overlay_path.name)}[/] (open it with: agvviz view "
+                         f"{escape(str(result.overlay_path))}), " if result.overlay_path else "")
+                      + f"{result.csv_path.name}, {result.markdown_path.name}")
     console.print(f"sweep took {outcome.wall_time_s:.1f} s")
     if not any(entry.ok for entry in outcome.entries):  # nothing to rank: say so in the exit code
         all_output = all(entry.error.startswith("OutputError") for entry in outcome.entries)
