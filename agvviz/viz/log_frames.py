@@ -126,6 +126,8 @@ class FrameLogger:
         # What the previous frame left drawn, so a state is logged only when it changes.
         self._camera_body_label: str | None = None  # None: not drawn yet; "": solved; else its label
         self._zoomed: set[str] = set()  # cameras whose zoom shows a crop now
+        self._zoom_last_seen: dict[str, int] = {}  # camera -> last frame its zoom showed a crop
+        self._zoom_gray: dict[str, bool] = {}  # camera -> its crops are one-channel (the placeholder too)
         # What the run held, for the layout.
         self._zoom_cams: set[str] = set()
         #: Frames rejected so far.
@@ -342,13 +344,11 @@ class FrameLogger:
         if small:
             _, obs = min(small, key=lambda edge_obs: edge_obs[0])
             crop = _crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
-        root = paths.zoom(cam)
         if crop is None:
             if cam in self._zoomed:
-                self._rec.log(root, rr.Clear(recursive=True))
-                self._zoomed.discard(cam)
+                self._log_zoom_unseen(cam, bool(frame.observations))
             return
-        png, origin_px, px_per_image_px = crop
+        png, origin_px, px_per_image_px, gray = crop
         obs_points = [(np.asarray(o.corners_px, float), o.reprojected_px) for o in frame.observations]
         detected = (np.concatenate([c for c, _ in obs_points]) - origin_px) * px_per_image_px
         reprojected = [np.asarray(r, float) for _, r in obs_points if r is not None]
@@ -363,6 +363,18 @@ class FrameLogger:
         )
         self._zoomed.add(cam)
         self._zoom_cams.add(cam)
+        self._zoom_last_seen[cam] = int(frame.index)
+        self._zoom_gray[cam] = gray
+
+    def _log_zoom_unseen(self, cam: str, codes_in_view: bool) -> None:
+        """The camera's small code is gone: the zoom shows a placeholder saying since when
+        (not the last crop, which would read as current), and its corners go."""
+        rec = self._rec
+        last = self._zoom_last_seen[cam]
+        rec.log(paths.zoom_image(cam), rr.EncodedImage(contents=zoom_unseen_png(last, codes_in_view, self._zoom_gray[cam]), media_type="image/png"))
+        rec.log(paths.zoom_detected(cam), rr.Points2D(np.zeros((0, 2))))
+        rec.log(paths.zoom_reprojected(cam), rr.Points2D(np.zeros((0, 2))))
+        self._zoomed.discard(cam)
 
     def log_markers_seen(self, frame: FrameResult, stamp: Stamp) -> None:
         """The outline and id of every code of this frame in 3D (world-fixed codes only)."""
@@ -457,15 +469,40 @@ def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
     )
 
 
+def zoom_unseen_lines(last_seen_frame: int, codes_in_view: bool) -> list[str]:
+    """The words on a zoom panel whose small code is gone: since when, and why (hidden, or only
+    large codes in view, which the full image shows)."""
+    why = "only large codes in view (full image tab)" if codes_in_view else "no code in view"
+    return ["small code not seen", f"since frame {last_seen_frame}", why]
+
+
+def zoom_unseen_png(last_seen_frame: int, codes_in_view: bool, gray: bool) -> bytes:
+    """PNG placeholder of the zoom panel (ZOOM_SIDE_PX square and the channels of the crops
+    it replaces: the viewer refuses an image stream that changes either) carrying
+    :func:`zoom_unseen_lines` in the stale colour on black."""
+    image = np.zeros((ZOOM_SIDE_PX, ZOOM_SIDE_PX) if gray else (ZOOM_SIDE_PX, ZOOM_SIDE_PX, 3), np.uint8)
+    bgr = (int(np.mean(COLOR_STALE)),) if gray else tuple(int(c) for c in COLOR_STALE[::-1])
+    lines = zoom_unseen_lines(last_seen_frame, codes_in_view)
+    for k, line in enumerate(lines):
+        scale = 0.55 if k < 2 else 0.4
+        (width, _), _ = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        y = ZOOM_SIDE_PX // 2 - 30 + 30 * k
+        cv2.putText(image, line, ((ZOOM_SIDE_PX - width) // 2, y), cv2.FONT_HERSHEY_SIMPLEX, scale, bgr, 1, cv2.LINE_AA)
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise RunError("cannot encode the zoom placeholder")
+    return png.tobytes()
+
+
 def _longest_edge_px(corners_px: np.ndarray) -> float:
     """Longest edge of a code's outline (TL, TR, BR, BL) in pixels."""
     return float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
 
 
-def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float] | None:
+def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float, bool] | None:
     """PNG of a square crop of the image centred on the code, resized to ZOOM_SIDE_PX; the
-    crop's top-left pixel and the zoom's pixels per image pixel. None when the image does not
-    decode."""
+    crop's top-left pixel, the zoom's pixels per image pixel and whether it is one-channel. None
+    when the image does not decode."""
     image = cv2.imdecode(np.frombuffer(image_bytes, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         return None
@@ -482,7 +519,7 @@ def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.
     ok, png = cv2.imencode(".png", zoomed)
     if not ok:
         return None
-    return png.tobytes(), np.array([x0, y0], dtype=float), ZOOM_SIDE_PX / side
+    return png.tobytes(), np.array([x0, y0], dtype=float), ZOOM_SIDE_PX / side, zoomed.ndim == 2
 
 
 def _thinned(positions_m: list[np.ndarray] | np.ndarray) -> np.ndarray:
