@@ -127,3 +127,36 @@ def test_diff_draws_no_error_arrow_of_b_on_a_frame_b_rejected(tmp_path):
         for frame, n in arrows.items():
             assert n == (0 if frame in rejected else 1), (key, frame, n)
             assert tips[frame] == n
+
+
+def _progress_of(recording, settings):
+    """(every on_total call, every progress call, the run summary)."""
+    totals, done = [], []
+    outcome = run_recording(recording, settings, recording.with_suffix(".rrd"), progress=done.append,
+                            on_total=totals.append, jobs=1, cache_dir=False)
+    return totals, done, outcome.summary
+
+
+def test_progress_total_of_a_corner_only_run_is_its_corner_messages(tmp_path):
+    """``auv_under_ice``'s default recording (corners, no image) showed "0/0": its unit is the
+    corner-observation message, counted in the file independently of the run."""
+    from mcap.reader import make_reader
+
+    from agvviz.model.topics import CORNERS_TOPIC
+
+    recording = tmp_path / "auv.mcap"
+    record("auv_under_ice", recording, seed=0, overrides=["duration_s=4"])
+    with open(recording, "rb") as f:  # the mcap library's own reader, not agvviz's
+        in_file = sum(1 for _ in make_reader(f).iter_messages(topics=[CORNERS_TOPIC]))
+    totals, done, _ = _progress_of(recording, RunSettings(correction="cnoem"))
+    assert in_file > 40
+    assert totals == [in_file]
+    assert done == list(range(1, in_file + 1))
+
+
+def test_progress_total_of_a_camera_run_is_its_frames(tmp_path):
+    recording = tmp_path / "qr.mcap"
+    record("qr_floor", recording, seed=0, overrides=QR_SMALL)
+    totals, done, summary = _progress_of(recording, RunSettings())
+    assert summary["frames"] == 15  # 1.5 s at 10 Hz, one camera
+    assert totals == [15] and done == list(range(1, 16))
