@@ -97,11 +97,11 @@ def test_corner_only_camera_panels_say_why_they_have_no_image(tmp_path):
             for row in readback._rows(contents, paths.correction_status(cam), "Points2D:labels")
         }
         at_start = _latest_at(labels, 0)
-        assert at_start.startswith("no image at this frame: the recording holds corner observations only"), at_start
+        assert at_start.startswith("no image at this frame: corner observations only"), at_start
         assert _latest_at(labels, 5) == at_start
         after = _latest_at(labels, first_cycle_frame)
-        assert after == f"window of cycle 0, closed at frame {first_cycle_frame} " \
-                        "(no image: the recording holds corner observations only)", after
+        assert after == f"window of cycle 0, closed at frame {first_cycle_frame}\n" \
+                        "no image: the recording holds corner observations only", after
 
 
 def test_diff_draws_no_error_arrow_of_b_on_a_frame_b_rejected(tmp_path):

@@ -17,7 +17,7 @@ Entities (timelines ``frame``, ``time`` and ``elapsed``; the solver's iterations
 ``<camera image>/window_theoretical``                   Points2D per solver iteration on
                                                         ``cnoem_iter`` (paper Fig. 4); on the
                                                         frame timeline the solution's
-``<camera image>/window_status``                        Points2D, one label at the centre: the
+``<camera image>/window_status``                        Points2D, one label at the top: the
                                                         window shown (cycle, closed at frame N)
                                                         or why none (corner observations only)
 ``<camera image>/border``                               Boxes2D: the image outline (static), so
@@ -175,14 +175,15 @@ class CorrectionLogger:
         self._index += 1
 
     def status_text(self) -> str:
-        """What a camera panel shows now, in words: the window of which cycle, closed at which
-        frame (drawn until the next closes), or why it is empty."""
-        no_image = "" if self.images else "no image: the recording holds corner observations only"
+        """What a camera panel shows now, in words (two short lines): the window of which cycle,
+        closed at which frame (drawn until the next closes), or why it is empty."""
+        no_image = "" if self.images else "\nno image: the recording holds corner observations only"
         if self._window_closed is None:
-            first = "no image at this frame: the recording holds corner observations only; " if not self.images else ""
-            return first + "no window yet: a cycle's corners appear when it closes"
+            if not self.images:
+                return "no image at this frame: corner observations only\nno window yet: drawn when a cycle closes"
+            return "no window yet: drawn when a cycle closes"
         cycle, frame = self._window_closed
-        return f"window of cycle {cycle}, closed at frame {frame}" + (f" ({no_image})" if no_image else "")
+        return f"window of cycle {cycle}, closed at frame {frame}" + no_image
 
     def _log_status(self) -> None:
         """The status label at the centre of each camera panel, when it changed."""
@@ -191,9 +192,10 @@ class CorrectionLogger:
             if self._status.get(cam) == text:
                 continue
             camera = self._camera(cam)
-            centre = [0.0, 0.0] if camera is None or not camera.width_px else [camera.width_px / 2, camera.height_px / 2]
+            # at the top centre, above the corners
+            top = [0.0, 0.0] if camera is None or not camera.width_px else [camera.width_px / 2, 0.08 * camera.height_px]
             self._rec.log(paths.correction_status(cam), rr.Points2D(
-                [centre], labels=[text], colors=COLOR_STALE, radii=rr.Radius.ui_points(0.5), show_labels=True,
+                [top], labels=[text], colors=COLOR_STALE, radii=rr.Radius.ui_points(0.5), show_labels=True,
             ))
             self._status[cam] = text
 
