@@ -203,14 +203,15 @@ class CorrectionLogger:
         rec = self._rec
         level = rr.TextLogLevel.INFO if event.applied else rr.TextLogLevel.WARN
         if event.applied:
+            # the key facts on the first line (what the log panel shows), the evidence below
             text = (
-                f"cycle {event.cycle_index}: correction jump {event.jump_m * 1000:.1f} mm "
-                f"({event.n_sightings} sightings in {event.n_frames} frames; start frame moved "
-                f"{np.linalg.norm(event.T_world_F_after[:3, 3] - event.T_world_F_before[:3, 3]) * 1000:.1f} mm)"
+                f"cycle {event.cycle_index}: correction jump {event.jump_m * 1000:.1f} mm\n"
+                f"{event.n_sightings} sightings in {event.n_frames} frames; start frame moved "
+                f"{np.linalg.norm(event.T_world_F_after[:3, 3] - event.T_world_F_before[:3, 3]) * 1000:.1f} mm"
             )
             rec.log(paths.ERROR_CORRECTION_JUMP_MM, rr.Scalars(1000.0 * event.jump_m))
         else:
-            text = f"cycle {event.cycle_index}: no correction: {event.reason} ({event.n_sightings} sightings in {event.n_frames} frames)"
+            text = f"cycle {event.cycle_index}: no correction: {event.reason}\n{event.n_sightings} sightings in {event.n_frames} frames"
         rec.log(paths.EVENTS_CORRECTIONS, rr.TextLog(text, level=level))
         if event.position_sigma_m is not None and np.isfinite(event.position_sigma_m):
             rec.log(paths.CORRECTION_CYCLE_POSITION_SIGMA_MM, rr.Scalars(1000.0 * event.position_sigma_m))

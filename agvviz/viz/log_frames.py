@@ -19,12 +19,12 @@ import rerun as rr
 from agvviz.errors import RunError
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
-from agvviz.evaluation.suspect_report import cause_words, suspect_line
+from agvviz.evaluation.suspect_report import cause_words
 from agvviz.model.frames import FrameResult
 from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
-from agvviz.viz.log_findings import error_values
+from agvviz.viz.log_findings import error_values, rejection_row, suspect_row
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -434,20 +434,13 @@ class FrameLogger:
                     columns.scalar(paths.error_suspect(entity), stamp, value)
         if suspect is not None:
             self.suspect_frames += 1
-            self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(suspect_line(suspect), level=rr.TextLogLevel.WARN))
+            self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(suspect_row(suspect), level=rr.TextLogLevel.WARN))
         if self.max_reproj_px is not None:
             columns.scalar(paths.ERROR_REPROJ_THRESHOLD_PX, stamp, self.max_reproj_px)
         if not frame.solved:
             self.rejected_frames += 1
             self.rejections.append((stamp, frame.rejected))
-            detail = f" — {frame.reject_detail}" if frame.reject_detail else ""
-            self._rec.log(
-                paths.EVENTS_REJECTIONS,
-                rr.TextLog(
-                    f"frame {frame.index} ({frame.cam_name}): {frame.rejected}{detail}",
-                    level=rr.TextLogLevel.WARN,
-                ),
-            )
+            self._rec.log(paths.EVENTS_REJECTIONS, rr.TextLog(rejection_row(frame), level=rr.TextLogLevel.WARN))
 
     def rejection_reasons(self) -> list[str]:
         """The reasons frames were rejected for, in order of first occurrence."""
