@@ -25,7 +25,8 @@ from agvviz.scenarios import record
 from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz import readback
-from agvviz.viz.log_frames import zoom_unseen_png
+from agvviz.viz.log_frames import ZOOM_SIDE_PX
+from agvviz.viz.zoom_placeholder import zoom_unseen_png
 from agvviz.viz.readback import encoded_images, points2d, read_rrd, text_logs
 
 UWB_SMALL = ["duration_s=3", "width_px=640", "height_px=512", "block_start_s=1.0", "block_end_s=1.8"]
@@ -63,7 +64,7 @@ def test_zoom_says_since_when_its_code_is_unseen_and_shows_it_when_seen(uwb_run)
             last_seen = max(s for s in seen_frames if s < f)
             png, media = _latest_at(images, f)
             gray = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED).ndim == 2
-            assert png == zoom_unseen_png(last_seen, False, gray), (cam, f, last_seen)
+            assert png == zoom_unseen_png(last_seen, False, gray, ZOOM_SIDE_PX), (cam, f, last_seen)
             assert len(_latest_at(zoom_corners, f)) == 0  # no corners drawn over the placeholder
             checked_unseen += 1
         for f in seen_frames:
@@ -79,8 +80,8 @@ def test_zoom_says_since_when_its_code_is_unseen_and_shows_it_when_seen(uwb_run)
 
 def test_zoom_placeholder_keeps_the_crops_size_and_channels():
     for gray in (True, False):
-        image = cv2.imdecode(np.frombuffer(zoom_unseen_png(12, True, gray), np.uint8), cv2.IMREAD_UNCHANGED)
-        assert image.shape[:2] == (256, 256) and (image.ndim == 2) == gray
+        image = cv2.imdecode(np.frombuffer(zoom_unseen_png(12, True, gray, ZOOM_SIDE_PX), np.uint8), cv2.IMREAD_UNCHANGED)
+        assert image.shape[:2] == (ZOOM_SIDE_PX, ZOOM_SIDE_PX) and (image.ndim == 2) == gray
         assert image.max() > 0  # the words are drawn
 
 

@@ -25,6 +25,7 @@ from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
 from agvviz.viz.log_findings import error_values, rejection_row, suspect_row
+from agvviz.viz.zoom_placeholder import zoom_unseen_png
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -371,7 +372,7 @@ class FrameLogger:
         (not the last crop, which would read as current), and its corners go."""
         rec = self._rec
         last = self._zoom_last_seen[cam]
-        rec.log(paths.zoom_image(cam), rr.EncodedImage(contents=zoom_unseen_png(last, codes_in_view, self._zoom_gray[cam]), media_type="image/png"))
+        rec.log(paths.zoom_image(cam), rr.EncodedImage(contents=zoom_unseen_png(last, codes_in_view, self._zoom_gray[cam], ZOOM_SIDE_PX), media_type="image/png"))
         rec.log(paths.zoom_detected(cam), rr.Points2D(np.zeros((0, 2))))
         rec.log(paths.zoom_reprojected(cam), rr.Points2D(np.zeros((0, 2))))
         self._zoomed.discard(cam)
@@ -460,31 +461,6 @@ def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
         labels=[label] if label else [],  # empty clears a previous stale label
         radii=rr.Radius.ui_points(1.5),
     )
-
-
-def zoom_unseen_lines(last_seen_frame: int, codes_in_view: bool) -> list[str]:
-    """The words on a zoom panel whose small code is gone: since when, and why (hidden, or only
-    large codes in view, which the full image shows)."""
-    why = "only large codes in view (full image tab)" if codes_in_view else "no code in view"
-    return ["small code not seen", f"since frame {last_seen_frame}", why]
-
-
-def zoom_unseen_png(last_seen_frame: int, codes_in_view: bool, gray: bool) -> bytes:
-    """PNG placeholder of the zoom panel (ZOOM_SIDE_PX square and the channels of the crops
-    it replaces: the viewer refuses an image stream that changes either) carrying
-    :func:`zoom_unseen_lines` in the stale colour on black."""
-    image = np.zeros((ZOOM_SIDE_PX, ZOOM_SIDE_PX) if gray else (ZOOM_SIDE_PX, ZOOM_SIDE_PX, 3), np.uint8)
-    bgr = (int(np.mean(COLOR_STALE)),) if gray else tuple(int(c) for c in COLOR_STALE[::-1])
-    lines = zoom_unseen_lines(last_seen_frame, codes_in_view)
-    for k, line in enumerate(lines):
-        scale = 0.55 if k < 2 else 0.4
-        (width, _), _ = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-        y = ZOOM_SIDE_PX // 2 - 30 + 30 * k
-        cv2.putText(image, line, ((ZOOM_SIDE_PX - width) // 2, y), cv2.FONT_HERSHEY_SIMPLEX, scale, bgr, 1, cv2.LINE_AA)
-    ok, png = cv2.imencode(".png", image)
-    if not ok:
-        raise RunError("cannot encode the zoom placeholder")
-    return png.tobytes()
 
 
 def _longest_edge_px(corners_px: np.ndarray) -> float:
