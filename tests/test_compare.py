@@ -461,7 +461,7 @@ def _arrows(contents, entity: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
         if chunk.entity_path.lstrip("/") != entity:
             continue
         for row in chunk.to_record_batch().to_pylist():
-            if row.get("Arrows3D:vectors") is not None and row.get(paths.TIMELINE_FRAME) is not None:
+            if row.get("Arrows3D:vectors") and row.get(paths.TIMELINE_FRAME) is not None:  # empty: no arrow
                 frames.append(row[paths.TIMELINE_FRAME])
                 origins += row["Arrows3D:origins"]
                 vectors += row["Arrows3D:vectors"]

@@ -35,7 +35,7 @@ def rejected_run(tmp_path_factory):
 
 def _rejected_frames(contents) -> dict[int, str]:
     """Frame → reason, from the rejections log (one line per rejected frame)."""
-    return {frame: text.split(": ", 1)[1].split(" — ")[0] for frame, _, text in text_logs(contents, paths.EVENTS_REJECTIONS)}
+    return {frame: text.split("\n")[0].split(": ", 1)[1] for frame, _, text in text_logs(contents, paths.EVENTS_REJECTIONS)}
 
 
 def test_the_recording_has_rejected_and_solved_frames(rejected_run):

@@ -20,6 +20,7 @@ from agvviz.model.frames import REJECT_NO_MARKER, REJECT_REPROJECTION, FrameResu
 from agvviz.viz import paths
 from agvviz.viz.readback import _rows, read_rrd, scalar_series, text_document, document_json, transforms
 from agvviz.viz.log_frames import ZOOM_MIN_CROP_PX, ZOOM_SIDE_PX
+from agvviz.viz.zoom_placeholder import zoom_unseen_png
 from agvviz.viz.log_uncertainty import GHOST_MAX_AMBIGUITY_RATIO
 from agvviz.viz.run_logger import FLUSH_EVERY_FRAMES, RunLogger
 
@@ -233,8 +234,9 @@ def test_summary_is_the_terminal_table_in_its_units(run):
 def test_small_code_is_zoomed(run):
     frames, _, contents = run
     root = paths.zoom(CAM)
-    assert _frames_with(contents, f"{root}/image", "EncodedImage:blob") == [SMALL_CODE_FRAME]
-    row = _rows(contents, f"{root}/image/detected", "Points2D:positions")[-1]
+    # the crop, then on the next frame (its code no longer small) the placeholder (issue 26)
+    assert _frames_with(contents, f"{root}/image", "EncodedImage:blob") == [SMALL_CODE_FRAME, SMALL_CODE_FRAME + 1]
+    row = _rows(contents, f"{root}/image/detected", "Points2D:positions")[0]
     crop = cv2.imdecode(np.frombuffer(bytes(_rows(contents, f"{root}/image", "EncodedImage:blob")[0]["EncodedImage:blob"][0]), np.uint8), cv2.IMREAD_UNCHANGED)
     corners = frames[SMALL_CODE_FRAME].observations[0].corners_px
     points = np.array(row["Points2D:positions"])
@@ -243,5 +245,9 @@ def test_small_code_is_zoomed(run):
     assert np.all(points >= 0) and np.all(points < ZOOM_SIDE_PX)
     side = max(ZOOM_MIN_CROP_PX, int(np.ceil(3 * np.max(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))))
     np.testing.assert_allclose(np.ptp(points, axis=0), np.ptp(corners, axis=0) * ZOOM_SIDE_PX / side, rtol=1e-5)
-    # Cleared on the next frame (its code is no longer small).
-    assert _frames_with(contents, root, "Clear:is_recursive") == [SMALL_CODE_FRAME + 1]
+    # On the next frame (its code no longer small) the placeholder says since when and why, and
+    # the corners are gone: the last crop is not shown as if it were current (issue 26).
+    placeholder = bytes(_rows(contents, f"{root}/image", "EncodedImage:blob")[1]["EncodedImage:blob"][0])
+    codes_in_view = bool(frames[SMALL_CODE_FRAME + 1].observations)
+    assert placeholder == zoom_unseen_png(SMALL_CODE_FRAME, codes_in_view, crop.ndim == 2, ZOOM_SIDE_PX)
+    assert len(_rows(contents, f"{root}/image/detected", "Points2D:positions")[1]["Points2D:positions"]) == 0

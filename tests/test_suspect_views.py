@@ -151,8 +151,13 @@ def test_suspects_log_has_one_warning_per_suspect_frame(run):
     assert {level for _, level, _ in rows} == {"WARN"}
     text = dict((frame, text) for frame, _, text in rows)
     # check, σ, limit, cause in words, marker and camera, message, next step
-    assert text[5] == (f"frame 5 (marker Q015, camera {CAM}): markers check 41.5σ (limit 5σ), likely cause: "
-                       f"marker map entry — {MAP_MESSAGE}; next: {MAP_NEXT}")
+    # the row's first line is what the panel shows: cause, where, σ, short enough to be read
+    # whole (≤ 55 characters beside the frame column); the terminal's sentence follows
+    head, full = text[5].split("\n", 1)
+    assert head == f"marker map entry (Q015, {CAM}) · 42σ"
+    assert all(len(t.split("\n", 1)[0]) <= 55 for t in text.values())
+    assert full == (f"frame 5 (marker Q015, camera {CAM}): markers check 41.5σ (limit 5σ), likely cause: "
+                    f"marker map entry — {MAP_MESSAGE}; next: {MAP_NEXT}")
     assert "ambiguity check 7.2σ (limit 4σ)" in text[12] and "mirror-pose flip" in text[12]
     assert FLIP_MESSAGE in text[12]
 

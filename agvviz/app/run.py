@@ -134,8 +134,10 @@ def run_recording(
     and write the run to ``out_path``.
 
     ``topics`` (role → topic, ``--topic``) and ``roles_file`` (``--roles``) override the
-    inferred role map; ``side`` holds side-file values. ``progress(frames_done)`` is called
-    after every frame, ``on_total(frames)`` once the number of frames is known. Returns the
+    inferred role map; ``side`` holds side-file values. ``progress(done)`` is called after
+    every unit of work — a frame; a corner-observation message in a corner-only correction run;
+    a trial in a study — and ``on_total(units)`` once their number is known (not at all when it
+    is not known in advance: a UWB-only run). Returns the
     run summary and manifest (both also stored in the ``.rrd``) and the wall-clock timing
     (not stored). Raises :class:`RunError` — and writes nothing — when the recording has no
     camera image or none of its frames can be used, one line per cause.
@@ -193,8 +195,15 @@ def run_recording(
     if out_path is None:
         out_path = default_run_path(recording_path, settings)
         outputs.prepare_output(out_path, inputs=inputs)
-    if on_total is not None:
-        on_total(max((prepared.scan.topics[roles.roles[image_role(c)]].count for c in roles.cameras()), default=0))
+    # The progress unit: a camera run's frames (the busiest camera's image count), a corner-only
+    # correction run's corner-observation messages; a run of neither (UWB alone) has no total
+    # known in advance: its bar counts without one.
+    progress_role = ROLE_CORNERS if corners_only and study is None else None
+    if on_total is not None and study is None:
+        if progress_role is not None:
+            on_total(prepared.scan.topics[roles.roles[ROLE_CORNERS]].count)
+        elif roles.cameras():
+            on_total(max(prepared.scan.topics[roles.roles[image_role(c)]].count for c in roles.cameras()))
 
     recording_sha256 = recording.sha256()
     scenario = recording.scenario
@@ -233,10 +242,11 @@ def run_recording(
         if replay.ctx.marker_map is not None:
             logger.log_world_static(_markers_from_map(replay.ctx.marker_map))
         rrd = RrdSink(logger, settings)
-        stats = RunStatistics(settings, progress)
+        stats = RunStatistics(settings, progress if progress_role is None else None)
         sinks = FanOut([rrd, stats])
         t_start = time.perf_counter()
-        graph = run_graph(prepared, settings, sinks, read_report, composition=composition, detection=detection)
+        graph = run_graph(prepared, settings, sinks, read_report, composition=composition, detection=detection,
+                          progress=progress if progress_role is not None else None, progress_role=progress_role)
         wall_time_s = time.perf_counter() - t_start
         scores = stats.scores
         correction_only = graph.corrected and not scores  # corner observations, no frame

@@ -191,7 +191,8 @@ def _run(
     def on_frame(done: int) -> None:
         progress.start()
         elapsed = progress.tasks[task].elapsed or 0.0
-        rate = f"{done / elapsed:.1f} frames/s" if elapsed > 0 else ""
+        # units per second: frames, or a corner-only correction run's corner messages (run_recording)
+        rate = f"{done / elapsed:.1f}/s" if elapsed > 0 else ""
         # the total is the busiest camera's image count: cameras that do not share every time
         # stamp make more frames than that (auv_under_ice: 201 of "200")
         total = progress.tasks[task].total

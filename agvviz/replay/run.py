@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -23,7 +23,7 @@ from agvviz.model.frames import REJECT_NO_CALIBRATION, REJECT_NO_EXTRINSIC, Fram
 from agvviz.model.suspects import RunFinding
 from agvviz.model.frames import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TIME
 from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
-from agvviz.model.messages import CalibrationMsg, FrameTransformMsg
+from agvviz.model.messages import CalibrationMsg, FrameTransformMsg, RecordedMessage
 from agvviz.recording.reader import ReadReport
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import (
@@ -306,12 +306,14 @@ def run_graph(
     detection: DetectionPlan | None = None,
     progress: Callable[[int], None] | None = None,
     until: str = "correct",
+    progress_role: str | None = None,
 ) -> GraphOutcome:
     """Run the graph over ``prepared`` (its messages read once more, in file order, problems
     into ``read_report``) into ``sinks``: the stages its ``composition``
     (:meth:`Composition.of`) and ``settings`` call for, up to ``until``; ``detection`` the
     detect stage's plan (None: the solve stage detects in process); ``progress`` a study's
-    ``progress(trials_done)``."""
+    ``progress(trials_done)``, or with ``progress_role`` ``progress(messages_done)`` after each
+    message of that role is through the graph (a corner-only correction run's unit)."""
     if composition is None:
         composition = Composition.of(prepared.recording, prepared.roles, studies=until == "correct")
     graph = ReplayGraph.compose(
@@ -319,7 +321,20 @@ def run_graph(
         detect=detection.feed if detection is not None else None, progress=progress, until=until,
     )
     messages = iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, read_report)
+    if progress_role is not None and progress is not None:
+        messages = _counted(messages, progress_role, progress)
     return graph.run(messages)
+
+
+def _counted(messages: Iterable[RecordedMessage], role: str, progress: Callable[[int], None]) -> Iterator[RecordedMessage]:
+    """``messages``, calling ``progress(n)`` once the n-th message of ``role`` is handled (when
+    the graph asks for the next message, or the messages end)."""
+    done = 0
+    for message in messages:
+        yield message
+        if message.role == role:
+            done += 1
+            progress(done)
 
 
 def recording_start_ns(prepared: Prepared) -> int | None:

@@ -62,7 +62,10 @@ from agvviz.viz.style import (
 )
 
 #: A run's logs: the time in seconds and the line (no entity path column).
-_LOG_COLUMNS = rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_ELAPSED], text_log_columns=["body"])
+#: The suspects' and rejections' logs: the frame (``#13``: narrower than the elapsed time, which
+#: took a third of the panel and cut the body short) and the body, whose first line holds the key
+#: facts (:mod:`agvviz.viz.log_findings`' rows).
+_LOG_COLUMNS = rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_FRAME], text_log_columns=["body"])
 #: A run's time series name their series in the title (a legend in Rerun 0.41 sits on the data).
 _NO_LEGEND = rrb.PlotLegend(visible=False)
 

@@ -17,6 +17,9 @@ Entities (timelines ``frame``, ``time`` and ``elapsed``; the solver's iterations
 ``<camera image>/window_theoretical``                   Points2D per solver iteration on
                                                         ``cnoem_iter`` (paper Fig. 4); on the
                                                         frame timeline the solution's
+``<camera image>/window_status``                        Points2D, one label at the top: the
+                                                        window shown (cycle, closed at frame N)
+                                                        or why none (corner observations only)
 ``<camera image>/border``                               Boxes2D: the image outline (static), so
                                                         a corner-only run shows the frame
 ``correction/cost``, ``correction/reproj_rms_px``       Scalars per iteration (``cnoem_iter``)
@@ -52,6 +55,7 @@ from agvviz.viz.style import (
     COLOR_IMAGE_FRAME,
     COLOR_NAV,
     COLOR_OBSERVED,
+    COLOR_STALE,
     COLOR_THEORETICAL,
     COLOR_THRESHOLD,
     COLOR_TRUTH,
@@ -100,6 +104,11 @@ class CorrectionLogger:
         self._index = 0
         self._styled = False
         self._bordered: set[str] = set()
+        #: Whether the run logs camera images (a corner-only recording has none): the camera
+        #: panels' status says so. Set by the run's sink before each step.
+        self.images = True
+        self._window_closed: tuple[int, int] | None = None  # (cycle, frame) of the window drawn
+        self._status: dict[str, str] = {}  # camera -> the status label logged last
 
     def _styles(self) -> None:
         rec = self._rec
@@ -162,20 +171,47 @@ class CorrectionLogger:
             rec.log(paths.CORRECTION_CYCLE_MAX_POSITION_SIGMA_MM, rr.Scalars(1000.0 * float(self._max_position_sigma_m)))
         if step.event is not None:
             self._log_event(step.event)
+        self._log_status()
         self._index += 1
+
+    def status_text(self) -> str:
+        """What a camera panel shows now, in words (two short lines): the window of which cycle,
+        closed at which frame (drawn until the next closes), or why it is empty."""
+        no_image = "" if self.images else "\nno image: the recording holds corner observations only"
+        if self._window_closed is None:
+            if not self.images:
+                return "no image at this frame: corner observations only\nno window yet: drawn when a cycle closes"
+            return "no window yet: drawn when a cycle closes"
+        cycle, frame = self._window_closed
+        return f"window of cycle {cycle}, closed at frame {frame}" + no_image
+
+    def _log_status(self) -> None:
+        """The status label at the centre of each camera panel, when it changed."""
+        text = self.status_text()
+        for cam in sorted(self._cameras or {}):
+            if self._status.get(cam) == text:
+                continue
+            camera = self._camera(cam)
+            # at the top centre, above the corners
+            top = [0.0, 0.0] if camera is None or not camera.width_px else [camera.width_px / 2, 0.08 * camera.height_px]
+            self._rec.log(paths.correction_status(cam), rr.Points2D(
+                [top], labels=[text], colors=COLOR_STALE, radii=rr.Radius.ui_points(0.5), show_labels=True,
+            ))
+            self._status[cam] = text
 
     def _log_event(self, event: CorrectionEvent) -> None:
         rec = self._rec
         level = rr.TextLogLevel.INFO if event.applied else rr.TextLogLevel.WARN
         if event.applied:
+            # the key facts on the first line (what the log panel shows), the evidence below
             text = (
-                f"cycle {event.cycle_index}: correction jump {event.jump_m * 1000:.1f} mm "
-                f"({event.n_sightings} sightings in {event.n_frames} frames; start frame moved "
-                f"{np.linalg.norm(event.T_world_F_after[:3, 3] - event.T_world_F_before[:3, 3]) * 1000:.1f} mm)"
+                f"cycle {event.cycle_index}: correction jump {event.jump_m * 1000:.1f} mm\n"
+                f"{event.n_sightings} sightings in {event.n_frames} frames; start frame moved "
+                f"{np.linalg.norm(event.T_world_F_after[:3, 3] - event.T_world_F_before[:3, 3]) * 1000:.1f} mm"
             )
             rec.log(paths.ERROR_CORRECTION_JUMP_MM, rr.Scalars(1000.0 * event.jump_m))
         else:
-            text = f"cycle {event.cycle_index}: no correction: {event.reason} ({event.n_sightings} sightings in {event.n_frames} frames)"
+            text = f"cycle {event.cycle_index}: no correction: {event.reason}\n{event.n_sightings} sightings in {event.n_frames} frames"
         rec.log(paths.EVENTS_CORRECTIONS, rr.TextLog(text, level=level))
         if event.position_sigma_m is not None and np.isfinite(event.position_sigma_m):
             rec.log(paths.CORRECTION_CYCLE_POSITION_SIGMA_MM, rr.Scalars(1000.0 * event.position_sigma_m))
@@ -184,6 +220,7 @@ class CorrectionLogger:
         window, iterations = event.window, event.solution.iterations
         costs = np.array([it.cost for it in iterations])
         rms_px = np.array([it.reproj_rms_px for it in iterations])
+        self._window_closed = (int(event.cycle_index), self._index)
         rec.log(paths.CORRECTION_CYCLE_REPROJ_RMS_PX, rr.Scalars(float(rms_px[-1])))
         rec.log(paths.CORRECTION_COST_PER_ITERATION, rr.BarChart(costs, color=COLOR_THEORETICAL))
         rec.log(paths.CORRECTION_REPROJ_RMS_PX_PER_ITERATION, rr.BarChart(rms_px, color=COLOR_OBSERVED))

@@ -13,9 +13,9 @@ from typing import Callable, Iterable
 
 import rerun as rr
 
-from agvviz.evaluation.suspect_report import finding_line
+from agvviz.evaluation.suspect_report import cause_words, finding_line, suspect_line
 from agvviz.model.frames import FrameResult
-from agvviz.model.suspects import RunFinding
+from agvviz.model.suspects import RunFinding, Suspect
 from agvviz.viz import paths
 from agvviz.viz.columns import Columns, Stamp
 
@@ -61,7 +61,7 @@ class FindingLogger:
                 continue
             first = finding.frame_indices.index(finding.first_frame)
             stamp_at(finding.first_frame, finding.times_ns[first])
-            self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(finding_line(finding), level=rr.TextLogLevel.WARN))
+            self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(finding_row(finding), level=rr.TextLogLevel.WARN))
             self.findings_logged += 1
             for index in finding.frame_indices:
                 key = (finding.cam_name, index)
@@ -73,3 +73,29 @@ class FindingLogger:
                     self._columns.scalar(paths.error_suspect(entity), stamp, value)
                 self._plotted[key] = (stamp, values, True)
                 self.frames_marked += 1
+
+
+# -- log rows ------------------------------------------------------------------------------------
+# A log panel shows a row's first line, cut at the panel's width (≈ 55 characters in the default
+# layout, beside the frame column): the key facts come first there — likely cause, where, how far
+# (and the frames a run-level finding covers) — and the whole sentence of the terminal report
+# follows on the next lines of the same row (click the row's "…" to expand it).
+
+
+def suspect_row(suspect: Suspect) -> str:
+    """``marker map entry (Q015, front) · 377σ`` then :func:`suspect_line` (which names the frame)."""
+    where = ", ".join(x for x in (suspect.marker_id, suspect.cam_name) if x)
+    head = cause_words(suspect.cause) + (f" ({where})" if where else "")
+    return f"{head} · {suspect.sigma:.0f}σ\n{suspect_line(suspect)}"
+
+
+def finding_row(finding: RunFinding) -> str:
+    """``frames 0–57: camera time offset (front) · 14σ`` then :func:`finding_line`."""
+    head = f"frames {finding.first_frame}–{finding.last_frame}: {cause_words(finding.cause)} ({finding.cam_name})"
+    return f"{head} · {finding.sigma:.0f}σ\n{finding_line(finding)}"
+
+
+def rejection_row(frame: FrameResult) -> str:
+    """``frame 12 (front): reprojection`` then the rejection's detail, when it has one."""
+    head = f"frame {frame.index} ({frame.cam_name}): {frame.rejected}"
+    return f"{head}\n{frame.reject_detail}" if frame.reject_detail else head

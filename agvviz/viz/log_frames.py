@@ -19,12 +19,13 @@ import rerun as rr
 from agvviz.errors import RunError
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.markers.charuco import is_chessboard_id
-from agvviz.evaluation.suspect_report import cause_words, suspect_line
+from agvviz.evaluation.suspect_report import cause_words
 from agvviz.model.frames import FrameResult
 from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
-from agvviz.viz.log_findings import error_values
+from agvviz.viz.log_findings import error_values, rejection_row, suspect_row
+from agvviz.viz.zoom_placeholder import zoom_unseen_png
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -126,6 +127,8 @@ class FrameLogger:
         # What the previous frame left drawn, so a state is logged only when it changes.
         self._camera_body_label: str | None = None  # None: not drawn yet; "": solved; else its label
         self._zoomed: set[str] = set()  # cameras whose zoom shows a crop now
+        self._zoom_last_seen: dict[str, int] = {}  # camera -> last frame its zoom showed a crop
+        self._zoom_gray: dict[str, bool] = {}  # camera -> its crops are one-channel (the placeholder too)
         # What the run held, for the layout.
         self._zoom_cams: set[str] = set()
         #: Frames rejected so far.
@@ -342,13 +345,11 @@ class FrameLogger:
         if small:
             _, obs = min(small, key=lambda edge_obs: edge_obs[0])
             crop = _crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
-        root = paths.zoom(cam)
         if crop is None:
             if cam in self._zoomed:
-                self._rec.log(root, rr.Clear(recursive=True))
-                self._zoomed.discard(cam)
+                self._log_zoom_unseen(cam, bool(frame.observations))
             return
-        png, origin_px, px_per_image_px = crop
+        png, origin_px, px_per_image_px, gray = crop
         obs_points = [(np.asarray(o.corners_px, float), o.reprojected_px) for o in frame.observations]
         detected = (np.concatenate([c for c, _ in obs_points]) - origin_px) * px_per_image_px
         reprojected = [np.asarray(r, float) for _, r in obs_points if r is not None]
@@ -363,6 +364,18 @@ class FrameLogger:
         )
         self._zoomed.add(cam)
         self._zoom_cams.add(cam)
+        self._zoom_last_seen[cam] = int(frame.index)
+        self._zoom_gray[cam] = gray
+
+    def _log_zoom_unseen(self, cam: str, codes_in_view: bool) -> None:
+        """The camera's small code is gone: the zoom shows a placeholder saying since when
+        (not the last crop, which would read as current), and its corners go."""
+        rec = self._rec
+        last = self._zoom_last_seen[cam]
+        rec.log(paths.zoom_image(cam), rr.EncodedImage(contents=zoom_unseen_png(last, codes_in_view, self._zoom_gray[cam], ZOOM_SIDE_PX), media_type="image/png"))
+        rec.log(paths.zoom_detected(cam), rr.Points2D(np.zeros((0, 2))))
+        rec.log(paths.zoom_reprojected(cam), rr.Points2D(np.zeros((0, 2))))
+        self._zoomed.discard(cam)
 
     def log_markers_seen(self, frame: FrameResult, stamp: Stamp) -> None:
         """The outline and id of every code of this frame in 3D (world-fixed codes only)."""
@@ -422,20 +435,13 @@ class FrameLogger:
                     columns.scalar(paths.error_suspect(entity), stamp, value)
         if suspect is not None:
             self.suspect_frames += 1
-            self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(suspect_line(suspect), level=rr.TextLogLevel.WARN))
+            self._rec.log(paths.EVENTS_SUSPECTS, rr.TextLog(suspect_row(suspect), level=rr.TextLogLevel.WARN))
         if self.max_reproj_px is not None:
             columns.scalar(paths.ERROR_REPROJ_THRESHOLD_PX, stamp, self.max_reproj_px)
         if not frame.solved:
             self.rejected_frames += 1
             self.rejections.append((stamp, frame.rejected))
-            detail = f" — {frame.reject_detail}" if frame.reject_detail else ""
-            self._rec.log(
-                paths.EVENTS_REJECTIONS,
-                rr.TextLog(
-                    f"frame {frame.index} ({frame.cam_name}): {frame.rejected}{detail}",
-                    level=rr.TextLogLevel.WARN,
-                ),
-            )
+            self._rec.log(paths.EVENTS_REJECTIONS, rr.TextLog(rejection_row(frame), level=rr.TextLogLevel.WARN))
 
     def rejection_reasons(self) -> list[str]:
         """The reasons frames were rejected for, in order of first occurrence."""
@@ -462,10 +468,10 @@ def _longest_edge_px(corners_px: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
 
 
-def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float] | None:
+def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float, bool] | None:
     """PNG of a square crop of the image centred on the code, resized to ZOOM_SIDE_PX; the
-    crop's top-left pixel and the zoom's pixels per image pixel. None when the image does not
-    decode."""
+    crop's top-left pixel, the zoom's pixels per image pixel and whether it is one-channel. None
+    when the image does not decode."""
     image = cv2.imdecode(np.frombuffer(image_bytes, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         return None
@@ -482,7 +488,7 @@ def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.
     ok, png = cv2.imencode(".png", zoomed)
     if not ok:
         return None
-    return png.tobytes(), np.array([x0, y0], dtype=float), ZOOM_SIDE_PX / side
+    return png.tobytes(), np.array([x0, y0], dtype=float), ZOOM_SIDE_PX / side, zoomed.ndim == 2
 
 
 def _thinned(positions_m: list[np.ndarray] | np.ndarray) -> np.ndarray:

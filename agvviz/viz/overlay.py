@@ -203,15 +203,20 @@ def _send_error_vectors(
     rec: rr.RecordingStream, clock: _Clock, run: OverlayRun, index: int, magnification: float
 ) -> None:
     """The run's position error on each frame it and its truth know, (estimate − truth) ×
-    ``magnification``, as an arrow from the truth position."""
+    ``magnification``, as an arrow from the truth position; on its other frames (rejected,
+    unsolved, no truth) an empty batch, so no earlier arrow stays drawn as if current."""
     rows, errors_m = position_errors_m(run)
     if len(rows) == 0:
         return
     entity = paths.overlay_error_vector(run.key)
+    # one arrow on each known row, none on the others (the run's frames in order)
+    per_frame = np.zeros(len(run.frames), dtype=np.int64)
+    per_frame[rows] = 1
+    indexes = clock.indexes(run.frames, run.time_ns)
     rec.send_columns(
         entity,
-        indexes=clock.indexes(run.frames[rows], run.time_ns[rows]),
-        columns=rr.Arrows3D.columns(origins=run.T_truth[rows, :3, 3], vectors=errors_m * magnification),
+        indexes=indexes,
+        columns=rr.Arrows3D.columns(origins=run.T_truth[rows, :3, 3], vectors=errors_m * magnification).partition(per_frame),
     )
     name = f"{run.short_label or run.label} error {format_magnification(magnification)}"
     rec.log(
@@ -224,8 +229,8 @@ def _send_error_vectors(
     # The name at the arrow's tip: the runs' arrows share their origin, their tips differ.
     rec.send_columns(
         paths.overlay_error_tip(run.key),
-        indexes=clock.indexes(run.frames[rows], run.time_ns[rows]),
-        columns=rr.Points3D.columns(positions=run.T_truth[rows, :3, 3] + errors_m * magnification),
+        indexes=indexes,
+        columns=rr.Points3D.columns(positions=run.T_truth[rows, :3, 3] + errors_m * magnification).partition(per_frame),
     )
     rec.log(
         paths.overlay_error_tip(run.key),

@@ -338,6 +338,12 @@ def correction_theoretical(cam_name: str) -> str:
     return f"{image(cam_name)}/window_theoretical"
 
 
+def correction_status(cam_name: str) -> str:
+    """Points2D with one label at the image centre: which window the panel shows (closed at
+    which frame), or why it shows none yet (a corner-only run has no image)."""
+    return f"{image(cam_name)}/window_status"
+
+
 def correction_border(cam_name: str) -> str:
     """Boxes2D (static): the image outline of ``cam_name``."""
     return f"{image(cam_name)}/border"

@@ -82,6 +82,7 @@ class RrdSink(NullSink):
             self.fusion_logger.log(item)
 
     def corrected(self, step) -> None:
+        self.correction_logger.images = self.frames_scored > 0  # a corner-only run scores no frame
         self.correction_logger.log(step)
 
     def _scored(self) -> None:

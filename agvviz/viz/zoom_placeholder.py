@@ -1,0 +1,39 @@
+"""The zoom panel's placeholder while its small code is not seen (issue 26: nothing stale).
+
+A zoom panel (:meth:`agvviz.viz.log_frames.FrameLogger.log_zoom`) shows a crop around a camera's
+smallest code. When that code is gone — hidden, or only large codes in view — the panel must not
+keep the last crop as if it were current: it shows this placeholder, an image of the crops' size
+and channels (the viewer refuses an image stream that changes either) with the words of
+:func:`zoom_unseen_lines`.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from agvviz.errors import RunError
+from agvviz.viz.style import COLOR_STALE
+
+
+def zoom_unseen_lines(last_seen_frame: int, codes_in_view: bool) -> list[str]:
+    """The words on a zoom panel whose small code is gone: since when, and why (no code in view,
+    or only large codes, which the full image shows)."""
+    why = "only large codes in view (full image tab)" if codes_in_view else "no code in view"
+    return ["small code not seen", f"since frame {last_seen_frame}", why]
+
+
+def zoom_unseen_png(last_seen_frame: int, codes_in_view: bool, gray: bool, side_px: int) -> bytes:
+    """PNG placeholder, ``side_px`` square, one channel when ``gray`` (else BGR), carrying
+    :func:`zoom_unseen_lines` in the stale colour on black."""
+    image = np.zeros((side_px, side_px) if gray else (side_px, side_px, 3), np.uint8)
+    color = (int(np.mean(COLOR_STALE)),) if gray else tuple(int(c) for c in COLOR_STALE[::-1])
+    for k, line in enumerate(zoom_unseen_lines(last_seen_frame, codes_in_view)):
+        scale = (0.55 if k < 2 else 0.4) * side_px / 256
+        (width, _), _ = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        y = side_px // 2 + int((30 * k - 30) * side_px / 256)
+        cv2.putText(image, line, ((side_px - width) // 2, y), cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise RunError("cannot encode the zoom placeholder")
+    return png.tobytes()
