@@ -358,10 +358,8 @@ def replay_frames(
     """The solve stage's result of every camera frame of ``recording_path`` under ``settings``,
     in recording order, detected in this process and written nowhere (no ``.rrd``, no cache):
     what benches and tests compare frame by frame. Raises like :func:`prepare`."""
-    prepared = prepare(require_recording_path(recording_path), settings, topics, roles_file, side)
-    report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    graph = ReplayGraph(prepared.replay, until="solve")
-    yield from graph.frames(iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report))
+    graph, messages = _solve_graph(recording_path, settings, topics, roles_file, side)
+    yield from graph.frames(messages)
 
 
 def replay_checked(
@@ -375,11 +373,18 @@ def replay_checked(
     """:func:`replay_frames` as a list, with the check stage's run-level findings
     (:class:`~agvviz.model.suspects.RunFinding`: a camera's stamp offset, covering frames of the
     list) — what benches and tests of the checks compare. Raises like :func:`prepare`."""
+    graph, messages = _solve_graph(recording_path, settings, topics, roles_file, side)
+    frames = list(graph.frames(messages))
+    return frames, graph.run_findings()
+
+
+def _solve_graph(recording_path: Path, settings: RunSettings, topics, roles_file, side):
+    """The replay graph cut after solve (and the checks) for ``recording_path``, and the
+    messages it replays (:func:`replay_frames`, :func:`replay_checked`)."""
     prepared = prepare(require_recording_path(recording_path), settings, topics, roles_file, side)
     report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     graph = ReplayGraph(prepared.replay, until="solve")
-    frames = list(graph.frames(iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report)))
-    return frames, graph.run_findings()
+    return graph, iter_role_messages(prepared.recording, prepared.roles, prepared.time_source, report)
 
 
 def detect_recording(
