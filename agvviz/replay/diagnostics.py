@@ -19,7 +19,8 @@ covariance of ``T_world_agv`` is in the left tangent space in the world frame, (
 ``covariance=full`` (``systematic`` given) it adds each marker's systematic corner error (its
 outline seen grown or shrunk: ``qr_outline_px`` for a QR code, ``corner_bias_px`` for any other
 marker), the intrinsics and distortion, the camera's extrinsic and every used marker's map placement,
-propagated through the solution (:func:`agvviz.solvers.uncertainty.frame_covariance_full`;
+propagated through the solution (:func:`agvviz.solvers.uncertainty.frame_covariance_split`,
+which also keeps the common-mode factors two frames share; per source: ``frame_covariance_full``;
 their σ's are the run's settings); with ``covariance=pixel`` the map and the extrinsics are
 taken as exact and pixel noise is the only source. The ``planar`` solver's (x, y, ψ) take the
 same sources (:func:`agvviz.solvers.uncertainty.planar_covariance_full`; its extrinsic is in the

@@ -218,13 +218,18 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     return np.concatenate([T_b[:3, 3] - T_a[:3, 3], so3.log(T_b[:3, :3] @ T_a[:3, :3].T)])
 
 
+def mahalanobis_d2(delta: np.ndarray, cov: np.ndarray) -> float:
+    """Squared Mahalanobis distance d² = δᵀ C⁻¹ δ of ``delta`` under ``cov`` (pseudo-inverse when
+    ``cov`` is singular)."""
+    try:
+        return float(delta @ np.linalg.solve(cov, delta))
+    except np.linalg.LinAlgError:
+        return float(delta @ np.linalg.pinv(cov) @ delta)
+
+
 def mahalanobis_sigma(delta: np.ndarray, cov: np.ndarray) -> float:
     """The difference ``delta`` against ``cov`` as σ (:func:`chi2_sigma` of d², dof = its length)."""
-    try:
-        d2 = float(delta @ np.linalg.solve(cov, delta))
-    except np.linalg.LinAlgError:
-        d2 = float(delta @ np.linalg.pinv(cov) @ delta)
-    return chi2_sigma(d2, len(delta))
+    return chi2_sigma(mahalanobis_d2(delta, cov), len(delta))
 
 
 def angle_deg(delta: np.ndarray) -> float:

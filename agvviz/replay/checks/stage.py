@@ -25,7 +25,7 @@ from agvviz.replay.checks.common import (
     chi2_sigma,
     odometry_cov,
     unambiguous,
-    mahalanobis_sigma,
+    mahalanobis_d2,
     pose_difference,
     size_text,
 )
@@ -301,8 +301,8 @@ class CheckStage(ClockChecks, WitnessChecks):
         # taken as independent: the shared errors were linearised at the chosen pose, not theirs.
         C_apart = carried_difference_cov(ref.frame, predicted, frame, cs, False) + witness_cov if common else C
         delta = pose_difference(predicted, frame.T_world_agv)
-        sigma = mahalanobis_sigma(delta, C)
-        self.last_motion_d2 = float(delta @ np.linalg.solve(C, delta))  # (for benches: bench_checks.py)
+        self.last_motion_d2 = mahalanobis_d2(delta, C)  # (kept for benches: bench_checks.py)
+        sigma = chi2_sigma(self.last_motion_d2, len(delta))
         detail = (
             f"pose {size_text(delta)} from frame {ref.frame.index} carried by the {witness}"
         )
@@ -457,8 +457,8 @@ class CheckStage(ClockChecks, WitnessChecks):
         if T_ghost is None or ratio is None or (ratio >= cs.ambiguity_ratio and not motion.failed):
             return None  # no mirror pose, or the pixels rule it out and the chosen pose passes
         T_pred, C = predicted
-        d2_ghost = _d2(pose_difference(T_pred, T_ghost), C)
-        evidence = _d2(pose_difference(T_pred, frame.T_world_agv), C) - d2_ghost
+        d2_ghost = mahalanobis_d2(pose_difference(T_pred, T_ghost), C)
+        evidence = mahalanobis_d2(pose_difference(T_pred, frame.T_world_agv), C) - d2_ghost
         ghost_sigma = chi2_sigma(d2_ghost, 6)
         ambiguous = ratio < cs.ambiguity_ratio
         after_flip = state.last_flip is not None and set(state.last_flip) == set(frame.used_marker_ids)
@@ -478,14 +478,6 @@ class CheckStage(ClockChecks, WitnessChecks):
         detail = (f"ambiguity ratio {ratio:.2f}; mirror pose {ghost_sigma:.1f}σ from the {witness}, chosen {motion.sigma:.1f}σ"
                   + ("; the motion does not prefer the chosen pose: not a reference" if undecided else ""))
         return suspects.CheckResult(suspects.CHECK_AMBIGUITY, 0.0, cs.limit_sigma, detail), undecided
-
-
-def _d2(delta: np.ndarray, cov: np.ndarray) -> float:
-    """Squared Mahalanobis distance of ``delta`` under ``cov``."""
-    try:
-        return float(delta @ np.linalg.solve(cov, delta))
-    except np.linalg.LinAlgError:
-        return float(delta @ np.linalg.pinv(cov) @ delta)
 
 
 def _likelihood_text(evidence_d2: float) -> str:
