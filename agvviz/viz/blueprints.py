@@ -57,7 +57,6 @@ from agvviz.viz.style import (
     COLOR_TRUTH,
     COLOR_UWB,
     LEGEND,
-    color_name,
     color_of,
 )
 
@@ -719,6 +718,9 @@ def delta_view_name(key: str) -> str:
     return f"Δ |{quantity}| = B − A [{unit}: positive = B worse"
 
 
+#: Height of the overlay's colour key row (its title bar and one line of text at 1600×1000).
+KEY_ROW_SHARE = 0.065
+
 #: Eye of the close-up, in the truth AGV's body frame (the view's origin, so it moves and turns
 #: with the AGV): about 2 m away, behind-left and above.
 OVERLAY_FOLLOW_EYE_POSITION_M = (-0.9, -1.3, 1.1)
@@ -750,20 +752,20 @@ def overlay_blueprint(
 ) -> rrb.Blueprint:
     """Default layout: 3D trajectories (with each run's magnified error arrows when
     ``magnification`` is given, and a close-up that follows the truth AGV) and the image with
-    every run's corners on top; error plots of all runs (and the per-frame differences, with a
-    zero line) with the comparison report below. Opens paused, on the ``frame`` timeline.
-    ``fixed_cams``: cameras fixed in the world (wall cameras), named so in their views."""
-    if len(runs) <= 2:
-        colors = ", ".join(f"{r.label} {color_name(i)}" for i, r in enumerate(runs))
-    else:
-        colors = "each run in its colour of the plot legends"
-    views = [rrb.Spatial3DView(origin=paths.WORLD, name=f"world: truth green, {colors}", eye_controls=_overlay_eye(truth))]
+    every run's corners on top; the colour key (:data:`paths.COMPARE_KEY`) across the width;
+    error plots of all runs (and the per-frame differences, with a zero line) with the comparison
+    report below. Opens paused, on the ``frame`` timeline. ``fixed_cams``: cameras fixed in the
+    world (wall cameras), named so in their views.
+
+    One key names every run's colour for all views: the 3D views label no run (labels at the
+    AGV collide where the runs agree) and say the magnification once in their title; the plots
+    have no legend (Rerun 0.41 draws it on the data, :data:`_NO_LEGEND`)."""
+    views = [rrb.Spatial3DView(origin=paths.WORLD, name="world: runs in the key's colours", eye_controls=_overlay_eye(truth))]
     if magnification is not None:
         factor = format_magnification(magnification)
-        arrows = ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
         views = [
             rrb.Spatial3DView(
-                origin=paths.WORLD, name=f"whole run, errors {factor}: truth green, {arrows}", eye_controls=_overlay_eye(truth),
+                origin=paths.WORLD, name=f"whole run: paths with errors {factor}", eye_controls=_overlay_eye(truth),
                 # The runs' own paths lie on the truth; their paths with errors magnified show the difference.
                 contents=[
                     "+ $origin/**", *[f"- /{paths.overlay_trajectory(r.key)}" for r in runs], f"- /{paths.OVERLAY_ERROR_VECTORS}/**"
@@ -771,7 +773,7 @@ def overlay_blueprint(
             ),
             # Origin on the truth AGV: the view follows it (the world moves around it).
             rrb.Spatial3DView(
-                origin=paths.AGV_TRUTH, name=f"at the AGV: error {factor} = (estimate − truth) {factor}, {arrows}",
+                origin=paths.AGV_TRUTH, name=f"at the AGV: errors {factor} (estimate − truth)",
                 eye_controls=rrb.EyeControls3D(
                     position=OVERLAY_FOLLOW_EYE_POSITION_M, look_target=(0.0, 0.0, 0.0), eye_up=(0.0, 0.0, 1.0)
                 ),
@@ -782,25 +784,23 @@ def overlay_blueprint(
         images = [
             rrb.Spatial2DView(
                 origin=paths.overlay_image(cam),
-                name=f"{'wall camera' if cam in fixed_cams else 'camera'} {cam}: detected cyan, reprojected " + (
-                    ", ".join(f"{r.short_label or r.label} {color_name(i)}" for i, r in enumerate(runs))
-                    if len(runs) <= 2 else "in each run's colour"),
+                name=f"{'wall camera' if cam in fixed_cams else 'camera'} {cam}: detected cyan, reprojected in each run's colour",
             )
             for cam in cam_names
         ]
         views.append(images[0] if len(images) == 1 else rrb.Tabs(*images))
     shares = {1: [1.0], 2: [0.5, 0.5], 3: [0.4, 0.3, 0.3]}[len(views)]
     top = views[0] if len(views) == 1 else rrb.Horizontal(*views, column_shares=shares)
-    legend = rrb.PlotLegend(visible=True, corner=rrb.Corner2D.RightTop)
+    key = rrb.TextDocumentView(origin=paths.COMPARE_KEY, name="colour key")
     error_views = [
-        rrb.TimeSeriesView(origin=paths.overlay_errors(key), name=label, plot_legend=legend)
+        rrb.TimeSeriesView(origin=paths.overlay_errors(key), name=label, plot_legend=_NO_LEGEND)
         for key, label in ERROR_LABELS.items()
     ]
     if deltas:  # a diff: each run's errors, and their difference B − A
         plots = [
             rrb.Tabs(*error_views),
             rrb.Tabs(*[
-                rrb.TimeSeriesView(origin=paths.overlay_delta(key), name=delta_view_name(key), plot_legend=legend)
+                rrb.TimeSeriesView(origin=paths.overlay_delta(key), name=delta_view_name(key), plot_legend=_NO_LEGEND)
                 for key in deltas
             ]),
         ]
@@ -809,10 +809,10 @@ def overlay_blueprint(
         plots = [error_views[0], rrb.Tabs(*error_views[1:])]
         shares = [0.22, 0.22, 0.56]
     report = rrb.TextDocumentView(origin=paths.COMPARE_REPORT, name="comparison")
-    layer_views = _layer_views(runs, layer_entities or {}, legend)
+    layer_views = _layer_views(runs, layer_entities or {})
     bottom = rrb.Horizontal(*plots, rrb.Tabs(report, *layer_views) if layer_views else report, column_shares=shares)
     return rrb.Blueprint(
-        rrb.Vertical(top, bottom, row_shares=[0.58, 0.42]),
+        rrb.Vertical(top, key, bottom, row_shares=[0.55, KEY_ROW_SHARE, 0.45 - KEY_ROW_SHARE]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_FRAME, play_state="paused"),
@@ -820,7 +820,7 @@ def overlay_blueprint(
     )
 
 
-def _layer_views(runs: list, layer_entities: dict[str, set[str]], legend) -> list:
+def _layer_views(runs: list, layer_entities: dict[str, set[str]]) -> list:
     """Tabs beside the report of a sweep ``.rrd`` (each run's layers under ``settings/<key>/``):
     the LM trial steps per frame, a series per run in its colour, and each run's suspects log."""
     keyed = [(i, r) for i, r in enumerate(runs) if r.key in layer_entities]
@@ -828,7 +828,7 @@ def _layer_views(runs: list, layer_entities: dict[str, set[str]], legend) -> lis
     with_lm = [(i, r) for i, r in keyed if paths.LM_ITERATIONS in layer_entities[r.key]]
     if with_lm:
         views.append(rrb.TimeSeriesView(
-            origin="/", name="LM trial steps per frame", plot_legend=legend,
+            origin="/", name="LM trial steps per frame", plot_legend=_NO_LEGEND,
             contents=[f"/{paths.sweep_layer(r.key, paths.LM_ITERATIONS)}" for _, r in with_lm],
             overrides={
                 paths.sweep_layer(r.key, paths.LM_ITERATIONS): rr.SeriesLines.from_fields(colors=[color_of(i)], names=r.label)

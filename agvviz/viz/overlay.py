@@ -24,6 +24,8 @@ frame index (the callers map the other runs' frames onto it). Entity tree::
     delta/<quantity>/zero                   Scalars: the zero line (no difference) across it
     compare/report                          TextDocument: the comparison table (static); in a
                                             sweep the ranking with p-values and the verdict
+    compare/key                             TextDocument (static): each run's colour, the 3D
+                                            error magnification (the views' one key)
     settings/<key>/...                      each run's layers, every entity of its run .rrd
                                             under the prefix except the camera images
                                             (``layers=``; a sweep, ``diff --out``)
@@ -61,7 +63,7 @@ from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_bl
 from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
 from agvviz.viz.readback import read_rrd
 from agvviz.viz.rrd_file import AtomicRrd
-from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_of
+from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
 
 #: The per-frame Δ series and its zero line.
 AXIS_LENGTH_M = 0.4
@@ -97,7 +99,7 @@ class OverlayRun:
         The run's own truth ``T_world_agv`` on its frames (NaN where unknown); given, the 3D
         view draws the run's position error on each frame as a magnified arrow.
     short_label : str, optional
-        Name on the run's error arrows (e.g. ``A``); ``label`` when not given.
+        Short name (e.g. ``A``, ``#1``); ``label`` when not given.
     """
 
     key: str
@@ -218,33 +220,38 @@ def _send_error_vectors(
         indexes=indexes,
         columns=rr.Arrows3D.columns(origins=run.T_truth[rows, :3, 3], vectors=errors_m * magnification).partition(per_frame),
     )
-    name = f"{run.short_label or run.label} error {format_magnification(magnification)}"
+    # No text on screen: the runs' arrows share their origin and their tips meet where the runs
+    # agree, so labels there would collide. The key (COMPARE_KEY) names each run's colour and the
+    # view titles the magnification, once; the label shows on hover.
     rec.log(
         entity,
         rr.Arrows3D.from_fields(
-            colors=color_of(index), radii=rr.Radius.ui_points(4.0), labels=[name], show_labels=False
-        ),
-        static=True,
-    )
-    # The name at the arrow's tip: the runs' arrows share their origin, their tips differ.
-    rec.send_columns(
-        paths.overlay_error_tip(run.key),
-        indexes=indexes,
-        columns=rr.Points3D.columns(positions=run.T_truth[rows, :3, 3] + errors_m * magnification).partition(per_frame),
-    )
-    rec.log(
-        paths.overlay_error_tip(run.key),
-        rr.Points3D.from_fields(
-            colors=color_of(index), radii=rr.Radius.ui_points(1.0), labels=[name], show_labels=True
+            colors=color_of(index), radii=rr.Radius.ui_points(4.0), labels=[run.label], show_labels=False
         ),
         static=True,
     )
     rec.log(
         paths.overlay_error_path(run.key),
         rr.LineStrips3D([run.T_truth[rows, :3, 3] + errors_m * magnification], colors=color_of(index),
-                        radii=rr.Radius.ui_points(1.0), labels=[name], show_labels=False),
+                        radii=rr.Radius.ui_points(1.0), labels=[run.label], show_labels=False),
         static=True,
     )
+
+
+def key_markdown(runs: list[OverlayRun], truth: bool, magnification: float | None, images: bool) -> str:
+    """The overlay's colour key (:data:`paths.COMPARE_KEY`), one line: each run's label and colour
+    in the overlay's order, then what else is drawn (truth, detected corners) and the 3D error
+    magnification. One key for every view: the 3D views carry no per-run labels (they would
+    collide where the runs agree) and the plots no legends (Rerun 0.41 draws them on the data)."""
+    items = [f"**{run.label}** {color_name(i)}" for i, run in enumerate(runs)]
+    if truth:
+        items.append("truth green")
+    if images:
+        items.append("detected corners cyan")
+    line = " · ".join(items)
+    if magnification is not None:
+        line += f" — 3D arrows: error (estimate − truth) {format_magnification(magnification)} from the true position"
+    return line + "\n"
 
 
 def _check(runs: list[OverlayRun]) -> None:
@@ -339,6 +346,10 @@ def write_overlay(
     with AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=sources) as rrd:
         rec = rrd.rec
         _log_static(rec, runs, truth, report_markdown, list(deltas))
+        rec.log(paths.COMPARE_KEY, rr.TextDocument(
+            key_markdown(runs, truth is not None and len(truth.T_world_agv) > 0, magnification,
+                         bool(cam_names) and store is not None),
+            media_type=rr.MediaType.MARKDOWN), static=True)
         if store is not None:
             _copy_from_source(rec, store, cam_names, fixed_cams, images=frames is None and frames_from is None)
             rrd.check()

@@ -426,6 +426,9 @@ OVERLAY_DELTA = "delta"  # delta/<quantity>: B − A; delta/<quantity>/zero: the
 OVERLAY_ERROR_VECTORS = "world/error"  # world/error/<key>: Arrows3D, the magnified position error
 OVERLAY_ERROR_PATHS = "world/error_path"  # world/error_path/<key>: LineStrips3D (static)
 COMPARE_REPORT = "compare/report"  # TextDocument (static): the comparison table
+#: TextDocument (static): which colour is which run, the one key of every overlay view (3D views
+#: and plots carry no per-run labels or legends that could collide or cover the data).
+COMPARE_KEY = "compare/key"
 AGV = "world/agv"
 TRAJECTORY = "world/trajectory"
 
@@ -446,12 +449,9 @@ def overlay_trajectory(key: str) -> str:
 
 
 def overlay_error_vector(key: str) -> str:
-    """``world/error/<key>``: Arrows3D per frame; ``<entity>/tip`` its tip (:func:`overlay_error_tip`)."""
+    """``world/error/<key>``: Arrows3D per frame, the run's magnified position error (unlabelled on
+    screen: the key, :data:`COMPARE_KEY`, names the colours; the view title the magnification)."""
     return f"{OVERLAY_ERROR_VECTORS}/{key}"
-
-
-def overlay_error_tip(key: str) -> str:
-    return f"{overlay_error_vector(key)}/tip"
 
 
 def overlay_error_path(key: str) -> str:
