@@ -120,14 +120,9 @@ def test_diff_draws_no_error_arrow_of_b_on_a_frame_b_rejected(tmp_path):
             for row in readback._rows(contents, paths.overlay_error_vector(key), "Arrows3D:vectors")
             if row.get(paths.TIMELINE_FRAME) is not None
         }
-        tips = {
-            int(row[paths.TIMELINE_FRAME]): len(row["Points3D:positions"])
-            for row in readback._rows(contents, paths.overlay_error_tip(key), "Points3D:positions")
-        }
         assert set(arrows) >= rejected, "B's rejected frames carry a row (an empty one)"
         for frame, n in arrows.items():
             assert n == (0 if frame in rejected else 1), (key, frame, n)
-            assert tips[frame] == n
 
 
 def _progress_of(recording, settings):

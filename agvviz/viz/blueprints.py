@@ -39,6 +39,7 @@ with a red × (:mod:`agvviz.viz.log_rejections`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -718,8 +719,19 @@ def delta_view_name(key: str) -> str:
     return f"Δ |{quantity}| = B − A [{unit}: positive = B worse"
 
 
-#: Height of the overlay's colour key row (its title bar and one line of text at 1600×1000).
-KEY_ROW_SHARE = 0.065
+#: Height of the overlay's colour key row: its title bar, and each line of text at 1600×1000 (a
+#: line holds about KEY_LINE_CHARS characters; a sweep of many settings wraps).
+KEY_TITLE_SHARE = 0.04
+KEY_LINE_SHARE = 0.025
+KEY_LINE_CHARS = 200
+
+
+def key_row_share(runs: list) -> float:
+    """The share of the window's height the colour key of ``runs`` needs (its text:
+    :func:`agvviz.viz.overlay.key_markdown`, each run's label and colour, then about 120
+    characters on truth, corners and the magnification)."""
+    chars = sum(len(r.label) + 10 for r in runs) + 120
+    return KEY_TITLE_SHARE + KEY_LINE_SHARE * math.ceil(chars / KEY_LINE_CHARS)
 
 #: Eye of the close-up, in the truth AGV's body frame (the view's origin, so it moves and turns
 #: with the AGV): about 2 m away, behind-left and above.
@@ -812,7 +824,7 @@ def overlay_blueprint(
     layer_views = _layer_views(runs, layer_entities or {})
     bottom = rrb.Horizontal(*plots, rrb.Tabs(report, *layer_views) if layer_views else report, column_shares=shares)
     return rrb.Blueprint(
-        rrb.Vertical(top, key, bottom, row_shares=[0.55, KEY_ROW_SHARE, 0.45 - KEY_ROW_SHARE]),
+        rrb.Vertical(top, key, bottom, row_shares=[0.55, key_row_share(runs), 0.45 - key_row_share(runs)]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_FRAME, play_state="paused"),
