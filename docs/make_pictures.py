@@ -214,6 +214,24 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
+def _viewer_binary() -> str:
+    """The Rerun viewer's own executable. The ``rerun`` on PATH is a Python script that runs it as
+    a child: stopping the script (or its parent dying) left the viewer running, so start the
+    binary itself (where ``rerun_cli`` keeps it, or ``RERUN_CLI_PATH``)."""
+    if path := os.environ.get("RERUN_CLI_PATH"):
+        return path
+    try:
+        import rerun_cli
+    except ImportError:
+        rerun_cli = None
+    if rerun_cli is not None and (binary := Path(rerun_cli.__file__).parent / "rerun").is_file():
+        return str(binary)
+    found = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    if found is None:
+        raise SystemExit("the rerun executable is not on PATH: pip install rerun-sdk")
+    return found
+
+
 class HeadlessViewer:
     """A headless Rerun viewer process and a client driving it (a context manager)."""
 
@@ -355,9 +373,7 @@ def main() -> None:
     wanted = args.only.split(",") if args.only else list(groups)
     if unknown := [w for w in wanted if w not in groups]:
         raise SystemExit(f"--only: no group {', '.join(unknown)}; groups: {', '.join(groups)}")
-    rerun_exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
-    if rerun_exe is None:
-        raise SystemExit("the rerun executable is not on PATH: pip install rerun-sdk")
+    rerun_exe = _viewer_binary()
     args.out_dir.mkdir(parents=True, exist_ok=True)
     try:
         at = [float(v) for v in args.at.split(",")] if args.at else None
