@@ -11,6 +11,9 @@ Builders, by the file they lay out:
 - the studies' own report files: :func:`study_blueprint` (Monte-Carlo) and
   :func:`cnoem_report_blueprint` (CNOEM grid).
 
+:func:`with_active_tab` shows a tab, picked by name, of a layout as the viewer reads it back
+(docs/make_pictures.py ``--tab``: pictures of tabs a layout does not open on).
+
 Views take their origins from :mod:`agvviz.viz.paths` only.
 Longer than 600 lines because it holds the ten layouts side by side (each a single function that reads top to
 bottom like its sketch), so a new view is added in one place; splitting it by layout would
@@ -39,6 +42,7 @@ with a red × (:mod:`agvviz.viz.log_rejections`).
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -46,6 +50,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from agvviz.errors import InputError
 from agvviz.evaluation.error_budget import ErrorBudget
 from agvviz.model.frames import REJECT_REPROJECTION
 from agvviz.model.studies import CellResult
@@ -1031,3 +1036,64 @@ def cnoem_report_blueprint() -> rrb.Blueprint:
         rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_CELL),
         auto_views=False,
     )
+
+
+# -- a tab of a layout, picked by name (docs/make_pictures.py --tab) ----------------------------------
+def tab_names(blueprint: dict) -> list[str]:
+    """The name of every tab in ``blueprint`` (a layout as the viewer reads it out:
+    ``rerun.experimental.ViewerClient.get_blueprint().blueprint``, blueprint entity path →
+    archetype → field), in file order: each child of a Tabs container, named by its
+    ``display_name`` (a view without one by its origin, as the viewer shows it)."""
+    return [name for _, name in _tabs(blueprint)]
+
+
+def with_active_tab(blueprint: dict, tab: str) -> dict:
+    """A copy of ``blueprint`` (as in :func:`tab_names`) that shows the tab ``tab``: the Tabs
+    container holding it has it active, and so does every Tabs container around that one (the
+    branch that holds it), so a tab nested in a tab shows too. ``tab`` is matched against the
+    tabs' names case-insensitively, whole first, else as the start of exactly one name
+    ("paper figures" picks "paper figures 9–11 (…)"). No match, or several: InputError naming
+    the tabs."""
+    tabs = _tabs(blueprint)
+    wanted = tab.strip().casefold()
+    matches = [ref for ref, name in tabs if name.casefold() == wanted]
+    if not matches:
+        matches = [ref for ref, name in tabs if name.casefold().startswith(wanted)]
+    if len(matches) != 1:
+        listed = "; ".join(dict.fromkeys(name for _, name in tabs)) or "none"
+        how = "no tab is named" if not matches else f"{len(matches)} tabs start with"
+        raise InputError(f"{how} {tab!r} in this layout; its tabs: {listed}")
+    # each container or view's key → (its container's key, how that container lists it)
+    parent = {
+        _key(child): (key, child)
+        for key, archetypes in blueprint.items()
+        for child in archetypes.get("ContainerBlueprint", {}).get("contents", [])
+    }
+    result = copy.deepcopy(blueprint)
+    key = _key(matches[0])
+    while key in parent:
+        key, listed = parent[key]
+        container = result[key]["ContainerBlueprint"]
+        if container.get("container_kind") == "Tabs":
+            container["active_tab"] = listed
+    return result
+
+
+def _key(ref: str) -> str:
+    """A container's reference to a child (``view/<id>``, or ``/view/<id>`` in some layouts) → the child's key."""
+    return "/" + ref.lstrip("/")
+
+
+def _tabs(blueprint: dict) -> list[tuple[str, str]]:
+    """(reference as a container lists it, e.g. ``view/<id>``, name) of every child of a Tabs container."""
+    tabs = []
+    for archetypes in blueprint.values():
+        container = archetypes.get("ContainerBlueprint", {})
+        if container.get("container_kind") != "Tabs":
+            continue
+        for ref in container.get("contents", []):
+            child = blueprint.get(_key(ref), {})
+            fields = child.get("ContainerBlueprint") or child.get("ViewBlueprint") or {}
+            name = fields.get("display_name") or fields.get("space_origin") or fields.get("container_kind") or ref
+            tabs.append((ref, name))
+    return tabs
