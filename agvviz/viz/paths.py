@@ -44,6 +44,7 @@ the camera is).
     events/rejections                       TextLog (WARN) with reason and detail
     events/suspects                         TextLog (WARN) per suspect frame: check, σ, cause, message
     run/manifest, run/summary               TextDocument (static, markdown + JSON block)
+    run/no_truth                            TextDocument (static): a run without ground truth says so
 """
 
 from __future__ import annotations
@@ -127,6 +128,9 @@ def error_rejected_all(series_entity: str) -> str:
 RUN_MANIFEST = "run/manifest"
 RUN_SUMMARY = "run/summary"  # TextDocument (static): the terminal's table (mm, °, px), damage, warnings
 RUN_SUMMARY_JSON = "run/summary_json"  # TextDocument (static): the whole summary as a ```json block
+#: TextDocument (static), only in a run whose frames carried no ground truth: why its error plots
+#: are not there and what the run knows instead (shown where the error plots would be).
+RUN_NO_TRUTH = "run/no_truth"
 
 
 def camera(cam_name: str, fixed: bool = False) -> str:

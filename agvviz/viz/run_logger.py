@@ -39,7 +39,7 @@ from agvviz.evaluation.summary_table import markdown_table, summary_rows
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
-from agvviz.viz.blueprints import PlotAxis, default_blueprint, run_plot_axes
+from agvviz.viz.blueprints import PlotAxis, default_blueprint, plot_axis, run_plot_axes
 from agvviz.viz.columns import Columns, Stamp
 from agvviz.viz.log_findings import FindingLogger
 from agvviz.viz.log_frames import FrameLogger, RunLogError, check_frame
@@ -104,6 +104,7 @@ class RunLogger:
         self._saved = False
         self._columns = Columns()
         self._frames_buffered = 0
+        self._frames_logged = 0
         #: The modality loggers.
         self.frames = FrameLogger(self._rec, self._columns, self.max_reproj_px)
         self.frames.images = bool(images)
@@ -192,8 +193,19 @@ class RunLogger:
         self.lm.log(frame, stamp, frame.cam_name in frames.fixed_cams)
         self.uncertainty.log(frame, stamp)
         self._frames_buffered += 1
+        self._frames_logged += 1
         if self._frames_buffered >= FLUSH_EVERY_FRAMES:
             self._flush()
+
+    def log_cameras_missing(self, frame: FrameResult, present: set[str]) -> None:
+        """At ``frame``'s time stamp (the one a time stamp's frames were logged at) the cameras not
+        in ``present`` had no frame (a dropped image): their zoom panels say so
+        (:meth:`FrameLogger.log_zoom_dropped`) instead of keeping the previous crop."""
+        self._check_open()
+        missing = set(self.frames.cam_names) - set(present)
+        if missing:
+            self._stamp(frame)
+            self.frames.log_zoom_dropped(missing)
 
     def _flush(self) -> None:
         self._columns.flush(self._rec)
@@ -247,17 +259,36 @@ class RunLogger:
             self._columns.extents, max_reproj_px=self.max_reproj_px, rejection_reasons=self.frames.rejection_reasons()
         )
 
+    @property
+    def has_truth(self) -> bool:
+        """False when frames were logged and none carried ground truth (``truth=ignore``, or a
+        recording without it): no error can be scored. True before any frame (nothing known)."""
+        return self.frames.truth_frames > 0 or self._frames_logged == 0
+
+    def log_no_truth(self) -> None:
+        """The note a run without ground truth shows where its error plots would be
+        (``run/no_truth``, static; :func:`agvviz.viz.blueprints.no_truth_view`)."""
+        self._check_open()
+        text = (
+            "**No ground truth** (none recorded, or `truth=ignore`): position, heading, pitch and roll "
+            "errors, NEES and error ÷ CRLB cannot be scored, so they are not plotted. Without truth: "
+            "**position σ** and **reprojection RMS** (beside), the **suspects** log, the 3σ ellipsoid "
+            "in 3D; with UWB the **GDOP** (below) and the gates."
+        )
+        self._rec.log(paths.RUN_NO_TRUTH, _markdown(text), static=True)
+
     def close(self) -> None:
         """Finish the file: log the rejected-frame crosses where the plots' axes put them, send
         the buffered columns, ship the default blueprint, write the footer, move it into place."""
         self._check_open()
         axes = self.plot_axes()
+        if not self.has_truth:
+            self.log_no_truth()
         self.frames.log_rejection_markers({entity: axis.marker_y for entity, axis in axes.items()})
         self._flush()
         self._saved = True
         blueprint = self.blueprint
         if blueprint is None:
-            first_pose = self.frames.first_pose
             blueprint = default_blueprint(
                 self.frames.cam_names,
                 fixed_cams=self.frames.fixed_cams,
@@ -267,11 +298,14 @@ class RunLogger:
                 has_threshold=self.max_reproj_px is not None,
                 ghost_max_ratio=GHOST_MAX_AMBIGUITY_RATIO,
                 cov_scale=self.uncertainty.cov_scale,
-                start_m=None if first_pose is None else tuple(first_pose[:3, 3]),
+                scene_m=self.frames.scene_extent_m(),
                 budget_sources=self._budget_sources,
                 has_suspects=self.frames.suspect_frames > 0 or self.findings.findings_logged > 0,
                 axes=axes,
                 max_reproj_px=self.max_reproj_px,
+                has_truth=self.has_truth,
+                sigma_axis=plot_axis([self._columns.extents[paths.ERROR_POSITION_SIGMA_M]])
+                if paths.ERROR_POSITION_SIGMA_M in self._columns.extents else None,
             )
         self._file.commit(blueprint)
 

@@ -2,7 +2,8 @@
 
 A zoom panel (:meth:`agvviz.viz.log_frames.FrameLogger.log_zoom`) shows a crop around a camera's
 smallest code. When that code is gone — hidden, or only large codes in view — the panel must not
-keep the last crop as if it were current: it shows this placeholder, an image of the crops' size
+keep the last crop as if it were current: it shows this placeholder (also at a frame where the
+camera's image is missing altogether, a dropped frame), an image of the crops' size
 and channels (the viewer refuses an image stream that changes either) with the words of
 :func:`zoom_unseen_lines`.
 """
@@ -16,19 +17,22 @@ from agvviz.errors import RunError
 from agvviz.viz.style import COLOR_STALE
 
 
-def zoom_unseen_lines(last_seen_frame: int, codes_in_view: bool) -> list[str]:
+def zoom_unseen_lines(last_seen_frame: int, codes_in_view: bool, dropped: bool = False) -> list[str]:
     """The words on a zoom panel whose small code is gone: since when, and why (no code in view,
-    or only large codes, which the full image shows)."""
+    or only large codes, which the full image shows; ``dropped``: the camera's image is missing
+    at this frame, so nothing was seen)."""
+    if dropped:
+        return ["no image at this frame", "(camera frame dropped)", f"code last seen: frame {last_seen_frame}"]
     why = "only large codes in view (full image tab)" if codes_in_view else "no code in view"
     return ["small code not seen", f"since frame {last_seen_frame}", why]
 
 
-def zoom_unseen_png(last_seen_frame: int, codes_in_view: bool, gray: bool, side_px: int) -> bytes:
+def zoom_unseen_png(last_seen_frame: int, codes_in_view: bool, gray: bool, side_px: int, dropped: bool = False) -> bytes:
     """PNG placeholder, ``side_px`` square, one channel when ``gray`` (else BGR), carrying
     :func:`zoom_unseen_lines` in the stale colour on black."""
     image = np.zeros((side_px, side_px) if gray else (side_px, side_px, 3), np.uint8)
     color = (int(np.mean(COLOR_STALE)),) if gray else tuple(int(c) for c in COLOR_STALE[::-1])
-    for k, line in enumerate(zoom_unseen_lines(last_seen_frame, codes_in_view)):
+    for k, line in enumerate(zoom_unseen_lines(last_seen_frame, codes_in_view, dropped)):
         scale = (0.55 if k < 2 else 0.4) * side_px / 256
         (width, _), _ = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
         y = side_px // 2 + int((30 * k - 30) * side_px / 256)
