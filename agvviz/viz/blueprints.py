@@ -526,7 +526,7 @@ def uwb_blueprint(
     states = rrb.StateTimelineView(
         origin="/",
         contents=[f"/{paths.FUSION_CAMERA_USED}", f"/{paths.FUSION_SOURCE}"],
-        name="camera used · fused estimate from",
+        name=STATE_LANES_KEY,
     )
     log_columns = rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_ELAPSED], text_log_columns=["body"])
     gdop = rrb.TimeSeriesView(origin=paths.UWB_GDOP, name="GDOP", plot_legend=rrb.PlotLegend(visible=False))
@@ -553,6 +553,12 @@ def uwb_blueprint(
         rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_ELAPSED),
         auto_views=False,
     )
+
+
+#: The state timeline's title is the key of its lanes: Rerun 0.41 names a lane by its entity path
+#: (``StateVisualizer``: the lane label is ``data_result.entity_path``; ``StateConfiguration``'s
+#: labels name the states, not the lane; ``StateTimelineView`` has no per-lane name).
+STATE_LANES_KEY = "lanes: camera_used = the camera whose fix was used · fused_from = what the fused estimate comes from"
 
 
 def _camera_panel(cam_name: str, fixed: bool, zoomed: bool) -> rrb.View | rrb.Container:

@@ -209,7 +209,10 @@ TRAJECTORY_FUSED = "world/trajectory/fused"
 UWB_GDOP = "uwb/gdop"  # Scalars per UWB fix
 ERROR_UWB_POSITION_MM = "errors/uwb_position_mm"  # 2-D error of each UWB fix (mm)
 ERROR_FUSED_POSITION_MM = "errors/fused_position_mm"  # 2-D error of each fused output (mm)
-FUSION_SOURCE = "fusion/source"  # StateChange: what the fused estimate comes from
+#: StateChange: what the fused estimate comes from. The state timeline's lane is named by the
+#: entity path (Rerun 0.41: no lane name; a space in a path shows escaped, ``/fusion/fused\ from``),
+#: so the path reads as words: "fused_from".
+FUSION_SOURCE = "fusion/fused_from"
 EVENTS_FUSION = "events/fusion"  # TextLog: every switch, with its offset and jump
 EVENTS_UWB_GATE = "events/uwb_gate"  # TextLog: every range a gate removed
 FUSION_CAMERA_USED = "fusion/camera_used"  # StateChange: camera used ('none': none), logged on change
