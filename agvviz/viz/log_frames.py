@@ -10,8 +10,6 @@ from its bytes without an archetype.
 
 from __future__ import annotations
 
-import math
-
 import cv2
 import numpy as np
 import rerun as rr
@@ -25,7 +23,7 @@ from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
 from agvviz.viz.log_findings import error_values, rejection_row, suspect_row
-from agvviz.viz.zoom_placeholder import zoom_unseen_png
+from agvviz.viz.zoom_placeholder import ZOOM_SIDE_PX, crop_around, longest_edge_px, zoom_unseen_png
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -59,14 +57,9 @@ LM_ITERATION_RADIUS = rr.Radius.ui_points(2.0)
 MAX_TRAJECTORY_POINTS = 400
 #: A code whose longest detected edge is shorter than this fraction of the image width (a code a
 #: few UI points wide in an image panel) also gets a zoomed view: a crop of the recorded image
-#: around it, ZOOM_CROP_CODE_SIDES code sides wide (at least ZOOM_MIN_CROP_PX), so a ≈15 px
+#: around it, ZOOM_CROP_CODE_SIDES code sides wide (:func:`~agvviz.viz.zoom_placeholder.crop_around`), so a ≈15 px
 #: code fills its own panel.
 ZOOM_CODE_BELOW_FRACTION = 0.05
-#: Every crop is resized to this side (nearest neighbour: pixels stay visible as blocks), so
-#: the zoomed image keeps one size (the viewer refuses a stream of images changing size).
-ZOOM_SIDE_PX = 256
-ZOOM_CROP_CODE_SIDES = 3.0
-ZOOM_MIN_CROP_PX = 32
 
 #: Per-frame error series: (entity, legend name, colour).
 FRAME_SERIES = (
@@ -365,13 +358,13 @@ class FrameLogger:
             for obs in frame.observations:
                 if is_chessboard_id(obs.marker_id):
                     continue  # saddles, not a code's outline
-                edge_px = _longest_edge_px(np.asarray(obs.corners_px, float)[:4])
+                edge_px = longest_edge_px(np.asarray(obs.corners_px, float)[:4])
                 if edge_px < below_px:
                     small.append((edge_px, obs))
         crop = None
         if small:
             _, obs = min(small, key=lambda edge_obs: edge_obs[0])
-            crop = _crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
+            crop = crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
         if crop is None:
             if cam in self._zoomed or cam in self._zoom_dropped:
                 self._log_zoom_unseen(cam, bool(frame.observations))
@@ -507,34 +500,6 @@ def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
         labels=[label] if label else [],  # empty clears a previous stale label
         radii=rr.Radius.ui_points(1.5),
     )
-
-
-def _longest_edge_px(corners_px: np.ndarray) -> float:
-    """Longest edge of a code's outline (TL, TR, BR, BL) in pixels."""
-    return float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
-
-
-def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float, bool] | None:
-    """PNG of a square crop of the image centred on the code, resized to ZOOM_SIDE_PX; the
-    crop's top-left pixel, the zoom's pixels per image pixel and whether it is one-channel. None
-    when the image does not decode."""
-    image = cv2.imdecode(np.frombuffer(image_bytes, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        return None
-    height, width = image.shape[:2]
-    side = int(max(ZOOM_MIN_CROP_PX, math.ceil(ZOOM_CROP_CODE_SIDES * _longest_edge_px(corners_px))))
-    centre = corners_px.mean(axis=0)
-    x0 = int(np.clip(round(centre[0] - side / 2), 0, max(width - side, 0)))
-    y0 = int(np.clip(round(centre[1] - side / 2), 0, max(height - side, 0)))
-    crop = image[y0 : y0 + side, x0 : x0 + side]
-    if crop.shape[0] != crop.shape[1]:  # an image smaller than the crop: pad it square
-        side = max(crop.shape[:2])
-        crop = cv2.copyMakeBorder(crop, 0, side - crop.shape[0], 0, side - crop.shape[1], cv2.BORDER_CONSTANT)
-    zoomed = cv2.resize(crop, (ZOOM_SIDE_PX, ZOOM_SIDE_PX), interpolation=cv2.INTER_NEAREST)
-    ok, png = cv2.imencode(".png", zoomed)
-    if not ok:
-        return None
-    return png.tobytes(), np.array([x0, y0], dtype=float), ZOOM_SIDE_PX / side, zoomed.ndim == 2
 
 
 def _thinned(positions_m: list[np.ndarray] | np.ndarray) -> np.ndarray:

@@ -407,7 +407,7 @@ class BlueprintView:
     kind: str  # Rerun's view class: "3D", "2D", "TimeSeries", "TextDocument", "StateTimeline", …
     name: str
     origin: str
-    contents: tuple[str, ...]  # the view's content queries, e.g. "/errors/position_mm"
+    contents: tuple[str, ...]  # the view's content queries (entity paths, ``$origin/**``, …)
     eye_position: tuple[float, float, float] | None = None  # a 3D view's eye (world, m)
     eye_look_target: tuple[float, float, float] | None = None
     eye_tracking_entity: str | None = None
