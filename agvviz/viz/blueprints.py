@@ -489,7 +489,8 @@ def uwb_blueprint(
     else:
         image_panel = rrb.Grid(*cameras, grid_columns=2)
     world = world_3d_view(
-        f"3D: {LEGEND[COLOR_TRUTH]} (green), {LEGEND[COLOR_CAMERA]} (orange), {LEGEND[COLOR_UWB]} (blue), "
+        ("3D: " + (f"{LEGEND[COLOR_TRUTH]} (green), " if has_truth else "no truth; "))
+        + f"{LEGEND[COLOR_CAMERA]} (orange), {LEGEND[COLOR_UWB]} (blue), "
         f"{LEGEND[COLOR_FUSED]} (yellow); UWB anchors, room outline (grey)",
         cam_names,
         fixed_cams,
@@ -558,7 +559,7 @@ def uwb_blueprint(
 #: The state timeline's title is the key of its lanes: Rerun 0.41 names a lane by its entity path
 #: (``StateVisualizer``: the lane label is ``data_result.entity_path``; ``StateConfiguration``'s
 #: labels name the states, not the lane; ``StateTimelineView`` has no per-lane name).
-STATE_LANES_KEY = "lanes: camera_used = the camera whose fix was used · fused_from = what the fused estimate comes from"
+STATE_LANES_KEY = "camera_used = whose fix was used · fused_from = source of the fused estimate"
 
 
 def _camera_panel(cam_name: str, fixed: bool, zoomed: bool) -> rrb.View | rrb.Container:

@@ -272,8 +272,8 @@ class RunLogger:
         text = (
             "**No ground truth** (none recorded, or `truth=ignore`): position, heading, pitch and roll "
             "errors, NEES and error ÷ CRLB cannot be scored, so they are not plotted. Without truth: "
-            "**position σ** and **reprojection RMS** (beside), the **suspects** log, the 3σ ellipsoid "
-            "in 3D; with UWB the **GDOP** (below) and the gates."
+            "the **position σ**, the **reprojection RMS**, the **suspects** log, the 3σ ellipsoid in 3D; "
+            "with UWB the **GDOP** and the gates."
         )
         self._rec.log(paths.RUN_NO_TRUTH, _markdown(text), static=True)
 
