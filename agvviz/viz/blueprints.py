@@ -559,7 +559,7 @@ def uwb_blueprint(
 #: The state timeline's title is the key of its lanes: Rerun 0.41 names a lane by its entity path
 #: (``StateVisualizer``: the lane label is ``data_result.entity_path``; ``StateConfiguration``'s
 #: labels name the states, not the lane; ``StateTimelineView`` has no per-lane name).
-STATE_LANES_KEY = "camera_used = whose fix was used · fused_from = source of the fused estimate"
+STATE_LANES_KEY = "camera_used = fix used · fused_from = fused estimate's source"
 
 
 def _camera_panel(cam_name: str, fixed: bool, zoomed: bool) -> rrb.View | rrb.Container:
