@@ -196,3 +196,29 @@ def test_a_dropped_camera_frame_replaces_the_zoom_crop_at_that_frame(tmp_path):
             assert len(corners[f]) == 0
             checked += 1
     assert checked >= 3  # dropped frames of cameras whose zoom showed a crop
+
+
+def test_only_a_camera_whose_frame_was_due_counts_as_dropped(tmp_path):
+    """Two cameras in sync at 10 Hz, B's frame 5 dropped: B counts as dropped at stamp 5 only.
+    Two cameras at 10 Hz firing in turn (A at 0, 100 ms…, B at 50, 150 ms…): never dropped — each
+    fires between the other's stamps, and its zoom must not blink."""
+    from types import SimpleNamespace
+
+    from agvviz.viz.run_logger import RunLogger
+
+    def flagged(sets):
+        logger = RunLogger(tmp_path / "x.rrd", recording_name="t", recording_id="t")
+        calls = []
+        logger.frames.log_zoom_dropped = lambda cams: calls.append((index, sorted(cams)))
+        for index, frames in enumerate(sets):
+            logger.log_cameras_missing(frames[0], frames)
+        logger.discard()
+        return calls
+
+    def frame(cam, index, t_ms):
+        return SimpleNamespace(cam_name=cam, index=index, log_time_ns=int(t_ms * 1e6))
+
+    in_sync = [[frame("a", k, 100 * k)] + ([] if k == 5 else [frame("b", k, 100 * k)]) for k in range(10)]
+    assert flagged(in_sync) == [(5, ["b"])]
+    in_turn = [[frame("a" if k % 2 == 0 else "b", k, 50 * k)] for k in range(20)]
+    assert flagged(in_turn) == []

@@ -50,6 +50,10 @@ from agvviz.viz.timelines import elapsed_s, set_stamp
 
 #: Per-frame values are sent as columns every this many frames (and at close).
 FLUSH_EVERY_FRAMES = 64
+#: A camera without a frame at a time stamp missed one (a dropped image) when this many of its
+#: shortest frame intervals have passed since its last frame: 1 for a synchronised camera, under
+#: 0.75 for cameras that fire between each other's stamps (half a period for two alternating).
+DROPPED_AFTER_PERIODS = 0.75
 
 
 class RunLogger:
@@ -105,6 +109,8 @@ class RunLogger:
         self._columns = Columns()
         self._frames_buffered = 0
         self._frames_logged = 0
+        self._camera_last_ns: dict[str, int] = {}  # camera -> stamp of its last frame (log_cameras_missing)
+        self._camera_period_ns: dict[str, int] = {}  # camera -> its shortest frame interval so far
         #: The modality loggers.
         self.frames = FrameLogger(self._rec, self._columns, self.max_reproj_px)
         self.frames.images = bool(images)
@@ -197,15 +203,29 @@ class RunLogger:
         if self._frames_buffered >= FLUSH_EVERY_FRAMES:
             self._flush()
 
-    def log_cameras_missing(self, frame: FrameResult, present: set[str]) -> None:
-        """At ``frame``'s time stamp (the one a time stamp's frames were logged at) the cameras not
-        in ``present`` had no frame (a dropped image): their zoom panels say so
-        (:meth:`FrameLogger.log_zoom_dropped`) instead of keeping the previous crop."""
+    def log_cameras_missing(self, frame: FrameResult, frames: list[FrameResult]) -> None:
+        """``frames``: every frame of one time stamp (``frame`` the one it was logged at). A camera
+        without a frame here whose own frame was due — at least DROPPED_AFTER_PERIODS of its
+        shortest frame interval since its last frame: a dropped image, not a camera that fires at
+        other stamps — gets its zoom panel saying so (:meth:`FrameLogger.log_zoom_dropped`)
+        instead of keeping the previous crop."""
         self._check_open()
-        missing = set(self.frames.cam_names) - set(present)
-        if missing:
+        now_ns = int(frame.log_time_ns)
+        for other in frames:
+            cam, stamp_ns = other.cam_name, int(other.log_time_ns)
+            last_ns = self._camera_last_ns.get(cam)
+            if last_ns is not None and stamp_ns > last_ns:
+                self._camera_period_ns[cam] = min(self._camera_period_ns.get(cam, stamp_ns - last_ns), stamp_ns - last_ns)
+            self._camera_last_ns[cam] = stamp_ns
+        present = {other.cam_name for other in frames}
+        due = {
+            cam for cam, last_ns in self._camera_last_ns.items()
+            if cam not in present and cam in self._camera_period_ns
+            and now_ns - last_ns >= DROPPED_AFTER_PERIODS * self._camera_period_ns[cam]
+        }
+        if due:
             self._stamp(frame)
-            self.frames.log_zoom_dropped(missing)
+            self.frames.log_zoom_dropped(due)
 
     def _flush(self) -> None:
         self._columns.flush(self._rec)

@@ -74,7 +74,7 @@ class RrdSink(NullSink):
             for other in item.frames:
                 if other is not item.scored:
                     self.logger.log_camera_view(other)
-            self.logger.log_cameras_missing(item.scored, {f.cam_name for f in item.frames})
+            self.logger.log_cameras_missing(item.scored, item.frames)
             self._scored()
         if uwb is not None:
             if not self.fusion_logger.anchor_ids:
