@@ -19,7 +19,7 @@ from agvviz.geometry.camera import PinholeCamera
 from agvviz.model.frames import REJECT_NO_MARKER, REJECT_REPROJECTION, FrameResult, LmIteration, MarkerObservation
 from agvviz.viz import paths
 from agvviz.viz.readback import _rows, read_rrd, scalar_series, text_document, document_json, transforms
-from agvviz.viz.log_frames import ZOOM_MIN_CROP_PX, ZOOM_SIDE_PX
+from agvviz.viz.zoom_placeholder import ZOOM_MIN_CROP_PX, ZOOM_SIDE_PX
 from agvviz.viz.zoom_placeholder import zoom_unseen_png
 from agvviz.viz.log_uncertainty import GHOST_MAX_AMBIGUITY_RATIO
 from agvviz.viz.run_logger import FLUSH_EVERY_FRAMES, RunLogger

@@ -7,6 +7,8 @@ as current.
 - ``auv_under_ice`` (corner observations only): each camera panel says why it has no image and,
   once a cycle closed, which window it shows.
 - ``diff``: B's error arrow is absent (an empty batch) on every frame B rejected.
+- a camera frame dropped altogether (uwb_room, a quarter of the frames dropped): the zoom shows
+  "no image at this frame" at that frame instead of the previous crop.
 
 Recordings are small: uwb_room 3 s at 640×512 with the code hidden from 1.0 to 1.8 s; a
 corner-only auv_under_ice drive of 6 s; qr_floor 1.5 s at 640×512 replayed twice, B with
@@ -156,3 +158,62 @@ def test_progress_total_of_a_camera_run_is_its_frames(tmp_path):
     totals, done, summary = _progress_of(recording, RunSettings())
     assert summary["frames"] == 15  # 1.5 s at 10 Hz, one camera
     assert totals == [15] and done == list(range(1, 16))
+
+
+def test_a_dropped_camera_frame_replaces_the_zoom_crop_at_that_frame(tmp_path):
+    """uwb_room 3 s with a quarter of the camera frames dropped: at a frame where a camera has no
+    image at all, its zoom (if it showed a crop) shows the "no image at this frame" placeholder
+    at that very frame, with no corners, never the previous crop."""
+    record("uwb_room", tmp_path / "drop.mcap", seed=0,
+           overrides=["duration_s=3", "width_px=640", "height_px=512", "realism_set=timing.drop_probability=0.25"])
+    run_recording(tmp_path / "drop.mcap", RunSettings(), tmp_path / "run.rrd", jobs=1, cache_dir=False)
+    contents = read_rrd(tmp_path / "run.rrd")
+    cams = sorted(p.split("/")[1].removeprefix("cam_") for p in contents.entity_paths
+                  if p.startswith(paths.ZOOM + "/") and p.endswith("/image"))
+    all_cams = sorted(p.split("/")[2].removeprefix("cam_") for p in contents.entity_paths
+                      if p.startswith(paths.FIXED_CAMERAS + "/") and p.endswith("/image"))
+    full = {cam: encoded_images(contents, paths.image(cam, True)) for cam in all_cams}
+    frames = set().union(*full.values())
+    checked = 0
+    for cam in cams:
+        zooms = encoded_images(contents, paths.zoom_image(cam))
+        corners = points2d(contents, paths.zoom_detected(cam))
+        crop_frames = {f for f, (png, _) in zooms.items()
+                       if np.median(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)) > 40}
+        for f in sorted(frames - set(full[cam])):
+            earlier = [k for k in zooms if k < f]
+            if not earlier or max(earlier) not in crop_frames:
+                continue  # the zoom showed no crop before this dropped frame
+            last_crop = max(earlier)
+            png, _ = zooms.get(f, (None, None))
+            image = cv2.imdecode(np.frombuffer(zooms[last_crop][0], np.uint8), cv2.IMREAD_UNCHANGED)
+            assert png == zoom_unseen_png(last_crop, False, image.ndim == 2, ZOOM_SIDE_PX, dropped=True), (cam, f)
+            assert len(corners[f]) == 0
+            checked += 1
+    assert checked >= 3  # dropped frames of cameras whose zoom showed a crop
+
+
+def test_only_a_camera_whose_frame_was_due_counts_as_dropped(tmp_path):
+    """Two cameras in sync at 10 Hz, B's frame 5 dropped: B counts as dropped at stamp 5 only.
+    Two cameras at 10 Hz firing in turn (A at 0, 100 ms…, B at 50, 150 ms…): never dropped — each
+    fires between the other's stamps, and its zoom must not blink."""
+    from types import SimpleNamespace
+
+    from agvviz.viz.run_logger import RunLogger
+
+    def flagged(sets):
+        logger = RunLogger(tmp_path / "x.rrd", recording_name="t", recording_id="t")
+        calls = []
+        logger.frames.log_zoom_dropped = lambda cams: calls.append((index, sorted(cams)))
+        for index, frames in enumerate(sets):
+            logger.log_cameras_missing(frames[0], frames)
+        logger.discard()
+        return calls
+
+    def frame(cam, index, t_ms):
+        return SimpleNamespace(cam_name=cam, index=index, log_time_ns=int(t_ms * 1e6))
+
+    in_sync = [[frame("a", k, 100 * k)] + ([] if k == 5 else [frame("b", k, 100 * k)]) for k in range(10)]
+    assert flagged(in_sync) == [(5, ["b"])]
+    in_turn = [[frame("a" if k % 2 == 0 else "b", k, 50 * k)] for k in range(20)]
+    assert flagged(in_turn) == []

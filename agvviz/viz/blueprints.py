@@ -22,10 +22,10 @@ bring back a blueprint file per logger.
 The default run layout::
 
     ┌──────────────────────────────┬──────────────────────────────────────┐
-    │ 3D world, following the      │ camera image: corners, ids, LM path  │
-    │ estimated AGV (markers,      │ (one tab per camera; zoom on a small │
-    │ truth vs estimate, ghost,    │  code beside it)                     │
-    │ ellipsoid, trajectories)     ├──────────────────────────────────────┤
+    │ 3D world, the whole run in   │ camera image: corners, ids, LM path  │
+    │ view (markers, truth vs      │ (one tab per camera; zoom on a small │
+    │ estimate, ghost, ellipsoid,  │  code beside it)                     │
+    │ trajectories)                ├──────────────────────────────────────┤
     │                              │ this frame's solve (text) + LM tabs  │
     ├──────────────┬───────────────┼─────────────┬────────────────────────┤
     │ position err │ heading err   │ reproj RMS  │ summary (terminal      │
@@ -194,33 +194,44 @@ def series_view(
     )
 
 
-#: Where the eye of a 3D view that follows the vehicle starts, from the vehicle's first
-#: position (world metres: behind-left and above, so the body, the ellipsoid above it and the
-#: codes the camera sees are all in view).
-EYE_OFFSET_M = (-2.5, -2.5, 2.2)
+#: Direction (world, from the scene's centre) the default run view's eye looks from: behind-left
+#: and above, so the vehicles, the 3σ ellipsoid above the body and the codes on the floor are
+#: seen from outside and at an angle.
+RUN_EYE_DIRECTION = (-0.55, -0.75, 0.75)
+#: The viewer's vertical field of view (Rerun 0.41: ``Eye.DEFAULT_FOV_Y``, 55°); a view is wider
+#: than tall, so the vertical angle is the one a scene must fit in.
+VIEWER_FOV_Y_DEG = 55.0
 
 
 def world_3d_view(
     name: str,
     cam_names: list[str],
     fixed_cams: set[str] = frozenset(),
-    track: str | None = None,
-    start_m: tuple[float, float, float] | None = None,
     eye: rrb.EyeControls3D | None = None,
 ) -> rrb.Spatial3DView:
-    """The 3D world view; ``track``: an entity the eye follows (e.g. the estimated AGV), from
-    EYE_OFFSET_M off ``start_m`` (its first position). The 2D overlays of the images (corners,
-    ids, LM path: UI-point sizes that would swamp the small frustum images) stay in the 2D
-    image views."""
+    """The 3D world view with the eye ``eye`` (None: Rerun's default). The 2D overlays of the
+    images (corners, ids, LM path: UI-point sizes that would swamp the small frustum images) stay
+    in the 2D image views.
+
+    No view of a run tracks an entity: Rerun 0.41 places a tracking eye at 1.5 × the radius of
+    the tracked entity's *own* bounding box (``re_view_spatial/src/eye.rs``,
+    ``handle_tracking_entity``) whatever position the blueprint gives, and the estimated AGV's own
+    box is its 0.5 m axes: the eye sat inside the 0.8 m body."""
     excluded = [f"- /{e}" for c in cam_names for e in paths.image_overlays(c, c in fixed_cams)]
-    if track is not None:
-        start = None if start_m is None else [float(v) for v in start_m]
-        eye = rrb.EyeControls3D(
-            tracking_entity=f"/{track}",
-            look_target=start,
-            position=None if start is None else [a + b for a, b in zip(start, EYE_OFFSET_M)],
-        )
     return rrb.Spatial3DView(origin=paths.WORLD, name=name, contents=["+ $origin/**", *excluded], eye_controls=eye)
+
+
+def fitting_eye(low_m, high_m, direction=RUN_EYE_DIRECTION, fov_y_deg: float = VIEWER_FOV_Y_DEG) -> rrb.EyeControls3D:
+    """An eye that keeps the box ``low_m``..``high_m`` (world, m) whole in view: it looks at the
+    box's centre from ``direction``, at the distance where the box's bounding sphere fits the
+    vertical field of view ``fov_y_deg`` (so every point of the box is in view, from any
+    direction, and the eye is outside the box)."""
+    low, high = np.asarray(low_m, dtype=float), np.asarray(high_m, dtype=float)
+    center = (low + high) / 2.0
+    radius = max(float(np.linalg.norm(high - low)) / 2.0, 0.5)
+    distance = radius / np.sin(np.radians(fov_y_deg) / 2.0)
+    unit = np.asarray(direction, dtype=float) / np.linalg.norm(direction)
+    return rrb.EyeControls3D(position=center + unit * distance, look_target=center, eye_up=(0.0, 0.0, 1.0))
 
 
 def framing_eye(low_m, high_m, direction=(-0.45, -0.9, 1.0), min_extent_m: float = 2.0) -> rrb.EyeControls3D:
@@ -276,6 +287,16 @@ def _lm_panel(lm_iterates: bool, steps_axis: PlotAxis | None = None, rejected: b
     return rrb.Vertical(text, bars, row_shares=[0.3, 0.7])
 
 
+#: The title of the note a run without ground truth shows where its error plots would be.
+NO_TRUTH_TITLE = "no truth in this recording: errors cannot be scored; see σ and reprojection"
+
+
+def no_truth_view() -> rrb.TextDocumentView:
+    """The note of a run without ground truth (``run/no_truth``,
+    :meth:`agvviz.viz.run_logger.RunLogger.log_no_truth`), in the place of its error plots."""
+    return rrb.TextDocumentView(origin=paths.RUN_NO_TRUTH, name=NO_TRUTH_TITLE)
+
+
 def summary_json_view() -> rrb.TextDocumentView:
     """The whole run summary as JSON (unrounded): a tab behind the summary table, for tools."""
     return rrb.TextDocumentView(origin=paths.RUN_SUMMARY_JSON, name="summary (JSON)")
@@ -291,11 +312,13 @@ def default_blueprint(
     has_threshold: bool = False,
     ghost_max_ratio: float | None = None,
     cov_scale: float | None = None,
-    start_m: tuple[float, float, float] | None = None,
+    scene_m: tuple | None = None,
     budget_sources: list[str] | None = None,
     has_suspects: bool = False,
     axes: dict[str, PlotAxis] | None = None,
     max_reproj_px: float | None = None,
+    has_truth: bool = True,
+    sigma_axis: PlotAxis | None = None,
 ) -> rrb.Blueprint:
     """Build the default layout for a run with cameras ``cam_names`` (fits 1600×1000).
 
@@ -303,13 +326,18 @@ def default_blueprint(
     solver iterated on some frame (else the solver panel is its text alone); ``has_rejections``
     puts the rejection log under the summary; ``has_threshold``: the reprojection plot has
     its ``max_reproj_px`` line; ``ghost_max_ratio`` and ``cov_scale`` are named in the 3D
-    view's title; the 3D view follows the estimated AGV from its first position ``start_m``.
+    view's title; the 3D view's eye frames ``scene_m``, the (low, high) corners of everything the
+    run put in the world around the vehicle (:meth:`FrameLogger.scene_extent_m`: both vehicles'
+    whole paths with their bodies and cameras, the codes seen), from outside at every frame.
     ``budget_sources``: the run holds an error budget of these sources (``run --budget``): its
     table is the active document and its chart and series are tabs beside the position error.
     ``has_suspects``: the suspects log (one line per suspect frame) under the summary, before
     the rejections, and the suspect diamonds on the error plots. ``axes``: each time series' y
     axis (:func:`run_plot_axes`; None: Rerun's auto range); ``max_reproj_px``: the limit line's
-    value, drawn only when the reprojection axis reaches it.
+    value, drawn only when the reprojection axis reaches it. ``has_truth`` False (no frame
+    carried ground truth): the plots that need truth (position, heading, pitch and roll error,
+    error ÷ CRLB, NEES) give their place to :func:`no_truth_view` over the position σ plot (y
+    axis ``sigma_axis``) — what a run knows without truth.
     """
     axes = axes or {}
     image_views = []
@@ -324,12 +352,14 @@ def default_blueprint(
         image_panel = image_views[0]
     else:
         image_panel = rrb.Tabs(*image_views)
-    title = ["world: truth (green), camera estimate (orange)"]
+    title = ["world: truth (green), camera estimate (orange)" if has_truth else "world: camera estimate (orange; no truth)"]
     if ghost_max_ratio is not None:
         title.append(f"IPPE mirror pose (violet) when ambiguity ratio < {ghost_max_ratio:g}")
     if cov_scale is not None:
         title.append(f"position 3σ ×{cov_scale:g} (above the body)")
-    world_view = world_3d_view(", ".join(title), cam_names, fixed_cams, track=paths.AGV_CAMERA, start_m=start_m)
+    world_view = world_3d_view(
+        ", ".join(title), cam_names, fixed_cams, eye=None if scene_m is None else fitting_eye(*scene_m)
+    )
     documents = rrb.Tabs(
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
@@ -360,42 +390,55 @@ def default_blueprint(
     def plot(entity: str, quantity: str, extra: tuple[str, ...] = ()) -> rrb.TimeSeriesView:
         return series_view(entity, quantity, axes.get(entity), rejected=has_rejections, suspect=has_suspects, extra=extra)
 
-    position = plot(paths.ERROR_POSITION_MM, "position error [mm]")
-    if budget_sources is not None:
-        position = rrb.Tabs(
-            position,
-            budget_shares_view(budget_sources),
-            budget_deltas_view(budget_sources),
-            budget_errors_view(budget_sources),
-            active_tab=0,
-        )
     limit = "red: max_reproj_px" + (f" {max_reproj_px:g}" if max_reproj_px is not None else "")
-    bottom = rrb.Horizontal(
-        position,
-        rrb.Tabs(
-            plot(paths.ERROR_HEADING_DEG, "heading error [deg]"),
-            plot(paths.ERROR_PITCH_DEG, "pitch error [deg]"),
-            plot(paths.ERROR_ROLL_DEG, "roll error [deg]"),
-            active_tab=0,
-        ),
-        rrb.Tabs(
-            plot(
-                paths.ERROR_REPROJ_RMS_PX,
-                "reprojection RMS [px]" + (f", {limit}" if limit_in_sight else ""),
-                extra=(paths.ERROR_REPROJ_THRESHOLD_PX,) if limit_in_sight else (),
-            ),
-            plot(paths.ERROR_POSITION_OVER_CRLB, "position error ÷ CRLB"),
-            plot(
-                paths.ERROR_NEES,
-                "NEES (orange), its mean dof (green) and 99 % bound (red)",
-                extra=(paths.ERROR_NEES_EXPECTED, paths.ERROR_NEES_BOUND_99),
-            ),
-            plot(paths.SOLVER_AMBIGUITY_RATIO, "IPPE ambiguity ratio (capped at 100)"),
-            active_tab=0,
-        ),
-        documents,
-        column_shares=[0.25, 0.23, 0.22, 0.30],
+    reprojection = plot(
+        paths.ERROR_REPROJ_RMS_PX,
+        "reprojection RMS [px]" + (f", {limit}" if limit_in_sight else ""),
+        extra=(paths.ERROR_REPROJ_THRESHOLD_PX,) if limit_in_sight else (),
     )
+    ambiguity = plot(paths.SOLVER_AMBIGUITY_RATIO, "IPPE ambiguity ratio (capped at 100)")
+    if not has_truth:
+        # Nothing to score against: no empty error plots; the note says why, the σ and the
+        # reprojection (what a run knows without truth) take their room.
+        sigma = series_view(paths.ERROR_POSITION_SIGMA_M, "position σ (√trace of the covariance) [m]", sigma_axis)
+        bottom = rrb.Horizontal(
+            rrb.Vertical(no_truth_view(), sigma, row_shares=[0.4, 0.6]),
+            rrb.Tabs(reprojection, ambiguity, active_tab=0),
+            documents,
+            column_shares=[0.36, 0.34, 0.30],
+        )
+    else:
+        position = plot(paths.ERROR_POSITION_MM, "position error [mm]")
+        if budget_sources is not None:
+            position = rrb.Tabs(
+                position,
+                budget_shares_view(budget_sources),
+                budget_deltas_view(budget_sources),
+                budget_errors_view(budget_sources),
+                active_tab=0,
+            )
+        bottom = rrb.Horizontal(
+            position,
+            rrb.Tabs(
+                plot(paths.ERROR_HEADING_DEG, "heading error [deg]"),
+                plot(paths.ERROR_PITCH_DEG, "pitch error [deg]"),
+                plot(paths.ERROR_ROLL_DEG, "roll error [deg]"),
+                active_tab=0,
+            ),
+            rrb.Tabs(
+                reprojection,
+                plot(paths.ERROR_POSITION_OVER_CRLB, "position error ÷ CRLB"),
+                plot(
+                    paths.ERROR_NEES,
+                    "NEES (orange), its mean dof (green) and 99 % bound (red)",
+                    extra=(paths.ERROR_NEES_EXPECTED, paths.ERROR_NEES_BOUND_99),
+                ),
+                ambiguity,
+                active_tab=0,
+            ),
+            documents,
+            column_shares=[0.25, 0.23, 0.22, 0.30],
+        )
     return rrb.Blueprint(
         rrb.Vertical(top, bottom, row_shares=[0.62, 0.38]),
         rrb.BlueprintPanel(state="collapsed"),
@@ -430,6 +473,7 @@ def uwb_blueprint(
     error_axis: PlotAxis | None = None,
     range_axes: dict[str, PlotAxis] | None = None,
     room_m: tuple | None = None,
+    has_truth: bool = True,
 ) -> rrb.Blueprint:
     """Layout for a run with cameras ``cam_names`` (``fixed_cams`` fixed in the world) and
     UWB anchors ``anchor_ids``. ``zoom_cams``: cameras with a zoomed view of their small code
@@ -438,7 +482,9 @@ def uwb_blueprint(
     the crosses of rejected frames when ``camera_rejected``), ``error_axis`` of the UWB/fused error
     (:meth:`FusionLogger.error_axis`: clipped, and saying so, when a few NLOS fixes are far off),
     ``range_axes`` of each anchor's ranges. ``room_m``: the room's (low, high) corners
-    (:func:`agvviz.viz.log_uwb.log_room_outline`), which the 3D view frames."""
+    (:func:`agvviz.viz.log_uwb.log_room_outline`), which the 3D view frames. ``has_truth`` False
+    (no frame carried ground truth): :func:`no_truth_view` and the GDOP plot in the place of the
+    camera and UWB/fused error plots."""
     range_axes = range_axes or {}
     cameras = [_camera_panel(c, c in fixed_cams, c in zoom_cams) for c in cam_names]
     if not cameras:
@@ -448,7 +494,8 @@ def uwb_blueprint(
     else:
         image_panel = rrb.Grid(*cameras, grid_columns=2)
     world = world_3d_view(
-        f"3D: {LEGEND[COLOR_TRUTH]} (green), {LEGEND[COLOR_CAMERA]} (orange), {LEGEND[COLOR_UWB]} (blue), "
+        ("3D: " + (f"{LEGEND[COLOR_TRUTH]} (green), " if has_truth else "no truth; "))
+        + f"{LEGEND[COLOR_CAMERA]} (orange), {LEGEND[COLOR_UWB]} (blue), "
         f"{LEGEND[COLOR_FUSED]} (yellow); UWB anchors, room outline (grey)",
         cam_names,
         fixed_cams,
@@ -485,13 +532,14 @@ def uwb_blueprint(
     states = rrb.StateTimelineView(
         origin="/",
         contents=[f"/{paths.FUSION_CAMERA_USED}", f"/{paths.FUSION_SOURCE}"],
-        name="camera used · fused estimate from",
+        name=STATE_LANES_KEY,
     )
     log_columns = rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_ELAPSED], text_log_columns=["body"])
+    gdop = rrb.TimeSeriesView(origin=paths.UWB_GDOP, name="GDOP", plot_legend=rrb.PlotLegend(visible=False))
     documents = rrb.Tabs(
         rrb.TextLogView(origin=paths.EVENTS_FUSION, name="switches", columns=log_columns),
         rrb.TextLogView(origin=paths.EVENTS_UWB_GATE, name="gates", columns=log_columns),
-        rrb.TimeSeriesView(origin=paths.UWB_GDOP, name="GDOP", plot_legend=rrb.PlotLegend(visible=False)),
+        *([gdop] if has_truth else []),
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
         summary_json_view(),
@@ -500,7 +548,7 @@ def uwb_blueprint(
     top = rrb.Horizontal(world, image_panel, column_shares=[0.45, 0.55])
     bottom = rrb.Horizontal(
         ranges,
-        rrb.Vertical(camera_error, fused_error),
+        rrb.Vertical(camera_error, fused_error) if has_truth else rrb.Vertical(no_truth_view(), gdop),
         rrb.Vertical(states, documents, row_shares=[0.4, 0.6]),
         column_shares=[0.38, 0.27, 0.35],
     )
@@ -511,6 +559,12 @@ def uwb_blueprint(
         rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_ELAPSED),
         auto_views=False,
     )
+
+
+#: The state timeline's title is the key of its lanes: Rerun 0.41 names a lane by its entity path
+#: (``StateVisualizer``: the lane label is ``data_result.entity_path``; ``StateConfiguration``'s
+#: labels name the states, not the lane; ``StateTimelineView`` has no per-lane name).
+STATE_LANES_KEY = "camera_used = fix used · fused_from = fused estimate's source"
 
 
 def _camera_panel(cam_name: str, fixed: bool, zoomed: bool) -> rrb.View | rrb.Container:

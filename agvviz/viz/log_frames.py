@@ -10,8 +10,6 @@ from its bytes without an archetype.
 
 from __future__ import annotations
 
-import math
-
 import cv2
 import numpy as np
 import rerun as rr
@@ -25,7 +23,7 @@ from agvviz.viz import log_rejections, paths
 from agvviz.viz.columns import ArrowBatch, Columns, Stamp
 from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
 from agvviz.viz.log_findings import error_values, rejection_row, suspect_row
-from agvviz.viz.zoom_placeholder import zoom_unseen_png
+from agvviz.viz.zoom_placeholder import ZOOM_SIDE_PX, crop_around, longest_edge_px, zoom_unseen_png
 from agvviz.viz.style import (
     COLOR_CAMERA,
     COLOR_DETECTED,
@@ -59,14 +57,9 @@ LM_ITERATION_RADIUS = rr.Radius.ui_points(2.0)
 MAX_TRAJECTORY_POINTS = 400
 #: A code whose longest detected edge is shorter than this fraction of the image width (a code a
 #: few UI points wide in an image panel) also gets a zoomed view: a crop of the recorded image
-#: around it, ZOOM_CROP_CODE_SIDES code sides wide (at least ZOOM_MIN_CROP_PX), so a ≈15 px
+#: around it, ZOOM_CROP_CODE_SIDES code sides wide (:func:`~agvviz.viz.zoom_placeholder.crop_around`), so a ≈15 px
 #: code fills its own panel.
 ZOOM_CODE_BELOW_FRACTION = 0.05
-#: Every crop is resized to this side (nearest neighbour: pixels stay visible as blocks), so
-#: the zoomed image keeps one size (the viewer refuses a stream of images changing size).
-ZOOM_SIDE_PX = 256
-ZOOM_CROP_CODE_SIDES = 3.0
-ZOOM_MIN_CROP_PX = 32
 
 #: Per-frame error series: (entity, legend name, colour).
 FRAME_SERIES = (
@@ -129,6 +122,7 @@ class FrameLogger:
         self._zoomed: set[str] = set()  # cameras whose zoom shows a crop now
         self._zoom_last_seen: dict[str, int] = {}  # camera -> last frame its zoom showed a crop
         self._zoom_gray: dict[str, bool] = {}  # camera -> its crops are one-channel (the placeholder too)
+        self._zoom_dropped: set[str] = set()  # cameras whose zoom says "no image at this frame" now
         # What the run held, for the layout.
         self._zoom_cams: set[str] = set()
         #: Frames rejected so far.
@@ -138,8 +132,15 @@ class FrameLogger:
         self.rejections: list[tuple[Stamp, str]] = []
         #: Suspect frames so far (solved, but failed a check against what else the log knows).
         self.suspect_frames = 0
-        #: The first estimated pose T_world_agv (the 3D view starts there); None: none yet.
-        self.first_pose: np.ndarray | None = None
+        #: Frames that carried ground truth (0: a run without truth, e.g. ``truth=ignore``).
+        self.truth_frames = 0
+        #: Points the vehicle draws, in its body frame: the body's corners, each camera on it,
+        #: the axes and the 3σ ellipsoid above the body (:meth:`scene_extent_m`).
+        self._vehicle_points_agv_m = [np.array(AGV_BODY_CENTER_M) + np.array(AGV_BODY_HALF_SIZES_M) * np.array(c)
+                                      for c in ((-1, -1, -1), (1, 1, 1))]
+        self._vehicle_points_agv_m.append(np.array([0.0, 0.0, AGV_AXIS_LENGTH_M]))
+        self._seen_low_m: np.ndarray | None = None  # corners of the codes seen in 3D, lowest / highest
+        self._seen_high_m: np.ndarray | None = None
 
     @property
     def cam_names(self) -> list[str]:
@@ -149,6 +150,25 @@ class FrameLogger:
     def zoom_cams(self) -> list[str]:
         """Cameras that had a small code at least once (they have a zoomed view)."""
         return sorted(self._zoom_cams)
+
+    def scene_extent_m(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(low, high) world corners (m) of what the run drew around the vehicle: both vehicles
+        (truth and estimate) at every pose, each with its body, cameras, axes and ellipsoid (as
+        a box of their reach, whatever the heading), and every code seen. None: no pose."""
+        positions = [t.array() for t in (self._trajectory_truth_m, self._trajectory_camera_m) if len(t)]
+        if not positions:
+            return None
+        positions = np.concatenate(positions)
+        positions = positions[np.all(np.isfinite(positions), axis=1)]
+        if not len(positions):
+            return None
+        vehicle = np.array(self._vehicle_points_agv_m, dtype=float)
+        reach_xy_m = float(np.max(np.linalg.norm(vehicle[:, :2], axis=1)))
+        low = positions.min(axis=0) + np.array([-reach_xy_m, -reach_xy_m, min(0.0, vehicle[:, 2].min())])
+        high = positions.max(axis=0) + np.array([reach_xy_m, reach_xy_m, max(0.0, vehicle[:, 2].max())])
+        if self._seen_low_m is not None:
+            low, high = np.minimum(low, self._seen_low_m), np.maximum(high, self._seen_high_m)
+        return low, high
 
     # -- static content --------------------------------------------------------------------
     def log_styles(self) -> None:
@@ -180,7 +200,6 @@ class FrameLogger:
             )
         for entity in (paths.AGV_TRUTH, paths.AGV_CAMERA):
             rec.log(entity, rr.TransformAxes3D(AGV_AXIS_LENGTH_M), static=True)
-        rec.log(paths.AGV_TRUTH_BODY, agv_body(COLOR_TRUTH, "truth"), static=True)
         rec.log(paths.TRAJECTORY_TRUTH, rr.LineStrips3D.from_fields(colors=COLOR_TRUTH, radii=rr.Radius.ui_points(2.0)), static=True)
         rec.log(paths.TRAJECTORY_CAMERA, rr.LineStrips3D.from_fields(colors=COLOR_CAMERA, radii=rr.Radius.ui_points(2.0)), static=True)
         rec.log(
@@ -269,6 +288,7 @@ class FrameLogger:
         entity = paths.camera(cam_name)
         self._rec.log(entity, transform3d(T_agv_cam), static=True)
         self._rec.log(entity, _pinhole(camera), static=True)
+        self._vehicle_points_agv_m.append(T_agv_cam[:3, 3])
         self._log_camera_styles(cam_name, fixed=False)
         self._image_width_px[cam_name] = int(camera.width_px)
         if cam_name not in self._cam_names:
@@ -338,15 +358,15 @@ class FrameLogger:
             for obs in frame.observations:
                 if is_chessboard_id(obs.marker_id):
                     continue  # saddles, not a code's outline
-                edge_px = _longest_edge_px(np.asarray(obs.corners_px, float)[:4])
+                edge_px = longest_edge_px(np.asarray(obs.corners_px, float)[:4])
                 if edge_px < below_px:
                     small.append((edge_px, obs))
         crop = None
         if small:
             _, obs = min(small, key=lambda edge_obs: edge_obs[0])
-            crop = _crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
+            crop = crop_around(frame.image_bytes, np.asarray(obs.corners_px, float)[:4])
         if crop is None:
-            if cam in self._zoomed:
+            if cam in self._zoomed or cam in self._zoom_dropped:
                 self._log_zoom_unseen(cam, bool(frame.observations))
             return
         png, origin_px, px_per_image_px, gray = crop
@@ -363,19 +383,32 @@ class FrameLogger:
             ),
         )
         self._zoomed.add(cam)
+        self._zoom_dropped.discard(cam)
         self._zoom_cams.add(cam)
         self._zoom_last_seen[cam] = int(frame.index)
         self._zoom_gray[cam] = gray
 
-    def _log_zoom_unseen(self, cam: str, codes_in_view: bool) -> None:
-        """The camera's small code is gone: the zoom shows a placeholder saying since when
-        (not the last crop, which would read as current), and its corners go."""
+    def log_zoom_dropped(self, cams: set[str]) -> None:
+        """At a time stamp where cameras ``cams`` have no frame at all (a dropped image), the
+        zoom of each that shows a crop says so instead (at the stamp the time stamp's frames were
+        logged at): the crop left on screen would read as current. A zoom that says "not seen
+        since frame N" already stays as it is."""
+        for cam in sorted(cams & self._zoomed):
+            self._log_zoom_unseen(cam, False, dropped=True)
+            self._zoom_dropped.add(cam)
+
+    def _log_zoom_unseen(self, cam: str, codes_in_view: bool, dropped: bool = False) -> None:
+        """The camera's small code is gone (``dropped``: its whole image is): the zoom shows a
+        placeholder saying since when (not the last crop, which would read as current), and its
+        corners go."""
         rec = self._rec
         last = self._zoom_last_seen[cam]
-        rec.log(paths.zoom_image(cam), rr.EncodedImage(contents=zoom_unseen_png(last, codes_in_view, self._zoom_gray[cam], ZOOM_SIDE_PX), media_type="image/png"))
+        png = zoom_unseen_png(last, codes_in_view, self._zoom_gray[cam], ZOOM_SIDE_PX, dropped=dropped)
+        rec.log(paths.zoom_image(cam), rr.EncodedImage(contents=png, media_type="image/png"))
         rec.log(paths.zoom_detected(cam), rr.Points2D(np.zeros((0, 2))))
         rec.log(paths.zoom_reprojected(cam), rr.Points2D(np.zeros((0, 2))))
         self._zoomed.discard(cam)
+        self._zoom_dropped.discard(cam)
 
     def log_markers_seen(self, frame: FrameResult, stamp: Stamp) -> None:
         """The outline and id of every code of this frame in 3D (world-fixed codes only)."""
@@ -386,6 +419,11 @@ class FrameLogger:
             corners = np.asarray(obs.points_world_m, dtype=float)
             corners = _outline_of_points(corners) if is_chessboard_id(obs.marker_id) else corners[:4]
             outlines.append(np.vstack([corners, corners[:1]]))
+            finite = corners[np.all(np.isfinite(corners), axis=1)]
+            if len(finite):
+                low, high = finite.min(axis=0), finite.max(axis=0)
+                self._seen_low_m = low if self._seen_low_m is None else np.minimum(self._seen_low_m, low)
+                self._seen_high_m = high if self._seen_high_m is None else np.maximum(self._seen_high_m, high)
             used = (
                 " (used)" if obs.marker_id in (frame.used_marker_ids or (frame.used_marker_id,))
                 else " (left out)" if obs.marker_id in frame.excluded_marker_ids else ""
@@ -397,13 +435,14 @@ class FrameLogger:
         rec = self._rec
         if frame.T_world_agv_truth is not None:
             T_truth = np.asarray(frame.T_world_agv_truth, dtype=float)
+            if self.truth_frames == 0:  # the truth body only in a run with truth (not at the origin)
+                rec.log(paths.AGV_TRUTH_BODY, agv_body(COLOR_TRUTH, "truth"), static=True)
+            self.truth_frames += 1
             self._columns.transform(paths.AGV_TRUTH, stamp, T_truth)
             self._trajectory_truth_m.append(T_truth[:3, 3])
             self._columns.row(paths.TRAJECTORY_TRUTH, "strip3d", stamp, _thinned(self._trajectory_truth_m.array()))
         if frame.solved:
             T_est = np.asarray(frame.T_world_agv, dtype=float)
-            if self.first_pose is None:
-                self.first_pose = T_est
             self._columns.transform(paths.AGV_CAMERA, stamp, T_est)
             # A suspect pose is labelled with its likely cause (the suspects log says more).
             label = "" if frame.suspect is None else f"suspect: {cause_words(frame.suspect.cause)}"
@@ -461,34 +500,6 @@ def agv_body(color: tuple[int, int, int], label: str = "") -> rr.Boxes3D:
         labels=[label] if label else [],  # empty clears a previous stale label
         radii=rr.Radius.ui_points(1.5),
     )
-
-
-def _longest_edge_px(corners_px: np.ndarray) -> float:
-    """Longest edge of a code's outline (TL, TR, BR, BL) in pixels."""
-    return float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
-
-
-def _crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float, bool] | None:
-    """PNG of a square crop of the image centred on the code, resized to ZOOM_SIDE_PX; the
-    crop's top-left pixel, the zoom's pixels per image pixel and whether it is one-channel. None
-    when the image does not decode."""
-    image = cv2.imdecode(np.frombuffer(image_bytes, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        return None
-    height, width = image.shape[:2]
-    side = int(max(ZOOM_MIN_CROP_PX, math.ceil(ZOOM_CROP_CODE_SIDES * _longest_edge_px(corners_px))))
-    centre = corners_px.mean(axis=0)
-    x0 = int(np.clip(round(centre[0] - side / 2), 0, max(width - side, 0)))
-    y0 = int(np.clip(round(centre[1] - side / 2), 0, max(height - side, 0)))
-    crop = image[y0 : y0 + side, x0 : x0 + side]
-    if crop.shape[0] != crop.shape[1]:  # an image smaller than the crop: pad it square
-        side = max(crop.shape[:2])
-        crop = cv2.copyMakeBorder(crop, 0, side - crop.shape[0], 0, side - crop.shape[1], cv2.BORDER_CONSTANT)
-    zoomed = cv2.resize(crop, (ZOOM_SIDE_PX, ZOOM_SIDE_PX), interpolation=cv2.INTER_NEAREST)
-    ok, png = cv2.imencode(".png", zoomed)
-    if not ok:
-        return None
-    return png.tobytes(), np.array([x0, y0], dtype=float), ZOOM_SIDE_PX / side, zoomed.ndim == 2
 
 
 def _thinned(positions_m: list[np.ndarray] | np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ items come from :class:`agvviz.replay.fuse.FusionReplay`. Everything is stamped 
 
 ``fusion/camera_used``            StateChange: the camera whose fix was used ("none": no camera
                                   solved), logged when it changes (a category lane, not a line)
-``fusion/source``                 StateChange: what the fused estimate comes from (camera, UWB
+``fusion/fused_from``             StateChange: what the fused estimate comes from (camera, UWB
                                   compensated, Kalman), logged when it changes
 ``errors/uwb_position_mm``        Scalars: 2-D error of each UWB fix (mm)
 ``errors/fused_position_mm``      Scalars: 2-D error of each fused output (mm)
@@ -38,7 +38,7 @@ from agvviz.viz.timelines import set_stamp
 
 #: State of ``fusion/camera_used`` when no camera solved.
 NO_CAMERA = "none"
-#: Labels and colours of the ``fusion/source`` states (FusedFix.source).
+#: Labels and colours of the ``fusion/fused_from`` states (FusedFix.source).
 SOURCE_STATES = {
     "camera": ("camera fix", COLOR_CAMERA),
     "uwb": ("UWB (compensated)", COLOR_UWB),

@@ -44,6 +44,7 @@ the camera is).
     events/rejections                       TextLog (WARN) with reason and detail
     events/suspects                         TextLog (WARN) per suspect frame: check, σ, cause, message
     run/manifest, run/summary               TextDocument (static, markdown + JSON block)
+    run/no_truth                            TextDocument (static): a run without ground truth says so
 """
 
 from __future__ import annotations
@@ -127,6 +128,9 @@ def error_rejected_all(series_entity: str) -> str:
 RUN_MANIFEST = "run/manifest"
 RUN_SUMMARY = "run/summary"  # TextDocument (static): the terminal's table (mm, °, px), damage, warnings
 RUN_SUMMARY_JSON = "run/summary_json"  # TextDocument (static): the whole summary as a ```json block
+#: TextDocument (static), only in a run whose frames carried no ground truth: why its error plots
+#: are not there and what the run knows instead (shown where the error plots would be).
+RUN_NO_TRUTH = "run/no_truth"
 
 
 def camera(cam_name: str, fixed: bool = False) -> str:
@@ -205,7 +209,10 @@ TRAJECTORY_FUSED = "world/trajectory/fused"
 UWB_GDOP = "uwb/gdop"  # Scalars per UWB fix
 ERROR_UWB_POSITION_MM = "errors/uwb_position_mm"  # 2-D error of each UWB fix (mm)
 ERROR_FUSED_POSITION_MM = "errors/fused_position_mm"  # 2-D error of each fused output (mm)
-FUSION_SOURCE = "fusion/source"  # StateChange: what the fused estimate comes from
+#: StateChange: what the fused estimate comes from. The state timeline's lane is named by the
+#: entity path (Rerun 0.41: no lane name; a space in a path shows escaped, ``/fusion/fused\ from``),
+#: so the path reads as words: "fused_from".
+FUSION_SOURCE = "fusion/fused_from"
 EVENTS_FUSION = "events/fusion"  # TextLog: every switch, with its offset and jump
 EVENTS_UWB_GATE = "events/uwb_gate"  # TextLog: every range a gate removed
 FUSION_CAMERA_USED = "fusion/camera_used"  # StateChange: camera used ('none': none), logged on change

@@ -398,3 +398,62 @@ def recording_id_of(path: str | os.PathLike) -> str:
     if not recordings:
         raise RrdReadError(f"{path} holds no recording; {_REWRITE}")
     return recordings[0].recording_id
+
+
+@dataclass(frozen=True)
+class BlueprintView:
+    """One view of the default layout shipped in a ``.rrd`` (:func:`blueprint_views`)."""
+
+    kind: str  # Rerun's view class: "3D", "2D", "TimeSeries", "TextDocument", "StateTimeline", …
+    name: str
+    origin: str
+    contents: tuple[str, ...]  # the view's content queries (entity paths, ``$origin/**``, …)
+    eye_position: tuple[float, float, float] | None = None  # a 3D view's eye (world, m)
+    eye_look_target: tuple[float, float, float] | None = None
+    eye_tracking_entity: str | None = None
+
+
+def blueprint_views(path: str | os.PathLike) -> list[BlueprintView]:
+    """Every view of the layout the ``.rrd`` at ``path`` ships (its blueprint store): what a user
+    sees when the file opens. :class:`RrdReadError` when the file has no blueprint."""
+    try:
+        reader = RrdReader(Path(path))
+        stores = reader.blueprints()
+        if not stores:
+            raise RrdReadError(f"{path} ships no layout (blueprint)")
+        by_view: dict[str, dict] = {}
+        for chunk in reader.store(store=stores[0]).stream():
+            parts = chunk.entity_path.strip("/").split("/")
+            if len(parts) < 2 or parts[0] != "view":
+                continue
+            fields = by_view.setdefault(parts[1], {})
+            for row in chunk.to_record_batch().to_pylist():
+                fields.update({key: value for key, value in row.items() if ":" in key and value is not None})
+    except RrdReadError:
+        raise
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001 — Rerun raises RuntimeError, or panics, on damage
+        raise RrdReadError(f"cannot read the layout of {path}: {_one_line(exc)}") from exc
+
+    def first(fields: dict, key: str):
+        value = fields.get(key)
+        return value[0] if value else None
+
+    def vector(fields: dict, key: str):
+        value = first(fields, key)
+        return None if value is None else tuple(float(v) for v in value)
+
+    return [
+        BlueprintView(
+            kind=first(fields, "ViewBlueprint:class_identifier") or "",
+            name=first(fields, "ViewBlueprint:display_name") or "",
+            origin=first(fields, "ViewBlueprint:space_origin") or "",
+            contents=tuple(fields.get("ViewContents:query") or ()),
+            eye_position=vector(fields, "EyeControls3D:position"),
+            eye_look_target=vector(fields, "EyeControls3D:look_target"),
+            eye_tracking_entity=first(fields, "EyeControls3D:tracking_entity") or None,
+        )
+        for fields in by_view.values()
+        if "ViewBlueprint:class_identifier" in fields
+    ]

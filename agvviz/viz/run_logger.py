@@ -39,7 +39,7 @@ from agvviz.evaluation.summary_table import markdown_table, summary_rows
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.model.frames import FrameResult
 from agvviz.viz import paths
-from agvviz.viz.blueprints import PlotAxis, default_blueprint, run_plot_axes
+from agvviz.viz.blueprints import PlotAxis, default_blueprint, plot_axis, run_plot_axes
 from agvviz.viz.columns import Columns, Stamp
 from agvviz.viz.log_findings import FindingLogger
 from agvviz.viz.log_frames import FrameLogger, RunLogError, check_frame
@@ -50,6 +50,10 @@ from agvviz.viz.timelines import elapsed_s, set_stamp
 
 #: Per-frame values are sent as columns every this many frames (and at close).
 FLUSH_EVERY_FRAMES = 64
+#: A camera without a frame at a time stamp missed one (a dropped image) when this many of its
+#: shortest frame intervals have passed since its last frame: 1 for a synchronised camera, under
+#: 0.75 for cameras that fire between each other's stamps (half a period for two alternating).
+DROPPED_AFTER_PERIODS = 0.75
 
 
 class RunLogger:
@@ -104,6 +108,9 @@ class RunLogger:
         self._saved = False
         self._columns = Columns()
         self._frames_buffered = 0
+        self._frames_logged = 0
+        self._camera_last_ns: dict[str, int] = {}  # camera -> stamp of its last frame (log_cameras_missing)
+        self._camera_period_ns: dict[str, int] = {}  # camera -> its shortest frame interval so far
         #: The modality loggers.
         self.frames = FrameLogger(self._rec, self._columns, self.max_reproj_px)
         self.frames.images = bool(images)
@@ -192,8 +199,33 @@ class RunLogger:
         self.lm.log(frame, stamp, frame.cam_name in frames.fixed_cams)
         self.uncertainty.log(frame, stamp)
         self._frames_buffered += 1
+        self._frames_logged += 1
         if self._frames_buffered >= FLUSH_EVERY_FRAMES:
             self._flush()
+
+    def log_cameras_missing(self, frame: FrameResult, frames: list[FrameResult]) -> None:
+        """``frames``: every frame of one time stamp (``frame`` the one it was logged at). A camera
+        without a frame here whose own frame was due — at least DROPPED_AFTER_PERIODS of its
+        shortest frame interval since its last frame: a dropped image, not a camera that fires at
+        other stamps — gets its zoom panel saying so (:meth:`FrameLogger.log_zoom_dropped`)
+        instead of keeping the previous crop."""
+        self._check_open()
+        now_ns = int(frame.log_time_ns)
+        for other in frames:
+            cam, stamp_ns = other.cam_name, int(other.log_time_ns)
+            last_ns = self._camera_last_ns.get(cam)
+            if last_ns is not None and stamp_ns > last_ns:
+                self._camera_period_ns[cam] = min(self._camera_period_ns.get(cam, stamp_ns - last_ns), stamp_ns - last_ns)
+            self._camera_last_ns[cam] = stamp_ns
+        present = {other.cam_name for other in frames}
+        due = {
+            cam for cam, last_ns in self._camera_last_ns.items()
+            if cam not in present and cam in self._camera_period_ns
+            and now_ns - last_ns >= DROPPED_AFTER_PERIODS * self._camera_period_ns[cam]
+        }
+        if due:
+            self._stamp(frame)
+            self.frames.log_zoom_dropped(due)
 
     def _flush(self) -> None:
         self._columns.flush(self._rec)
@@ -247,17 +279,36 @@ class RunLogger:
             self._columns.extents, max_reproj_px=self.max_reproj_px, rejection_reasons=self.frames.rejection_reasons()
         )
 
+    @property
+    def has_truth(self) -> bool:
+        """False when frames were logged and none carried ground truth (``truth=ignore``, or a
+        recording without it): no error can be scored. True before any frame (nothing known)."""
+        return self.frames.truth_frames > 0 or self._frames_logged == 0
+
+    def log_no_truth(self) -> None:
+        """The note a run without ground truth shows where its error plots would be
+        (``run/no_truth``, static; :func:`agvviz.viz.blueprints.no_truth_view`)."""
+        self._check_open()
+        text = (
+            "**No ground truth** (none recorded, or `truth=ignore`): position, heading, pitch and roll "
+            "errors, NEES and error ÷ CRLB cannot be scored, so they are not plotted. Without truth: "
+            "the **position σ**, the **reprojection RMS**, the **suspects** log, the 3σ ellipsoid in 3D; "
+            "with UWB the **GDOP** and the gates."
+        )
+        self._rec.log(paths.RUN_NO_TRUTH, _markdown(text), static=True)
+
     def close(self) -> None:
         """Finish the file: log the rejected-frame crosses where the plots' axes put them, send
         the buffered columns, ship the default blueprint, write the footer, move it into place."""
         self._check_open()
         axes = self.plot_axes()
+        if not self.has_truth:
+            self.log_no_truth()
         self.frames.log_rejection_markers({entity: axis.marker_y for entity, axis in axes.items()})
         self._flush()
         self._saved = True
         blueprint = self.blueprint
         if blueprint is None:
-            first_pose = self.frames.first_pose
             blueprint = default_blueprint(
                 self.frames.cam_names,
                 fixed_cams=self.frames.fixed_cams,
@@ -267,11 +318,14 @@ class RunLogger:
                 has_threshold=self.max_reproj_px is not None,
                 ghost_max_ratio=GHOST_MAX_AMBIGUITY_RATIO,
                 cov_scale=self.uncertainty.cov_scale,
-                start_m=None if first_pose is None else tuple(first_pose[:3, 3]),
+                scene_m=self.frames.scene_extent_m(),
                 budget_sources=self._budget_sources,
                 has_suspects=self.frames.suspect_frames > 0 or self.findings.findings_logged > 0,
                 axes=axes,
                 max_reproj_px=self.max_reproj_px,
+                has_truth=self.has_truth,
+                sigma_axis=plot_axis([self._columns.extents[paths.ERROR_POSITION_SIGMA_M]])
+                if paths.ERROR_POSITION_SIGMA_M in self._columns.extents else None,
             )
         self._file.commit(blueprint)
 

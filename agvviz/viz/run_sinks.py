@@ -74,6 +74,7 @@ class RrdSink(NullSink):
             for other in item.frames:
                 if other is not item.scored:
                     self.logger.log_camera_view(other)
+            self.logger.log_cameras_missing(item.scored, item.frames)
             self._scored()
         if uwb is not None:
             if not self.fusion_logger.anchor_ids:
@@ -106,6 +107,7 @@ class RrdSink(NullSink):
                 error_axis=clipped_axis(fusion.errors_mm, "mm"),
                 range_axes={a: plot_axis([extent], include_zero=False) for a, extent in fusion.range_extents.items()},
                 room_m=self.room_m,
+                has_truth=self.logger.has_truth,
             )
         if self.correction_logger is not None:
             self.logger.blueprint = correction_blueprint(sorted(self.cameras))
