@@ -1,6 +1,7 @@
 """Issue 23: a 200 000-marker map must not need an n × n array. The unmapped-code tolerance
 (agvviz.recording.contract.unmapped_tolerance_m) and the nearest-mapped-code distance of
-payload_map_problem come from a k-d tree now; on small maps they equal the brute-force
+payload_map_problem come from a k-d tree now (issue 27: numpy up to SMALL_MAP_CODES codes, so a
+run on a small map does not import scipy.spatial); on small maps they equal the brute-force
 pairwise formula they replace (written out here, independently)."""
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ import time
 import numpy as np
 import pytest
 
+from agvviz.recording import checks
 from agvviz.recording.checks import (
+    CentreIndex,
     QrMap,
     UNMAPPED_CODE_SPACINGS,
     payload_map_problem,
@@ -88,3 +91,38 @@ def test_a_200_000_code_map_is_quick_and_small():
     print(f"\nbench: 200 000-code map: qr_map_of + unmapped_tolerance_m + one unmapped check in {elapsed:.2f} s "
           f"(tolerance {tol:.2f} m)")
     assert len(qr_map) == n and tol > 1.0 and problem is not None and "not in the marker map" in problem
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_numpy_search_and_tree_give_the_same_distances(seed, monkeypatch):
+    """The small-map numpy search (blocks of rows) and the k-d tree return equal distances: each
+    code's nearest neighbour and a point's nearest centre, duplicates included."""
+    rng = np.random.default_rng(seed)
+    plain = _random_map(rng, 700, 30.0)  # more rows than one numpy block
+    plain["DUP"] = plain["Q007"].copy()
+    monkeypatch.setattr(checks, "SMALL_MAP_CODES", 10**9)
+    by_numpy = CentreIndex(plain)
+    monkeypatch.setattr(checks, "SMALL_MAP_CODES", 0)
+    by_tree = CentreIndex(plain)
+    assert by_numpy._tree is None and by_tree._tree is not None
+    np.testing.assert_allclose(
+        by_numpy.nearest_neighbour_distances_m(), by_tree.nearest_neighbour_distances_m(), rtol=1e-12, atol=0
+    )
+    for point in rng.uniform(-60, 60, (20, 3)):
+        assert by_numpy.nearest_distance_m(point) == pytest.approx(by_tree.nearest_distance_m(point), rel=1e-12)
+
+
+def test_a_small_map_does_not_import_scipy_spatial():
+    """A run on a small map (every scenario's) pays no scipy.spatial import (issue 27)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from agvviz.recording.checks import QrMap, unmapped_tolerance_m, payload_map_problem\n"
+        "m = QrMap({f'Q{i}': np.eye(4, 3) + i for i in range(50)})\n"
+        "unmapped_tolerance_m(m); payload_map_problem('NEW', np.eye(4, 3) + 99, m)\n"
+        "print('scipy.spatial' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

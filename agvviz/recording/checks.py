@@ -206,28 +206,62 @@ class TimeChecks:
 
 class QrMap(dict):
     """World corners (4, 3) per id of a QR marker map (a dict, built once and not changed), with
-    a k-d tree of the codes' centres built on first use: the nearest mapped code to a point and
-    each code's nearest neighbour cost O(log n) and O(n log n) in memory O(n), whatever the map
-    size (a 200 000-code map: no n × n array)."""
+    an index of the codes' centres built on first use (:class:`CentreIndex`): the nearest mapped
+    code to a point and each code's nearest neighbour, in memory O(n) whatever the map size (a
+    200 000-code map: no n × n array)."""
 
-    _tree = None
+    _index = None
 
-    def centre_tree(self):
-        """``scipy.spatial.cKDTree`` of the codes' centres (the mean of their 4 corners)."""
-        if self._tree is None:
-            self._tree = _centre_tree(self)
-        return self._tree
-
-
-def _centre_tree(qr_map: dict):
-    from scipy.spatial import cKDTree
-
-    centres = np.array([np.asarray(c, dtype=float).mean(axis=0) for c in qr_map.values()]).reshape(-1, 3)
-    return cKDTree(centres)
+    def centre_index(self) -> "CentreIndex":
+        """The :class:`CentreIndex` of the codes' centres (the mean of their 4 corners)."""
+        if self._index is None:
+            self._index = CentreIndex(self)
+        return self._index
 
 
-def _tree_of(qr_map: dict):
-    return qr_map.centre_tree() if isinstance(qr_map, QrMap) else _centre_tree(qr_map)
+#: Up to this many codes the centres are searched by numpy in blocks of rows; above it by
+#: ``scipy.spatial.cKDTree``, whose import costs ≈0.2–0.5 s of a run's start (issue 27).
+SMALL_MAP_CODES = 4096
+_ROWS_PER_BLOCK = 256  # numpy search: a block's distances are _ROWS_PER_BLOCK × n floats
+
+
+class CentreIndex:
+    """Nearest-centre queries over a QR map's code centres: numpy for a map of up to
+    :data:`SMALL_MAP_CODES` codes (a block of rows at a time: memory O(n)), a k-d tree above.
+    Both give the Euclidean distance √(dx² + dy² + dz²)."""
+
+    def __init__(self, qr_map: dict):
+        self.centres = np.array(
+            [np.asarray(c, dtype=float).mean(axis=0) for c in qr_map.values()]
+        ).reshape(-1, 3)
+        self._tree = None
+        if len(self.centres) > SMALL_MAP_CODES:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.centres)
+
+    def nearest_neighbour_distances_m(self) -> np.ndarray:
+        """Each code's distance to its nearest other code (needs at least two codes)."""
+        if self._tree is not None:
+            distances, _ = self._tree.query(self.centres, k=2)  # itself, then its nearest
+            return distances[:, 1]
+        out = np.empty(len(self.centres))
+        for start in range(0, len(self.centres), _ROWS_PER_BLOCK):
+            block = self.centres[start:start + _ROWS_PER_BLOCK]
+            d = np.sqrt(np.sum((block[:, None, :] - self.centres[None, :, :]) ** 2, axis=2))
+            d[np.arange(len(block)), np.arange(start, start + len(block))] = np.inf  # not itself
+            out[start:start + len(block)] = d.min(axis=1)
+        return out
+
+    def nearest_distance_m(self, point: np.ndarray) -> float:
+        """Distance from ``point`` (3,) to the nearest code centre (needs at least one code)."""
+        if self._tree is not None:
+            return float(self._tree.query(point, k=1)[0])
+        return float(np.sqrt(np.sum((self.centres - np.asarray(point, dtype=float)) ** 2, axis=1)).min())
+
+
+def _index_of(qr_map: dict) -> CentreIndex:
+    return qr_map.centre_index() if isinstance(qr_map, QrMap) else CentreIndex(qr_map)
 
 
 def qr_map_of(marker_map: dict) -> QrMap:
@@ -248,12 +282,10 @@ def qr_map_of(marker_map: dict) -> QrMap:
 def unmapped_tolerance_m(qr_map: dict[str, np.ndarray]) -> float:
     """How far from the nearest mapped code a code the map does not list may be (m):
     :data:`UNMAPPED_CODE_SPACINGS` × the largest nearest-neighbour distance between mapped
-    codes' centres, at least 1 m. Nearest neighbours come from a k-d tree (memory O(n))."""
+    codes' centres, at least 1 m. Nearest neighbours from :class:`CentreIndex` (memory O(n))."""
     spacing = 0.0
     if len(qr_map) > 1:
-        tree = _tree_of(qr_map)
-        distances, _ = tree.query(tree.data, k=2)  # itself, then its nearest
-        spacing = float(distances[:, 1].max())
+        spacing = float(_index_of(qr_map).nearest_neighbour_distances_m().max())
     return max(1.0, UNMAPPED_CODE_SPACINGS * spacing)
 
 
@@ -276,7 +308,7 @@ def payload_map_problem(
         return None
     tol = unmapped_tolerance_m(qr_map) if unmapped_tol_m is None else unmapped_tol_m
     centre = vertices.mean(axis=0)
-    nearest = float(_tree_of(qr_map).query(centre, k=1)[0])
+    nearest = _index_of(qr_map).nearest_distance_m(centre)
     if nearest > tol:
         return (
             f"code {marker_id} is not in the marker map and its payload puts it {nearest:.1f} m "

@@ -5,7 +5,8 @@ looked up in the map, a ChArUco board's saddle corners are one more candidate (f
 solve). Each candidate is (observation, ideal corners px, marker-frame points, frame of the
 marker, ``T_frame_marker``); each code that cannot be used is a problem (reject reason, detail),
 ranked by :data:`REASON_RANK` when no code of the frame is usable. Used by
-:class:`agvviz.replay.solve.Replay`; no state of its own.
+:class:`agvviz.replay.solve.Replay`, which keeps one :class:`PayloadMemo` per run (a code's
+payload is parsed once, not in every frame that sees it).
 """
 
 from __future__ import annotations
@@ -36,6 +37,37 @@ REASON_RANK = {
     r: i for i, r in enumerate((REJECT_MAP_MISMATCH, REJECT_PAYLOAD, REJECT_GEOMETRY, REJECT_DECODE, REJECT_NO_MARKER))
 }
 
+
+
+class PayloadMemo:
+    """A QR payload's parse and marker frame, computed once per payload of a run (issue 27).
+
+    The same code is seen in many frames with the same payload; :func:`parse_payload` and
+    :func:`marker_frame_from_corners` depend on the payload alone, so their result (or the problem
+    they raise) is kept by payload. The arrays handed out are read-only: a caller that changed
+    one would change every later frame's."""
+
+    def __init__(self):
+        self._by_payload: dict = {}
+
+    def frame_of(self, payload_value):
+        """``(payload, T_world_marker, points_marker_m)`` of the payload ``payload_value`` (text or
+        bytes), or raise the :class:`PayloadError` / :class:`DegenerateGeometryError` its parse
+        raised."""
+        entry = self._by_payload.get(payload_value)
+        if entry is None:
+            try:
+                payload = parse_payload(payload_value)
+                T_world_marker, points_marker_m = marker_frame_from_corners(payload.points_world_m)
+                T_world_marker.setflags(write=False)
+                points_marker_m.setflags(write=False)
+                entry = (payload, T_world_marker, points_marker_m)
+            except (PayloadError, DegenerateGeometryError) as exc:
+                entry = exc
+            self._by_payload[payload_value] = entry
+        if isinstance(entry, Exception):
+            raise entry.with_traceback(None)  # a fresh traceback each time, not a growing one
+        return entry
 
 
 def module_to_marker(points_module: np.ndarray, n_modules: int, vertices_marker_m: np.ndarray) -> np.ndarray:
@@ -121,9 +153,10 @@ def aruco_candidates(
 
 def qr_candidates(
     qr_map: dict[str, np.ndarray], unmapped_tolerance_m: float, codes: tuple[CodeDetection, ...],
-    camera: PinholeCamera, result: FrameDraft,
+    camera: PinholeCamera, result: FrameDraft, memo: PayloadMemo | None = None,
 ):
-    """The detected QR codes whose payload parses and agrees with the marker map.
+    """The detected QR codes whose payload parses and agrees with the marker map (each payload
+    parsed once per ``memo``: a run passes its own; without one, every call parses afresh).
 
     Returns ``(candidates, problems)``: candidates are (observation, ideal corners px,
     marker-frame points, frame of the marker, ``T_frame_marker``); problems are
@@ -134,14 +167,16 @@ def qr_candidates(
         return [], [(REJECT_NO_MARKER, "no QR code found")]
     candidates = []
     problems = []
+    memo = memo if memo is not None else PayloadMemo()
     for det in codes:
         if not det.decoded:
             problems.append((REJECT_DECODE, "a QR code was found but not decoded"))
             continue
         try:
             # Bytes that are not UTF-8 text go to the strict parser too, which refuses them.
-            payload = parse_payload(det.text if det.text is not None else det.payload_bytes)
-            T_world_marker, points_marker_m = marker_frame_from_corners(payload.points_world_m)
+            payload, T_world_marker, points_marker_m = memo.frame_of(
+                det.text if det.text is not None else det.payload_bytes
+            )
         except PayloadError as exc:
             problems.append((REJECT_PAYLOAD, f"payload refused: {exc}"))
             continue

@@ -51,7 +51,7 @@ from agvviz.recording.contract import TimeChecks, qr_map_of
 from agvviz.model.messages import CalibrationMsg, CompressedFrame, FrameTransformMsg
 from agvviz.recording.reader import RecordedMessage
 from agvviz.model.topics import ROLE_MARKER_MAP, ROLE_TRUTH, camera_of_role
-from agvviz.replay.candidates import REASON_RANK, aruco_candidates, qr_candidates
+from agvviz.replay.candidates import REASON_RANK, PayloadMemo, aruco_candidates, qr_candidates
 from agvviz.replay.detect.stage import DetectParams, FrameJob, SegmentDetector, camera_model
 from agvviz.model.detections import FrameDetections
 from agvviz.replay.diagnostics import PoseDiagnostics
@@ -142,6 +142,8 @@ class Replay:
         #: per camera: the detect stage run in process, when :meth:`feed` is not given the
         #: frame's detections (computed ahead by :mod:`agvviz.replay.detect.pool`)
         self._detectors: dict[str, SegmentDetector] = {}
+        #: each QR payload's parse and marker frame, once per run (candidates.PayloadMemo)
+        self._payloads = PayloadMemo()
 
     @property
     def detect_params(self) -> DetectParams:
@@ -454,7 +456,7 @@ class Replay:
             )
         else:
             candidates, problems = qr_candidates(
-                self.ctx.qr_map, self.ctx.unmapped_tolerance_m, detections.codes, camera, result
+                self.ctx.qr_map, self.ctx.unmapped_tolerance_m, detections.codes, camera, result, self._payloads
             )
         if not candidates:
             # The reason of a code that was read and refused outranks one that was not read.

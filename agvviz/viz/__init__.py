@@ -3,6 +3,11 @@
 Only this package imports ``rerun``.
 """
 
+from agvviz.viz.arrow_start import keep_pandas_unloaded
+
+keep_pandas_unloaded()  # before rerun's first Arrow conversion (arrow_start's docstring)
+
+
 from agvviz.viz.blueprints import default_blueprint
 from agvviz.viz.log_frames import RunLogError
 from agvviz.viz.readback import RrdContents, RrdReadError, read_rrd

@@ -123,7 +123,9 @@ def load(path: Path) -> list[DetectedFrame] | None:
     try:
         import pyarrow.parquet as pq
 
-        rows = pq.read_table(path).to_pylist()
+        # One read of the whole file. ParquetFile, not pq.read_table: read_table goes through
+        # pyarrow.dataset, whose import pulls in pandas (≈0.5 s of a warm run's start, issue 27).
+        rows = pq.ParquetFile(path).read().to_pylist()
         frames = []
         for r in rows:
             codes = tuple(
