@@ -23,7 +23,8 @@ goes to DIR/logs/.
 3. A first `agvviz run` (cold cache, lm) ÷ a second one with another solver (ippe) on the
    now-detected recording; median over repeats. Target ≥ 10.
 4. Peak memory (summed PSS of the process tree) of `agvviz run` on 2000 frames ÷ on 200
-   frames (cold caches). Target ≤ 1.15.
+   frames (cold caches), and the same of `agvviz sweep --set solver=lm,ippe --jobs 2`.
+   Target ≤ 1.15 (both).
 5. Position and heading RMSE of each solver, tracking on and off, read from the run summary
    in each `.rrd`, against the baseline values. Target within 5 % (both), same frames solved.
 6. Runs of equal settings (cold cache, warm cache, `--jobs 1`) give `.rrd` files that
@@ -59,6 +60,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 SWEEP_SOLVERS = ("lm", "p4p", "ippe", "sqpnp")
+MEMORY_SWEEP_SOLVERS = ("lm", "ippe")  # figure 4's sweep
 ACCURACY_SOLVERS = ("lm", "p4p", "ippe", "planar", "sqpnp", "epnp")
 CODE_SIZE_M = 0.5  # qr_floor's default code_size_m
 TIME = "/usr/bin/time"  # GNU time: peak RSS (%M, KiB) of one command
@@ -162,6 +164,12 @@ class Tree:
     has_tracking: bool
     has_jobs: bool
     has_realism: bool = False  # scenarios take `realism` (default typical since issue 14)
+    source: str | None = None  # the tree's folder, put first on PYTHONPATH (None: the interpreter's own agvviz)
+    name: str = "new"
+
+    @property
+    def env(self) -> dict:
+        return {"PYTHONPATH": self.source} if self.source else {}
 
     @property
     def agvviz(self) -> list[str]:
@@ -191,11 +199,16 @@ class Bench:
         folder.mkdir()
         return folder
 
-    def child(self, cmd: list[str], label: str, cache: Path | None = None, check: bool = True) -> Child:
-        """Run ``cmd`` to its end; its wall time, peak RSS and exit code. Raises BenchError if
-        it fails and ``check``."""
-        env = dict(os.environ, TMPDIR=str(self.workdir / "tmp"), XDG_CACHE_HOME=str(self.workdir / "xdg-cache"))
+    def child(self, cmd: list[str], label: str, cache: Path | None = None, check: bool = True,
+              tree: Tree | None = None) -> Child:
+        """Run ``cmd`` (of ``tree``, default the measured one) to its end; its wall time, peak
+        RSS and exit code. Raises BenchError if it fails and ``check``."""
+        tree = tree or self.tree
+        env = dict(os.environ, TMPDIR=str(self.workdir / "tmp"), XDG_CACHE_HOME=str(self.workdir / "xdg-cache"),
+                   **tree.env)
         shown = shlex.join(cmd)
+        if tree.source:
+            shown = f"PYTHONPATH={shlex.quote(tree.source)} {shown}"
         if cache is not None:
             env["AGVVIZ_CACHE_DIR"] = str(cache)
             shown = f"AGVVIZ_CACHE_DIR={shlex.quote(str(cache))} {shown}"
@@ -241,12 +254,14 @@ class Bench:
         print(f"  recording {path} (sha256 {digest[:16]}…)")
         return path
 
-    def run(self, recording: Path, label: str, cache: Path, sets: list[str] = (), extra: list[str] = ()) -> tuple[Child, Path]:
+    def run(self, recording: Path, label: str, cache: Path, sets: list[str] = (), extra: list[str] = (),
+            tree: Tree | None = None) -> tuple[Child, Path]:
+        tree = tree or self.tree
         rrd = self.runs / f"{label}.rrd"
-        cmd = self.tree.agvviz + ["run", str(recording), "--out", str(rrd)]
+        cmd = tree.agvviz + ["run", str(recording), "--out", str(rrd)]
         for s in sets:
             cmd += ["--set", s]
-        return self.child(cmd + list(extra), label, cache), rrd
+        return self.child(cmd + list(extra), label, cache, tree=tree), rrd
 
     def tracking_sets(self, on: bool) -> list[str]:
         return [f"tracking={'true' if on else 'false'}"] if self.tree.has_tracking else []
@@ -283,11 +298,12 @@ def fmt(value: float | None, spec: str = ".2f") -> str:
 # Each returns rows for the closing table: (figure, measured, target text, baseline, PASS/FAIL).
 
 
-def figure_1(bench: Bench, recording: Path, repeats: int) -> list[tuple]:
-    print("\n## 1. agvviz run frames/s ÷ bare OpenCV loop frames/s (pairs: bare, then run)")
+def figure_1(bench: Bench, recording: Path, repeats: int, trees: list[Tree]) -> list[tuple]:
+    print("\n## 1. agvviz run frames/s ÷ bare OpenCV loop frames/s (pairs: bare, then run"
+          + (", then the baseline tree's run; the two runs alternate in order)" if len(trees) > 1 else ")"))
     bare_cmd = [bench.tree.python, str(Path(__file__).resolve()), "--bare-loop", str(recording)]
     cases = bench.tracking_cases()
-    ratios: dict[str, list[float]] = {name: [] for name, _ in cases}
+    ratios: dict[tuple[str, str], list[float]] = {(t.name, name): [] for t in trees for name, _ in cases}
     table = []
     for r in range(1, repeats + 1):
         for name, sets in cases:
@@ -296,24 +312,29 @@ def figure_1(bench: Bench, recording: Path, repeats: int) -> list[tuple]:
             if printed is None:
                 raise BenchError(f"the bare loop printed no frame count (log: {bare.log})")
             bare_frames = int(printed.group(1))
-            run, rrd = bench.run(recording, f"fig1-{name.replace(' ', '-')}-{r}", bench.fresh_cache("fig1"), sets)
-            frames = int(summary_of(rrd)["frames"])
-            if frames != bare_frames:
-                raise BenchError(f"agvviz run replayed {frames} frames, the bare loop {bare_frames}")
-            fps_bare, fps_run = bare_frames / bare.wall_s, frames / run.wall_s
-            ratios[name].append(fps_run / fps_bare)
-            table.append((name, r, bare.wall_s, fps_bare, run.wall_s, fps_run, run.peak_pss_mib, fps_run / fps_bare))
-    print(f"\n  {'case':13s} {'pair':>4s} {'bare s':>7s} {'bare f/s':>9s} {'run s':>7s} {'run f/s':>8s} {'run PSS MiB':>11s} {'ratio':>6s}")
-    for name, r, bs, bf, rs, rf, mib, ratio in table:
-        print(f"  {name:13s} {r:4d} {bs:7.1f} {bf:9.2f} {rs:7.1f} {rf:8.2f} {mib:11.0f} {ratio:6.2f}")
+            fps_bare = bare_frames / bare.wall_s
+            for tree in trees if r % 2 else trees[::-1]:
+                run, rrd = bench.run(recording, f"fig1-{tree.name}-{name.replace(' ', '-')}-{r}",
+                                     bench.fresh_cache("fig1"), sets, tree=tree)
+                frames = int(summary_of(rrd)["frames"])
+                if frames != bare_frames:
+                    raise BenchError(f"agvviz run replayed {frames} frames, the bare loop {bare_frames}")
+                fps_run = frames / run.wall_s
+                ratios[(tree.name, name)].append(fps_run / fps_bare)
+                table.append((tree.name, name, r, bare.wall_s, fps_bare, run.wall_s, fps_run, run.cpu_s,
+                              run.peak_pss_mib, fps_run / fps_bare))
+    print(f"\n  {'tree':5s} {'case':13s} {'pair':>4s} {'bare s':>7s} {'bare f/s':>9s} {'run s':>7s} {'run f/s':>8s} "
+          f"{'run CPU s':>9s} {'run PSS MiB':>11s} {'ratio':>6s}")
+    for tree_name, name, r, bs, bf, rs, rf, cpu, mib, ratio in sorted(table, key=lambda row: (row[1], row[0], row[2])):
+        print(f"  {tree_name:5s} {name:13s} {r:4d} {bs:7.1f} {bf:9.2f} {rs:7.1f} {rf:8.2f} {cpu:9.1f} {mib:11.0f} {ratio:6.2f}")
     rows = []
-    targets = {"tracking on": 2.0, "tracking off": 1.2, "no tracking": None}
-    for name, values in ratios.items():
+    targets = {"tracking on": 3.0, "tracking off": None, "no tracking": None}
+    for (tree_name, name), values in ratios.items():
         median = statistics.median(values)
         target = targets[name]
-        print(f"  median ratio, {name}: {median:.2f}   (baseline {fmt(BASELINE['run_over_bare'])}: "
-              f"run {fmt(BASELINE['run_fps'], '.1f')} f/s, bare {fmt(BASELINE['bare_fps'], '.1f')} f/s)")
-        rows.append((f"1. run ÷ bare, {name}", f"{median:.2f}", f"≥ {target}" if target else "—",
+        spread = f"{min(values):.2f}–{max(values):.2f}"
+        print(f"  {tree_name}: median ratio, {name}: {median:.2f} (pairs {spread})")
+        rows.append((f"1. run ÷ bare, {name} ({tree_name})", f"{median:.2f} ({spread})", f"≥ {target}" if target else "—",
                      fmt(BASELINE["run_over_bare"]), status(median >= target if target else None)))
     return rows
 
@@ -353,44 +374,72 @@ def figures_2_3(bench: Bench, recording: Path, repeats: int) -> list[tuple]:
     ]
 
 
-def figure_4(bench: Bench, recording_200: Path, skip_2000: bool) -> list[tuple]:
-    print("\n## 4. peak memory of agvviz run, 200 and 2000 frames (cold caches)")
-    small, _ = bench.run(recording_200, "fig4-200", bench.fresh_cache("fig4-200"))
+def figure_4(bench: Bench, recording_200: Path, skip_2000: bool, trees: list[Tree]) -> list[tuple]:
+    print("\n## 4. peak memory of agvviz run and of agvviz sweep, 200 and 2000 frames (cold caches)")
     baseline = f"{fmt(BASELINE['pss_200_mib'], '.0f')} / {fmt(BASELINE['pss_2000_mib'], '.0f')} MiB"
-    if skip_2000:
-        return [("4. peak PSS 2000 ÷ 200 frames", f"— (200: {small.peak_pss_mib:.0f} MiB; --skip-2000)", "≤ 1.15",
-                 baseline, "—")]
-    large, _ = bench.run(bench.recording(200.0), "fig4-2000", bench.fresh_cache("fig4-2000"))
-    ratio = large.peak_pss_mib / small.peak_pss_mib
-    print(f"  summed PSS: 200 frames {small.peak_pss_mib:.0f} MiB, 2000 frames {large.peak_pss_mib:.0f} MiB, "
-          f"ratio {ratio:.2f}   (largest process's RSS: {small.max_rss_mib:.0f} / {large.max_rss_mib:.0f} MiB, "
-          f"ratio {large.max_rss_mib / small.max_rss_mib:.2f})")
-    print(f"  baseline: PSS {baseline}, largest process's RSS {fmt(BASELINE['rss_200_mib'], '.0f')} / "
+    recordings = {"200": recording_200} if skip_2000 else {"200": recording_200, "2000": bench.recording(200.0)}
+    measured = []
+    for tree in trees:
+        runs, sweeps = {}, {}
+        for frames, recording in recordings.items():
+            label = f"{tree.name}-{frames}"
+            runs[frames], _ = bench.run(recording, f"fig4-run-{label}", bench.fresh_cache(f"fig4-run-{label}"), tree=tree)
+            sweeps[frames] = bench.child(tree.agvviz + [
+                "sweep", str(recording), "--set", "solver=" + ",".join(MEMORY_SWEEP_SOLVERS), "--jobs", "2",
+                "--out-dir", str(bench.runs / f"fig4-sweep-{label}")], f"fig4-sweep-{label}",
+                bench.fresh_cache(f"fig4-sweep-{label}"), tree=tree)
+        measured += [(f"run ({tree.name})", runs, baseline), (f"sweep ({tree.name})", sweeps, "—")]
+    rows = []
+    for what, children, base in measured:
+        small = children["200"]
+        if skip_2000:
+            rows.append((f"4. {what} peak PSS 2000 ÷ 200 frames", f"— (200: {small.peak_pss_mib:.0f} MiB; --skip-2000)",
+                         "≤ 1.15", base, "—"))
+            continue
+        large = children["2000"]
+        ratio = large.peak_pss_mib / small.peak_pss_mib
+        print(f"  {what}: summed PSS: 200 frames {small.peak_pss_mib:.0f} MiB, 2000 frames {large.peak_pss_mib:.0f} MiB, "
+              f"ratio {ratio:.2f}   (largest process's RSS: {small.max_rss_mib:.0f} / {large.max_rss_mib:.0f} MiB, "
+              f"ratio {large.max_rss_mib / small.max_rss_mib:.2f})")
+        rows.append((f"4. {what} peak PSS 2000 ÷ 200 frames",
+                     f"{ratio:.2f} ({small.peak_pss_mib:.0f} / {large.peak_pss_mib:.0f} MiB)", "≤ 1.15", base,
+                     status(ratio <= 1.15)))
+    print(f"  baseline (run): PSS {baseline}, largest process's RSS {fmt(BASELINE['rss_200_mib'], '.0f')} / "
           f"{fmt(BASELINE['rss_2000_mib'], '.0f')} MiB")
-    return [("4. peak PSS 2000 ÷ 200 frames", f"{ratio:.2f} ({small.peak_pss_mib:.0f} / {large.peak_pss_mib:.0f} MiB)",
-             "≤ 1.15", baseline, status(ratio <= 1.15))]
+    return rows
 
 
-def figure_5(bench: Bench, recording: Path) -> list[tuple]:
-    print("\n## 5. accuracy per solver (run summary in each .rrd) against the baseline, within 5 %")
+def accuracy(bench: Bench, recording: Path, tree: Tree) -> list[tuple]:
+    """(case, solver, solved, position RMSE mm, heading RMSE deg) of every solver, tracking on and off."""
     measured = []
     for name, sets in bench.tracking_cases():
-        cache = bench.fresh_cache("fig5")  # detected by the first solver, reused by the others
+        cache = bench.fresh_cache(f"fig5-{tree.name}")  # detected by the first solver, reused by the others
         for solver in ACCURACY_SOLVERS:
             try:
-                _, rrd = bench.run(recording, f"fig5-{solver}-{name.replace(' ', '-')}", cache,
-                                   [f"solver={solver}", *sets])
+                _, rrd = bench.run(recording, f"fig5-{tree.name}-{solver}-{name.replace(' ', '-')}", cache,
+                                   [f"solver={solver}", *sets], tree=tree)
                 summary = summary_of(rrd)
                 measured.append((name, solver, int(summary["solved"]), rmse_of(summary, "position_error_mm"),
                                  rmse_of(summary, "heading_error_deg")))
             except BenchError as exc:
                 print(f"    not measured: {exc}")
                 measured.append((name, solver, None, None, None))
+    return measured
+
+
+def figure_5(bench: Bench, recording: Path, baseline: Tree | None) -> list[tuple]:
+    reference = "the baseline tree's" if baseline else "ad2bde5's"
+    print(f"\n## 5. accuracy per solver (run summary in each .rrd) against {reference}, within 5 %")
+    measured = accuracy(bench, recording, bench.tree)
+    references = {}
+    if baseline is not None:
+        references = {(name, solver): (pos, hdg, solved) for name, solver, solved, pos, hdg in
+                      accuracy(bench, recording, baseline) if pos is not None}
     print(f"\n  {'case':13s} {'solver':7s} {'solved':>6s} {'pos RMSE mm':>11s} {'base':>7s} {'Δ %':>6s} "
           f"{'hdg RMSE deg':>12s} {'base':>8s} {'Δ %':>6s} status")
     verdicts: dict[str, list[bool | None]] = {}
     for name, solver, solved, pos, hdg in measured:
-        base = BASELINE["rmse"].get(solver)
+        base = references.get((name, solver)) if baseline is not None else BASELINE["rmse"].get(solver)
         if pos is None or base is None:
             ok = None
             dpos = dhdg = None
@@ -406,7 +455,7 @@ def figure_5(bench: Bench, recording: Path) -> list[tuple]:
         passed = sum(ok is True for ok in oks)
         verdict = None if all(ok is None for ok in oks) else all(ok is True for ok in oks)
         rows.append((f"5. RMSE ±5 %, same solved, {name}", f"{passed} of {len(oks)} solvers", "all",
-                     "ad2bde5", status(verdict)))
+                     "baseline tree" if baseline else "ad2bde5", status(verdict)))
     return rows
 
 
@@ -487,16 +536,15 @@ def floor_loop(recording: Path, out: Path) -> None:
 # ---------------------------------------------------------------------------------------- main
 
 
-def inspect_tree(python: str) -> Tree:
-    helped = subprocess.run([python, "-m", "agvviz", "run", "--help"], capture_output=True, text=True,
-                            env=dict(os.environ, COLUMNS="200"))
+def inspect_tree(python: str, source: str | None = None, name: str = "new") -> Tree:
+    env = dict(os.environ, COLUMNS="200", **({"PYTHONPATH": source} if source else {}))
+    helped = subprocess.run([python, "-m", "agvviz", "run", "--help"], capture_output=True, text=True, env=env)
     if helped.returncode != 0:
         raise SystemExit(f"error: `{python} -m agvviz run --help` exited {helped.returncode}")
     text = helped.stdout
-    scenarios = subprocess.run([python, "-m", "agvviz", "scenarios"], capture_output=True, text=True,
-                               env=dict(os.environ, COLUMNS="200")).stdout
+    scenarios = subprocess.run([python, "-m", "agvviz", "scenarios"], capture_output=True, text=True, env=env).stdout
     return Tree(python=python, has_tracking="tracking (bool" in text, has_jobs="--jobs" in text,
-                has_realism="realism" in scenarios)
+                has_realism="realism" in scenarios, source=source, name=name)
 
 
 def main() -> None:
@@ -509,6 +557,13 @@ def main() -> None:
                         help="which figures to measure, comma-separated (2 and 3 are measured together)")
     parser.add_argument("--python", default=sys.executable,
                         help="interpreter whose agvviz is measured (default: this one)")
+    parser.add_argument("--source", default=str(ROOT),
+                        help="source tree measured, put first on the children's PYTHONPATH (default: this "
+                             "script's tree; '' for the interpreter's own agvviz)")
+    parser.add_argument("--baseline", metavar="TREE",
+                        help="a second source tree (e.g. a `git worktree` of the commit before a change), run "
+                             "with the same interpreter beside the measured one in figures 1, 4 and 5: "
+                             "before/after pairs in one invocation")
     parser.add_argument("--bare-loop", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--floor-loop", type=Path, nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -526,20 +581,24 @@ def main() -> None:
     if not os.access(TIME, os.X_OK):
         raise SystemExit(f"error: {TIME} (GNU time) is needed for peak memory; install the 'time' package")
 
-    tree = inspect_tree(args.python)
+    tree = inspect_tree(args.python, args.source or None)
+    baseline = inspect_tree(args.python, str(Path(args.baseline).resolve()), "base") if args.baseline else None
+    trees = [tree] + ([baseline] if baseline else [])
     workdir = args.workdir.resolve()
     bench = Bench(workdir, tree)
-    print(f"agvviz of {tree.python}: tracking setting {'yes' if tree.has_tracking else 'no'}, "
+    for other in trees[1:]:
+        print(f"baseline: agvviz of {other.source} (run with {other.python})")
+    print(f"agvviz of {tree.source or tree.python}: tracking setting {'yes' if tree.has_tracking else 'no'}, "
           f"run --jobs {'yes' if tree.has_jobs else 'no'}; workdir {workdir}; {os.cpu_count()} CPUs; "
           f"load average {os.getloadavg()[0]:.2f}")
     recording = bench.recording(None)
 
     rows = []
     figures = [
-        ("1", lambda: figure_1(bench, recording, args.repeats)),
+        ("1", lambda: figure_1(bench, recording, args.repeats, trees)),
         ("2, 3", lambda: figures_2_3(bench, recording, args.repeats)),
-        ("4", lambda: figure_4(bench, recording, args.skip_2000)),
-        ("5", lambda: figure_5(bench, recording)),
+        ("4", lambda: figure_4(bench, recording, args.skip_2000, trees)),
+        ("5", lambda: figure_5(bench, recording, baseline)),
         ("6", lambda: figure_6(bench, recording)),
     ]
     for name, measure in figures:
