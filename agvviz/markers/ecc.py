@@ -80,11 +80,7 @@ def _refine_ecc(
         np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=float) + border
     ) * scale - 0.5
 
-    margin_px = (border + 1) * side_px / n + 4
-    x0 = int(max(np.floor(raw_corners_px[:, 0].min() - margin_px), 0))
-    y0 = int(max(np.floor(raw_corners_px[:, 1].min() - margin_px), 0))
-    x1 = int(min(np.ceil(raw_corners_px[:, 0].max() + margin_px) + 1, gray.shape[1]))
-    y1 = int(min(np.ceil(raw_corners_px[:, 1].max() + margin_px) + 1, gray.shape[0]))
+    x0, y0, x1, y1 = ecc_crop_box(raw_corners_px, n, gray.shape)
     crop = gray[y0:y1, x0:x1].astype(np.float32)
     ratio = side_px / n / scale  # image pixels per template pixel
     if ratio > ECC_ANTIALIAS_RATIO:
@@ -107,6 +103,20 @@ def _refine_ecc(
         symbol_corners_template.reshape(1, 4, 2), H_crop_template.astype(float)
     ).reshape(4, 2) + offset
     return accept_shift(corners_px, raw_corners_px, side_px / n)
+
+
+def ecc_crop_box(raw_corners_px: np.ndarray, n: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: the part of an image of ``shape`` (H, W) that ECC reads to align an
+    ``n``-module symbol from ``raw_corners_px`` — the corners' bounding box with a margin of
+    the template's border plus one module plus 4 px (a refinement that moves a corner further
+    than one module is refused), clipped to the image; ``gray[y0:y1, x0:x1]``."""
+    side_px = mean_side_px(raw_corners_px)
+    margin_px = (TEMPLATE_BORDER_MODULES + 1) * side_px / n + 4
+    x0 = int(max(np.floor(raw_corners_px[:, 0].min() - margin_px), 0))
+    y0 = int(max(np.floor(raw_corners_px[:, 1].min() - margin_px), 0))
+    x1 = int(min(np.ceil(raw_corners_px[:, 0].max() + margin_px) + 1, shape[1]))
+    y1 = int(min(np.ceil(raw_corners_px[:, 1].max() + margin_px) + 1, shape[0]))
+    return x0, y0, x1, y1
 
 
 def mean_side_px(corners_px: np.ndarray) -> float:
