@@ -37,17 +37,21 @@ _ECC_GAUSS_FILTER_SIZE = 3
 
 
 #: Templates up to this many pixels a side are cached (at most 256 of them, 64 KiB each: an
-#: ArUco marker's is 80 px at 8 px per module); larger ones (QR codes) are built per call.
+#: ArUco marker's is 80 px at 8 px per module); larger ones (QR codes: 35 modules at 8 px are
+#: 280 px, 306 KiB) in a cache of their own of :data:`LARGE_TEMPLATES_CACHED` (a tracked code
+#: is aligned with the same template frame after frame; building it costs ≈1 ms).
 CACHED_TEMPLATE_MAX_SIDE_PX = 128
+LARGE_TEMPLATES_CACHED = 16
 
 
 def _ecc_template(symbol: np.ndarray, scale: int) -> np.ndarray:
     """The ECC template of an (n, n) symbol (True dark): the symbol and a
     :data:`TEMPLATE_BORDER_MODULES` light border, ``scale`` px per module, float32 0/255."""
     n = len(symbol)
+    key = np.ascontiguousarray(symbol, dtype=bool).tobytes()
     if (n + 2 * TEMPLATE_BORDER_MODULES) * scale <= CACHED_TEMPLATE_MAX_SIDE_PX:
-        return _cached_template(np.ascontiguousarray(symbol, dtype=bool).tobytes(), n, scale)
-    return _build_template(symbol, scale)
+        return _cached_template(key, n, scale)
+    return _cached_large_template(key, n, scale)
 
 
 @functools.lru_cache(maxsize=256)
@@ -57,6 +61,12 @@ def _cached_template(symbol_bytes: bytes, n: int, scale: int) -> np.ndarray:
     template = _build_template(np.frombuffer(symbol_bytes, dtype=bool).reshape(n, n), scale)
     template.setflags(write=False)
     return template
+
+
+@functools.lru_cache(maxsize=LARGE_TEMPLATES_CACHED)
+def _cached_large_template(symbol_bytes: bytes, n: int, scale: int) -> np.ndarray:
+    """:func:`_cached_template` for the large templates, in a smaller cache."""
+    return _cached_template.__wrapped__(symbol_bytes, n, scale)
 
 
 def _build_template(symbol: np.ndarray, scale: int) -> np.ndarray:
