@@ -2,7 +2,8 @@
 recording, paired in one run, each beside today's baseline (commit ad2bde5) and its target.
 
 Usage:  python bench/bench_replay_graph.py [--workdir DIR] [--repeats 2] [--skip-2000]
-                                          [--figures 1,2,3,4,5,6] [--python PYTHON]
+                                          [--figures 1,2,3,4,5,6,7] [--python PYTHON]
+                                          [--source TREE] [--baseline TREE]
 
 Every measurement is a child process (`PYTHON -m agvviz ...`, and the bare OpenCV loop as
 `PYTHON bench/bench_replay_graph.py --bare-loop REC`), timed by wall clock from start to exit.
@@ -29,6 +30,10 @@ goes to DIR/logs/.
    in each `.rrd`, against the baseline values. Target within 5 % (both), same frames solved.
 6. Runs of equal settings (cold cache, warm cache, `--jobs 1`) give `.rrd` files that
    `rerun rrd compare --unordered` finds equal.
+7. CPU time per frame of the detect stage (in one process on one OpenCV thread, as a worker
+   detects; `--frame-costs REC`), split into decode, undistort, zxing-cpp detection, ECC
+   refinement and tracking, module sampling and the rest, tracking on and off; beside the bare
+   loop's decode, detect and solvePnP. Not a default figure (`--figures 7`).
 
 "Cold" is a fresh, empty AGVVIZ_CACHE_DIR under DIR/caches/ (DIR's caches, runs and logs are
 emptied at every start); every child also gets TMPDIR and XDG_CACHE_HOME inside DIR, so nothing
@@ -481,6 +486,43 @@ def figure_6(bench: Bench, recording: Path) -> list[tuple]:
     return rows
 
 
+def figure_7(bench: Bench, recording: Path, trees: list[Tree]) -> list[tuple]:
+    print("\n## 7. CPU ms per frame of the detect stage (in process, one OpenCV thread), and of the bare loop")
+    import json
+
+    columns, results = [], {}
+    for tree in trees:
+        for name, sets in bench.tracking_cases():
+            on = "true" if "tracking=true" in sets or not sets else "false"
+            child = bench.child([tree.python, str(Path(__file__).resolve()), "--frame-costs", str(recording),
+                                 "--tracking", on], f"fig7-{tree.name}-{name.replace(' ', '-')}", tree=tree)
+            line = [x for x in child.log.read_text().splitlines() if x.startswith("{")]
+            if not line:
+                raise BenchError(f"--frame-costs printed nothing (log: {child.log})")
+            column = f"{tree.name}, {name}"
+            columns.append(column)
+            results[column] = json.loads(line[-1])
+    bare = bench.child([bench.tree.python, str(Path(__file__).resolve()), "--bare-loop", str(recording)], "fig7-bare")
+    costs = re.search(r"^CPU ms/frame (.*)$", bare.log.read_text(), re.MULTILINE)
+    labels = list(next(iter(results.values()))["cpu_s"])
+    print(f"\n  {'ms per frame':42s} " + " ".join(f"{c:>18s}" for c in columns))
+    for label in labels + ["other (Python: tracking, templates, checks)", "total"]:
+        values = []
+        for c in columns:
+            r = results[c]
+            known = sum(r["cpu_s"].values())
+            v = {"total": r["total_s"], "other (Python: tracking, templates, checks)": r["total_s"] - known}.get(
+                label, r["cpu_s"].get(label, 0.0))
+            values.append(f"{1000 * v / r['frames']:18.2f}")
+        print(f"  {label:42s} " + " ".join(values))
+    print(f"  {'keyframes of ' + str(results[columns[0]]['frames']):42s} "
+          + " ".join(f"{results[c]['keyframes']:18d}" for c in columns))
+    print(f"  bare loop, CPU ms/frame: {costs.group(1) if costs else '—'}")
+    first = results[columns[0]]
+    return [("7. detect CPU ms/frame (" + columns[0] + ")", f"{1000 * first['total_s'] / first['frames']:.1f}",
+             "", "", "")]
+
+
 # ---------------------------------------------------------------------------------------- the bare loop
 
 
@@ -498,19 +540,83 @@ def bare_loop(recording: Path) -> None:
     detector = cv2.QRCodeDetector()
     K = dist = None
     frames = codes = 0
+    cpu_s = {"decode": 0.0, "detect": 0.0, "solvePnP": 0.0}
     for msg in iter_messages(recording):
         if isinstance(msg.value, CalibrationMsg):
             K, dist = msg.value.camera.K, msg.value.camera.dist
         if not isinstance(msg.value, CompressedFrame):
             continue
         frames += 1
+        t0 = time.process_time()
         gray = cv2.imdecode(np.frombuffer(msg.value.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        t1 = time.process_time()
         ok, _, corners, _ = detector.detectAndDecodeMulti(gray)
+        t2 = time.process_time()
         if ok and corners is not None:
             for c in corners:
                 codes += 1
                 cv2.solvePnP(object_points, c.astype(np.float64), K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        t3 = time.process_time()
+        for name, dt in zip(cpu_s, (t1 - t0, t2 - t1, t3 - t2)):
+            cpu_s[name] += dt
     print(f"frames {frames} codes {codes}")
+    print("CPU ms/frame " + " ".join(f"{name} {1000 * v / max(frames, 1):.2f}" for name, v in cpu_s.items()))
+
+
+def frame_costs(recording: Path, tracking: bool) -> None:
+    """CPU time per frame of this tree's detect stage, in this process on one OpenCV thread
+    (what a detection worker does), split by the OpenCV and zxing-cpp calls that make it up;
+    prints one JSON line. Every segment is detected by `detect_segment`, as a worker does."""
+    import json
+    import cv2
+    import zxingcpp
+
+    from agvviz.model.messages import CompressedFrame
+    from agvviz.recording.reader import ReadReport
+    from agvviz.recording.source import iter_role_messages
+    from agvviz.replay.detect.stage import detect_segment
+    from agvviz.replay.run import prepare
+    from agvviz.settings import RunSettings
+
+    cv2.setNumThreads(1)
+    cpu_s = {"decode (imdecode)": 0.0, "undistort (remap of the frame)": 0.0, "detect (zxing-cpp)": 0.0,
+             "refine and track (findTransformECC)": 0.0, "module sampling (remap at module centres)": 0.0}
+    calls = dict.fromkeys(cpu_s, 0)
+
+    def timed(owner, name, label_of):
+        function = getattr(owner, name)
+
+        def wrapper(*args, **kwargs):
+            t0 = time.process_time()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                label = label_of(args)
+                cpu_s[label] += time.process_time() - t0
+                calls[label] += 1
+        setattr(owner, name, wrapper)
+
+    timed(cv2, "imdecode", lambda a: "decode (imdecode)")
+    timed(cv2, "remap", lambda a: "undistort (remap of the frame)" if getattr(a[1], "ndim", 0) == 3
+          else "module sampling (remap at module centres)")
+    timed(zxingcpp, "read_barcodes", lambda a: "detect (zxing-cpp)")
+    timed(cv2, "findTransformECC", lambda a: "refine and track (findTransformECC)")
+    prepared = prepare(recording, RunSettings(tracking=tracking))
+    report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    jobs = [prepared.replay.detect_job(m) for m in iter_role_messages(
+        prepared.recording, prepared.roles, prepared.time_source, report) if isinstance(m.value, CompressedFrame)]
+    jobs = [job for job in jobs if job is not None]
+    params = prepared.replay.detect_params
+    detect_segment(params, jobs[:1])  # imports and first-use costs out of the figure
+    for key in cpu_s:
+        cpu_s[key], calls[key] = 0.0, 0
+    t0 = time.process_time()
+    results = []
+    for start in range(0, len(jobs), params.segment_frames):
+        results += detect_segment(params, jobs[start:start + params.segment_frames])
+    total_s = time.process_time() - t0
+    print(json.dumps({"frames": len(jobs), "keyframes": sum(r.keyframe for r in results), "total_s": total_s,
+                      "cpu_s": cpu_s, "calls": calls}))
 
 
 def floor_loop(recording: Path, out: Path) -> None:
@@ -566,6 +672,8 @@ def main() -> None:
                              "before/after pairs in one invocation")
     parser.add_argument("--bare-loop", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--floor-loop", type=Path, nargs=2, help=argparse.SUPPRESS)
+    parser.add_argument("--frame-costs", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--tracking", default="true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.bare_loop is not None:
         bare_loop(args.bare_loop)
@@ -573,11 +681,14 @@ def main() -> None:
     if args.floor_loop is not None:
         floor_loop(*args.floor_loop)
         return
+    if args.frame_costs is not None:
+        frame_costs(args.frame_costs, args.tracking == "true")
+        return
     if args.repeats < 1:
         raise SystemExit("error: --repeats must be ≥ 1")
     wanted = set(args.figures.replace(" ", "").split(","))
-    if not wanted <= {"1", "2", "3", "4", "5", "6"}:
-        raise SystemExit(f"error: --figures takes numbers from 1 to 6, got {args.figures!r}")
+    if not wanted <= {"1", "2", "3", "4", "5", "6", "7"}:
+        raise SystemExit(f"error: --figures takes numbers from 1 to 7, got {args.figures!r}")
     if not os.access(TIME, os.X_OK):
         raise SystemExit(f"error: {TIME} (GNU time) is needed for peak memory; install the 'time' package")
 
@@ -600,6 +711,7 @@ def main() -> None:
         ("4", lambda: figure_4(bench, recording, args.skip_2000, trees)),
         ("5", lambda: figure_5(bench, recording, baseline)),
         ("6", lambda: figure_6(bench, recording)),
+        ("7", lambda: figure_7(bench, recording, trees)),
     ]
     for name, measure in figures:
         if not wanted & set(name.split(", ")):
