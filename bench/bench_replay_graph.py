@@ -18,7 +18,9 @@ goes to DIR/logs/.
 1. `agvviz run` frames/s ÷ the bare OpenCV loop's frames/s (imdecode + detectAndDecodeMulti +
    solvePnP IPPE_SQUARE per frame, no refinement, no logging), tracking on and off, each run
    paired with the bare loop run just before it (bare, on, bare, off, … `--repeats` times);
-   the median ratio of the pairs. Target ≥ 2.0 (on), ≥ 1.2 (off).
+   the median ratio of the pairs and their spread. Target (issue 27) ≥ 3.0 tracking on (issue 12's
+   were 2.0 on, 1.2 off); tracking off is reported. With `--baseline TREE` each bare run is
+   followed by a run of each tree, in alternating order: before and after in the same pairs.
 2. `agvviz sweep --set solver=lm,p4p,ippe,sqpnp --jobs 2` wall time ÷ one `agvviz run`, both
    from a cold detection cache; median over repeats. Target ≤ 1.3.
 3. A first `agvviz run` (cold cache, lm) ÷ a second one with another solver (ippe) on the
