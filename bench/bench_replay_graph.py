@@ -2,7 +2,8 @@
 recording, paired in one run, each beside today's baseline (commit ad2bde5) and its target.
 
 Usage:  python bench/bench_replay_graph.py [--workdir DIR] [--repeats 2] [--skip-2000]
-                                          [--figures 1,2,3,4,5,6] [--python PYTHON]
+                                          [--figures 1,2,3,4,5,6,7] [--python PYTHON]
+                                          [--source TREE] [--baseline TREE]
 
 Every measurement is a child process (`PYTHON -m agvviz ...`, and the bare OpenCV loop as
 `PYTHON bench/bench_replay_graph.py --bare-loop REC`), timed by wall clock from start to exit.
@@ -17,17 +18,24 @@ goes to DIR/logs/.
 1. `agvviz run` frames/s ÷ the bare OpenCV loop's frames/s (imdecode + detectAndDecodeMulti +
    solvePnP IPPE_SQUARE per frame, no refinement, no logging), tracking on and off, each run
    paired with the bare loop run just before it (bare, on, bare, off, … `--repeats` times);
-   the median ratio of the pairs. Target ≥ 2.0 (on), ≥ 1.2 (off).
+   the median ratio of the pairs and their spread. Target (issue 27) ≥ 3.0 tracking on (issue 12's
+   were 2.0 on, 1.2 off); tracking off is reported. With `--baseline TREE` each bare run is
+   followed by a run of each tree, in alternating order: before and after in the same pairs.
 2. `agvviz sweep --set solver=lm,p4p,ippe,sqpnp --jobs 2` wall time ÷ one `agvviz run`, both
    from a cold detection cache; median over repeats. Target ≤ 1.3.
 3. A first `agvviz run` (cold cache, lm) ÷ a second one with another solver (ippe) on the
    now-detected recording; median over repeats. Target ≥ 10.
 4. Peak memory (summed PSS of the process tree) of `agvviz run` on 2000 frames ÷ on 200
-   frames (cold caches). Target ≤ 1.15.
+   frames (cold caches), and the same of `agvviz sweep --set solver=lm,ippe --jobs 2`.
+   Target ≤ 1.15 (both).
 5. Position and heading RMSE of each solver, tracking on and off, read from the run summary
    in each `.rrd`, against the baseline values. Target within 5 % (both), same frames solved.
 6. Runs of equal settings (cold cache, warm cache, `--jobs 1`) give `.rrd` files that
    `rerun rrd compare --unordered` finds equal.
+7. CPU time per frame of the detect stage (in one process on one OpenCV thread, as a worker
+   detects; `--frame-costs REC`), split into decode, undistort, zxing-cpp detection, ECC
+   refinement and tracking, module sampling and the rest, tracking on and off; beside the bare
+   loop's decode, detect and solvePnP. Not a default figure (`--figures 7`).
 
 "Cold" is a fresh, empty AGVVIZ_CACHE_DIR under DIR/caches/ (DIR's caches, runs and logs are
 emptied at every start); every child also gets TMPDIR and XDG_CACHE_HOME inside DIR, so nothing
@@ -59,6 +67,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 SWEEP_SOLVERS = ("lm", "p4p", "ippe", "sqpnp")
+MEMORY_SWEEP_SOLVERS = ("lm", "ippe")  # figure 4's sweep
 ACCURACY_SOLVERS = ("lm", "p4p", "ippe", "planar", "sqpnp", "epnp")
 CODE_SIZE_M = 0.5  # qr_floor's default code_size_m
 TIME = "/usr/bin/time"  # GNU time: peak RSS (%M, KiB) of one command
@@ -162,6 +171,12 @@ class Tree:
     has_tracking: bool
     has_jobs: bool
     has_realism: bool = False  # scenarios take `realism` (default typical since issue 14)
+    source: str | None = None  # the tree's folder, put first on PYTHONPATH (None: the interpreter's own agvviz)
+    name: str = "new"
+
+    @property
+    def env(self) -> dict:
+        return {"PYTHONPATH": self.source} if self.source else {}
 
     @property
     def agvviz(self) -> list[str]:
@@ -191,11 +206,16 @@ class Bench:
         folder.mkdir()
         return folder
 
-    def child(self, cmd: list[str], label: str, cache: Path | None = None, check: bool = True) -> Child:
-        """Run ``cmd`` to its end; its wall time, peak RSS and exit code. Raises BenchError if
-        it fails and ``check``."""
-        env = dict(os.environ, TMPDIR=str(self.workdir / "tmp"), XDG_CACHE_HOME=str(self.workdir / "xdg-cache"))
+    def child(self, cmd: list[str], label: str, cache: Path | None = None, check: bool = True,
+              tree: Tree | None = None) -> Child:
+        """Run ``cmd`` (of ``tree``, default the measured one) to its end; its wall time, peak
+        RSS and exit code. Raises BenchError if it fails and ``check``."""
+        tree = tree or self.tree
+        env = dict(os.environ, TMPDIR=str(self.workdir / "tmp"), XDG_CACHE_HOME=str(self.workdir / "xdg-cache"),
+                   **tree.env)
         shown = shlex.join(cmd)
+        if tree.source:
+            shown = f"PYTHONPATH={shlex.quote(tree.source)} {shown}"
         if cache is not None:
             env["AGVVIZ_CACHE_DIR"] = str(cache)
             shown = f"AGVVIZ_CACHE_DIR={shlex.quote(str(cache))} {shown}"
@@ -241,12 +261,14 @@ class Bench:
         print(f"  recording {path} (sha256 {digest[:16]}…)")
         return path
 
-    def run(self, recording: Path, label: str, cache: Path, sets: list[str] = (), extra: list[str] = ()) -> tuple[Child, Path]:
+    def run(self, recording: Path, label: str, cache: Path, sets: list[str] = (), extra: list[str] = (),
+            tree: Tree | None = None) -> tuple[Child, Path]:
+        tree = tree or self.tree
         rrd = self.runs / f"{label}.rrd"
-        cmd = self.tree.agvviz + ["run", str(recording), "--out", str(rrd)]
+        cmd = tree.agvviz + ["run", str(recording), "--out", str(rrd)]
         for s in sets:
             cmd += ["--set", s]
-        return self.child(cmd + list(extra), label, cache), rrd
+        return self.child(cmd + list(extra), label, cache, tree=tree), rrd
 
     def tracking_sets(self, on: bool) -> list[str]:
         return [f"tracking={'true' if on else 'false'}"] if self.tree.has_tracking else []
@@ -283,11 +305,12 @@ def fmt(value: float | None, spec: str = ".2f") -> str:
 # Each returns rows for the closing table: (figure, measured, target text, baseline, PASS/FAIL).
 
 
-def figure_1(bench: Bench, recording: Path, repeats: int) -> list[tuple]:
-    print("\n## 1. agvviz run frames/s ÷ bare OpenCV loop frames/s (pairs: bare, then run)")
+def figure_1(bench: Bench, recording: Path, repeats: int, trees: list[Tree]) -> list[tuple]:
+    print("\n## 1. agvviz run frames/s ÷ bare OpenCV loop frames/s (pairs: bare, then run"
+          + (", then the baseline tree's run; the two runs alternate in order)" if len(trees) > 1 else ")"))
     bare_cmd = [bench.tree.python, str(Path(__file__).resolve()), "--bare-loop", str(recording)]
     cases = bench.tracking_cases()
-    ratios: dict[str, list[float]] = {name: [] for name, _ in cases}
+    ratios: dict[tuple[str, str], list[float]] = {(t.name, name): [] for t in trees for name, _ in cases}
     table = []
     for r in range(1, repeats + 1):
         for name, sets in cases:
@@ -296,24 +319,29 @@ def figure_1(bench: Bench, recording: Path, repeats: int) -> list[tuple]:
             if printed is None:
                 raise BenchError(f"the bare loop printed no frame count (log: {bare.log})")
             bare_frames = int(printed.group(1))
-            run, rrd = bench.run(recording, f"fig1-{name.replace(' ', '-')}-{r}", bench.fresh_cache("fig1"), sets)
-            frames = int(summary_of(rrd)["frames"])
-            if frames != bare_frames:
-                raise BenchError(f"agvviz run replayed {frames} frames, the bare loop {bare_frames}")
-            fps_bare, fps_run = bare_frames / bare.wall_s, frames / run.wall_s
-            ratios[name].append(fps_run / fps_bare)
-            table.append((name, r, bare.wall_s, fps_bare, run.wall_s, fps_run, run.peak_pss_mib, fps_run / fps_bare))
-    print(f"\n  {'case':13s} {'pair':>4s} {'bare s':>7s} {'bare f/s':>9s} {'run s':>7s} {'run f/s':>8s} {'run PSS MiB':>11s} {'ratio':>6s}")
-    for name, r, bs, bf, rs, rf, mib, ratio in table:
-        print(f"  {name:13s} {r:4d} {bs:7.1f} {bf:9.2f} {rs:7.1f} {rf:8.2f} {mib:11.0f} {ratio:6.2f}")
+            fps_bare = bare_frames / bare.wall_s
+            for tree in trees if r % 2 else trees[::-1]:
+                run, rrd = bench.run(recording, f"fig1-{tree.name}-{name.replace(' ', '-')}-{r}",
+                                     bench.fresh_cache("fig1"), sets, tree=tree)
+                frames = int(summary_of(rrd)["frames"])
+                if frames != bare_frames:
+                    raise BenchError(f"agvviz run replayed {frames} frames, the bare loop {bare_frames}")
+                fps_run = frames / run.wall_s
+                ratios[(tree.name, name)].append(fps_run / fps_bare)
+                table.append((tree.name, name, r, bare.wall_s, fps_bare, run.wall_s, fps_run, run.cpu_s,
+                              run.peak_pss_mib, fps_run / fps_bare))
+    print(f"\n  {'tree':5s} {'case':13s} {'pair':>4s} {'bare s':>7s} {'bare f/s':>9s} {'run s':>7s} {'run f/s':>8s} "
+          f"{'run CPU s':>9s} {'run PSS MiB':>11s} {'ratio':>6s}")
+    for tree_name, name, r, bs, bf, rs, rf, cpu, mib, ratio in sorted(table, key=lambda row: (row[1], row[0], row[2])):
+        print(f"  {tree_name:5s} {name:13s} {r:4d} {bs:7.1f} {bf:9.2f} {rs:7.1f} {rf:8.2f} {cpu:9.1f} {mib:11.0f} {ratio:6.2f}")
     rows = []
-    targets = {"tracking on": 2.0, "tracking off": 1.2, "no tracking": None}
-    for name, values in ratios.items():
+    targets = {"tracking on": 3.0, "tracking off": None, "no tracking": None}
+    for (tree_name, name), values in ratios.items():
         median = statistics.median(values)
         target = targets[name]
-        print(f"  median ratio, {name}: {median:.2f}   (baseline {fmt(BASELINE['run_over_bare'])}: "
-              f"run {fmt(BASELINE['run_fps'], '.1f')} f/s, bare {fmt(BASELINE['bare_fps'], '.1f')} f/s)")
-        rows.append((f"1. run ÷ bare, {name}", f"{median:.2f}", f"≥ {target}" if target else "—",
+        spread = f"{min(values):.2f}–{max(values):.2f}"
+        print(f"  {tree_name}: median ratio, {name}: {median:.2f} (pairs {spread})")
+        rows.append((f"1. run ÷ bare, {name} ({tree_name})", f"{median:.2f} ({spread})", f"≥ {target}" if target else "—",
                      fmt(BASELINE["run_over_bare"]), status(median >= target if target else None)))
     return rows
 
@@ -353,44 +381,72 @@ def figures_2_3(bench: Bench, recording: Path, repeats: int) -> list[tuple]:
     ]
 
 
-def figure_4(bench: Bench, recording_200: Path, skip_2000: bool) -> list[tuple]:
-    print("\n## 4. peak memory of agvviz run, 200 and 2000 frames (cold caches)")
-    small, _ = bench.run(recording_200, "fig4-200", bench.fresh_cache("fig4-200"))
+def figure_4(bench: Bench, recording_200: Path, skip_2000: bool, trees: list[Tree]) -> list[tuple]:
+    print("\n## 4. peak memory of agvviz run and of agvviz sweep, 200 and 2000 frames (cold caches)")
     baseline = f"{fmt(BASELINE['pss_200_mib'], '.0f')} / {fmt(BASELINE['pss_2000_mib'], '.0f')} MiB"
-    if skip_2000:
-        return [("4. peak PSS 2000 ÷ 200 frames", f"— (200: {small.peak_pss_mib:.0f} MiB; --skip-2000)", "≤ 1.15",
-                 baseline, "—")]
-    large, _ = bench.run(bench.recording(200.0), "fig4-2000", bench.fresh_cache("fig4-2000"))
-    ratio = large.peak_pss_mib / small.peak_pss_mib
-    print(f"  summed PSS: 200 frames {small.peak_pss_mib:.0f} MiB, 2000 frames {large.peak_pss_mib:.0f} MiB, "
-          f"ratio {ratio:.2f}   (largest process's RSS: {small.max_rss_mib:.0f} / {large.max_rss_mib:.0f} MiB, "
-          f"ratio {large.max_rss_mib / small.max_rss_mib:.2f})")
-    print(f"  baseline: PSS {baseline}, largest process's RSS {fmt(BASELINE['rss_200_mib'], '.0f')} / "
+    recordings = {"200": recording_200} if skip_2000 else {"200": recording_200, "2000": bench.recording(200.0)}
+    measured = []
+    for tree in trees:
+        runs, sweeps = {}, {}
+        for frames, recording in recordings.items():
+            label = f"{tree.name}-{frames}"
+            runs[frames], _ = bench.run(recording, f"fig4-run-{label}", bench.fresh_cache(f"fig4-run-{label}"), tree=tree)
+            sweeps[frames] = bench.child(tree.agvviz + [
+                "sweep", str(recording), "--set", "solver=" + ",".join(MEMORY_SWEEP_SOLVERS), "--jobs", "2",
+                "--out-dir", str(bench.runs / f"fig4-sweep-{label}")], f"fig4-sweep-{label}",
+                bench.fresh_cache(f"fig4-sweep-{label}"), tree=tree)
+        measured += [(f"run ({tree.name})", runs, baseline), (f"sweep ({tree.name})", sweeps, "—")]
+    rows = []
+    for what, children, base in measured:
+        small = children["200"]
+        if skip_2000:
+            rows.append((f"4. {what} peak PSS 2000 ÷ 200 frames", f"— (200: {small.peak_pss_mib:.0f} MiB; --skip-2000)",
+                         "≤ 1.15", base, "—"))
+            continue
+        large = children["2000"]
+        ratio = large.peak_pss_mib / small.peak_pss_mib
+        print(f"  {what}: summed PSS: 200 frames {small.peak_pss_mib:.0f} MiB, 2000 frames {large.peak_pss_mib:.0f} MiB, "
+              f"ratio {ratio:.2f}   (largest process's RSS: {small.max_rss_mib:.0f} / {large.max_rss_mib:.0f} MiB, "
+              f"ratio {large.max_rss_mib / small.max_rss_mib:.2f})")
+        rows.append((f"4. {what} peak PSS 2000 ÷ 200 frames",
+                     f"{ratio:.2f} ({small.peak_pss_mib:.0f} / {large.peak_pss_mib:.0f} MiB)", "≤ 1.15", base,
+                     status(ratio <= 1.15)))
+    print(f"  baseline (run): PSS {baseline}, largest process's RSS {fmt(BASELINE['rss_200_mib'], '.0f')} / "
           f"{fmt(BASELINE['rss_2000_mib'], '.0f')} MiB")
-    return [("4. peak PSS 2000 ÷ 200 frames", f"{ratio:.2f} ({small.peak_pss_mib:.0f} / {large.peak_pss_mib:.0f} MiB)",
-             "≤ 1.15", baseline, status(ratio <= 1.15))]
+    return rows
 
 
-def figure_5(bench: Bench, recording: Path) -> list[tuple]:
-    print("\n## 5. accuracy per solver (run summary in each .rrd) against the baseline, within 5 %")
+def accuracy(bench: Bench, recording: Path, tree: Tree) -> list[tuple]:
+    """(case, solver, solved, position RMSE mm, heading RMSE deg) of every solver, tracking on and off."""
     measured = []
     for name, sets in bench.tracking_cases():
-        cache = bench.fresh_cache("fig5")  # detected by the first solver, reused by the others
+        cache = bench.fresh_cache(f"fig5-{tree.name}")  # detected by the first solver, reused by the others
         for solver in ACCURACY_SOLVERS:
             try:
-                _, rrd = bench.run(recording, f"fig5-{solver}-{name.replace(' ', '-')}", cache,
-                                   [f"solver={solver}", *sets])
+                _, rrd = bench.run(recording, f"fig5-{tree.name}-{solver}-{name.replace(' ', '-')}", cache,
+                                   [f"solver={solver}", *sets], tree=tree)
                 summary = summary_of(rrd)
                 measured.append((name, solver, int(summary["solved"]), rmse_of(summary, "position_error_mm"),
                                  rmse_of(summary, "heading_error_deg")))
             except BenchError as exc:
                 print(f"    not measured: {exc}")
                 measured.append((name, solver, None, None, None))
+    return measured
+
+
+def figure_5(bench: Bench, recording: Path, baseline: Tree | None) -> list[tuple]:
+    reference = "the baseline tree's" if baseline else "ad2bde5's"
+    print(f"\n## 5. accuracy per solver (run summary in each .rrd) against {reference}, within 5 %")
+    measured = accuracy(bench, recording, bench.tree)
+    references = {}
+    if baseline is not None:
+        references = {(name, solver): (pos, hdg, solved) for name, solver, solved, pos, hdg in
+                      accuracy(bench, recording, baseline) if pos is not None}
     print(f"\n  {'case':13s} {'solver':7s} {'solved':>6s} {'pos RMSE mm':>11s} {'base':>7s} {'Δ %':>6s} "
           f"{'hdg RMSE deg':>12s} {'base':>8s} {'Δ %':>6s} status")
     verdicts: dict[str, list[bool | None]] = {}
     for name, solver, solved, pos, hdg in measured:
-        base = BASELINE["rmse"].get(solver)
+        base = references.get((name, solver)) if baseline is not None else BASELINE["rmse"].get(solver)
         if pos is None or base is None:
             ok = None
             dpos = dhdg = None
@@ -406,7 +462,7 @@ def figure_5(bench: Bench, recording: Path) -> list[tuple]:
         passed = sum(ok is True for ok in oks)
         verdict = None if all(ok is None for ok in oks) else all(ok is True for ok in oks)
         rows.append((f"5. RMSE ±5 %, same solved, {name}", f"{passed} of {len(oks)} solvers", "all",
-                     "ad2bde5", status(verdict)))
+                     "baseline tree" if baseline else "ad2bde5", status(verdict)))
     return rows
 
 
@@ -432,6 +488,43 @@ def figure_6(bench: Bench, recording: Path) -> list[tuple]:
     return rows
 
 
+def figure_7(bench: Bench, recording: Path, trees: list[Tree]) -> list[tuple]:
+    print("\n## 7. CPU ms per frame of the detect stage (in process, one OpenCV thread), and of the bare loop")
+    import json
+
+    columns, results = [], {}
+    for tree in trees:
+        for name, sets in bench.tracking_cases():
+            on = "true" if "tracking=true" in sets or not sets else "false"
+            child = bench.child([tree.python, str(Path(__file__).resolve()), "--frame-costs", str(recording),
+                                 "--tracking", on], f"fig7-{tree.name}-{name.replace(' ', '-')}", tree=tree)
+            line = [x for x in child.log.read_text().splitlines() if x.startswith("{")]
+            if not line:
+                raise BenchError(f"--frame-costs printed nothing (log: {child.log})")
+            column = f"{tree.name}, {name}"
+            columns.append(column)
+            results[column] = json.loads(line[-1])
+    bare = bench.child([bench.tree.python, str(Path(__file__).resolve()), "--bare-loop", str(recording)], "fig7-bare")
+    costs = re.search(r"^CPU ms/frame (.*)$", bare.log.read_text(), re.MULTILINE)
+    labels = list(next(iter(results.values()))["cpu_s"])
+    print(f"\n  {'ms per frame':42s} " + " ".join(f"{c:>18s}" for c in columns))
+    for label in labels + ["other (Python: tracking, templates, checks)", "total"]:
+        values = []
+        for c in columns:
+            r = results[c]
+            known = sum(r["cpu_s"].values())
+            v = {"total": r["total_s"], "other (Python: tracking, templates, checks)": r["total_s"] - known}.get(
+                label, r["cpu_s"].get(label, 0.0))
+            values.append(f"{1000 * v / r['frames']:18.2f}")
+        print(f"  {label:42s} " + " ".join(values))
+    print(f"  {'keyframes of ' + str(results[columns[0]]['frames']):42s} "
+          + " ".join(f"{results[c]['keyframes']:18d}" for c in columns))
+    print(f"  bare loop, CPU ms/frame: {costs.group(1) if costs else '—'}")
+    first = results[columns[0]]
+    return [("7. detect CPU ms/frame (" + columns[0] + ")", f"{1000 * first['total_s'] / first['frames']:.1f}",
+             "", "", "")]
+
+
 # ---------------------------------------------------------------------------------------- the bare loop
 
 
@@ -449,19 +542,83 @@ def bare_loop(recording: Path) -> None:
     detector = cv2.QRCodeDetector()
     K = dist = None
     frames = codes = 0
+    cpu_s = {"decode": 0.0, "detect": 0.0, "solvePnP": 0.0}
     for msg in iter_messages(recording):
         if isinstance(msg.value, CalibrationMsg):
             K, dist = msg.value.camera.K, msg.value.camera.dist
         if not isinstance(msg.value, CompressedFrame):
             continue
         frames += 1
+        t0 = time.process_time()
         gray = cv2.imdecode(np.frombuffer(msg.value.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        t1 = time.process_time()
         ok, _, corners, _ = detector.detectAndDecodeMulti(gray)
+        t2 = time.process_time()
         if ok and corners is not None:
             for c in corners:
                 codes += 1
                 cv2.solvePnP(object_points, c.astype(np.float64), K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        t3 = time.process_time()
+        for name, dt in zip(cpu_s, (t1 - t0, t2 - t1, t3 - t2)):
+            cpu_s[name] += dt
     print(f"frames {frames} codes {codes}")
+    print("CPU ms/frame " + " ".join(f"{name} {1000 * v / max(frames, 1):.2f}" for name, v in cpu_s.items()))
+
+
+def frame_costs(recording: Path, tracking: bool) -> None:
+    """CPU time per frame of this tree's detect stage, in this process on one OpenCV thread
+    (what a detection worker does), split by the OpenCV and zxing-cpp calls that make it up;
+    prints one JSON line. Every segment is detected by `detect_segment`, as a worker does."""
+    import json
+    import cv2
+    import zxingcpp
+
+    from agvviz.model.messages import CompressedFrame
+    from agvviz.recording.reader import ReadReport
+    from agvviz.recording.source import iter_role_messages
+    from agvviz.replay.detect.stage import detect_segment
+    from agvviz.replay.run import prepare
+    from agvviz.settings import RunSettings
+
+    cv2.setNumThreads(1)
+    cpu_s = {"decode (imdecode)": 0.0, "undistort (remap of the frame)": 0.0, "detect (zxing-cpp)": 0.0,
+             "refine and track (findTransformECC)": 0.0, "module sampling (remap at module centres)": 0.0}
+    calls = dict.fromkeys(cpu_s, 0)
+
+    def timed(owner, name, label_of):
+        function = getattr(owner, name)
+
+        def wrapper(*args, **kwargs):
+            t0 = time.process_time()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                label = label_of(args)
+                cpu_s[label] += time.process_time() - t0
+                calls[label] += 1
+        setattr(owner, name, wrapper)
+
+    timed(cv2, "imdecode", lambda a: "decode (imdecode)")
+    timed(cv2, "remap", lambda a: "undistort (remap of the frame)" if getattr(a[1], "ndim", 0) == 3
+          else "module sampling (remap at module centres)")
+    timed(zxingcpp, "read_barcodes", lambda a: "detect (zxing-cpp)")
+    timed(cv2, "findTransformECC", lambda a: "refine and track (findTransformECC)")
+    prepared = prepare(recording, RunSettings(tracking=tracking))
+    report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
+    jobs = [prepared.replay.detect_job(m) for m in iter_role_messages(
+        prepared.recording, prepared.roles, prepared.time_source, report) if isinstance(m.value, CompressedFrame)]
+    jobs = [job for job in jobs if job is not None]
+    params = prepared.replay.detect_params
+    detect_segment(params, jobs[:1])  # imports and first-use costs out of the figure
+    for key in cpu_s:
+        cpu_s[key], calls[key] = 0.0, 0
+    t0 = time.process_time()
+    results = []
+    for start in range(0, len(jobs), params.segment_frames):
+        results += detect_segment(params, jobs[start:start + params.segment_frames])
+    total_s = time.process_time() - t0
+    print(json.dumps({"frames": len(jobs), "keyframes": sum(r.keyframe for r in results), "total_s": total_s,
+                      "cpu_s": cpu_s, "calls": calls}))
 
 
 def floor_loop(recording: Path, out: Path) -> None:
@@ -487,16 +644,15 @@ def floor_loop(recording: Path, out: Path) -> None:
 # ---------------------------------------------------------------------------------------- main
 
 
-def inspect_tree(python: str) -> Tree:
-    helped = subprocess.run([python, "-m", "agvviz", "run", "--help"], capture_output=True, text=True,
-                            env=dict(os.environ, COLUMNS="200"))
+def inspect_tree(python: str, source: str | None = None, name: str = "new") -> Tree:
+    env = dict(os.environ, COLUMNS="200", **({"PYTHONPATH": source} if source else {}))
+    helped = subprocess.run([python, "-m", "agvviz", "run", "--help"], capture_output=True, text=True, env=env)
     if helped.returncode != 0:
         raise SystemExit(f"error: `{python} -m agvviz run --help` exited {helped.returncode}")
     text = helped.stdout
-    scenarios = subprocess.run([python, "-m", "agvviz", "scenarios"], capture_output=True, text=True,
-                               env=dict(os.environ, COLUMNS="200")).stdout
+    scenarios = subprocess.run([python, "-m", "agvviz", "scenarios"], capture_output=True, text=True, env=env).stdout
     return Tree(python=python, has_tracking="tracking (bool" in text, has_jobs="--jobs" in text,
-                has_realism="realism" in scenarios)
+                has_realism="realism" in scenarios, source=source, name=name)
 
 
 def main() -> None:
@@ -509,8 +665,17 @@ def main() -> None:
                         help="which figures to measure, comma-separated (2 and 3 are measured together)")
     parser.add_argument("--python", default=sys.executable,
                         help="interpreter whose agvviz is measured (default: this one)")
+    parser.add_argument("--source", default=str(ROOT),
+                        help="source tree measured, put first on the children's PYTHONPATH (default: this "
+                             "script's tree; '' for the interpreter's own agvviz)")
+    parser.add_argument("--baseline", metavar="TREE",
+                        help="a second source tree (e.g. a `git worktree` of the commit before a change), run "
+                             "with the same interpreter beside the measured one in figures 1, 4 and 5: "
+                             "before/after pairs in one invocation")
     parser.add_argument("--bare-loop", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--floor-loop", type=Path, nargs=2, help=argparse.SUPPRESS)
+    parser.add_argument("--frame-costs", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--tracking", default="true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.bare_loop is not None:
         bare_loop(args.bare_loop)
@@ -518,29 +683,37 @@ def main() -> None:
     if args.floor_loop is not None:
         floor_loop(*args.floor_loop)
         return
+    if args.frame_costs is not None:
+        frame_costs(args.frame_costs, args.tracking == "true")
+        return
     if args.repeats < 1:
         raise SystemExit("error: --repeats must be ≥ 1")
     wanted = set(args.figures.replace(" ", "").split(","))
-    if not wanted <= {"1", "2", "3", "4", "5", "6"}:
-        raise SystemExit(f"error: --figures takes numbers from 1 to 6, got {args.figures!r}")
+    if not wanted <= {"1", "2", "3", "4", "5", "6", "7"}:
+        raise SystemExit(f"error: --figures takes numbers from 1 to 7, got {args.figures!r}")
     if not os.access(TIME, os.X_OK):
         raise SystemExit(f"error: {TIME} (GNU time) is needed for peak memory; install the 'time' package")
 
-    tree = inspect_tree(args.python)
+    tree = inspect_tree(args.python, args.source or None)
+    baseline = inspect_tree(args.python, str(Path(args.baseline).resolve()), "base") if args.baseline else None
+    trees = [tree] + ([baseline] if baseline else [])
     workdir = args.workdir.resolve()
     bench = Bench(workdir, tree)
-    print(f"agvviz of {tree.python}: tracking setting {'yes' if tree.has_tracking else 'no'}, "
+    for other in trees[1:]:
+        print(f"baseline: agvviz of {other.source} (run with {other.python})")
+    print(f"agvviz of {tree.source or tree.python}: tracking setting {'yes' if tree.has_tracking else 'no'}, "
           f"run --jobs {'yes' if tree.has_jobs else 'no'}; workdir {workdir}; {os.cpu_count()} CPUs; "
           f"load average {os.getloadavg()[0]:.2f}")
     recording = bench.recording(None)
 
     rows = []
     figures = [
-        ("1", lambda: figure_1(bench, recording, args.repeats)),
+        ("1", lambda: figure_1(bench, recording, args.repeats, trees)),
         ("2, 3", lambda: figures_2_3(bench, recording, args.repeats)),
-        ("4", lambda: figure_4(bench, recording, args.skip_2000)),
-        ("5", lambda: figure_5(bench, recording)),
+        ("4", lambda: figure_4(bench, recording, args.skip_2000, trees)),
+        ("5", lambda: figure_5(bench, recording, baseline)),
         ("6", lambda: figure_6(bench, recording)),
+        ("7", lambda: figure_7(bench, recording, trees)),
     ]
     for name, measure in figures:
         if not wanted & set(name.split(", ")):

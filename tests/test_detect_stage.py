@@ -118,6 +118,32 @@ def test_detections_do_not_depend_on_workers(recording, tracking):
         assert keyframes == 40
 
 
+def test_tracked_frames_undistort_only_their_codes_regions_with_the_same_result(recording, monkeypatch):
+    """A tracked frame of a camera with distortion undistorts only the boxes its tracker reads
+    (stage._undistorted_boxes); the detections must equal those of the whole frame undistorted,
+    exactly (each undistorted pixel is a function of its own map entry)."""
+    from agvviz.replay.detect import stage
+
+    settings = RunSettings(tracking=True)
+    boxes_seen = []
+
+    def counted(gray, model, boxes):
+        boxes_seen.append(list(boxes))
+        return real(gray, model, boxes)
+
+    real = stage._undistorted_boxes
+    monkeypatch.setattr(stage, "_undistorted_boxes", counted)
+    partial = _inline_detections(recording, settings)
+    tracked = sum(not k for *_, k in partial)
+    assert tracked >= 20 and len(boxes_seen) >= tracked  # the tracked frames took the partial path
+    height, width = 1024, 1280
+    assert all(0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height for b in boxes_seen for x0, y0, x1, y1 in b)
+    assert max(sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in b) for b in boxes_seen) < 0.5 * width * height
+    monkeypatch.setattr(stage, "_undistorted_boxes", lambda gray, model, boxes: stage._undistorted(gray, model))
+    whole = _inline_detections(recording, settings)
+    assert partial == whole
+
+
 def test_detection_settings_are_what_detection_depends_on():
     assert detection_settings(RunSettings(solver="p4p", fusion="kalman")) == detection_settings(RunSettings())
     assert detection_settings(RunSettings(refine="subpix")) != detection_settings(RunSettings())

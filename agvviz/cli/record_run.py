@@ -154,6 +154,10 @@ def _run(
     cache_dir=None, budget: bool = False, fail_if: list[str] = (), junit_xml: Optional[Path] = None,
     images: str = "all",
 ) -> Path:
+    if jobs != 1:  # detection workers' imports run on another core while this one starts up
+        from agvviz.replay.detect.workers import start_fork_server
+
+        start_fork_server()
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
     from agvviz.app.run import run_recording

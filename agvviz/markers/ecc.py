@@ -37,17 +37,21 @@ _ECC_GAUSS_FILTER_SIZE = 3
 
 
 #: Templates up to this many pixels a side are cached (at most 256 of them, 64 KiB each: an
-#: ArUco marker's is 80 px at 8 px per module); larger ones (QR codes) are built per call.
+#: ArUco marker's is 80 px at 8 px per module); larger ones (QR codes: 35 modules at 8 px are
+#: 280 px, 306 KiB) in a cache of their own of :data:`LARGE_TEMPLATES_CACHED` (a tracked code
+#: is aligned with the same template frame after frame; building it costs ≈1 ms).
 CACHED_TEMPLATE_MAX_SIDE_PX = 128
+LARGE_TEMPLATES_CACHED = 16
 
 
 def _ecc_template(symbol: np.ndarray, scale: int) -> np.ndarray:
     """The ECC template of an (n, n) symbol (True dark): the symbol and a
     :data:`TEMPLATE_BORDER_MODULES` light border, ``scale`` px per module, float32 0/255."""
     n = len(symbol)
+    key = np.ascontiguousarray(symbol, dtype=bool).tobytes()
     if (n + 2 * TEMPLATE_BORDER_MODULES) * scale <= CACHED_TEMPLATE_MAX_SIDE_PX:
-        return _cached_template(np.ascontiguousarray(symbol, dtype=bool).tobytes(), n, scale)
-    return _build_template(symbol, scale)
+        return _cached_template(key, n, scale)
+    return _cached_large_template(key, n, scale)
 
 
 @functools.lru_cache(maxsize=256)
@@ -57,6 +61,12 @@ def _cached_template(symbol_bytes: bytes, n: int, scale: int) -> np.ndarray:
     template = _build_template(np.frombuffer(symbol_bytes, dtype=bool).reshape(n, n), scale)
     template.setflags(write=False)
     return template
+
+
+@functools.lru_cache(maxsize=LARGE_TEMPLATES_CACHED)
+def _cached_large_template(symbol_bytes: bytes, n: int, scale: int) -> np.ndarray:
+    """:func:`_cached_template` for the large templates, in a smaller cache."""
+    return _cached_template.__wrapped__(symbol_bytes, n, scale)
 
 
 def _build_template(symbol: np.ndarray, scale: int) -> np.ndarray:
@@ -80,11 +90,7 @@ def _refine_ecc(
         np.array([[0, 0], [n, 0], [n, n], [0, n]], dtype=float) + border
     ) * scale - 0.5
 
-    margin_px = (border + 1) * side_px / n + 4
-    x0 = int(max(np.floor(raw_corners_px[:, 0].min() - margin_px), 0))
-    y0 = int(max(np.floor(raw_corners_px[:, 1].min() - margin_px), 0))
-    x1 = int(min(np.ceil(raw_corners_px[:, 0].max() + margin_px) + 1, gray.shape[1]))
-    y1 = int(min(np.ceil(raw_corners_px[:, 1].max() + margin_px) + 1, gray.shape[0]))
+    x0, y0, x1, y1 = ecc_crop_box(raw_corners_px, n, gray.shape)
     crop = gray[y0:y1, x0:x1].astype(np.float32)
     ratio = side_px / n / scale  # image pixels per template pixel
     if ratio > ECC_ANTIALIAS_RATIO:
@@ -107,6 +113,20 @@ def _refine_ecc(
         symbol_corners_template.reshape(1, 4, 2), H_crop_template.astype(float)
     ).reshape(4, 2) + offset
     return accept_shift(corners_px, raw_corners_px, side_px / n)
+
+
+def ecc_crop_box(raw_corners_px: np.ndarray, n: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: the part of an image of ``shape`` (H, W) that ECC reads to align an
+    ``n``-module symbol from ``raw_corners_px`` — the corners' bounding box with a margin of
+    the template's border plus one module plus 4 px (a refinement that moves a corner further
+    than one module is refused), clipped to the image; ``gray[y0:y1, x0:x1]``."""
+    side_px = mean_side_px(raw_corners_px)
+    margin_px = (TEMPLATE_BORDER_MODULES + 1) * side_px / n + 4
+    x0 = int(max(np.floor(raw_corners_px[:, 0].min() - margin_px), 0))
+    y0 = int(max(np.floor(raw_corners_px[:, 1].min() - margin_px), 0))
+    x1 = int(min(np.ceil(raw_corners_px[:, 0].max() + margin_px) + 1, shape[1]))
+    y1 = int(min(np.ceil(raw_corners_px[:, 1].max() + margin_px) + 1, shape[0]))
+    return x0, y0, x1, y1
 
 
 def mean_side_px(corners_px: np.ndarray) -> float:

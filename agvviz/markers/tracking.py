@@ -68,14 +68,14 @@ and picklable; a tracker is cheap to create, one per camera and per contiguous r
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from agvviz.errors import InputError
-from agvviz.markers.ecc import MAX_REFINE_SHIFT_MODULES, align_symbol_ecc, mean_side_px
+from agvviz.markers.ecc import MAX_REFINE_SHIFT_MODULES, align_symbol_ecc, ecc_crop_box, mean_side_px
 from agvviz.markers.qr import (
     REFINE_METHODS,
     TEMPLATE_GOOD_CORRELATION,
@@ -170,6 +170,7 @@ class CodeTracker:
         gray: np.ndarray,
         frame_index: int,
         motion_hint: np.ndarray | CornersHint | None = None,
+        full_image: Callable[[], np.ndarray] | None = None,
     ) -> TrackOutcome:
         """The codes in frame ``frame_index``, tracked when possible, else fully detected.
 
@@ -189,6 +190,10 @@ class CodeTracker:
             corners (4, 2) TL, TR, BR, BL in this frame. Codes it does not cover (and codes
             whose payload is tracked twice) are predicted from their image motion. A hint
             only predicts: the checks are the same, and it finds no new code.
+        full_image : callable, optional
+            When given, ``gray`` need hold only the :meth:`regions` of this frame (the rest
+            may be anything), and ``full_image()`` returns the whole frame for a keyframe's
+            full detection.
 
         Raises
         ------
@@ -204,27 +209,56 @@ class CodeTracker:
                 f"frames must be given in order: frame {frame_index} after frame {self._last_index}"
             )
         hint_H, hint_corners = _parse_hint(motion_hint)
-        reason = self._why_not_track(gray, frame_index)
+        reason = self._why_not_track(gray.shape, frame_index)
         tracked = None
         if reason is None:
             tracked, reason = self._track_all(gray, frame_index, hint_H, hint_corners)
         if tracked:  # not None (a check failed) nor empty (every code left the view)
             self._advance(tracked, frame_index)
             return TrackOutcome(detections=[t.detection for t in tracked], keyframe=False, tracked=len(tracked))
+        if full_image is not None:
+            gray = full_image()
+            check_gray(gray)
         detections = detect_qr_codes(gray, refine=self.refine)
         self._restart(detections, gray.shape, frame_index)
         return TrackOutcome(detections=detections, keyframe=True, tracked=0, fallback_reason=reason)
 
+    def regions(
+        self, shape: tuple[int, int], frame_index: int, motion_hint: np.ndarray | CornersHint | None = None
+    ) -> list[tuple[int, int, int, int]] | None:
+        """The parts of frame ``frame_index`` (an image of ``shape``, (H, W)) that
+        :meth:`detect` reads when it tracks the frame, as boxes ``(x0, y0, x1, y1)``
+        (``gray[y0:y1, x0:x1]``): for each code, the crop ECC aligns it in from each of its
+        predictions (:func:`~agvviz.markers.ecc.ecc_crop_box`; the module check reads only
+        inside the corners, which ECC may move by at most one module). None when the frame
+        is a keyframe by schedule or has a code without a prediction: :meth:`detect` then
+        reads the whole frame. The same arguments as :meth:`detect`, which must follow."""
+        frame_index = int(frame_index)
+        if self._last_index is not None and frame_index <= self._last_index:
+            return None  # detect() refuses it
+        hint_H, hint_corners = _parse_hint(motion_hint)
+        if self._why_not_track(tuple(shape), frame_index) is not None:
+            return None
+        boxes = []
+        for track, predictions in self._predictions(frame_index, hint_H, hint_corners):
+            if not predictions:
+                return None
+            n = len(track.detection.symbol)
+            for predicted in predictions:
+                if np.all(np.isfinite(predicted)) and _is_convex(predicted):
+                    boxes.append(ecc_crop_box(predicted, n, shape))
+        return boxes
+
     # -- keyframe policy ------------------------------------------------------------------------
-    def _why_not_track(self, gray: np.ndarray, frame_index: int) -> str | None:
+    def _why_not_track(self, shape: tuple[int, int], frame_index: int) -> str | None:
         """None when this frame may be tracked; else the fallback reason ("" for a keyframe by
         schedule)."""
         if self.refine != "ecc" or self._last_keyframe_index is None:
             return ""
         if frame_index - self._last_keyframe_index >= self.keyframe_every:
             return ""
-        if gray.shape != self._frame_shape:
-            return f"frame size changed from {self._frame_shape} to {gray.shape}"
+        if shape != self._frame_shape:
+            return f"frame size changed from {self._frame_shape} to {shape}"
         if self._untrackable:
             return self._untrackable
         if not self._tracks:
@@ -236,23 +270,9 @@ class CodeTracker:
         self, gray: np.ndarray, frame_index: int, hint_H: np.ndarray | None, hint_corners: dict
     ) -> tuple[list[_Track] | None, str]:
         """Every code tracked into this frame, or (None, why not)."""
-        gap = frame_index - self._last_index
-        has_motion = self._step is not None and gap == self._step
-        H_common = self._common_step_homography() if has_motion else None
-        counts = Counter(_payload_key(t.detection) for t in self._tracks)
         tracked = []
-        for track in self._tracks:
+        for track, predictions in self._predictions(frame_index, hint_H, hint_corners):
             detection = track.detection
-            key = _payload_key(detection)
-            predictions = []  # in order of preference (module docstring)
-            if key in hint_corners and counts[key] == 1:
-                predictions.append(hint_corners[key])
-            if has_motion and track.previous_corners_px is not None:
-                predictions.append(_apply(_step_homography(track.previous_corners_px, detection.corners_px), detection.corners_px))
-            elif H_common is not None:
-                predictions.append(_apply(H_common, detection.corners_px))
-            if hint_H is not None:
-                predictions.append(_apply(hint_H, detection.corners_px))
             if not predictions:
                 return None, f"no motion known yet for {_label(detection)} (seen in one frame only)"
             corners_px, predicted, problem = _first_alignment(gray, detection, predictions)
@@ -270,6 +290,31 @@ class CodeTracker:
                 )
             )
         return tracked, ""
+
+    def _predictions(
+        self, frame_index: int, hint_H: np.ndarray | None, hint_corners: dict
+    ) -> list[tuple[_Track, list[np.ndarray]]]:
+        """Each track with its predicted corners in frame ``frame_index``, in order of
+        preference (module docstring); an empty list when there is none."""
+        gap = frame_index - self._last_index
+        has_motion = self._step is not None and gap == self._step
+        H_common = self._common_step_homography() if has_motion else None
+        counts = Counter(_payload_key(t.detection) for t in self._tracks)
+        out = []
+        for track in self._tracks:
+            detection = track.detection
+            key = _payload_key(detection)
+            predictions = []
+            if key in hint_corners and counts[key] == 1:
+                predictions.append(hint_corners[key])
+            if has_motion and track.previous_corners_px is not None:
+                predictions.append(_apply(_step_homography(track.previous_corners_px, detection.corners_px), detection.corners_px))
+            elif H_common is not None:
+                predictions.append(_apply(H_common, detection.corners_px))
+            if hint_H is not None:
+                predictions.append(_apply(hint_H, detection.corners_px))
+            out.append((track, predictions))
+        return out
 
     def _common_step_homography(self) -> np.ndarray | None:
         """Least-squares frame-to-frame homography of every code with its own motion (codes

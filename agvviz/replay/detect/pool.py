@@ -19,10 +19,7 @@ the file alone, not of timing.
 
 from __future__ import annotations
 
-import multiprocessing
 import os
-import signal
-import sys
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -31,6 +28,7 @@ from typing import Callable, Iterable, Iterator
 
 from agvviz.errors import RunError
 from agvviz.replay.detect.stage import DetectParams, FrameJob, detect_segment
+from agvviz.replay.detect.workers import init_worker, pool_context
 from agvviz.model.detections import FrameDetections
 from agvviz.model.messages import CompressedFrame, RecordedMessage
 
@@ -65,34 +63,6 @@ class _Segment:
     future: Future | None = None
 
 
-def _init_worker() -> None:
-    """Worker set-up: Ctrl-C is the parent's to handle (it cancels the pool); die with the
-    parent; one OpenCV thread (the workers already fill the CPUs)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # A fork server started by a process that ignores SIGTERM (a sweep's Dask worker) passes
-    # that on; the parent-death signal below must be able to end this worker.
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    if sys.platform.startswith("linux"):
-        try:
-            import ctypes
-
-            # PR_SET_PDEATHSIG: SIGTERM when the parent (the fork server, which ends with the run)
-            # dies, so no worker runs on alone.
-            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)
-        except (OSError, AttributeError):
-            pass
-    import cv2
-
-    cv2.setNumThreads(1)
-
-
-def _pool_context():
-    """forkserver where there is one (no fork of a process that already runs Rerun's threads),
-    else spawn."""
-    methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-
-
 class DetectionFeed:
     """Messages in file order, each image with its detections, computed ``jobs``-parallel.
 
@@ -125,7 +95,7 @@ class DetectionFeed:
     def start(self) -> None:
         """Start the worker processes (call early: they import OpenCV while the run starts)."""
         if self.jobs > 1 and self._pool is None and self.cached is None:
-            self._pool = ProcessPoolExecutor(self.jobs, mp_context=_pool_context(), initializer=_init_worker)
+            self._pool = ProcessPoolExecutor(self.jobs, mp_context=pool_context(), initializer=init_worker)
 
     def close(self, cancel: bool = False) -> None:
         """Stop the workers; ``cancel`` (an error or Ctrl-C): drop queued segments and end the

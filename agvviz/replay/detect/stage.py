@@ -170,8 +170,10 @@ def _build_camera_model(camera: PinholeCamera) -> CameraModel:
     return CameraModel(camera, maps)
 
 
-def _decode(job: FrameJob, model: CameraModel) -> tuple[np.ndarray | None, tuple[str, str] | None, bool]:
-    """(undistorted gray image, rejection, drop the bytes)."""
+def _decode(
+    job: FrameJob, model: CameraModel, undistort: bool = True
+) -> tuple[np.ndarray | None, tuple[str, str] | None, bool]:
+    """(gray image, undistorted unless ``undistort`` is False; rejection; drop the bytes)."""
     problem = frame_problem(job.image_format, job.data, model.camera)  # header only, no decode
     if problem is not None:
         return None, problem, problem[0] == REJECT_IMAGE
@@ -186,9 +188,29 @@ def _decode(job: FrameJob, model: CameraModel) -> tuple[np.ndarray | None, tuple
     problem = frame_problem(job.image_format, job.data, model.camera, size=(gray.shape[1], gray.shape[0]))
     if problem is not None:
         return None, problem, problem[0] == REJECT_IMAGE
-    if model.undistort_maps is not None:
-        gray = cv2.remap(gray, *model.undistort_maps, interpolation=cv2.INTER_LINEAR)
+    if undistort:
+        gray = _undistorted(gray, model)
     return gray, None, False
+
+
+def _undistorted(gray: np.ndarray, model: CameraModel) -> np.ndarray:
+    """The whole frame undistorted (itself when the camera has no distortion)."""
+    if model.undistort_maps is None:
+        return gray
+    return cv2.remap(gray, *model.undistort_maps, interpolation=cv2.INTER_LINEAR)
+
+
+def _undistorted_boxes(gray: np.ndarray, model: CameraModel, boxes) -> np.ndarray:
+    """A frame whose ``boxes`` ``(x0, y0, x1, y1)`` hold the undistorted frame's pixels — the
+    same values as :func:`_undistorted`'s, each output pixel being a function of its own map
+    entry — and the rest 0: what a tracked frame reads, at a fraction of the cost."""
+    map_xy, map_extra = model.undistort_maps
+    out = np.zeros_like(gray)
+    for x0, y0, x1, y1 in boxes:
+        if x1 > x0 and y1 > y0:
+            extra = map_extra[y0:y1, x0:x1] if map_extra is not None and map_extra.size else None
+            out[y0:y1, x0:x1] = cv2.remap(gray, map_xy[y0:y1, x0:x1], extra, interpolation=cv2.INTER_LINEAR)
+    return out
 
 
 def _qr_code(gray: np.ndarray, det, params: DetectParams) -> CodeDetection:
@@ -226,7 +248,10 @@ class SegmentDetector:
         model = camera_model(job.calibration)
         if model.camera is None:
             return FrameDetections(reject=None, detect_s=time.perf_counter() - t0, note=model.problem)
-        gray, reject, drop = _decode(job, model)
+        # A tracked frame reads only the parts of the image around its codes: when the camera
+        # has distortion, only those are undistorted (the whole frame if it turns out a keyframe).
+        partial = self.params.tracks and model.undistort_maps is not None
+        gray, reject, drop = _decode(job, model, undistort=not partial)
         if gray is None:
             return FrameDetections(reject=reject, drop_image=drop, detect_s=time.perf_counter() - t0)
         params = self.params
@@ -254,7 +279,24 @@ class SegmentDetector:
 
                 self._tracker = CodeTracker(refine=params.refine, keyframe_every=params.keyframe_every)
             motion = _motion_of(job, model.camera)
-            outcome = self._tracker.detect(gray, position, motion_hint=_floor_hint(self._last_motion, motion))
+            hint = _floor_hint(self._last_motion, motion)
+            full_image = None
+            if partial:
+                distorted = gray
+                boxes = self._tracker.regions(distorted.shape, position, motion_hint=hint)
+                if boxes is None:
+                    gray = _undistorted(distorted, model)
+                else:
+                    gray = _undistorted_boxes(distorted, model, boxes)
+                    whole: list[np.ndarray] = []
+
+                    def full_image() -> np.ndarray:  # a keyframe after all
+                        whole.append(_undistorted(distorted, model))
+                        return whole[0]
+
+            outcome = self._tracker.detect(gray, position, motion_hint=hint, full_image=full_image)
+            if outcome.keyframe and full_image is not None:
+                gray = whole[0]  # what the keyframe's codes were found in
             self._last_motion = motion
             keyframe, tracked, note = outcome.keyframe, outcome.tracked, outcome.fallback_reason
             codes = tuple(_qr_code(gray, d, params) for d in outcome.detections)

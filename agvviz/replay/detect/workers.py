@@ -1,0 +1,72 @@
+"""How detection worker processes start: forked from a fork server that has imported what they
+need, started early so that its imports overlap the run's own start-up.
+
+A detection worker (:mod:`agvviz.replay.detect.pool`) runs
+:func:`agvviz.replay.detect.stage.detect_segment`; importing what that needs (OpenCV, NumPy,
+zxing-cpp, and through the settings SciPy) takes ≈0.5 s of CPU, and a worker started afresh
+does it before its first frame, while the run waits for that frame. Here the fork server does
+it once (:data:`WORKER_MODULES`, its *preload*) and every worker is a fork of it, ready in
+milliseconds. :func:`start_fork_server` starts the server in the background; ``agvviz run``
+calls it before it imports Rerun and reads the recording, so the server's imports run on the
+other core meanwhile. Where there is no fork server (macOS, Windows), workers are spawned and
+import on their own.
+
+This module imports nothing heavy itself: the command line calls it first thing.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import sys
+
+#: The modules a detection worker needs (the functions and values it unpickles, and what they
+#: import), imported once by the fork server.
+WORKER_MODULES = ("agvviz.replay.detect.stage", "agvviz.markers.qr", "agvviz.markers.tracking")
+
+
+def has_fork_server() -> bool:
+    return "forkserver" in multiprocessing.get_all_start_methods()
+
+
+def start_fork_server() -> None:
+    """Start the fork server of detection workers now, without waiting for it: it imports
+    :data:`WORKER_MODULES` while this process goes on. A no-op where there is no fork server,
+    or when this process runs one already (then it is used as it is, and workers import what
+    it lacks on their own)."""
+    if not has_fork_server():
+        return
+    import multiprocessing.forkserver as forkserver
+
+    forkserver.set_forkserver_preload(list(WORKER_MODULES))  # no effect once it runs
+    forkserver.ensure_running()
+
+
+def pool_context():
+    """forkserver where there is one (no fork of a process that already runs Rerun's threads),
+    with :data:`WORKER_MODULES` preloaded; else spawn."""
+    if has_fork_server():
+        start_fork_server()
+        return multiprocessing.get_context("forkserver")
+    return multiprocessing.get_context("spawn")
+
+
+def init_worker() -> None:
+    """Worker set-up: Ctrl-C is the parent's to handle (it cancels the pool); die with the
+    parent; one OpenCV thread (the workers already fill the CPUs)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # A fork server started by a process that ignores SIGTERM (a sweep's Dask worker) passes
+    # that on; the parent-death signal below must be able to end this worker.
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            # PR_SET_PDEATHSIG: SIGTERM when the parent (the fork server, which ends with the run)
+            # dies, so no worker runs on alone.
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+    import cv2
+
+    cv2.setNumThreads(1)
