@@ -76,7 +76,9 @@ class UncertaintyLogger:
         rec.log(
             paths.AGV_CAMERA_POSITION_COV,
             rr.Ellipsoids3D.from_fields(
-                colors=COLOR_CAMERA, fill_mode=rr.components.FillMode.MajorWireframe, show_labels=True
+                # The label (σ in mm) shows on hover: on screen it covered the code ids beside the body,
+                # and the 3D view's title already says "position 3σ ×10".
+                colors=COLOR_CAMERA, fill_mode=rr.components.FillMode.MajorWireframe, show_labels=False
             ),
             static=True,
         )
