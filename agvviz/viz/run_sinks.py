@@ -108,7 +108,7 @@ class RrdSink(NullSink):
                 room_m=self.room_m,
             )
         if self.correction_logger is not None:
-            self.logger.blueprint = correction_blueprint(sorted(self.cameras))
+            self.logger.blueprint = correction_blueprint(sorted(self.cameras), self.correction_logger.cycle_axes_high())
 
 
 class StudyRrdSink(NullSink):
