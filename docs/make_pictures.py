@@ -191,7 +191,7 @@ GROUPS = (
     Group("budget", _budget, (
         (Shot("budget", END, doc="docs/realism.md",
               caption="each source's share of the position error with its 95 % CI; negative: interaction"),),
-        (Shot("budget-run", END, tab="error budget", doc="docs/realism.md",
+        (Shot("budget-run", END, tab="error budget:", doc="docs/realism.md",
               caption="run --budget: the budget's whole layout in a tab of its own beside the run's"),),
     )),
 )

@@ -57,7 +57,7 @@ def test_budget_titles_name_each_source_colour_and_run_budget_has_its_own_tab():
     assert style.budget_source_color("calibration") == style.BUDGET_SOURCE_COLORS["calibration"]
     run = blueprints.default_blueprint(["front"], budget_sources=["calibration"])
     assert isinstance(run.root_container, rrb.Tabs)
-    assert [c.name for c in run.root_container.contents] == ["run", "error budget"]
+    assert [c.name for c in run.root_container.contents] == ["run", blueprints.BUDGET_TAB]
     shares = [v for v in _views(run.root_container.contents[1]) if v.origin == paths.BUDGET_SHARES]
     assert len(shares) == 1
 

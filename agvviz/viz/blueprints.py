@@ -310,7 +310,7 @@ def default_blueprint(
     view's title; the 3D view follows the estimated AGV from its first position ``start_m``.
     ``budget_sources``: the run holds an error budget of these sources (``run --budget``): its
     table is the active document, and the budget's whole layout (:func:`budget_layout`) a
-    top-level tab "error budget" beside the run's (its chart was unreadable in a quarter panel).
+    top-level tab (:data:`BUDGET_TAB`) beside the run's (its chart was unreadable in a quarter panel).
     ``has_suspects``: the suspects log (one line per suspect frame) under the summary, before
     the rejections, and the suspect diamonds on the error plots. ``axes``: each time series' y
     axis (:func:`run_plot_axes`; None: Rerun's auto range); ``max_reproj_px``: the limit line's
@@ -395,7 +395,7 @@ def default_blueprint(
     )
     run = rrb.Vertical(top, bottom, row_shares=[0.62, 0.38], name="run")
     if budget_sources is not None:  # the budget's whole layout in a tab beside the run's
-        run = rrb.Tabs(run, budget_layout(budget_sources, name="error budget"), active_tab=0)
+        run = rrb.Tabs(run, budget_layout(budget_sources, name=BUDGET_TAB), active_tab=0)
     return rrb.Blueprint(
         run,
         rrb.BlueprintPanel(state="collapsed"),
@@ -657,24 +657,28 @@ def budget_errors_view(sources: list[str]) -> rrb.TimeSeriesView:
     """Per-frame position error with every source on, every source off, and each source off."""
     names = [paths.BUDGET_ALL_ON, paths.BUDGET_ALL_OFF] + list(sources)
     return rrb.TimeSeriesView(origin=paths.BUDGET, contents=[f"$origin/{paths.budget_series_relative(n)}" for n in names],
-                              name=f"position error [mm] vs t [s]: all on white, all off (floor) grey; with one source off: {_budget_key(sources)}",
+                              name=f"error [mm], one source off: {_budget_key(sources)}; all on white, all off grey",
                               plot_legend=_NO_LEGEND)
 
 
 def budget_deltas_view(sources: list[str]) -> rrb.TimeSeriesView:
     """Per-frame error all on − error with each source off: when a source costs what it costs."""
     return rrb.TimeSeriesView(origin=paths.BUDGET, contents=[f"$origin/{paths.budget_series_relative(s, 'delta_mm')}" for s in sources],
-                              name=f"error all on − error source off [mm] vs t [s]: {_budget_key(sources)}",
+                              name=f"error all on − one source off [mm]: {_budget_key(sources)}",
                               plot_legend=_NO_LEGEND)
+
+
+#: The name of ``run --budget``'s tab holding the budget's layout.
+BUDGET_TAB = "error budget: share chart and series"
 
 
 def budget_layout(sources: list[str], name: str | None = None) -> rrb.Container:
     """The budget's views: table and share chart (the chart as wide as the table, half the
-    height) beside the per-frame errors and deltas."""
+    height) beside the per-frame errors and deltas (wider: their titles name every colour)."""
     return rrb.Horizontal(
         rrb.Vertical(budget_table_view(), budget_shares_view(sources), row_shares=[0.5, 0.5]),
         rrb.Vertical(budget_errors_view(sources), budget_deltas_view(sources)),
-        column_shares=[0.5, 0.5], name=name,
+        column_shares=[0.42, 0.58], name=name,
     )
 
 

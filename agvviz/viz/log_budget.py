@@ -97,9 +97,9 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns:
 #: grid spans CHART_WIDTH across, whatever range of % it shows; each source's row is ROW high, its
 #: label centred above its bar (a label beside the bars was cut at the view's edge).
 CHART_WIDTH = 160.0
-ROW = 12.0
+ROW = 16.0
 BAR_HALF_HEIGHT = 2.5
-LABEL_ABOVE = 5.0
+LABEL_ABOVE = 8.0
 #: The grid's steps (%): the smallest giving at most MAX_GRID_LINES lines (more overlapped their labels).
 GRID_STEPS_PCT = (10.0, 20.0, 25.0, 50.0, 100.0, 200.0, 500.0)
 MAX_GRID_LINES = 7
