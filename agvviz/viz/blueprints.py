@@ -576,21 +576,21 @@ def correction_blueprint(cam_names: list[str], cycle_highs: dict[str, float] | N
 
     errors = rrb.TimeSeriesView(
         origin="/", contents=[f"/{paths.ERROR_NAV_MM}", f"/{paths.ERROR_CORRECTED_MM}", f"/{paths.ERROR_CORRECTION_JUMP_MM}"],
-        name="position error vs truth [mm]: navigation red, corrected magenta, dots: jumps", plot_legend=_NO_LEGEND,
+        name="error [mm]: navigation red, corrected magenta", plot_legend=_NO_LEGEND,
     )
     corrected = rrb.TimeSeriesView(
         origin="/", contents=[f"/{paths.ERROR_CORRECTED_MM}", f"/{paths.ERROR_CORRECTION_JUMP_MM}"],
-        name="corrected error [mm] (magenta), dots: jumps", plot_legend=_NO_LEGEND,
+        name="corrected error [mm], dots: jumps", plot_legend=_NO_LEGEND,
     )
     cycles = rrb.Tabs(
         rrb.TimeSeriesView(
             origin="/", contents=[f"/{paths.CORRECTION_CYCLE_REPROJ_RMS_PX}", f"/{paths.CORRECTION_CYCLE_MAX_REPROJ_PX}"],
-            name="closed cycles: window RMS [px] (white dots), limit red", plot_legend=_NO_LEGEND,
+            name="cycles: window RMS [px], limit red", plot_legend=_NO_LEGEND,
             axis_y=from_zero(paths.CORRECTION_CYCLE_REPROJ_RMS_PX),
         ),
         rrb.TimeSeriesView(
             origin="/", contents=[f"/{paths.CORRECTION_CYCLE_POSITION_SIGMA_MM}", f"/{paths.CORRECTION_CYCLE_MAX_POSITION_SIGMA_MM}"],
-            name="closed cycles: position σ [mm] (white dots), limit red", plot_legend=_NO_LEGEND,
+            name="cycles: position σ [mm], limit red", plot_legend=_NO_LEGEND,
             axis_y=from_zero(paths.CORRECTION_CYCLE_POSITION_SIGMA_MM),
         ),
         active_tab=0,
@@ -644,7 +644,7 @@ def budget_shares_view(sources: list[str]) -> rrb.Spatial2DView:
     the title says what a negative share is."""
     return rrb.Spatial2DView(
         origin=paths.BUDGET_SHARES,
-        name="share of the position error (%), 95 % CI over frames; negative: the error grew with the source off (interaction)",
+        name="share of position error [%], 95 % CI over frames; < 0: error grew with it off (interaction)",
     )
 
 
@@ -891,8 +891,7 @@ def _layer_views(runs: list, layer_entities: dict[str, set[str]]) -> list:
         # line drawn across frames it did not iterate on
         views.append(rrb.TimeSeriesView(
             origin="/", plot_legend=_NO_LEGEND,
-            name="LM trial steps per frame (y axis from the lowest value, not 0; gap: no LM on that frame): "
-            + ", ".join(f"{r.label} {color_name(i)}" for i, r in with_lm),
+            name="LM trial steps per frame, each setting in its colour of the key above (a gap: no LM steps on that frame)",
             contents=[f"/{paths.sweep_layer(r.key, paths.LM_ITERATIONS)}" for _, r in with_lm],
             overrides={
                 paths.sweep_layer(r.key, paths.LM_ITERATIONS): [

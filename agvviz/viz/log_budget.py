@@ -98,8 +98,8 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns:
 #: label centred above its bar (a label beside the bars was cut at the view's edge).
 CHART_WIDTH = 160.0
 ROW = 16.0
-BAR_HALF_HEIGHT = 2.5
-LABEL_ABOVE = 8.0
+BAR_HALF_HEIGHT = 2.0
+LABEL_ABOVE = 9.0
 #: The grid's steps (%): the smallest giving at most MAX_GRID_LINES lines (more overlapped their labels).
 GRID_STEPS_PCT = (10.0, 20.0, 25.0, 50.0, 100.0, 200.0, 500.0)
 MAX_GRID_LINES = 7
@@ -164,9 +164,11 @@ def log_share_chart(rec: rr.RecordingStream, intervals: list[ShareInterval]) -> 
     # each bar's label above it, centred on the chart (the chart's width holds the longest)
     rec.log(paths.BUDGET_SHARE_LABELS, rr.Points2D([[CHART_WIDTH / 2, yk - LABEL_ABOVE] for yk in y], colors=[r[4] for r in rows],
                                                    radii=0.1, labels=[r[0] for r in rows], show_labels=True), static=True)
-    ticks = [[x(g), bottom + 3.0] for g in grid]
+    # the grid's labels under it, and an unlabelled point below them: the view's bounds then
+    # hold the labels (a view fits its data; the labels hang below their points)
+    ticks = [[x(g), bottom + 3.0] for g in grid] + [[x(grid[0]), bottom + 10.0]]
     rec.log(paths.BUDGET_SHARE_TICKS, rr.Points2D(ticks, colors=COLOR_ZERO, radii=0.1,
-                                                  labels=[f"{g:.0f} %" for g in grid], show_labels=True), static=True)
+                                                  labels=[f"{g:.0f} %" for g in grid] + [""], show_labels=True), static=True)
 
 
 def write_budget_rrd(out_path: str | os.PathLike, budget: ErrorBudget) -> Path:
