@@ -639,11 +639,29 @@ def budget_table_view() -> rrb.TextDocumentView:
     return rrb.TextDocumentView(origin=paths.BUDGET_TABLE, name="error budget")
 
 
+#: The share chart's geometry (:func:`agvviz.viz.log_budget.log_share_chart`), in the chart's own
+#: units: the grid spans BUDGET_CHART_WIDTH across, whatever range of % it shows; each row (a
+#: source, then interaction/other) is BUDGET_CHART_ROW high, its label centred above its bar (a
+#: label beside the bars was cut at the view's edge).
+BUDGET_CHART_WIDTH = 160.0
+BUDGET_CHART_ROW = 16.0
+BUDGET_CHART_BAR_HALF_HEIGHT = 2.0
+BUDGET_CHART_LABEL_ABOVE = 9.0
+
+
+def budget_share_bounds(n_rows: int) -> rrb.VisualBounds2D:
+    """The share chart's view: every row's label, bar and the grid's labels under it (a 2D view
+    fitted to its data cut the grid's labels, which hang below their points)."""
+    bottom = (n_rows - 1) * BUDGET_CHART_ROW + BUDGET_CHART_LABEL_ABOVE + BUDGET_CHART_ROW / 2
+    return rrb.VisualBounds2D(x_range=[-10.0, BUDGET_CHART_WIDTH + 10.0],
+                              y_range=[-BUDGET_CHART_LABEL_ABOVE, bottom + 14.0])
+
+
 def budget_shares_view(sources: list[str]) -> rrb.Spatial2DView:
-    """The shares as labelled bars with their bootstrap intervals (:func:`agvviz.viz.log_budget.log_share_chart`);
-    the title says what a negative share is."""
+    """The shares as labelled bars with their bootstrap intervals (:func:`agvviz.viz.log_budget.log_share_chart`:
+    one row per source and one for interaction/other); the title says what a negative share is."""
     return rrb.Spatial2DView(
-        origin=paths.BUDGET_SHARES,
+        origin=paths.BUDGET_SHARES, visual_bounds=budget_share_bounds(len(sources) + 1),
         name="share of position error [%], 95 % CI over frames; < 0: error grew with it off (interaction)",
     )
 

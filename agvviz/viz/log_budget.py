@@ -47,6 +47,10 @@ from agvviz.viz.style import (
     COLOR_ZERO,
     budget_source_color,
 )
+from agvviz.viz.blueprints import BUDGET_CHART_WIDTH as CHART_WIDTH
+from agvviz.viz.blueprints import BUDGET_CHART_BAR_HALF_HEIGHT as BAR_HALF_HEIGHT
+from agvviz.viz.blueprints import BUDGET_CHART_LABEL_ABOVE as LABEL_ABOVE
+from agvviz.viz.blueprints import BUDGET_CHART_ROW as ROW
 from agvviz.viz.blueprints import budget_blueprint
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.timelines import elapsed_s
@@ -93,13 +97,6 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns:
         _send(rec, paths.budget_series(s.source, "delta_mm"), budget.time_ns, s.delta_mm, frame_of, start_ns)
 
 
-#: The share chart's geometry, in the chart's own units (a 2D view fits them to its panel): the
-#: grid spans CHART_WIDTH across, whatever range of % it shows; each source's row is ROW high, its
-#: label centred above its bar (a label beside the bars was cut at the view's edge).
-CHART_WIDTH = 160.0
-ROW = 16.0
-BAR_HALF_HEIGHT = 2.0
-LABEL_ABOVE = 9.0
 #: The grid's steps (%): the smallest giving at most MAX_GRID_LINES lines (more overlapped their labels).
 GRID_STEPS_PCT = (10.0, 20.0, 25.0, 50.0, 100.0, 200.0, 500.0)
 MAX_GRID_LINES = 7
@@ -164,11 +161,10 @@ def log_share_chart(rec: rr.RecordingStream, intervals: list[ShareInterval]) -> 
     # each bar's label above it, centred on the chart (the chart's width holds the longest)
     rec.log(paths.BUDGET_SHARE_LABELS, rr.Points2D([[CHART_WIDTH / 2, yk - LABEL_ABOVE] for yk in y], colors=[r[4] for r in rows],
                                                    radii=0.1, labels=[r[0] for r in rows], show_labels=True), static=True)
-    # the grid's labels under it, and an unlabelled point below them: the view's bounds then
-    # hold the labels (a view fits its data; the labels hang below their points)
-    ticks = [[x(g), bottom + 3.0] for g in grid] + [[x(grid[0]), bottom + 10.0]]
+    # the grid's labels under it (the view's bounds, blueprints.budget_share_bounds, hold them)
+    ticks = [[x(g), bottom + 2.0] for g in grid]
     rec.log(paths.BUDGET_SHARE_TICKS, rr.Points2D(ticks, colors=COLOR_ZERO, radii=0.1,
-                                                  labels=[f"{g:.0f} %" for g in grid] + [""], show_labels=True), static=True)
+                                                  labels=[f"{g:.0f} %" for g in grid], show_labels=True), static=True)
 
 
 def write_budget_rrd(out_path: str | os.PathLike, budget: ErrorBudget) -> Path:
