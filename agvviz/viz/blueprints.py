@@ -745,8 +745,8 @@ def audit_blueprint(result, axes: dict[str, PlotAxis] | None = None) -> rrb.Blue
                                   "path: solved (magenta), start (orange), truth (green)"),
                 rrb.Horizontal(
                     odometry(paths.AUDIT_RESIDUALS, "corner RMS [px]: flagged red"),
-                    odometry(paths.AUDIT_ODOMETRY_XY_MM, "odometry, position [mm]"),
-                    odometry(paths.AUDIT_ODOMETRY_HEADING_DEG, "odometry, heading [deg]"),
+                    odometry(paths.AUDIT_ODOMETRY_XY_MM, "odometry step [mm]"),
+                    odometry(paths.AUDIT_ODOMETRY_HEADING_DEG, "odometry turn [°]"),
                     column_shares=[0.4, 0.3, 0.3],
                 ),
                 row_shares=[0.66, 0.34],
