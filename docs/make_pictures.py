@@ -191,8 +191,8 @@ GROUPS = (
     Group("budget", _budget, (
         (Shot("budget", END, doc="docs/realism.md",
               caption="each source's share of the position error with its 95 % CI; negative: interaction"),),
-        (Shot("budget-run", END, tab="share of the position error", doc="docs/realism.md",
-              caption="run --budget: the budget is the active document, its share chart a tab beside the position error"),),
+        (Shot("budget-run", END, tab="error budget:", doc="docs/realism.md",
+              caption="run --budget: the budget's whole layout in a tab of its own beside the run's"),),
     )),
 )
 

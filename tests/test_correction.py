@@ -144,7 +144,7 @@ def test_agvviz_run_with_correction_writes_the_window_and_events(route_recording
                    paths.correction_observed("left"), paths.correction_theoretical("right"), paths.CORRECTION_COST_PER_ITERATION):
         assert entity in contents.entity_paths, entity
     logs = text_logs(contents, paths.EVENTS_CORRECTIONS)
-    assert len(logs) == 8 and sum("correction jump" in text for _, _, text in logs) == summary["corrections_applied"]
+    assert len(logs) == 8 and sum(": jump " in text.splitlines()[0] for _, _, text in logs) == summary["corrections_applied"]
     iters, costs = scalar_series(contents, paths.CORRECTION_COST, timeline=paths.TIMELINE_CNOEM_ITER)
     assert iters.min() == 0 and np.all(np.isfinite(costs))
     # The iteration timeline must not leak onto per-frame data.

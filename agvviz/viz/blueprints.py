@@ -63,7 +63,11 @@ from agvviz.viz.style import (
     COLOR_TRUTH,
     COLOR_UWB,
     LEGEND,
+    SOLVER_COLORS,
+    budget_source_color_name,
+    color_name,
     color_of,
+    solver_color_name,
 )
 
 #: A run's logs: the time in seconds and the line (no entity path column).
@@ -330,7 +334,8 @@ def default_blueprint(
     run put in the world around the vehicle (:meth:`FrameLogger.scene_extent_m`: both vehicles'
     whole paths with their bodies and cameras, the codes seen), from outside at every frame.
     ``budget_sources``: the run holds an error budget of these sources (``run --budget``): its
-    table is the active document and its chart and series are tabs beside the position error.
+    table is the active document, and the budget's whole layout (:func:`budget_layout`) a
+    top-level tab (:data:`BUDGET_TAB`) beside the run's (its chart was unreadable in a quarter panel).
     ``has_suspects``: the suspects log (one line per suspect frame) under the summary, before
     the rejections, and the suspect diamonds on the error plots. ``axes``: each time series' y
     axis (:func:`run_plot_axes`; None: Rerun's auto range); ``max_reproj_px``: the limit line's
@@ -409,14 +414,6 @@ def default_blueprint(
         )
     else:
         position = plot(paths.ERROR_POSITION_MM, "position error [mm]")
-        if budget_sources is not None:
-            position = rrb.Tabs(
-                position,
-                budget_shares_view(budget_sources),
-                budget_deltas_view(budget_sources),
-                budget_errors_view(budget_sources),
-                active_tab=0,
-            )
         bottom = rrb.Horizontal(
             position,
             rrb.Tabs(
@@ -439,8 +436,11 @@ def default_blueprint(
             documents,
             column_shares=[0.25, 0.23, 0.22, 0.30],
         )
+    run = rrb.Vertical(top, bottom, row_shares=[0.62, 0.38], name="run")
+    if budget_sources is not None:  # the budget's whole layout in a tab beside the run's
+        run = rrb.Tabs(run, budget_layout(budget_sources, name=BUDGET_TAB), active_tab=0)
     return rrb.Blueprint(
-        rrb.Vertical(top, bottom, row_shares=[0.62, 0.38]),
+        run,
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_ELAPSED),
@@ -582,8 +582,11 @@ CORRECTION_EYE_POSITION_AGV_M = (3.0, -7.0, 3.0)
 CORRECTION_EYE_TARGET_AGV_M = (0.0, 3.0, 0.0)
 
 
-def correction_blueprint(cam_names: list[str]) -> rrb.Blueprint:
-    """Layout of a run with ``correction`` (time panel on ``elapsed``)::
+def correction_blueprint(cam_names: list[str], cycle_highs: dict[str, float] | None = None) -> rrb.Blueprint:
+    """Layout of a run with ``correction`` (time panel on ``elapsed``); ``cycle_highs``: the
+    closed-cycle plots' largest values by entity (:meth:`~agvviz.viz.log_correction.CorrectionLogger.cycle_axes_high`),
+    their y axes from 0 to them. No plot has a legend (in Rerun 0.41 it sits on the data): the
+    titles name the series by colour::
 
         tab "correction run"
         ┌────────────────────────────────────┬─────────────────────────────────┐
@@ -619,30 +622,36 @@ def correction_blueprint(cam_names: list[str]) -> rrb.Blueprint:
         )
         for c in cam_names
     ]
+    cycle_highs = cycle_highs or {}
+
+    def from_zero(entity: str) -> rrb.ScalarAxis | None:
+        high = cycle_highs.get(entity)
+        return rrb.ScalarAxis(range=(0.0, 1.1 * high)) if high else None
+
     errors = rrb.TimeSeriesView(
         origin="/", contents=[f"/{paths.ERROR_NAV_MM}", f"/{paths.ERROR_CORRECTED_MM}", f"/{paths.ERROR_CORRECTION_JUMP_MM}"],
-        name="position error vs truth [mm]", plot_legend=rrb.PlotLegend(visible=True),
+        name="error [mm]: navigation red, corrected magenta", plot_legend=_NO_LEGEND,
     )
     corrected = rrb.TimeSeriesView(
         origin="/", contents=[f"/{paths.ERROR_CORRECTED_MM}", f"/{paths.ERROR_CORRECTION_JUMP_MM}"],
-        name="corrected error [mm] (zoomed in)", plot_legend=rrb.PlotLegend(visible=True),
+        name="corrected error [mm], dots: jumps", plot_legend=_NO_LEGEND,
     )
     cycles = rrb.Tabs(
         rrb.TimeSeriesView(
             origin="/", contents=[f"/{paths.CORRECTION_CYCLE_REPROJ_RMS_PX}", f"/{paths.CORRECTION_CYCLE_MAX_REPROJ_PX}"],
-            name="closed cycles: window RMS [px]", plot_legend=rrb.PlotLegend(visible=True),
+            name="cycles: window RMS [px], limit red", plot_legend=_NO_LEGEND,
+            axis_y=from_zero(paths.CORRECTION_CYCLE_REPROJ_RMS_PX),
         ),
         rrb.TimeSeriesView(
             origin="/", contents=[f"/{paths.CORRECTION_CYCLE_POSITION_SIGMA_MM}", f"/{paths.CORRECTION_CYCLE_MAX_POSITION_SIGMA_MM}"],
-            name="closed cycles: position σ [mm]", plot_legend=rrb.PlotLegend(visible=True),
+            name="cycles: position σ [mm], limit red", plot_legend=_NO_LEGEND,
+            axis_y=from_zero(paths.CORRECTION_CYCLE_POSITION_SIGMA_MM),
         ),
         active_tab=0,
     )
     documents = rrb.Tabs(
-        rrb.TextLogView(
-            origin=paths.EVENTS_CORRECTIONS, name="corrections (one line per cycle)",
-            columns=rrb.TextLogColumns(timeline_columns=[paths.TIMELINE_ELAPSED], text_log_columns=["body"]),
-        ),
+        # the frame (narrower than the elapsed time, which was cut) and the line, its key fact first
+        rrb.TextLogView(origin=paths.EVENTS_CORRECTIONS, name="corrections (one line per cycle)", columns=_LOG_COLUMNS),
         rrb.TextDocumentView(origin=paths.RUN_SUMMARY, name="summary"),
         rrb.TextDocumentView(origin=paths.RUN_MANIFEST, name="manifest"),
         summary_json_view(),
@@ -684,37 +693,76 @@ def budget_table_view() -> rrb.TextDocumentView:
     return rrb.TextDocumentView(origin=paths.BUDGET_TABLE, name="error budget")
 
 
+#: The share chart's geometry (:func:`agvviz.viz.log_budget.log_share_chart`), in the chart's own
+#: units: the grid spans BUDGET_CHART_WIDTH across, whatever range of % it shows; each row (a
+#: source, then interaction/other) is BUDGET_CHART_ROW high, its label centred above its bar (a
+#: label beside the bars was cut at the view's edge).
+BUDGET_CHART_WIDTH = 160.0
+BUDGET_CHART_ROW = 16.0
+BUDGET_CHART_BAR_HALF_HEIGHT = 2.0
+BUDGET_CHART_LABEL_ABOVE = 9.0
+
+
+def budget_share_bounds(n_rows: int) -> rrb.VisualBounds2D:
+    """The share chart's view: every row's label, bar and the grid's labels under it (a 2D view
+    fitted to its data cut the grid's labels, which hang below their points)."""
+    bottom = (n_rows - 1) * BUDGET_CHART_ROW + BUDGET_CHART_LABEL_ABOVE + BUDGET_CHART_ROW / 2
+    return rrb.VisualBounds2D(x_range=[-10.0, BUDGET_CHART_WIDTH + 10.0],
+                              y_range=[-BUDGET_CHART_LABEL_ABOVE, bottom + 14.0])
+
+
 def budget_shares_view(sources: list[str]) -> rrb.Spatial2DView:
-    """The shares as labelled bars with their bootstrap intervals (:func:`agvviz.viz.log_budget.log_share_chart`);
-    the title says what a negative share is."""
+    """The shares as labelled bars with their bootstrap intervals (:func:`agvviz.viz.log_budget.log_share_chart`:
+    one row per source and one for interaction/other); the title says what a negative share is."""
     return rrb.Spatial2DView(
-        origin=paths.BUDGET_SHARES,
-        name="share of the position error (%), 95 % CI over frames; negative: the error grew with the source off (interaction)",
+        origin=paths.BUDGET_SHARES, visual_bounds=budget_share_bounds(len(sources) + 1),
+        name="share of position error [%], 95 % CI over frames; < 0: error grew with it off (interaction)",
     )
+
+
+def _budget_key(sources: list[str]) -> str:
+    """``calibration red, map blue, …``: each source's line colour, named (the plots have no legend)."""
+    return ", ".join(f"{s} {budget_source_color_name(s)}" for s in sources)
 
 
 def budget_errors_view(sources: list[str]) -> rrb.TimeSeriesView:
     """Per-frame position error with every source on, every source off, and each source off."""
     names = [paths.BUDGET_ALL_ON, paths.BUDGET_ALL_OFF] + list(sources)
     return rrb.TimeSeriesView(origin=paths.BUDGET, contents=[f"$origin/{paths.budget_series_relative(n)}" for n in names],
-                              name="position error (mm): all on, all off, each source off")
+                              name=f"error [mm], one source off: {_budget_key(sources)}; all on white, all off grey",
+                              plot_legend=_NO_LEGEND)
 
 
 def budget_deltas_view(sources: list[str]) -> rrb.TimeSeriesView:
     """Per-frame error all on − error with each source off: when a source costs what it costs."""
     return rrb.TimeSeriesView(origin=paths.BUDGET, contents=[f"$origin/{paths.budget_series_relative(s, 'delta_mm')}" for s in sources],
-                              name="error all on − error source off (mm)")
+                              name=f"error all on − one source off [mm]: {_budget_key(sources)}",
+                              plot_legend=_NO_LEGEND)
+
+
+#: The name of ``run --budget``'s tab holding the budget's layout.
+BUDGET_TAB = "error budget: share chart and series"
+
+
+def budget_layout(sources: list[str], name: str | None = None) -> rrb.Container:
+    """The budget's views: table and share chart (the chart as wide as the table, half the
+    height) beside the per-frame errors and deltas (wider: their titles name every colour)."""
+    return rrb.Horizontal(
+        rrb.Vertical(budget_table_view(), budget_shares_view(sources), row_shares=[0.5, 0.5]),
+        rrb.Vertical(budget_errors_view(sources), budget_deltas_view(sources)),
+        column_shares=[0.42, 0.58], name=name,
+    )
 
 
 def budget_blueprint(budget: ErrorBudget) -> rrb.Blueprint:
-    """Table and bar chart beside the per-frame errors (all on, each source off) and deltas."""
-    sources = [s.source for s in budget.sources]
+    """Table and bar chart beside the per-frame errors (all on, each source off) and deltas,
+    against ``elapsed`` (the time panel opens on it)."""
     return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(budget_table_view(), budget_shares_view(sources)),
-            rrb.Vertical(budget_errors_view(sources), budget_deltas_view(sources)),
-        ),
-        collapse_panels=True,
+        budget_layout([s.source for s in budget.sources]),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_ELAPSED),
+        auto_views=False,
     )
 
 
@@ -729,29 +777,41 @@ def audit_eye(result) -> rrb.EyeControls3D | None:
     return framing_eye(points.min(axis=0), points.max(axis=0), direction=(0.0, -0.45, 1.05))
 
 
-def audit_blueprint(result) -> rrb.Blueprint:
-    """The 3D map (recorded vs estimated, framed whole, ids shown) beside the report and the
-    residual plots: corner residuals (flagged markers red), odometry in mm and in degrees
-    apart."""
-    legend = rrb.PlotLegend(visible=False)
+def audit_blueprint(result, axes: dict[str, PlotAxis] | None = None) -> rrb.Blueprint:
+    """The 3D map (recorded vs estimated, framed whole, ids shown) with the residual plots under
+    it (each marker's corner residual, flagged markers red; odometry in mm and in degrees apart),
+    the report beside them at full height (its marker table fits without scrolling). Plots
+    against ``elapsed`` (seconds since the recording's start; the time panel opens on it);
+    ``axes``: each plot's y axis (by origin) from the whole audit (None: Rerun's auto range).
+    """
+    axes = axes or {}
+
+    def odometry(entity: str, name: str) -> rrb.TimeSeriesView:
+        axis = axes.get(entity)
+        return rrb.TimeSeriesView(origin=entity, name=name, plot_legend=_NO_LEGEND,
+                                  axis_y=axis.scalar_axis() if axis is not None else None)
+
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin=paths.WORLD, eye_controls=audit_eye(result),
-                              name="map: mapped (blue, ids) vs estimated (red: flagged, magenta: agrees, grey: seen too little); "
-                              "path: solved (magenta), start (orange), truth (green)"),
             rrb.Vertical(
-                rrb.TextDocumentView(origin=paths.AUDIT_REPORT, name="audit"),
-                rrb.TimeSeriesView(origin=paths.AUDIT_RESIDUALS, name="corner residual per marker (px RMS): flagged red, others grey",
-                                   plot_legend=legend),
+                rrb.Spatial3DView(origin=paths.WORLD, eye_controls=audit_eye(result),
+                                  name="map: mapped (blue, ids) vs estimated (red: flagged, magenta: agrees, grey: seen too little); "
+                                  "path: solved (magenta), start (orange), truth (green)"),
                 rrb.Horizontal(
-                    rrb.TimeSeriesView(origin=paths.AUDIT_ODOMETRY_XY_MM, name="odometry step residual, position (mm)", plot_legend=legend),
-                    rrb.TimeSeriesView(origin=paths.AUDIT_ODOMETRY_HEADING_DEG, name="odometry step residual, heading (deg)", plot_legend=legend),
+                    odometry(paths.AUDIT_RESIDUALS, "corner RMS [px]: flagged red"),
+                    odometry(paths.AUDIT_ODOMETRY_XY_MM, "odometry step [mm]"),
+                    odometry(paths.AUDIT_ODOMETRY_HEADING_DEG, "odometry turn [°]"),
+                    column_shares=[0.4, 0.3, 0.3],
                 ),
-                row_shares=[0.45, 0.3, 0.25],
+                row_shares=[0.66, 0.34],
             ),
-            column_shares=[0.6, 0.4],
+            rrb.TextDocumentView(origin=paths.AUDIT_REPORT, name="audit"),
+            column_shares=[0.54, 0.46],
         ),
-        collapse_panels=True,
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=paths.TIMELINE_ELAPSED),
+        auto_views=False,
     )
 
 
@@ -898,11 +958,18 @@ def _layer_views(runs: list, layer_entities: dict[str, set[str]]) -> list:
     views = []
     with_lm = [(i, r) for i, r in keyed if paths.LM_ITERATIONS in layer_entities[r.key]]
     if with_lm:
+        # lines and a point at each value: a frame without steps is a gap (the run logs a Clear
+        # there), so a setting that iterates on few frames (ippe) shows as points, not as a
+        # line drawn across frames it did not iterate on
         views.append(rrb.TimeSeriesView(
-            origin="/", name="LM trial steps per frame", plot_legend=_NO_LEGEND,
+            origin="/", plot_legend=_NO_LEGEND,
+            name="LM trial steps per frame, each setting in its colour of the key above (a gap: no LM steps on that frame)",
             contents=[f"/{paths.sweep_layer(r.key, paths.LM_ITERATIONS)}" for _, r in with_lm],
             overrides={
-                paths.sweep_layer(r.key, paths.LM_ITERATIONS): rr.SeriesLines.from_fields(colors=[color_of(i)], names=r.label)
+                paths.sweep_layer(r.key, paths.LM_ITERATIONS): [
+                    rr.SeriesLines.from_fields(colors=[color_of(i)], names=r.label),
+                    rr.SeriesPoints.from_fields(colors=[color_of(i)], names=r.label, marker_sizes=[2.5]),
+                ]
                 for i, r in with_lm
             },
         ))
@@ -959,11 +1026,17 @@ def _mc_axis(results: dict[str, CellResult], group: str) -> rrb.TimeAxis:
                                                  end=rrb.TimeRangeBoundary.absolute(seq=max(sigmas) + margin)))
 
 
-def _mc_plot(origin: str, name: str, legend: bool, axis: rrb.TimeAxis) -> rrb.TimeSeriesView:
-    return rrb.TimeSeriesView(
-        origin=origin, name=name, axis_x=axis,
-        plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=legend),
-    )
+def _mc_plot(origin: str, name: str, axis: rrb.TimeAxis) -> rrb.TimeSeriesView:
+    """A study plot: no legend (in Rerun 0.41 it sits on the data); the tab's or the view's title
+    names the colours (:func:`_mc_key`)."""
+    return rrb.TimeSeriesView(origin=origin, name=name, axis_x=axis, plot_legend=_NO_LEGEND)
+
+
+def _mc_key(with_crlb: bool = False) -> str:
+    """``p4p blue, lm red, …``: each solver's colour, named, in the palette's order."""
+    names = [s for s in SOLVER_COLORS if s != "crlb"]
+    return ", ".join(f"{s} {solver_color_name(s)}" for s in names) + (
+        f"; CRLB {solver_color_name('crlb')}" if with_crlb else "")
 
 
 def study_blueprint(
@@ -976,7 +1049,9 @@ def study_blueprint(
     active = mc_default_tab(results) if active is None else active
     if active not in MC_TABS:
         raise ValueError(f"unknown tab {active!r}; valid: {', '.join(MC_TABS)}")
-    x = "vs σ (mpx, x axis)"
+    # Rerun 0.41 plots a series against a timeline only (no x-y plot): σ is the sequence
+    # timeline sigma_mpx, whose ticks read "#13 376" — the title says what they are
+    x = "vs σ [mpx] (x: #σ in milli-pixels)"
     groups = _mc_groups(results)
 
     def axis(group: str) -> rrb.TimeAxis:
@@ -986,23 +1061,21 @@ def study_blueprint(
     if paths.MC_FIG9_11 in groups:
         g = paths.MC_FIG9_11
         tabs["figures"] = rrb.Vertical(
-            rrb.Horizontal(*[_mc_plot(f"{g}/t{i}_mean", f"fig {8 + i}: mean t{i} (m) {x}", False, axis(g)) for i in (1, 2, 3)]),
+            rrb.Horizontal(*[_mc_plot(f"{g}/t{i}_mean", f"fig {8 + i}: mean t{i} [m] {x}", axis(g)) for i in (1, 2, 3)]),
             rrb.Horizontal(
-                _mc_plot(f"{g}/rmse_mm", f"RMSE of t (mm) with 95 % CI, CRLB (grey) {x}", True, axis(g)),
-                _mc_plot(f"{g}/rmse_over_crlb", f"RMSE ÷ CRLB {x}", False, axis(g)),
+                _mc_plot(f"{g}/rmse_mm", f"RMSE of t [mm], thin lines its 95 % CI; CRLB {solver_color_name('crlb')}; {x}", axis(g)),
+                _mc_plot(f"{g}/rmse_over_crlb", f"RMSE ÷ CRLB {x}", axis(g)),
             ),
-            name=f"paper figures 9–11 ({_mc_group_title(g)}; SNR dB: timeline snr_db)",
+            name=f"paper figures 9–11 ({_mc_group_title(g)}): {_mc_key()}",
         )
     if groups:
         tabs["rmse"] = rrb.Grid(
-            *[_mc_plot(f"{g}/rmse_mm", f"{_mc_group_title(g)}: RMSE of t (mm), 95 % CI, CRLB {x}", i == 0, axis(g))
-              for i, g in enumerate(groups)],
-            name="RMSE per solver vs σ",
+            *[_mc_plot(f"{g}/rmse_mm", f"{_mc_group_title(g)}: RMSE of t [mm], 95 % CI {x}", axis(g)) for g in groups],
+            name=f"RMSE per solver vs σ: {_mc_key(with_crlb=True)}",
         )
         tabs["crlb"] = rrb.Grid(
-            *[_mc_plot(f"{g}/rmse_over_crlb", f"{_mc_group_title(g)}: RMSE ÷ CRLB {x}", i == 0, axis(g))
-              for i, g in enumerate(groups)],
-            name="RMSE ÷ CRLB vs σ",
+            *[_mc_plot(f"{g}/rmse_over_crlb", f"{_mc_group_title(g)}: RMSE ÷ CRLB {x}", axis(g)) for g in groups],
+            name=f"RMSE ÷ CRLB vs σ: {_mc_key()}",
         )
     texts = [rrb.TextDocumentView(origin=paths.MC_REPORT, name="report (paper vs ours, every cell)")]
     texts += [rrb.TextDocumentView(origin=origin, name=name) for origin, name in documents]

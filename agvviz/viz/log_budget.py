@@ -8,14 +8,15 @@ Entity tree (timelines: ``frame`` = the run's frame index; ``time`` = the frame'
 ``elapsed`` = seconds since the run's start, or the budget's first frame)::
 
     budget/table                           TextDocument: the budget as a markdown table (static)
-    budget/shares_pct/bars                 Boxes2D: share of the position error (%), one bar per
+    budget/shares_pct/bars                 Boxes2D: share of the position error, one bar per
                                            source in table order, then interaction/other, each
-                                           labelled "<source> 61.3 % [48.0, 72.1]" (static; x =
-                                           share in %, y = row; orange ≥ 0, blue < 0, grey rest)
+                                           labelled "<source> 61.3 % [48.0, 72.1]" (static;
+                                           x = share, CHART_WIDTH units across the grid, y = row;
+                                           orange ≥ 0, blue < 0, grey rest)
     budget/shares_pct/ci                   LineStrips2D: each share's 95 % bootstrap interval
                                            over frames (evaluation.error_budget.share_intervals)
-    budget/shares_pct/labels               Points2D right of the bars: each bar's label
-    budget/shares_pct/axis|ticks           the 0 % line, a grid every 25 % and its labels
+    budget/shares_pct/labels               Points2D above each bar: its label
+    budget/shares_pct/axis|ticks           the 0 % line, a grid at a round step (≤ 7 lines), its labels
     budget/all_on/position_error_mm        Scalars per frame: the recording's position error
     budget/all_off/position_error_mm       Scalars: the floor (every source off) — its RMSE,
                                            a flat line over the recording's frames
@@ -46,6 +47,10 @@ from agvviz.viz.style import (
     COLOR_ZERO,
     budget_source_color,
 )
+from agvviz.viz.blueprints import BUDGET_CHART_WIDTH as CHART_WIDTH
+from agvviz.viz.blueprints import BUDGET_CHART_BAR_HALF_HEIGHT as BAR_HALF_HEIGHT
+from agvviz.viz.blueprints import BUDGET_CHART_LABEL_ABOVE as LABEL_ABOVE
+from agvviz.viz.blueprints import BUDGET_CHART_ROW as ROW
 from agvviz.viz.blueprints import budget_blueprint
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.timelines import elapsed_s
@@ -92,12 +97,9 @@ def log_budget(rec: rr.RecordingStream, budget: ErrorBudget, recording_start_ns:
         _send(rec, paths.budget_series(s.source, "delta_mm"), budget.time_ns, s.delta_mm, frame_of, start_ns)
 
 
-#: Height of a bar's row in the share chart, in the chart's units (1 unit = 1 % along x).
-ROW = 10.0
-BAR_HALF_HEIGHT = 3.5
-GRID_STEP_PCT = 25.0
-#: Where the labels' centres sit, right of the grid's last line (%); long enough for "interaction/other 11.2 % [-13.9, 48.6]".
-LABEL_OFFSET_PCT = 45.0
+#: The grid's steps (%): the smallest giving at most MAX_GRID_LINES lines (more overlapped their labels).
+GRID_STEPS_PCT = (10.0, 20.0, 25.0, 50.0, 100.0, 200.0, 500.0)
+MAX_GRID_LINES = 7
 
 
 def share_chart_rows(intervals: list[ShareInterval]) -> list[tuple[str, float, float, float, tuple]]:
@@ -114,37 +116,55 @@ def share_chart_rows(intervals: list[ShareInterval]) -> list[tuple[str, float, f
     return rows
 
 
+def share_grid(values: np.ndarray) -> np.ndarray:
+    """The grid lines (%) of a chart holding ``values`` and 0: a round step, at most MAX_GRID_LINES lines."""
+    lo, hi = min(0.0, float(values.min())), max(0.0, float(values.max()))
+    for step in GRID_STEPS_PCT:
+        low, high = step * np.floor(lo / step), step * np.ceil(hi / step)
+        if high == low:
+            high = low + step
+        if (high - low) / step + 1 <= MAX_GRID_LINES:
+            break
+    return np.arange(low, high + 1e-9, step)
+
+
 def log_share_chart(rec: rr.RecordingStream, intervals: list[ShareInterval]) -> None:
-    """The shares as labelled horizontal bars with their intervals (x: share in %, one row per
-    source; the view, :func:`agvviz.viz.blueprints.budget_shares_view`, is a 2D view)."""
+    """The shares as horizontal bars with their intervals, each row's label above its bar (x:
+    share, the grid labelled in %; the view, :func:`agvviz.viz.blueprints.budget_shares_view`,
+    is a 2D view)."""
     rows = share_chart_rows(intervals)
     if not rows:
         return
-    y = np.arange(len(rows)) * ROW
     shares = np.array([r[1] for r in rows])
-    mins = np.stack([np.minimum(shares, 0.0), y - BAR_HALF_HEIGHT], axis=1)
-    sizes = np.stack([np.abs(shares), np.full(len(rows), 2 * BAR_HALF_HEIGHT)], axis=1)
+    values = np.concatenate([shares, [r[2] for r in rows if np.isfinite(r[2])], [r[3] for r in rows if np.isfinite(r[3])]])
+    grid = share_grid(values)
+    scale = CHART_WIDTH / (grid[-1] - grid[0])
+
+    def x(pct):
+        return (np.asarray(pct, dtype=float) - grid[0]) * scale
+
+    y = np.arange(len(rows)) * ROW + LABEL_ABOVE
+    left = x(np.minimum(shares, 0.0))
+    mins = np.stack([left, y - BAR_HALF_HEIGHT], axis=1)
+    sizes = np.stack([np.abs(shares) * scale, np.full(len(rows), 2 * BAR_HALF_HEIGHT)], axis=1)
     rec.log(paths.BUDGET_SHARE_BARS, rr.Boxes2D(mins=mins, sizes=sizes, colors=[r[4] for r in rows],
                                                 radii=rr.Radius.ui_points(2.0), labels=[r[0] for r in rows],
                                                 show_labels=False), static=True)
-    whiskers = [[[r[2], yk], [r[3], yk]] for r, yk in zip(rows, y) if np.isfinite(r[2]) and np.isfinite(r[3])]
-    whiskers += [[[x, yk - 1.5], [x, yk + 1.5]] for r, yk in zip(rows, y) if np.isfinite(r[2]) for x in (r[2], r[3])]
+    whiskers = [[[x(r[2]), yk], [x(r[3]), yk]] for r, yk in zip(rows, y) if np.isfinite(r[2]) and np.isfinite(r[3])]
+    whiskers += [[[x(v), yk - 1.5], [x(v), yk + 1.5]] for r, yk in zip(rows, y) if np.isfinite(r[2]) and np.isfinite(r[3])
+                 for v in (r[2], r[3])]
     if whiskers:
         rec.log(paths.BUDGET_SHARE_CI, rr.LineStrips2D(whiskers, colors=COLOR_BUDGET_ALL_ON, radii=rr.Radius.ui_points(1.0)), static=True)
-    values = np.concatenate([shares, [r[2] for r in rows if np.isfinite(r[2])], [r[3] for r in rows if np.isfinite(r[3])]])
-    low = GRID_STEP_PCT * np.floor(min(0.0, values.min()) / GRID_STEP_PCT)
-    high = GRID_STEP_PCT * np.ceil(max(values.max(), GRID_STEP_PCT) / GRID_STEP_PCT)
-    grid = np.arange(low, high + 1e-9, GRID_STEP_PCT)
-    top, bottom = -ROW / 2, y[-1] + ROW / 2
-    rec.log(paths.BUDGET_SHARE_AXIS, rr.LineStrips2D([[[x, top], [x, bottom]] for x in grid],
-                                                     colors=COLOR_ZERO, radii=[rr.Radius.ui_points(1.5 if x == 0 else 0.5) for x in grid]), static=True)
-    # each bar's label at the chart's right, in its row: a box's own label wraps to its width
-    rec.log(paths.BUDGET_SHARE_LABELS, rr.Points2D([[grid[-1] + LABEL_OFFSET_PCT, yk] for yk in y], colors=[r[4] for r in rows],
+    top, bottom = 0.0, y[-1] + ROW / 2
+    rec.log(paths.BUDGET_SHARE_AXIS, rr.LineStrips2D([[[x(g), top], [x(g), bottom]] for g in grid],
+                                                     colors=COLOR_ZERO, radii=[rr.Radius.ui_points(1.5 if g == 0 else 0.5) for g in grid]), static=True)
+    # each bar's label above it, centred on the chart (the chart's width holds the longest)
+    rec.log(paths.BUDGET_SHARE_LABELS, rr.Points2D([[CHART_WIDTH / 2, yk - LABEL_ABOVE] for yk in y], colors=[r[4] for r in rows],
                                                    radii=0.1, labels=[r[0] for r in rows], show_labels=True), static=True)
-    # the last, unlabelled tick widens the view's bounds over the labels' right half
-    ticks = [[x, bottom + 2.5] for x in grid] + [[grid[-1] + 2 * LABEL_OFFSET_PCT, bottom + 2.5]]
+    # the grid's labels under it (the view's bounds, blueprints.budget_share_bounds, hold them)
+    ticks = [[x(g), bottom + 2.0] for g in grid]
     rec.log(paths.BUDGET_SHARE_TICKS, rr.Points2D(ticks, colors=COLOR_ZERO, radii=0.1,
-                                                  labels=[f"{x:.0f} %" for x in grid] + [""], show_labels=True), static=True)
+                                                  labels=[f"{g:.0f} %" for g in grid], show_labels=True), static=True)
 
 
 def write_budget_rrd(out_path: str | os.PathLike, budget: ErrorBudget) -> Path:

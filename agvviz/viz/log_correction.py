@@ -109,6 +109,9 @@ class CorrectionLogger:
         self.images = True
         self._window_closed: tuple[int, int] | None = None  # (cycle, frame) of the window drawn
         self._status: dict[str, str] = {}  # camera -> the status label logged last
+        #: The largest value of each closed-cycle plot so far (its limit line included): the
+        #: layout's y axes run from 0 to it (:meth:`cycle_axes_high`).
+        self._cycle_high: dict[str, float] = {}
 
     def _styles(self) -> None:
         rec = self._rec
@@ -167,12 +170,23 @@ class CorrectionLogger:
             rec.log(paths.ERROR_CORRECTED_MM, rr.Scalars(1000.0 * float(np.linalg.norm(step.T_world_agv_corrected[:3, 3] - truth))))
         if self._max_reproj_px is not None:
             rec.log(paths.CORRECTION_CYCLE_MAX_REPROJ_PX, rr.Scalars(float(self._max_reproj_px)))
+            self._note_high(paths.CORRECTION_CYCLE_REPROJ_RMS_PX, float(self._max_reproj_px))
         if self._max_position_sigma_m is not None:
             rec.log(paths.CORRECTION_CYCLE_MAX_POSITION_SIGMA_MM, rr.Scalars(1000.0 * float(self._max_position_sigma_m)))
+            self._note_high(paths.CORRECTION_CYCLE_POSITION_SIGMA_MM, 1000.0 * float(self._max_position_sigma_m))
         if step.event is not None:
             self._log_event(step.event)
         self._log_status()
         self._index += 1
+
+    def _note_high(self, plot: str, value: float) -> None:
+        if np.isfinite(value):
+            self._cycle_high[plot] = max(self._cycle_high.get(plot, 0.0), float(value))
+
+    def cycle_axes_high(self) -> dict[str, float]:
+        """The closed-cycle plots' largest values (window RMS px, position σ mm; each with its
+        limit): their y axes run from 0 to these (auto range left 0 out: "1.5–2")."""
+        return dict(self._cycle_high)
 
     def status_text(self) -> str:
         """What a camera panel shows now, in words (two short lines): the window of which cycle,
@@ -205,16 +219,17 @@ class CorrectionLogger:
         if event.applied:
             # the key facts on the first line (what the log panel shows), the evidence below
             text = (
-                f"cycle {event.cycle_index}: correction jump {event.jump_m * 1000:.1f} mm\n"
+                f"cycle {event.cycle_index}: jump {event.jump_m * 1000:.1f} mm\n"
                 f"{event.n_sightings} sightings in {event.n_frames} frames; start frame moved "
                 f"{np.linalg.norm(event.T_world_F_after[:3, 3] - event.T_world_F_before[:3, 3]) * 1000:.1f} mm"
             )
             rec.log(paths.ERROR_CORRECTION_JUMP_MM, rr.Scalars(1000.0 * event.jump_m))
         else:
-            text = f"cycle {event.cycle_index}: no correction: {event.reason}\n{event.n_sightings} sightings in {event.n_frames} frames"
+            text = f"cycle {event.cycle_index}: not applied\n{event.reason}; {event.n_sightings} sightings in {event.n_frames} frames"
         rec.log(paths.EVENTS_CORRECTIONS, rr.TextLog(text, level=level))
         if event.position_sigma_m is not None and np.isfinite(event.position_sigma_m):
             rec.log(paths.CORRECTION_CYCLE_POSITION_SIGMA_MM, rr.Scalars(1000.0 * event.position_sigma_m))
+            self._note_high(paths.CORRECTION_CYCLE_POSITION_SIGMA_MM, 1000.0 * event.position_sigma_m)
         if event.window is None or event.solution is None or not event.solution.iterations:
             return
         window, iterations = event.window, event.solution.iterations
@@ -222,6 +237,7 @@ class CorrectionLogger:
         rms_px = np.array([it.reproj_rms_px for it in iterations])
         self._window_closed = (int(event.cycle_index), self._index)
         rec.log(paths.CORRECTION_CYCLE_REPROJ_RMS_PX, rr.Scalars(float(rms_px[-1])))
+        self._note_high(paths.CORRECTION_CYCLE_REPROJ_RMS_PX, float(rms_px[-1]))
         rec.log(paths.CORRECTION_COST_PER_ITERATION, rr.BarChart(costs, color=COLOR_THEORETICAL))
         rec.log(paths.CORRECTION_REPROJ_RMS_PX_PER_ITERATION, rr.BarChart(rms_px, color=COLOR_OBSERVED))
         n = len(iterations)

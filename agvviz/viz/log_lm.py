@@ -62,8 +62,8 @@ class LmLogger:
         self._columns.row(paths.LM_THIS_FRAME, "markdown", stamp, _lm_text(frame))
         if not iterations:
             self._log_points(frame, stamp, fixed, ())
-            if not frame.solved and self.iterated:
-                self._columns.gap(paths.LM_ITERATIONS, stamp)  # the steps line breaks here
+            if self.iterated:  # no steps on this frame (rejected, or solved without LM): the line breaks here
+                self._columns.gap(paths.LM_ITERATIONS, stamp)
             if self._bars_drawn:
                 for entity in (
                     paths.LM_LOG10_COST_PER_ITERATION,

@@ -110,7 +110,7 @@ class RrdSink(NullSink):
                 has_truth=self.logger.has_truth,
             )
         if self.correction_logger is not None:
-            self.logger.blueprint = correction_blueprint(sorted(self.cameras))
+            self.logger.blueprint = correction_blueprint(sorted(self.cameras), self.correction_logger.cycle_axes_high())
 
 
 class StudyRrdSink(NullSink):

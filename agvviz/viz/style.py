@@ -70,6 +70,16 @@ SOLVER_COLORS = {
     "sqpnp": (0, 210, 230),
     "crlb": (230, 230, 230),
 }
+#: Their names, for the study plots' titles (the plots have no legend).
+SOLVER_COLOR_NAMES = {
+    "p4p": "blue",
+    "lm": "red",
+    "lm_pixel": "orange",
+    "lm_amb": "pink",
+    "ippe": "green",
+    "sqpnp": "cyan",
+    "crlb": "white",
+}
 #: Each method of a CNOEM study (multi-frame correction), and its CRLB.
 CNOEM_COLORS = {
     "cnoem": (230, 40, 40),
@@ -98,6 +108,15 @@ BUDGET_SOURCE_COLORS = {
     "slip": (0, 200, 180),
     "imaging": (255, 0, 200),
 }
+#: Their names, for the plots' titles (the plots have no legend).
+BUDGET_SOURCE_COLOR_NAMES = {
+    "calibration": "red",
+    "map": "blue",
+    "timing": "yellow",
+    "bumps": "violet",
+    "slip": "teal",
+    "imaging": "magenta",
+}
 COLOR_BUDGET_ALL_ON = (255, 255, 255)
 COLOR_BUDGET_FLOOR = COLOR_ZERO
 
@@ -105,6 +124,16 @@ COLOR_BUDGET_FLOOR = COLOR_ZERO
 def budget_source_color(source: str) -> tuple[int, int, int]:
     """The colour of error source ``source`` in the budget's per-frame plots."""
     return BUDGET_SOURCE_COLORS.get(source.split(".")[0], COLOR_OTHER)
+
+
+def solver_color_name(name: str) -> str:
+    """The name of a study solver's colour (:data:`SOLVER_COLORS`) for view titles."""
+    return SOLVER_COLOR_NAMES.get(name, "light grey")
+
+
+def budget_source_color_name(source: str) -> str:
+    """The name of :func:`budget_source_color` ``(source)`` for view titles."""
+    return BUDGET_SOURCE_COLOR_NAMES.get(source.split(".")[0], "light grey")
 
 
 def solver_color(name: str) -> tuple[int, int, int]:
