@@ -427,8 +427,12 @@ def blueprint_views(path: str | os.PathLike) -> list[BlueprintView]:
             if len(parts) < 2 or parts[0] != "view":
                 continue
             fields = by_view.setdefault(parts[1], {})
-            for row in chunk.to_record_batch().to_pylist():
-                fields.update({key: value for key, value in row.items() if ":" in key and value is not None})
+            batch = chunk.to_record_batch()
+            # Only the component columns ("Archetype:field"): the index columns hold nanosecond
+            # time stamps, which pyarrow turns into Python values only through pandas.
+            batch = batch.select([name for name in batch.schema.names if ":" in name])
+            for row in batch.to_pylist():
+                fields.update({key: value for key, value in row.items() if value is not None})
     except RrdReadError:
         raise
     except (KeyboardInterrupt, SystemExit):
