@@ -254,7 +254,9 @@ def test_sweep_grid_errors_are_clear(tmp_path):
 def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp_path):
     """Two recordings × two solvers, and a text file named .mcap: each recording's runs, tables
     and overlay go to its own folder; every run of a recording reuses its one detection; the
-    file that is no recording fails its own entries, with the reader's message, and no other."""
+    file that is no recording fails its own entries, with the reader's message, and no other.
+    Each recording is detected once: by its first setting's run (the lead), the other reads
+    the cache."""
     a, b, bad = tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "bad.mcap"
     scenario_registry.record("qr_floor", a, seed=1, overrides=TINY)
     scenario_registry.record("qr_floor", b, seed=2, overrides=TINY)
@@ -274,7 +276,8 @@ def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp
             assert entry.ok and entry.recording == recording
             assert str(entry.out_path) == f"{out / recording.stem / 'sweep.rrd'}#{entry.label}"
             assert entry.metrics["frames"] == 5
-            assert entry.timing["detection_source"] == "cache"  # the group's one detection, reused
+        # the group's one detection, by its lead (lm, first in the grid), reused by p4p
+        assert {e.label: e.timing["detection_source"] for e in result.entries} == {"lm": "detected", "p4p": "cache"}
         assert result.overlay_path == out / recording.stem / "sweep.rrd" and result.overlay_path.is_file()
         assert sorted(p.name for p in result.out_dir.iterdir()) == ["ranking.csv", "ranking.md", "sweep.rrd"]
         with open(result.csv_path, newline="") as f:
@@ -287,11 +290,11 @@ def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp
     assert "failed: RecordingError" in failed.csv_path.read_text() or "failed: RunError" in failed.csv_path.read_text()
     # The first recording's files are the outcome's own (as for a sweep of one recording).
     assert outcome.csv_path == out / "a" / "ranking.csv"
-    # Progress: the total first (2 recordings × (1 detection + 2 runs) × 5 frames; the bad file
-    # has no frames to count), then counts that never go down and end at the total, 6 runs done.
-    assert reports[0] == 30
+    # Progress: the total first (2 recordings × 2 runs × 5 frames; the bad file has no frames to
+    # count), then counts that never go down and end at the total, 6 runs done.
+    assert reports[0] == 20
     counts = reports[1:]
-    assert counts[-1] == (30, 6)
+    assert counts[-1] == (20, 6)
     assert all(x[0] <= y[0] and x[1] <= y[1] for x, y in zip(counts, counts[1:]))
     assert not [n for d in out.iterdir() for n in (p.name for p in d.iterdir()) if n.endswith(".tmp")]
 
