@@ -2,7 +2,7 @@
 recording (200 frames, `typical`), paired in one run, each from an empty detection cache.
 
 Usage:  python bench/bench_sweep.py [--workdir DIR] [--repeats 3] [--solvers lm,ippe,p4p,sqpnp]
-                                    [--python PYTHON] [--baseline-tree DIR] [--skip-rmse]
+                                    [--python PYTHON] [--baseline-tree DIR] [--skip-rmse] [--timeline]
 
 1. Output bytes: everything `agvviz sweep --set solver=<solvers>` writes into its folder
    (sweep.rrd, ranking.csv, ranking.md; before issue 27: a run per setting and overlay.rrd)
@@ -14,6 +14,10 @@ Usage:  python bench/bench_sweep.py [--workdir DIR] [--repeats 3] [--solvers lm,
    before issue 27), alternating with this one, so before and after meet the same load.
 3. Each solver's position RMSE inside the sweep file (ranking.csv) against a standalone
    `agvviz run --set solver=S` (its summary): they must be equal.
+
+With ``--timeline`` it only times one cold sweep of this tree and prints how busy its processes
+kept the machine: the CPU of the sweep's process tree (read from /proc every 0.1 s, Linux only)
+in cores per half second, and each process's CPU seconds with its start time and command line.
 
 Every measurement is a child process (`PYTHON -m agvviz ...`, run in the measured checkout so
 `-m` finds its agvviz) timed from start to exit; its output goes to DIR/logs/. The recording is
@@ -44,6 +48,7 @@ def main() -> None:
     parser.add_argument("--python", default=sys.executable)
     parser.add_argument("--baseline-tree", type=Path, default=None, help="another checkout measured in turn")
     parser.add_argument("--skip-rmse", action="store_true", help="leave figure 3 out")
+    parser.add_argument("--timeline", action="store_true", help="only the CPU timeline of one cold sweep")
     args = parser.parse_args()
     work = args.workdir.resolve()
     for sub in ("caches", "runs", "logs", "tmp"):
@@ -70,6 +75,12 @@ def main() -> None:
 
     if not recording.exists():
         agvviz(ROOT, "record", "qr_floor", "--out", str(recording), cold=False)
+    if args.timeline:
+        env = dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(work / "tmp"), AGVVIZ_CACHE_DIR=str(work / "caches" / "t"))
+        argv = [args.python, "-m", "agvviz", "sweep", str(recording), "--set", f"solver={args.solvers}", "--jobs", "2",
+                "--out-dir", str(work / "runs" / "timeline")]
+        _timeline(argv, env, work / "logs" / "timeline.log")
+        return
     trees = {"this tree": ROOT}
     if args.baseline_tree is not None:
         trees["baseline"] = args.baseline_tree.resolve()
@@ -114,6 +125,60 @@ def main() -> None:
         inside = float(ranking[solver]["position_rmse_mm"])
         same = f"{rmse:.4g}" == f"{inside:.4g}"
         print(f"   {solver:6s} sweep {inside:.4g}  run {rmse:.4g}  {'equal' if same else 'DIFFERENT'}")
+
+
+def _timeline(argv: list[str], env: dict, log: Path, every_s: float = 0.1) -> None:
+    """Run ``argv`` and print the CPU its process tree used over time (cores per half second)
+    and per process, from /proc (user + system time of each process, sampled every ``every_s``)."""
+    tick = os.sysconf("SC_CLK_TCK")
+
+    def tree_cpu_s(root: int) -> dict[int, float]:
+        children: dict[int, list[int]] = {}
+        cpu_s: dict[int, float] = {}
+        for name in os.listdir("/proc"):
+            if name.isdigit():
+                try:
+                    with open(f"/proc/{name}/stat") as f:
+                        fields = f.read().rsplit(")", 1)[1].split()
+                except OSError:
+                    continue
+                children.setdefault(int(fields[1]), []).append(int(name))
+                cpu_s[int(name)] = (int(fields[11]) + int(fields[12])) / tick
+        found, stack = {}, [root]
+        while stack:
+            pid = stack.pop()
+            found[pid] = cpu_s.get(pid, 0.0)
+            stack += children.get(pid, [])
+        return found
+
+    t0 = time.perf_counter()
+    with open(log, "w") as out:
+        child = subprocess.Popen(argv, env=env, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+        last: dict[int, float] = {}
+        seen: dict[int, tuple[float, str]] = {}
+        bins: dict[int, float] = {}
+        while child.poll() is None:
+            time.sleep(every_s)
+            now = time.perf_counter() - t0
+            cpu = tree_cpu_s(child.pid)
+            bins[int(now / 0.5)] = bins.get(int(now / 0.5), 0.0) + sum(v - last.get(p, 0.0) for p, v in cpu.items())
+            last.update(cpu)
+            for pid in cpu.keys() - seen.keys():
+                try:
+                    with open(f"/proc/{pid}/cmdline") as f:
+                        seen[pid] = (now, f.read().replace("\0", " ").strip()[:80])
+                except OSError:
+                    seen[pid] = (now, "?")
+    wall = time.perf_counter() - t0
+    print(f"sweep: exit {child.returncode}, {wall:.1f} s wall, {sum(last.values()):.1f} s CPU "
+          f"({sum(last.values()) / wall:.2f} cores on average); log {log}")
+    print("   t [s]  cores busy (process tree)")
+    for b in range(int(wall / 0.5) + 1):
+        cores = bins.get(b, 0.0) / 0.5
+        print(f"  {b * 0.5:5.1f}  {cores:4.2f} {'#' * round(cores * 20)}")
+    print("  CPU [s]  from [s]  process")
+    for pid, cpu_s in sorted(last.items(), key=lambda kv: -kv[1]):
+        print(f"  {cpu_s:7.2f}  {seen[pid][0]:7.1f}  {seen[pid][1]}")
 
 
 def _summary(rrd: Path, python: str, tree: Path) -> dict:

@@ -361,8 +361,19 @@ def reap(grace_s: float = 5.0) -> None:
     """Reaper process: wait for the sweep process to end (end of standard input), then remove
     agvviz temporaries of dead processes in the folders named on the command line, retrying for
     ``grace_s`` while the workers finish dying."""
+    sweep_pid = os.getppid()
     sys.stdin.buffer.read()
     folders = sys.argv[1:]
+    # The sweep process has ended, though it may linger as a zombie until whoever started it
+    # waits for it, and so still look alive: its own temporaries (its local runs') go at once.
+    for folder in folders:
+        for name in os.listdir(folder) if os.path.isdir(folder) else []:
+            match = outputs.TEMP_RE.match(name)
+            if match and int(match["pid"]) == sweep_pid:
+                try:
+                    os.unlink(os.path.join(folder, name))
+                except OSError:
+                    pass
     deadline = time.monotonic() + grace_s
     while True:
         for folder in folders:
@@ -374,9 +385,13 @@ def reap(grace_s: float = 5.0) -> None:
 
 
 @contextmanager
-def open_client(scheduler: str | None, workers: int, temp_folders: list[Path]) -> Iterator[object]:
+def open_client(
+    scheduler: str | None, workers: int, temp_folders: list[Path], before_cluster: Callable[[], None] | None = None,
+) -> Iterator[object]:
     """A Dask client: of the cluster at ``scheduler``, or of a new local cluster of ``workers``
-    processes (closed on leaving, with the reaper for ``temp_folders``)."""
+    processes (closed on leaving, with the reaper for ``temp_folders``). ``before_cluster``: a
+    local cluster calls it once its reaper runs, before its workers start (the sweep starts its
+    own runs then, :class:`LocalRuns`)."""
     distributed = import_distributed()
     if scheduler is not None:
         try:
@@ -394,6 +409,8 @@ def open_client(scheduler: str | None, workers: int, temp_folders: list[Path]) -
     cluster = client = None
     interrupted = False
     try:
+        if before_cluster is not None:
+            before_cluster()
         cluster = _local_cluster(distributed, workers)
         client = distributed.Client(cluster, set_as_default=False)
         yield client

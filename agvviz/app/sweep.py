@@ -289,11 +289,26 @@ def sweep(
     tasks = [cluster.RunTask(e.recording, e.settings, e.run_path, images=keep_runs) for e in all_entries]
     workers = min(jobs or os.cpu_count() or 1, len(tasks))
     cache = Path(cache_dir) if cache_dir is not None else None
-    # On a local cluster the leads (each detection group's first setting: it detects and solves,
-    # as `agvviz run` does) start at once, here, while the cluster starts (cluster.LocalRuns);
-    # on an existing cluster they are its tasks.
-    local = cluster.LocalRuns(tasks, cache, workers).start() if scheduler is None else None
+    local = None
+
+    def start_here() -> None:
+        # On a local cluster the leads (each detection group's first setting: it detects and
+        # solves, as `agvviz run` does) start here at once — after the cluster's reaper, which
+        # removes their temporaries if this process is killed — while the workers start; this
+        # process then solves one more setting of each group beside them (cluster.LocalRuns).
+        # On an existing cluster every run is its task.
+        nonlocal local
+        for folder in out_dirs:
+            outputs.prepare_dir(folder, option="--out-dir")
+        local = cluster.LocalRuns(tasks, cache, workers).start()
+
     # Frames for the progress bar are counted while the cluster starts (a read of each file).
+    # What the threads will run is imported first, here: two threads importing one module at
+    # once can deadlock on its import lock.
+    import agvviz.recording.reader  # noqa: F401
+
+    if scheduler is None:
+        import agvviz.app.run  # noqa: F401
     frames: dict[Path, int] = {}
     counter = None
     if progress is not None or on_total is not None:
@@ -304,9 +319,11 @@ def sweep(
         counter.start()
     try:
         # The cluster first: an unreachable scheduler leaves nothing behind.
-        with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs]) as client:
-            for folder in out_dirs:
-                outputs.prepare_dir(folder, option="--out-dir")
+        with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs],
+                                 before_cluster=start_here) as client:
+            if scheduler is not None:
+                for folder in out_dirs:
+                    outputs.prepare_dir(folder, option="--out-dir")
             if counter is not None:
                 counter.join()
                 if on_total is not None:
