@@ -15,9 +15,10 @@ Usage:  python bench/bench_sweep.py [--workdir DIR] [--repeats 3] [--solvers lm,
 3. Each solver's position RMSE inside the sweep file (ranking.csv) against a standalone
    `agvviz run --set solver=S` (its summary): they must be equal.
 
-With ``--timeline`` it only times one cold sweep of this tree and prints how busy its processes
-kept the machine: the CPU of the sweep's process tree (read from /proc every 0.1 s, Linux only)
-in cores per half second, and each process's CPU seconds with its start time and command line.
+With ``--timeline`` it only times one cold sweep of this tree (and one of ``--baseline-tree``) and
+prints how busy its processes kept the machine: the CPU of the sweep's process tree (read from
+/proc every 0.1 s, Linux only) in cores per half second, and each process's CPU seconds with its
+start time and command line.
 
 Every measurement is a child process (`PYTHON -m agvviz ...`, run in the measured checkout so
 `-m` finds its agvviz) timed from start to exit; its output goes to DIR/logs/. The recording is
@@ -76,10 +77,14 @@ def main() -> None:
     if not recording.exists():
         agvviz(ROOT, "record", "qr_floor", "--out", str(recording), cold=False)
     if args.timeline:
-        env = dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(work / "tmp"), AGVVIZ_CACHE_DIR=str(work / "caches" / "t"))
-        argv = [args.python, "-m", "agvviz", "sweep", str(recording), "--set", f"solver={args.solvers}", "--jobs", "2",
-                "--out-dir", str(work / "runs" / "timeline")]
-        _timeline(argv, env, work / "logs" / "timeline.log")
+        timed = {"this tree": ROOT, **({"baseline": args.baseline_tree.resolve()} if args.baseline_tree else {})}
+        for n, (name, tree) in enumerate(timed.items()):
+            env = dict(os.environ, PYTHONPATH=str(tree), TMPDIR=str(work / "tmp"),
+                       AGVVIZ_CACHE_DIR=str(work / "caches" / f"t{n}"))
+            argv = [args.python, "-m", "agvviz", "sweep", str(recording), "--set", f"solver={args.solvers}", "--jobs",
+                    "2", "--out-dir", str(work / "runs" / f"timeline{n}")]
+            print(f"{name} ({tree}):")
+            _timeline(argv, env, tree, work / "logs" / f"timeline{n}.log")
         return
     trees = {"this tree": ROOT}
     if args.baseline_tree is not None:
@@ -127,7 +132,7 @@ def main() -> None:
         print(f"   {solver:6s} sweep {inside:.4g}  run {rmse:.4g}  {'equal' if same else 'DIFFERENT'}")
 
 
-def _timeline(argv: list[str], env: dict, log: Path, every_s: float = 0.1) -> None:
+def _timeline(argv: list[str], env: dict, tree: Path, log: Path, every_s: float = 0.1) -> None:
     """Run ``argv`` and print the CPU its process tree used over time (cores per half second)
     and per process, from /proc (user + system time of each process, sampled every ``every_s``)."""
     tick = os.sysconf("SC_CLK_TCK")
@@ -153,7 +158,7 @@ def _timeline(argv: list[str], env: dict, log: Path, every_s: float = 0.1) -> No
 
     t0 = time.perf_counter()
     with open(log, "w") as out:
-        child = subprocess.Popen(argv, env=env, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+        child = subprocess.Popen(argv, env=env, cwd=tree, stdout=out, stderr=subprocess.STDOUT)
         last: dict[int, float] = {}
         seen: dict[int, tuple[float, str]] = {}
         bins: dict[int, float] = {}
