@@ -299,6 +299,27 @@ def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp
     assert not [n for d in out.iterdir() for n in (p.name for p in d.iterdir()) if n.endswith(".tmp")]
 
 
+def test_sweep_lead_that_fails_hands_the_lead_on(tmp_path):
+    """The first setting of a detection group (its lead) detects, the others read the cache. A
+    lead that fails (here: its kept run's path is a folder) hands the lead to the next setting,
+    which detects; the third reads the cache (in the sweep process: a local sweep solves one
+    setting there beside the workers)."""
+    recording = tmp_path / "r.mcap"
+    scenario_registry.record("qr_floor", recording, seed=4, overrides=TINY)
+    out = tmp_path / "sweep"
+    out.mkdir()
+    (out / "r-lm.rrd").mkdir()
+    outcome = sweep(recording, parse_grid(["solver=lm,p4p,ippe"]), out_dir=out, jobs=2, images=False,
+                    keep_runs=True, cache_dir=tmp_path / "cache")
+    by_label = {e.label: e for e in outcome.entries}
+    assert not by_label["lm"].ok and by_label["lm"].error.startswith("OutputError")
+    assert by_label["p4p"].ok and by_label["p4p"].timing["detection_source"] == "detected"
+    assert by_label["ippe"].ok and by_label["ippe"].timing["detection_source"] == "cache"
+    assert by_label["ippe"].metrics["frames"] == by_label["p4p"].metrics["frames"] == 5
+    assert sorted(p.name for p in out.iterdir()) == ["r-ippe.rrd", "r-lm.rrd", "r-p4p.rrd", "ranking.csv",
+                                                      "ranking.md", "sweep.rrd"]
+
+
 def test_sweep_without_dask_is_one_line(tmp_path, monkeypatch):
     recording = tmp_path / "r.mcap"
     recording.write_bytes(b"")
