@@ -10,9 +10,9 @@ On a local cluster the leads run in the sweep process itself while the cluster s
 (:class:`LocalRuns`), on an existing cluster as tasks. When a lead is done, its group's other
 settings go to the workers, which have imported agvviz meanwhile, and only solve (from the
 cache); a local sweep keeps one of them in its own process, which has imported everything too
-and would otherwise wait. A lead that failed hands the lead to the next setting of its group. A task's failure
-— an error of agvviz, a worker process that died — comes back as that run's one-line message;
-the other runs go on.
+and would otherwise wait. A lead that failed hands the lead to the next setting of its group.
+A task's failure — an error of agvviz, a worker process that died — comes back as that run's
+one-line message; the other runs go on.
 
 Progress: workers report frames done through Dask's event log (``Worker.log_event``, at most
 every :data:`PROGRESS_EVERY_S` per task); a task that finishes counts all its frames.

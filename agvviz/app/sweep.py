@@ -2,8 +2,8 @@
 
 :func:`sweep` replays one or several recordings under the cross product of setting values
 (:func:`parse_grid`, :func:`grid_settings`) on a Dask cluster (:mod:`agvviz.app.cluster`; each
-recording detected once per detection settings, by its first setting's run), ranks each recording's runs
-(:func:`ranking_rows`), and writes per recording one sweep ``.rrd`` and the ranking as CSV and
+recording detected once per detection settings, by its first setting's run), ranks each
+recording's runs (:func:`ranking_rows`), and writes per recording one sweep ``.rrd`` and the ranking as CSV and
 markdown (issue 27). The sweep ``.rrd`` (:func:`agvviz.viz.overlay.write_overlay` with
 ``layers``) holds the frames and the static world once, each setting's layers under
 ``settings/<key>/`` (its layers-only run, copied as chunks), the ranking with p-values and the
@@ -231,8 +231,8 @@ def sweep(
     rank_by : str
         Metric to rank by (lower is better, except ``solved``/``solved_pct``).
     progress : callable, optional
-        ``progress(frames_done, runs_finished)`` summed over all runs; the frames of each
-        recording's detections count too (``on_total(frames)`` is called first with the total).
+        ``progress(frames_done, runs_finished)`` summed over all runs (``on_total(frames)`` is
+        called first with the total).
     scheduler : str, optional
         Address of an existing Dask cluster's scheduler; None starts a local cluster.
     cache_dir : path, optional
@@ -242,9 +242,9 @@ def sweep(
         setting runs layers-only into a temporary folder and lives in ``sweep.rrd`` alone.
 
     Each recording is detected once per distinct detection settings of the grid: the first such
-    setting (its lead) detects on both cores and solves in one pass, as ``agvviz run`` does, and
-    the others then only solve, from the detection cache, on the workers
-    (:mod:`agvviz.app.cluster`); each run is read back as it ends, while the others solve. A run that fails is reported in its
+    setting (its lead) detects on every core and solves in one pass, as ``agvviz run`` does, and
+    the others then only solve, from the detection cache (:mod:`agvviz.app.cluster`); each run
+    is read back as it ends, while the others solve. A run that fails is reported in its
     entry (``error``) and ranked last; the others go on. Needs Dask (``agvviz[distributed]``).
     """
     single = isinstance(recording, (str, os.PathLike))
