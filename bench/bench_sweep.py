@@ -8,7 +8,8 @@ Usage:  python bench/bench_sweep.py [--workdir DIR] [--repeats 3] [--solvers lm,
    (sweep.rrd, ranking.csv, ranking.md; before issue 27: a run per setting and overlay.rrd)
    ÷ the `.rrd` of one `agvviz run`. Target ≤ 1.5 (before: 5 files of 44 MB, ≈5).
 2. Wall time: the sweep (`--jobs 2`) ÷ one cold `agvviz run`, measured in pairs (run, sweep,
-   each with a fresh empty AGVVIZ_CACHE_DIR); the ratio of each pair, their median and spread.
+   each with a fresh empty AGVVIZ_CACHE_DIR); the ratio of each pair, their median and spread;
+   and the same for the CPU seconds of each command's whole process tree (less load-dependent).
    Target ≤ 1.3 (before: 1.98 on a quiet machine). The machine is shared: quote the pairs.
    With ``--baseline-tree DIR`` every repeat also measures that checkout's pair (e.g. the tree
    before issue 27), alternating with this one, so before and after meet the same load.
@@ -31,6 +32,7 @@ import argparse
 import csv
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -58,13 +60,14 @@ def main() -> None:
     recording = work / "qr_floor.mcap"
     counter = iter(range(10_000))
 
-    def agvviz(tree: Path, *argv: str, cold: bool = True) -> float:
+    def agvviz(tree: Path, *argv: str, cold: bool = True) -> tuple[float, float]:
         n = next(counter)
         env = dict(os.environ, PYTHONPATH=str(tree), TMPDIR=str(work / "tmp"))
         if cold:
             env["AGVVIZ_CACHE_DIR"] = str(work / "caches" / f"c{n}")
         log = work / "logs" / f"{n:03d}-{argv[0]}.log"
         print(f"  $ agvviz {' '.join(argv)}   (in {tree})", flush=True)
+        cpu0 = _children_cpu_s()
         t0 = time.perf_counter()
         with open(log, "w") as out:
             done = subprocess.run([args.python, "-m", "agvviz", *argv], env=env, cwd=tree, stdout=out,
@@ -72,7 +75,7 @@ def main() -> None:
         wall = time.perf_counter() - t0
         if done.returncode != 0:
             sys.exit(f"agvviz {' '.join(argv)} failed (exit {done.returncode}); see {log}")
-        return wall
+        return wall, _children_cpu_s() - cpu0
 
     if not recording.exists():
         agvviz(ROOT, "record", "qr_floor", "--out", str(recording), cold=False)
@@ -90,18 +93,21 @@ def main() -> None:
     if args.baseline_tree is not None:
         trees["baseline"] = args.baseline_tree.resolve()
     pairs = {name: [] for name in trees}
+    cpu_pairs = {name: [] for name in trees}  # CPU seconds of each process tree (user + system)
     written = {}
     for _ in range(args.repeats):
         for name, tree in trees.items():
             run_rrd = work / "runs" / f"{name.replace(' ', '_')}-run.rrd"
             sweep_dir = work / "runs" / f"{name.replace(' ', '_')}-sweep"
-            run_s = agvviz(tree, "run", str(recording), "--out", str(run_rrd))
+            run_s, run_cpu_s = agvviz(tree, "run", str(recording), "--out", str(run_rrd))
             shutil.rmtree(sweep_dir, ignore_errors=True)
-            sweep_s = agvviz(tree, "sweep", str(recording), "--set", f"solver={args.solvers}", "--jobs", "2",
-                             "--out-dir", str(sweep_dir))
+            sweep_s, sweep_cpu_s = agvviz(tree, "sweep", str(recording), "--set", f"solver={args.solvers}", "--jobs",
+                                          "2", "--out-dir", str(sweep_dir))
             pairs[name].append((run_s, sweep_s))
+            cpu_pairs[name].append((run_cpu_s, sweep_cpu_s))
             written[name] = (run_rrd, sweep_dir)
-            print(f"  {name}: run {run_s:.1f} s, sweep {sweep_s:.1f} s, ratio {sweep_s / run_s:.2f}", flush=True)
+            print(f"  {name}: run {run_s:.1f} s, sweep {sweep_s:.1f} s, ratio {sweep_s / run_s:.2f}; CPU run "
+                  f"{run_cpu_s:.1f} s, sweep {sweep_cpu_s:.1f} s, ratio {sweep_cpu_s / run_cpu_s:.2f}", flush=True)
 
     n_solvers = len(args.solvers.split(","))
     print()
@@ -117,6 +123,10 @@ def main() -> None:
         print(f"2. wall: sweep ÷ one cold run, {len(ratios)} pairs {', '.join(f'{r:.2f}' for r in ratios)}: "
               f"median {statistics.median(ratios):.2f}; run median {statistics.median(r for r, _ in pairs[name]):.1f} s, "
               f"sweep median {statistics.median(s for _, s in pairs[name]):.1f} s   (target ≤ 1.3)")
+        cpu_ratios = [s / r for r, s in cpu_pairs[name]]
+        print(f"   CPU (all processes): sweep ÷ run, pairs {', '.join(f'{r:.2f}' for r in cpu_ratios)}: median "
+              f"{statistics.median(cpu_ratios):.2f}; run median {statistics.median(r for r, _ in cpu_pairs[name]):.1f} s, "
+              f"sweep median {statistics.median(s for _, s in cpu_pairs[name]):.1f} s")
     if args.skip_rmse:
         return
     _, sweep_dir = written["this tree"]
@@ -130,6 +140,13 @@ def main() -> None:
         inside = float(ranking[solver]["position_rmse_mm"])
         same = f"{rmse:.4g}" == f"{inside:.4g}"
         print(f"   {solver:6s} sweep {inside:.4g}  run {rmse:.4g}  {'equal' if same else 'DIFFERENT'}")
+
+
+def _children_cpu_s() -> float:
+    """User + system CPU seconds of this process's ended children and the descendants they
+    waited for (a sweep's workers, pools and fork server included)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def _timeline(argv: list[str], env: dict, tree: Path, log: Path, every_s: float = 0.1) -> None:
