@@ -9,7 +9,8 @@ Usage:  python bench/bench_sweep.py [--workdir DIR] [--repeats 3] [--solvers lm,
    ÷ the `.rrd` of one `agvviz run`. Target ≤ 1.5 (before: 5 files of 44 MB, ≈5).
 2. Wall time: the sweep (`--jobs 2`) ÷ one cold `agvviz run`, measured in pairs (run, sweep,
    each with a fresh empty AGVVIZ_CACHE_DIR); the ratio of each pair, their median and spread;
-   and the same for the CPU seconds of each command's whole process tree (less load-dependent).
+   and the same for the CPU seconds of each command's whole process tree (sampled from /proc
+   every 0.2 s; less load-dependent than wall time).
    Target ≤ 1.3 (before: 1.98 on a quiet machine). The machine is shared: quote the pairs.
    With ``--baseline-tree DIR`` every repeat also measures that checkout's pair (e.g. the tree
    before issue 27), alternating with this one, so before and after meet the same load.
@@ -32,7 +33,6 @@ import argparse
 import csv
 import json
 import os
-import resource
 import shutil
 import statistics
 import subprocess
@@ -67,15 +67,18 @@ def main() -> None:
             env["AGVVIZ_CACHE_DIR"] = str(work / "caches" / f"c{n}")
         log = work / "logs" / f"{n:03d}-{argv[0]}.log"
         print(f"  $ agvviz {' '.join(argv)}   (in {tree})", flush=True)
-        cpu0 = _children_cpu_s()
         t0 = time.perf_counter()
+        cpu_s: dict[int, float] = {}  # the child's process tree: pid → CPU seconds at its last sample
         with open(log, "w") as out:
-            done = subprocess.run([args.python, "-m", "agvviz", *argv], env=env, cwd=tree, stdout=out,
-                                  stderr=subprocess.STDOUT, check=False)
+            child = subprocess.Popen([args.python, "-m", "agvviz", *argv], env=env, cwd=tree, stdout=out,
+                                     stderr=subprocess.STDOUT)
+            while child.poll() is None:
+                cpu_s.update(_tree_cpu_s(child.pid))
+                time.sleep(0.2)
         wall = time.perf_counter() - t0
-        if done.returncode != 0:
-            sys.exit(f"agvviz {' '.join(argv)} failed (exit {done.returncode}); see {log}")
-        return wall, _children_cpu_s() - cpu0
+        if child.returncode != 0:
+            sys.exit(f"agvviz {' '.join(argv)} failed (exit {child.returncode}); see {log}")
+        return wall, sum(cpu_s.values())
 
     if not recording.exists():
         agvviz(ROOT, "record", "qr_floor", "--out", str(recording), cold=False)
@@ -142,37 +145,32 @@ def main() -> None:
         print(f"   {solver:6s} sweep {inside:.4g}  run {rmse:.4g}  {'equal' if same else 'DIFFERENT'}")
 
 
-def _children_cpu_s() -> float:
-    """User + system CPU seconds of this process's ended children and the descendants they
-    waited for (a sweep's workers, pools and fork server included)."""
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+def _tree_cpu_s(root: int) -> dict[int, float]:
+    """User + system CPU seconds of process ``root`` and of each of its descendants, from /proc
+    (Linux). A process that ends between two samples loses what it used since the last one."""
+    tick = os.sysconf("SC_CLK_TCK")
+    children: dict[int, list[int]] = {}
+    cpu_s: dict[int, float] = {}
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                with open(f"/proc/{name}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            children.setdefault(int(fields[1]), []).append(int(name))
+            cpu_s[int(name)] = (int(fields[11]) + int(fields[12])) / tick
+    found, stack = {}, [root]
+    while stack:
+        pid = stack.pop()
+        found[pid] = cpu_s.get(pid, 0.0)
+        stack += children.get(pid, [])
+    return found
 
 
 def _timeline(argv: list[str], env: dict, tree: Path, log: Path, every_s: float = 0.1) -> None:
     """Run ``argv`` and print the CPU its process tree used over time (cores per half second)
     and per process, from /proc (user + system time of each process, sampled every ``every_s``)."""
-    tick = os.sysconf("SC_CLK_TCK")
-
-    def tree_cpu_s(root: int) -> dict[int, float]:
-        children: dict[int, list[int]] = {}
-        cpu_s: dict[int, float] = {}
-        for name in os.listdir("/proc"):
-            if name.isdigit():
-                try:
-                    with open(f"/proc/{name}/stat") as f:
-                        fields = f.read().rsplit(")", 1)[1].split()
-                except OSError:
-                    continue
-                children.setdefault(int(fields[1]), []).append(int(name))
-                cpu_s[int(name)] = (int(fields[11]) + int(fields[12])) / tick
-        found, stack = {}, [root]
-        while stack:
-            pid = stack.pop()
-            found[pid] = cpu_s.get(pid, 0.0)
-            stack += children.get(pid, [])
-        return found
-
     t0 = time.perf_counter()
     with open(log, "w") as out:
         child = subprocess.Popen(argv, env=env, cwd=tree, stdout=out, stderr=subprocess.STDOUT)
@@ -182,7 +180,7 @@ def _timeline(argv: list[str], env: dict, tree: Path, log: Path, every_s: float 
         while child.poll() is None:
             time.sleep(every_s)
             now = time.perf_counter() - t0
-            cpu = tree_cpu_s(child.pid)
+            cpu = _tree_cpu_s(child.pid)
             bins[int(now / 0.5)] = bins.get(int(now / 0.5), 0.0) + sum(v - last.get(p, 0.0) for p, v in cpu.items())
             last.update(cpu)
             for pid in cpu.keys() - seen.keys():
