@@ -92,6 +92,19 @@ class SweepStopped(Exception):
     """Raised inside a task when the sweep was interrupted (its stop event is set)."""
 
 
+def require_distributed() -> None:
+    """:class:`InputError` (:data:`DASK_MISSING`) unless ``distributed`` can be imported; does
+    not import it (≈0.7 s: a local sweep imports it while its first runs have started)."""
+    import importlib.util
+
+    try:
+        found = importlib.util.find_spec("distributed") is not None
+    except (ImportError, ValueError):
+        found = False
+    if not found:
+        raise InputError(DASK_MISSING)
+
+
 def import_distributed():
     """The ``distributed`` package, or :class:`InputError` (:data:`DASK_MISSING`)."""
     try:
@@ -189,7 +202,12 @@ class LocalRuns:
 
     def start(self) -> "LocalRuns":
         # Imported here, in the calling thread: two threads importing one module at once can
-        # deadlock on its import lock (the sweep counts frames in another thread meanwhile).
+        # deadlock on its import lock (the sweep counts frames in another thread meanwhile and
+        # then imports Dask); so is what a run imports on its way (the map's centre tree, the
+        # detection cache's Parquet).
+        import pyarrow.parquet  # noqa: F401
+        import scipy.spatial  # noqa: F401
+
         import agvviz.app.run  # noqa: F401
 
         _start_method()  # the fork server (signals ignored) that the detection pool and the workers share
@@ -300,6 +318,12 @@ def _start_method() -> str:
     return "forkserver"
 
 
+def start_fork_server() -> None:
+    """Start the local cluster's fork server now (:func:`_start_method`), so that its imports run
+    beside the caller's own."""
+    _start_method()
+
+
 def _ignore_signal(signum, frame) -> None:
     """A do-nothing handler: unlike SIG_IGN, processes started by exec get the default back."""
 
@@ -392,8 +416,8 @@ def open_client(
     processes (closed on leaving, with the reaper for ``temp_folders``). ``before_cluster``: a
     local cluster calls it once its reaper runs, before its workers start (the sweep starts its
     own runs then, :class:`LocalRuns`)."""
-    distributed = import_distributed()
     if scheduler is not None:
+        distributed = import_distributed()
         try:
             distributed.comm.resolve_address(scheduler)  # a malformed address or unknown host: at once
             client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
@@ -411,6 +435,7 @@ def open_client(
     try:
         if before_cluster is not None:
             before_cluster()
+        distributed = import_distributed()
         cluster = _local_cluster(distributed, workers)
         client = distributed.Client(cluster, set_as_default=False)
         yield client

@@ -269,7 +269,11 @@ def sweep(
     out_dirs = sweep_out_dirs(recordings, out_dir)
     from agvviz.app import cluster
 
-    cluster.import_distributed()  # without Dask: one line, before anything is written
+    if scheduler is None:
+        # The fork server that the workers and the detection pool are forked from imports Dask
+        # and agvviz's replay (≈1.5 s): started first, it does so while this process imports them.
+        cluster.start_fork_server()
+    cluster.require_distributed()  # without Dask: one line, before anything is written
     per_recording = []
     for path, folder in zip(recordings, out_dirs):
         entries = []
