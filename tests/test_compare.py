@@ -255,7 +255,9 @@ def test_sweep_grid_errors_are_clear(tmp_path):
 def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp_path):
     """Two recordings × two solvers, and a text file named .mcap: each recording's runs, tables
     and overlay go to its own folder; every run of a recording reuses its one detection; the
-    file that is no recording fails its own entries, with the reader's message, and no other."""
+    file that is no recording fails its own entries, with the reader's message, and no other.
+    Each recording is detected once: by its first setting's run (the lead), the other reads
+    the cache."""
     a, b, bad = tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "bad.mcap"
     scenario_registry.record("qr_floor", a, seed=1, overrides=TINY)
     scenario_registry.record("qr_floor", b, seed=2, overrides=TINY)
@@ -275,7 +277,8 @@ def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp
             assert entry.ok and entry.recording == recording
             assert str(entry.out_path) == f"{out / recording.stem / 'sweep.rrd'}#{entry.label}"
             assert entry.metrics["frames"] == 5
-            assert entry.timing["detection_source"] == "cache"  # the group's one detection, reused
+        # the group's one detection, by its lead (lm, first in the grid), reused by p4p
+        assert {e.label: e.timing["detection_source"] for e in result.entries} == {"lm": "detected", "p4p": "cache"}
         assert result.overlay_path == out / recording.stem / "sweep.rrd" and result.overlay_path.is_file()
         assert sorted(p.name for p in result.out_dir.iterdir()) == ["ranking.csv", "ranking.md", "sweep.rrd"]
         with open(result.csv_path, newline="") as f:
@@ -288,13 +291,34 @@ def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp
     assert "failed: RecordingError" in failed.csv_path.read_text() or "failed: RunError" in failed.csv_path.read_text()
     # The first recording's files are the outcome's own (as for a sweep of one recording).
     assert outcome.csv_path == out / "a" / "ranking.csv"
-    # Progress: the total first (2 recordings × (1 detection + 2 runs) × 5 frames; the bad file
-    # has no frames to count), then counts that never go down and end at the total, 6 runs done.
-    assert reports[0] == 30
+    # Progress: the total first (2 recordings × 2 runs × 5 frames; the bad file has no frames to
+    # count), then counts that never go down and end at the total, 6 runs done.
+    assert reports[0] == 20
     counts = reports[1:]
-    assert counts[-1] == (30, 6)
+    assert counts[-1] == (20, 6)
     assert all(x[0] <= y[0] and x[1] <= y[1] for x, y in zip(counts, counts[1:]))
     assert not [n for d in out.iterdir() for n in (p.name for p in d.iterdir()) if n.endswith(".tmp")]
+
+
+def test_sweep_lead_that_fails_hands_the_lead_on(tmp_path):
+    """The first setting of a detection group (its lead) detects, the others read the cache. A
+    lead that fails (here: its kept run's path is a folder) hands the lead to the next setting,
+    which detects; the third reads the cache (in the sweep process: a local sweep solves one
+    setting there beside the workers)."""
+    recording = tmp_path / "r.mcap"
+    scenario_registry.record("qr_floor", recording, seed=4, overrides=TINY)
+    out = tmp_path / "sweep"
+    out.mkdir()
+    (out / "r-lm.rrd").mkdir()
+    outcome = sweep(recording, parse_grid(["solver=lm,p4p,ippe"]), out_dir=out, jobs=2, images=False,
+                    keep_runs=True, cache_dir=tmp_path / "cache")
+    by_label = {e.label: e for e in outcome.entries}
+    assert not by_label["lm"].ok and by_label["lm"].error.startswith("OutputError")
+    assert by_label["p4p"].ok and by_label["p4p"].timing["detection_source"] == "detected"
+    assert by_label["ippe"].ok and by_label["ippe"].timing["detection_source"] == "cache"
+    assert by_label["ippe"].metrics["frames"] == by_label["p4p"].metrics["frames"] == 5
+    assert sorted(p.name for p in out.iterdir()) == ["r-ippe.rrd", "r-lm.rrd", "r-p4p.rrd", "ranking.csv",
+                                                      "ranking.md", "sweep.rrd"]
 
 
 def test_sweep_without_dask_is_one_line(tmp_path, monkeypatch):

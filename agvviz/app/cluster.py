@@ -3,12 +3,16 @@
 :func:`open_client` gives a Dask client of a new ``distributed.LocalCluster`` (worker processes
 on this machine, one thread each) or of an existing cluster given by its scheduler's address;
 :func:`run_sweep_tasks` runs a sweep's runs (recording, settings, output ``.rrd``) on it. It
-groups them by recording and detection settings (:func:`agvviz.replay.detect.stage.detection_settings`)
-and detects each group once first (:func:`agvviz.replay.run.detect_recording`, which fills the
-detection cache): on a local cluster in the sweep process itself while the cluster starts
-(:class:`LocalDetections`), on an existing cluster as a task; the group's runs start when it is
-done (a failed detection fails them, with its message) and only solve. A task's failure — an error of agvviz, a worker process
-that died — comes back as that run's one-line message; the other runs go on.
+groups them by recording and detection settings (:func:`agvviz.replay.detect.stage.detection_settings`);
+each group's first setting, its *lead*, runs first and alone: it detects the recording on both
+cores and solves meanwhile, in one pass, as ``agvviz run`` does, and fills the detection cache.
+On a local cluster the leads run in the sweep process itself while the cluster starts
+(:class:`LocalRuns`), on an existing cluster as tasks. When a lead is done, its group's other
+settings go to the workers, which have imported agvviz meanwhile, and only solve (from the
+cache); a local sweep keeps one of them in its own process, which has imported everything too
+and would otherwise wait. A lead that failed hands the lead to the next setting of its group.
+A task's failure — an error of agvviz, a worker process that died — comes back as that run's
+one-line message; the other runs go on.
 
 Progress: workers report frames done through Dask's event log (``Worker.log_event``, at most
 every :data:`PROGRESS_EVERY_S` per task); a task that finishes counts all its frames.
@@ -88,6 +92,19 @@ class SweepStopped(Exception):
     """Raised inside a task when the sweep was interrupted (its stop event is set)."""
 
 
+def require_distributed() -> None:
+    """:class:`InputError` (:data:`DASK_MISSING`) unless ``distributed`` can be imported; does
+    not import it (≈0.7 s: a local sweep imports it while its first runs have started)."""
+    import importlib.util
+
+    try:
+        found = importlib.util.find_spec("distributed") is not None
+    except (ImportError, ValueError):
+        found = False
+    if not found:
+        raise InputError(DASK_MISSING)
+
+
 def import_distributed():
     """The ``distributed`` package, or :class:`InputError` (:data:`DASK_MISSING`)."""
     try:
@@ -156,99 +173,111 @@ def _detect_jobs(share: int) -> int:
     return max(1, min(share, os.cpu_count() or 1))
 
 
-class LocalDetections:
-    """A local sweep's detections, run in the sweep process itself while its cluster starts.
+class LocalRuns:
+    """The runs a local sweep makes in its own process: each detection group's lead, at once,
+    while the cluster starts, and then some of the groups' other settings, beside the workers.
 
-    With a local cluster every process is on this machine, so nothing is gained by sending a
-    detection to a worker — and much is lost: the cluster must first start and the worker then
-    starts its own detection pool. Here the detections start at once, in a thread, on the
-    detect stage's own pool of ``jobs`` processes (as ``agvviz run`` detects), one group after
-    the other (:func:`detection_groups`, each from its first task); :func:`run_sweep_tasks`
-    submits a group's runs when its detection is done. ``results[g]`` is None until group g is
-    done, then a :class:`TaskResult` (``error``: the detection failed, its runs fail with it);
-    ``frames[g]`` counts its frames detected. :meth:`close` stops the thread at its next frame.
+    The lead of a detection group (:func:`detection_groups`) is its first setting: it detects
+    the recording on the detect stage's own pool of ``jobs`` processes and solves meanwhile, in
+    one pass, as ``agvviz run`` does (which fills the detection cache). With a local cluster
+    every process is on this machine, so nothing is gained by sending a lead to a worker — and
+    much is lost: the cluster must first start and the worker then starts its own detection
+    pool. Once the leads are done this process has imported everything a run needs, as the
+    workers have, and would only wait: :func:`run_sweep_tasks` hands it one more setting of each
+    group (:meth:`add`) while the workers solve the others. The runs go one after the other, in a
+    thread; ``results[i]`` is task i's :class:`TaskResult` once it is done, ``frames[i]`` counts
+    its frames done. :meth:`close` stops the thread at its next frame.
     """
 
     def __init__(self, tasks: list[RunTask], cache_dir: Path | None, jobs: int):
-        self.first_tasks = [tasks[members[0]] for members in detection_groups(tasks).values()]
+        self.tasks = tasks
+        self.leads = [members[0] for members in detection_groups(tasks).values()]
         self.cache_dir, self.jobs = cache_dir, max(1, jobs)
-        self.results: list[TaskResult | None] = [None] * len(self.first_tasks)
-        self.frames = [0] * len(self.first_tasks)
+        self.results: dict[int, TaskResult] = {}
+        self.frames: dict[int, int] = {}
+        self._queue = list(self.leads)
+        self._wake = threading.Condition()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._detect_all, name="agvviz sweep detection", daemon=True)
+        self._thread = threading.Thread(target=self._run_all, name="agvviz sweep local runs", daemon=True)
 
-    def start(self) -> "LocalDetections":
+    def start(self) -> "LocalRuns":
         # Imported here, in the calling thread: two threads importing one module at once can
-        # deadlock on its import lock (the sweep counts frames in another thread meanwhile).
-        import agvviz.replay.run  # noqa: F401
+        # deadlock on its import lock (the sweep counts frames in another thread meanwhile and
+        # then imports Dask); so is what a run imports on its way (the map's centre tree, the
+        # detection cache's Parquet).
+        import pyarrow.parquet  # noqa: F401
+        import scipy.spatial  # noqa: F401
+
+        import agvviz.app.run  # noqa: F401
 
         _start_method()  # the fork server (signals ignored) that the detection pool and the workers share
         self._thread.start()
         return self
 
-    def _detect_all(self) -> None:
-        for g, task in enumerate(self.first_tasks):
+    def add(self, index: int) -> None:
+        """Run task ``index`` here too, after those already given (it reads its detections from
+        the cache: one process)."""
+        with self._wake:
+            self._queue.append(index)
+            self._wake.notify()
 
-            def progress(frames_done: int, g: int = g) -> None:
-                self.frames[g] = frames_done
+    def _run_all(self) -> None:
+        while True:
+            with self._wake:
+                while not self._queue and not self._stop.is_set():
+                    self._wake.wait()
+                if self._stop.is_set():
+                    return
+                index = self._queue.pop(0)
+
+            def progress(frames_done: int, index: int = index) -> None:
+                self.frames[index] = frames_done
                 if self._stop.is_set():
                     raise SweepStopped("the sweep was interrupted")
 
-            result = _detect_group(task.recording, task.settings, self.jobs, progress, self.cache_dir)
+            jobs = self.jobs if index in self.leads else 1
+            result = _run(self.tasks[index], jobs, progress, self.cache_dir)
             if self._stop.is_set():  # interrupted: nobody waits for the result
                 return
-            self.results[g] = result
+            self.results[index] = result
 
     def close(self) -> None:
-        """Stop (at the next frame) and wait for the detection thread."""
-        self._stop.set()
+        """Stop (at the next frame) and wait for the thread."""
+        with self._wake:
+            self._stop.set()
+            self._wake.notify()
         if self._thread.is_alive():
             self._thread.join()
 
 
-def _detect_group(
-    recording: Path, settings: "RunSettings", jobs: int, progress: Callable[[int], None], cache_dir: Path | None,
-) -> TaskResult:
-    """Detect ``recording`` once for a group of runs (fills the detection cache); a failure,
-    an interruption (:class:`SweepStopped` from ``progress``) included, is the result's error."""
-    from agvviz.replay.run import detect_recording
+def _run(task: RunTask, jobs: int, progress: Callable[[int], None], cache_dir: Path | None) -> TaskResult:
+    """Replay one setting (:func:`agvviz.app.run.run_recording`) with ``jobs`` detection
+    processes (its group's detections come from the cache when they are there); a failure, an
+    interruption (:class:`SweepStopped` from ``progress``) included, is the result's error."""
+    from agvviz.app.run import run_recording
 
     extra = {"cache_dir": cache_dir} if cache_dir is not None else {}
     try:
-        detect_recording(recording, settings, jobs=jobs, progress=progress, **extra)
-    except Exception as exc:  # noqa: BLE001 — reported as every dependent run's failure
+        outcome = run_recording(task.recording, task.settings, task.out_path, progress=progress, jobs=jobs,
+                                images=task.images, **extra)
+    except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
         return TaskResult(error=one_line(exc))
-    return TaskResult()
-
-
-def detect_task(
-    recording: str, settings: "RunSettings", cache_dir: str | None, share: int, topic: str, stop_name: str, unit: int,
-) -> TaskResult:
-    """Worker: :func:`_detect_group` on the cluster."""
-    reporter = _Reporter(topic, stop_name, unit)
-    return _detect_group(
-        Path(recording), settings, _detect_jobs(share), reporter, Path(cache_dir) if cache_dir is not None else None,
-    )
+    return TaskResult(timing=dict(outcome.timing))
 
 
 def run_task(
     recording: str, settings: "RunSettings", out_path: str, cache_dir: str | None, topic: str, stop_name: str,
-    unit: int, images: bool = True,
+    unit: int, images: bool = True, share: int = 1,
 ) -> TaskResult:
-    """Worker: replay one setting, reusing its group's detections (from the cache)."""
+    """Worker: replay one setting. A group's lead (``share`` > 1: its share of the cluster's
+    threads) detects on that many processes (in-process in a daemonic worker) and fills the
+    cache; the others read their group's detections from it and only solve."""
     import cv2
-
-    from agvviz.app.run import run_recording
 
     cv2.setNumThreads(1)  # one thread per worker: the workers already fill the CPUs
     reporter = _Reporter(topic, stop_name, unit)
-    extra = {"cache_dir": Path(cache_dir)} if cache_dir is not None else {}
-    try:
-        outcome = run_recording(Path(recording), settings, Path(out_path), progress=reporter, jobs=1, images=images,
-                                **extra)
-    except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
-        return TaskResult(error=one_line(exc))
-    return TaskResult(timing=dict(outcome.timing))
+    task = RunTask(Path(recording), settings, Path(out_path), images)
+    return _run(task, _detect_jobs(share), reporter, Path(cache_dir) if cache_dir is not None else None)
 
 
 # -- the cluster -------------------------------------------------------------------------------
@@ -287,6 +316,12 @@ def _start_method() -> str:
     with _signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"
+
+
+def start_fork_server() -> None:
+    """Start the local cluster's fork server now (:func:`_start_method`), so that its imports run
+    beside the caller's own."""
+    _start_method()
 
 
 def _ignore_signal(signum, frame) -> None:
@@ -350,8 +385,19 @@ def reap(grace_s: float = 5.0) -> None:
     """Reaper process: wait for the sweep process to end (end of standard input), then remove
     agvviz temporaries of dead processes in the folders named on the command line, retrying for
     ``grace_s`` while the workers finish dying."""
+    sweep_pid = os.getppid()
     sys.stdin.buffer.read()
     folders = sys.argv[1:]
+    # The sweep process has ended, though it may linger as a zombie until whoever started it
+    # waits for it, and so still look alive: its own temporaries (its local runs') go at once.
+    for folder in folders:
+        for name in os.listdir(folder) if os.path.isdir(folder) else []:
+            match = outputs.TEMP_RE.match(name)
+            if match and int(match["pid"]) == sweep_pid:
+                try:
+                    os.unlink(os.path.join(folder, name))
+                except OSError:
+                    pass
     deadline = time.monotonic() + grace_s
     while True:
         for folder in folders:
@@ -363,11 +409,15 @@ def reap(grace_s: float = 5.0) -> None:
 
 
 @contextmanager
-def open_client(scheduler: str | None, workers: int, temp_folders: list[Path]) -> Iterator[object]:
+def open_client(
+    scheduler: str | None, workers: int, temp_folders: list[Path], before_cluster: Callable[[], None] | None = None,
+) -> Iterator[object]:
     """A Dask client: of the cluster at ``scheduler``, or of a new local cluster of ``workers``
-    processes (closed on leaving, with the reaper for ``temp_folders``)."""
-    distributed = import_distributed()
+    processes (closed on leaving, with the reaper for ``temp_folders``). ``before_cluster``: a
+    local cluster calls it once its reaper runs, before its workers start (the sweep starts its
+    own runs then, :class:`LocalRuns`)."""
     if scheduler is not None:
+        distributed = import_distributed()
         try:
             distributed.comm.resolve_address(scheduler)  # a malformed address or unknown host: at once
             client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
@@ -383,6 +433,9 @@ def open_client(scheduler: str | None, workers: int, temp_folders: list[Path]) -
     cluster = client = None
     interrupted = False
     try:
+        if before_cluster is not None:
+            before_cluster()
+        distributed = import_distributed()
         cluster = _local_cluster(distributed, workers)
         client = distributed.Client(cluster, set_as_default=False)
         yield client
@@ -413,15 +466,18 @@ def run_sweep_tasks(
     cache_dir: Path | None = None,
     frames: dict[Path, int] | None = None,
     progress: Callable[[int, int], None] | None = None,
-    local: LocalDetections | None = None,
+    local: LocalRuns | None = None,
+    on_result: Callable[[int, TaskResult], None] | None = None,
 ) -> list[TaskResult]:
-    """Run ``tasks`` on the Dask ``client``'s cluster (see :func:`open_client`), one detection
-    per :func:`detection_groups` group first; the results in the order of ``tasks``.
-    ``local``: the detections run in this process (:class:`LocalDetections`, already started
+    """Run ``tasks`` on the Dask ``client``'s cluster (see :func:`open_client`): each
+    :func:`detection_groups` group's lead (its first task) first, which detects and fills the
+    cache, then the group's other tasks, which only solve; the results in the order of
+    ``tasks``. ``local``: the leads run in this process (:class:`LocalRuns`, already started
     for these ``tasks``) instead of as tasks on the cluster.
 
-    ``frames``: frames per recording, for ``progress(frames_done, runs_finished)``, where the
-    frames of a detection and of every run count (see :func:`progress_total`). Interrupted
+    ``on_result(index, result)`` is called in this thread as each task ends (the sweep reads
+    the run back meanwhile, while the others solve). ``frames``: frames per recording, for
+    ``progress(frames_done, runs_finished)`` (see :func:`progress_total`). Interrupted
     (Ctrl-C), it stops the running tasks (at their next frame) and cancels the others.
     """
     from distributed import Event
@@ -429,13 +485,12 @@ def run_sweep_tasks(
     if not tasks:
         return []
     frames = frames or {}
-    groups = detection_groups(tasks)
+    groups = list(detection_groups(tasks).values())
+    leads = [members[0] for members in groups]
     token = uuid.uuid4().hex[:12]
     topic, stop_name = f"agvviz-sweep-progress-{token}", f"agvviz-sweep-stop-{token}"
-    # Progress units: the detections first, then the runs.
-    expected = [frames.get(tasks[members[0]].recording, 0) for members in groups.values()]
-    expected += [frames.get(t.recording, 0) for t in tasks]
-    done_frames = [0] * len(expected)
+    expected = [frames.get(t.recording, 0) for t in tasks]  # progress: each task's frames
+    done_frames = [0] * len(tasks)
     lock = threading.Lock()
 
     def on_event(event) -> None:  # in the client's event-loop thread
@@ -444,68 +499,70 @@ def run_sweep_tasks(
             done_frames[unit] = max(done_frames[unit], min(int(count), expected[unit]))
 
     results: list[TaskResult | None] = [None] * len(tasks)
-
-    def finish(unit: int, result: TaskResult | None = None) -> None:
-        """A detection (unit < len(groups)) or a run has ended: all its frames count."""
-        with lock:
-            done_frames[unit] = expected[unit]
-        if unit >= len(groups):
-            results[unit - len(groups)] = result
-
     client.subscribe_topic(topic, on_event)
     cache = str(Path(cache_dir).resolve()) if cache_dir is not None else None
     share = max(1, sum(client.nthreads().values()) // len(groups))
-    pending: dict[object, int] = {}  # future -> its progress unit
-    local_waiting = set(range(len(groups))) if local is not None else set()
+    pending: dict[object, int] = {}  # future -> its task
+
+    def submit(i: int, share: int = 1) -> None:
+        task = tasks[i]
+        future = client.submit(
+            run_task, str(task.recording.resolve()), task.settings, str(task.out_path.resolve()), cache, topic,
+            stop_name, i, task.images, share, key=f"agvviz-run-{token}-{i}", pure=False,
+        )
+        pending[future] = i
+
+    waiting = {members[0]: members[1:] for members in groups}  # a running lead → its group's other tasks
+    running_here = set(leads) if local is not None else set()  # tasks of `local`, not yet ended
     try:
-        for g, members in enumerate(groups.values()):
-            if local is not None:
-                continue
-            first = tasks[members[0]]
-            future = client.submit(
-                detect_task, str(first.recording.resolve()), first.settings, cache, share, topic, stop_name, g,
-                key=f"agvviz-detect-{token}-{g}", pure=False,
-            )
-            pending[future] = g
-        members_of = list(groups.values())
-        while pending or local_waiting:
+        if local is None:
+            for lead in leads:
+                submit(lead, share)
+        while pending or running_here:
             ended = []
             for future in [f for f in pending if f.done()]:
-                unit = pending.pop(future)
+                i = pending.pop(future)
                 try:
                     result = future.result()
                 except Exception as exc:  # noqa: BLE001 — a worker that died, a cancelled task
                     result = TaskResult(error=one_line(exc))
-                ended.append((unit, result))
-            for g in sorted(local_waiting):
+                ended.append((i, result))
+            for i in sorted(running_here):
                 with lock:
-                    done_frames[g] = max(done_frames[g], min(local.frames[g], expected[g]))
-                if local.results[g] is not None:
-                    local_waiting.discard(g)
-                    ended.append((g, local.results[g]))
-            for unit, result in ended:
-                finish(unit, result)
-                if unit >= len(groups):
+                    done_frames[i] = max(done_frames[i], min(local.frames.get(i, 0), expected[i]))
+                if i in local.results:
+                    running_here.discard(i)
+                    ended.append((i, local.results[i]))
+            for i, result in ended:
+                with lock:
+                    done_frames[i] = expected[i]
+                results[i] = result
+                rest = waiting.pop(i, [])
+                if rest and result.error is not None:
+                    # A lead that failed may not have detected (its output, its solver): the
+                    # next task of its group leads in its place, on the cluster.
+                    waiting[rest[0]] = rest[1:]
+                    submit(rest[0], share)
                     continue
-                # A detection: its group's detections are in the cache, its runs only solve.
-                # They are submitted now rather than as the detection task's dependents, which
-                # Dask would all place on the one worker holding its (tiny) result.
-                for i in members_of[unit]:
-                    if result.error is not None:  # a failed detection fails its runs
-                        finish(len(groups) + i, result)
-                        continue
-                    task = tasks[i]
-                    run = client.submit(
-                        run_task, str(task.recording.resolve()), task.settings, str(task.out_path.resolve()),
-                        cache, topic, stop_name, len(groups) + i, task.images, key=f"agvviz-run-{token}-{i}", pure=False,
-                    )
-                    pending[run] = len(groups) + i
+                # A lead that ran: its group's detections are in the cache, the others only
+                # solve. They are submitted now rather than as the lead's dependents, which
+                # Dask would all place on the one worker holding its result. A local sweep
+                # keeps the last of them in this process, which would otherwise only wait.
+                if rest and local is not None:
+                    local.add(rest[-1])
+                    running_here.add(rest[-1])
+                    rest = rest[:-1]
+                for member in rest:
+                    submit(member)
+            for i, result in ended:  # after the submissions: the workers go on meanwhile
+                if on_result is not None:
+                    on_result(i, result)
             if progress is not None:
                 with lock:
                     total_done = sum(done_frames)
                 progress(total_done, sum(r is not None for r in results))
-            if pending or local_waiting:
-                time.sleep(0.1)
+            if pending or running_here:
+                time.sleep(0.05)
     except BaseException:  # interrupted: stop the running tasks, drop the others
         if local is not None:
             local.close()
@@ -519,8 +576,5 @@ def run_sweep_tasks(
 
 
 def progress_total(tasks: list[RunTask], frames: dict[Path, int]) -> int:
-    """Frames a sweep's progress counts up to: each detection's and each run's."""
-    groups = detection_groups(tasks)
-    return sum(frames.get(tasks[m[0]].recording, 0) for m in groups.values()) + sum(
-        frames.get(t.recording, 0) for t in tasks
-    )
+    """Frames a sweep's progress counts up to: each run's (a lead's detection is its run's)."""
+    return sum(frames.get(t.recording, 0) for t in tasks)

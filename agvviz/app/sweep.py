@@ -2,8 +2,8 @@
 
 :func:`sweep` replays one or several recordings under the cross product of setting values
 (:func:`parse_grid`, :func:`grid_settings`) on a Dask cluster (:mod:`agvviz.app.cluster`; each
-recording detected once per detection settings), ranks each recording's runs
-(:func:`ranking_rows`), and writes per recording one sweep ``.rrd`` and the ranking as CSV and
+recording detected once per detection settings, by its first setting's run), ranks each
+recording's runs (:func:`ranking_rows`), and writes per recording one sweep ``.rrd`` and the ranking as CSV and
 markdown (issue 27). The sweep ``.rrd`` (:func:`agvviz.viz.overlay.write_overlay` with
 ``layers``) holds the frames and the static world once, each setting's layers under
 ``settings/<key>/`` (its layers-only run, copied as chunks), the ranking with p-values and the
@@ -231,8 +231,8 @@ def sweep(
     rank_by : str
         Metric to rank by (lower is better, except ``solved``/``solved_pct``).
     progress : callable, optional
-        ``progress(frames_done, runs_finished)`` summed over all runs; the frames of each
-        recording's detections count too (``on_total(frames)`` is called first with the total).
+        ``progress(frames_done, runs_finished)`` summed over all runs (``on_total(frames)`` is
+        called first with the total).
     scheduler : str, optional
         Address of an existing Dask cluster's scheduler; None starts a local cluster.
     cache_dir : path, optional
@@ -241,8 +241,10 @@ def sweep(
         Also keep each setting's self-contained run ``.rrd`` (``--keep-runs``); without it each
         setting runs layers-only into a temporary folder and lives in ``sweep.rrd`` alone.
 
-    Each recording is detected once per distinct detection settings of the grid
-    (:mod:`agvviz.app.cluster`), then every setting only solves. A run that fails is reported in its
+    Each recording is detected once per distinct detection settings of the grid: the first such
+    setting (its lead) detects on every core and solves in one pass, as ``agvviz run`` does, and
+    the others then only solve, from the detection cache (:mod:`agvviz.app.cluster`); each run
+    is read back as it ends, while the others solve. A run that fails is reported in its
     entry (``error``) and ranked last; the others go on. Needs Dask (``agvviz[distributed]``).
     """
     single = isinstance(recording, (str, os.PathLike))
@@ -267,7 +269,11 @@ def sweep(
     out_dirs = sweep_out_dirs(recordings, out_dir)
     from agvviz.app import cluster
 
-    cluster.import_distributed()  # without Dask: one line, before anything is written
+    if scheduler is None:
+        # The fork server that the workers and the detection pool are forked from imports Dask
+        # and agvviz's replay (≈1.5 s): started first, it does so while this process imports them.
+        cluster.start_fork_server()
+    cluster.require_distributed()  # without Dask: one line, before anything is written
     per_recording = []
     for path, folder in zip(recordings, out_dirs):
         entries = []
@@ -283,13 +289,30 @@ def sweep(
         per_recording.append(entries)
     t_start = time.perf_counter()
     all_entries = [e for entries in per_recording for e in entries]
+    series: dict[int, RunSeries] = {}  # index in all_entries → its run, read back as it ends
     tasks = [cluster.RunTask(e.recording, e.settings, e.run_path, images=keep_runs) for e in all_entries]
     workers = min(jobs or os.cpu_count() or 1, len(tasks))
     cache = Path(cache_dir) if cache_dir is not None else None
-    # On a local cluster the detections start at once, here, while the cluster starts
-    # (cluster.LocalDetections); on an existing cluster they are its tasks.
-    local = cluster.LocalDetections(tasks, cache, workers).start() if scheduler is None else None
+    local = None
+
+    def start_here() -> None:
+        # On a local cluster the leads (each detection group's first setting: it detects and
+        # solves, as `agvviz run` does) start here at once — after the cluster's reaper, which
+        # removes their temporaries if this process is killed — while the workers start; this
+        # process then solves one more setting of each group beside them (cluster.LocalRuns).
+        # On an existing cluster every run is its task.
+        nonlocal local
+        for folder in out_dirs:
+            outputs.prepare_dir(folder, option="--out-dir")
+        local = cluster.LocalRuns(tasks, cache, workers).start()
+
     # Frames for the progress bar are counted while the cluster starts (a read of each file).
+    # What the threads will run is imported first, here: two threads importing one module at
+    # once can deadlock on its import lock.
+    import agvviz.recording.reader  # noqa: F401
+
+    if scheduler is None:
+        import agvviz.app.run  # noqa: F401
     frames: dict[Path, int] = {}
     counter = None
     if progress is not None or on_total is not None:
@@ -300,27 +323,28 @@ def sweep(
         counter.start()
     try:
         # The cluster first: an unreachable scheduler leaves nothing behind.
-        with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs]) as client:
-            for folder in out_dirs:
-                outputs.prepare_dir(folder, option="--out-dir")
+        with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs],
+                                 before_cluster=start_here) as client:
+            if scheduler is not None:
+                for folder in out_dirs:
+                    outputs.prepare_dir(folder, option="--out-dir")
             if counter is not None:
                 counter.join()
                 if on_total is not None:
                     on_total(cluster.progress_total(tasks, frames))
-            results = cluster.run_sweep_tasks(
+            cluster.run_sweep_tasks(
                 client, tasks, cache_dir=cache, frames=frames, progress=progress, local=local,
+                on_result=lambda i, result: _read_back(all_entries[i], result, series, i, align, rpe_delta),
             )
     finally:
         if local is not None:
             local.close()
-    for entry, result in zip(all_entries, results):
-        entry.timing, entry.error = result.timing, result.error
-
     try:
-        done = [
-            _finish_recording(path, folder, entries, rank_by, align, rpe_delta, images)
-            for path, folder, entries in zip(recordings, out_dirs, per_recording)
-        ]
+        done, first = [], 0
+        for path, folder, entries in zip(recordings, out_dirs, per_recording):
+            own = {i - first: run for i, run in series.items() if first <= i < first + len(entries)}
+            done.append(_finish_recording(path, folder, entries, own, rank_by, align, rpe_delta, images))
+            first += len(entries)
     finally:
         if not keep_runs:
             for entry in all_entries:
@@ -332,19 +356,32 @@ def sweep(
     )
 
 
+def _read_back(
+    entry: SweepEntry, result, series: dict[int, RunSeries], index: int, align: str, rpe_delta: int,
+) -> None:
+    """A setting's run has ended (``result``, a :class:`agvviz.app.cluster.TaskResult`): its
+    timing or error, and, when it ran, its run read back into ``series[index]`` and its metrics,
+    while the other settings still solve."""
+    entry.timing, entry.error = result.timing, result.error
+    if not entry.ok:
+        return
+    try:
+        series[index] = run_series.load_run(entry.run_path)
+        entry.metrics = run_metrics(series[index], align=align, rpe_delta=rpe_delta)
+    except (RrdReadError, EvaluationError) as exc:
+        series.pop(index, None)
+        entry.error = f"{type(exc).__name__}: {exc}"
+    # The ranking's Wilcoxon test needs scipy.stats (≈1 s to import): imported now, while the
+    # other settings solve, not after the last one.
+    from scipy import stats  # noqa: F401
+
+
 def _finish_recording(
-    recording: Path, out_dir: Path, entries: list[SweepEntry], rank_by: str, align: str, rpe_delta: int,
-    images: bool,
+    recording: Path, out_dir: Path, entries: list[SweepEntry], series: dict[int, RunSeries], rank_by: str,
+    align: str, rpe_delta: int, images: bool,
 ) -> RecordingSweep:
-    """Read back one recording's runs, rank them, write its tables and its sweep ``.rrd``."""
-    series: dict[int, RunSeries] = {}
-    for index, entry in enumerate(entries):
-        if entry.ok:
-            try:
-                series[index] = run_series.load_run(entry.run_path)
-                entry.metrics = run_metrics(series[index], align=align, rpe_delta=rpe_delta)
-            except (RrdReadError, EvaluationError) as exc:
-                entry.error = f"{type(exc).__name__}: {exc}"
+    """Rank one recording's runs (``series``: each that ran, read back by its index in
+    ``entries``), write its tables and its sweep ``.rrd``."""
     _rank(entries, series, rank_by, align, rpe_delta)
     ranked = sorted(entries, key=lambda e: (e.rank is None, e.rank or 0))
     csv_path, markdown_path = _write_tables(out_dir, ranked, rank_by)

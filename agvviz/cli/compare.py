@@ -129,6 +129,10 @@ def sweep(
 
     Example: agvviz sweep recordings/qr_floor.mcap --set solver=p4p,lm,ippe --set lm_max_iterations=3,10
     """
+    if scheduler is None:  # its imports run beside this process's (agvviz.app.cluster imports little)
+        from agvviz.app.cluster import start_fork_server
+
+        start_fork_server()
     from agvviz.app.sweep import grid_settings, parse_grid, ranking_rows
     from agvviz.app.sweep import sweep as sweep_runs
 
