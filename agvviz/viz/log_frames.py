@@ -436,7 +436,9 @@ class FrameLogger:
         if frame.T_world_agv_truth is not None:
             T_truth = np.asarray(frame.T_world_agv_truth, dtype=float)
             if self.truth_frames == 0:  # the truth body only in a run with truth (not at the origin)
-                rec.log(paths.AGV_TRUTH_BODY, agv_body(COLOR_TRUTH, "truth"), static=True)
+                # Unlabelled: the 3D view's title says "truth (green)"; a "truth" label covered the
+                # ids of the codes beside the body in the whole-run framing.
+                rec.log(paths.AGV_TRUTH_BODY, agv_body(COLOR_TRUTH), static=True)
             self.truth_frames += 1
             self._columns.transform(paths.AGV_TRUTH, stamp, T_truth)
             self._trajectory_truth_m.append(T_truth[:3, 3])
