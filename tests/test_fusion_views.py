@@ -14,6 +14,7 @@ from agvviz.settings import RunSettings
 from agvviz.viz import blueprints, paths
 from agvviz.viz.blueprints import uwb_blueprint
 from agvviz.viz.readback import _rows, read_rrd, scalar_series
+from agvviz.viz.blueprints import views_in as _views
 
 
 @pytest.fixture(scope="module")
@@ -56,15 +57,6 @@ def _check_elapsed(contents, entities: tuple[str, ...]) -> None:
 
 def _series_name(contents, entity: str, archetype: str) -> str:
     return _rows(contents, entity, f"{archetype}:names")[0][f"{archetype}:names"][0]
-
-
-def _views(container) -> list:
-    """Every view of a blueprint container tree."""
-    if isinstance(container, rrb.Blueprint):
-        container = container.root_container
-    if not hasattr(container, "kind"):
-        return [container]
-    return [v for child in container.contents for v in _views(child)]
 
 
 def _shows_something(view, entity_paths: set[str]) -> bool:

@@ -16,6 +16,7 @@ import rerun.blueprint as rrb
 from agvviz.viz import blueprints, overlay, paths
 from agvviz.viz.readback import read_rrd, text_document
 from agvviz.viz.style import color_name
+from agvviz.viz.blueprints import views_in as _views
 
 N_FRAMES = 20
 LABELS = ("#1 lm", "#2 ippe", "#3 p4p")
@@ -37,16 +38,6 @@ def _runs() -> tuple[list[overlay.OverlayRun], overlay.OverlayTruth]:
         runs.append(overlay.OverlayRun(f"s{i + 1}", label, frames, time_ns, T_est, errors, T_truth=T_truth,
                                        short_label=label.split()[0]))
     return runs, overlay.OverlayTruth(frames, time_ns, T_truth)
-
-
-def _views(container) -> list:
-    found = []
-    for item in container.contents:
-        if isinstance(item, rrb.Container):
-            found += _views(item)
-        elif isinstance(item, rrb.View):
-            found.append(item)
-    return found
 
 
 def _label_columns(contents) -> dict[str, list]:

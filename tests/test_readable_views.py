@@ -15,15 +15,7 @@ import rerun.blueprint as rrb
 from agvviz.evaluation.error_budget import INTERACTION, ShareInterval
 from agvviz.viz import blueprints, log_budget, paths, style
 from agvviz.viz.log_lm import LmLogger
-
-
-def _views(node):
-    """Every view below a blueprint container or view."""
-    if isinstance(node, rrb.View):
-        yield node
-        return
-    for child in getattr(node, "contents", ()):
-        yield from _views(child)
+from agvviz.viz.blueprints import views_in as _views
 
 
 def _legend_hidden(view) -> bool:

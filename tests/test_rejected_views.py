@@ -19,6 +19,7 @@ from agvviz.settings import RunSettings
 from agvviz.viz import paths
 from agvviz.viz.blueprints import clipped_axis, default_blueprint, plot_axis, run_plot_axes
 from agvviz.viz.readback import read_rrd, scalar_entities, scalar_series, series_name, text_logs
+from agvviz.viz.blueprints import views_in as _views
 
 SMALL = ["duration_s=1.5", "width_px=640", "height_px=512", "focal_px=500"]
 MAX_REPROJ_PX = 0.1
@@ -127,16 +128,3 @@ def test_clipped_axis_says_where_it_clips():
     plain = clipped_axis(list(rng.uniform(0.0, 100.0, 400)) + [160.0, 280.0], "mm")  # under 3 × p99
     assert plain.note == "" and plain.high > 280.0
     assert plot_axis([(-0.2, 0.3)]).low < -0.2
-
-
-def _views(container) -> list:
-    """Every view under a blueprint container."""
-    import rerun.blueprint as rrb
-
-    found = []
-    for item in container.contents:
-        if isinstance(item, rrb.Container):
-            found += _views(item)
-        elif isinstance(item, rrb.View):
-            found.append(item)
-    return found

@@ -1166,6 +1166,15 @@ def cnoem_report_blueprint() -> rrb.Blueprint:
 
 
 # -- a tab of a layout, picked by name (docs/make_pictures.py --tab) ----------------------------------
+def views_in(node) -> list[rrb.View]:
+    """Every view of a layout: below a :class:`rrb.Blueprint`, a container, or the view itself."""
+    if isinstance(node, rrb.Blueprint):
+        node = node.root_container
+    if isinstance(node, rrb.View):
+        return [node]
+    return [view for child in getattr(node, "contents", ()) for view in views_in(child)]
+
+
 def tab_names(blueprint: dict) -> list[str]:
     """The name of every tab in ``blueprint`` (a layout as the viewer reads it out:
     ``rerun.experimental.ViewerClient.get_blueprint().blueprint``, blueprint entity path →
