@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator
 
 from agvviz.recording import outputs
+from agvviz.replay.detect.workers import signals_ignored
 from agvviz.errors import InputError
 
 if TYPE_CHECKING:
@@ -281,23 +282,6 @@ def run_task(
 
 
 # -- the cluster -------------------------------------------------------------------------------
-@contextmanager
-def _signals_ignored(*signums: int) -> Iterator[None]:
-    """Ignore ``signums`` meanwhile: a process started now keeps ignoring them (an ignored signal
-    stays ignored across exec and fork, and Python then installs no handler of its own). Only
-    in the main thread (elsewhere a no-op); a signal that comes meanwhile is lost, so keep it to
-    starting a process."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {s: signal.signal(s, signal.SIG_IGN) for s in signums}
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-
-
 def _start_method() -> str:
     """Dask's way to start the local workers: forked from the fork server, which this starts
     with SIGINT and SIGTERM ignored, where there is one; else spawned.
@@ -313,7 +297,7 @@ def _start_method() -> str:
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return "spawn"
     multiprocessing.forkserver.set_forkserver_preload(["distributed", "agvviz.app.run"])  # no effect once it runs
-    with _signals_ignored(signal.SIGINT, signal.SIGTERM):
+    with signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"
 
@@ -428,7 +412,7 @@ def open_client(
         finally:
             client.close()
         return
-    with _signals_ignored(signal.SIGINT, signal.SIGTERM):  # the reaper outlives any signal to the group
+    with signals_ignored(signal.SIGINT, signal.SIGTERM):  # the reaper outlives any signal to the group
         reaper = _start_reaper(temp_folders)
     cluster = client = None
     interrupted = False

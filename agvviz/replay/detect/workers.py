@@ -16,9 +16,12 @@ This module imports nothing heavy itself: the command line calls it first thing.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import signal
 import sys
+import threading
+from collections.abc import Iterator
 
 #: The modules a detection worker needs (the functions and values it unpickles, and what they
 #: import), imported once by the fork server.
@@ -39,7 +42,27 @@ def start_fork_server() -> None:
     import multiprocessing.forkserver as forkserver
 
     forkserver.set_forkserver_preload(list(WORKER_MODULES))  # no effect once it runs
-    forkserver.ensure_running()
+    # Started ignoring Ctrl-C: the server ignores SIGINT only after its imports, and a Ctrl-C
+    # during them (it goes to the whole process group) printed a KeyboardInterrupt traceback.
+    with signals_ignored(signal.SIGINT):
+        forkserver.ensure_running()
+
+
+@contextlib.contextmanager
+def signals_ignored(*signums: int) -> Iterator[None]:
+    """Ignore ``signums`` meanwhile: a process started now keeps ignoring them (an ignored signal
+    stays ignored across exec and fork, and Python then installs no handler of its own). Only
+    in the main thread (elsewhere a no-op); a signal that comes meanwhile is lost, so keep it to
+    starting a process."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in signums}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def pool_context():

@@ -1,0 +1,39 @@
+"""The detection workers' fork server ignores Ctrl-C from its first instruction.
+
+A Ctrl-C at the terminal reaches the whole process group. multiprocessing's fork server ignores
+SIGINT only once its preload imports are done, so an interrupt during them printed a
+KeyboardInterrupt traceback beside agvviz's own one-line "interrupted" (found by the robustness
+campaign's "SIGINT mid-run" case). :func:`agvviz.replay.detect.workers.start_fork_server` starts
+it with SIGINT ignored, which an exec keeps.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from agvviz.replay.detect import workers
+
+SIGINT_BIT = 1 << (2 - 1)  # /proc/PID/status SigIgn: bit (signum - 1)
+
+PROBE = """
+import multiprocessing.forkserver as fs, signal
+from agvviz.replay.detect.workers import start_fork_server
+start_fork_server()
+pid = fs._forkserver._forkserver_pid
+status = open(f"/proc/{pid}/status").read()
+ignored = int(next(l for l in status.splitlines() if l.startswith("SigIgn:")).split()[1], 16)
+print(ignored, signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+"""
+
+
+@pytest.mark.skipif(not (workers.has_fork_server() and Path("/proc/self/status").exists()),
+                    reason="needs a fork server and /proc (Linux)")
+def test_the_fork_server_ignores_sigint_from_its_start_and_the_caller_keeps_its_handler():
+    out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=120, check=True)
+    ignored, caller_handler_back = out.stdout.split()
+    assert int(ignored) & SIGINT_BIT, "the fork server was started with Ctrl-C live"
+    assert caller_handler_back == "True", "the caller's own Ctrl-C handler was not restored"
