@@ -204,10 +204,8 @@ class LocalRuns:
     def start(self) -> "LocalRuns":
         # Imported here, in the calling thread: two threads importing one module at once can
         # deadlock on its import lock (the sweep counts frames in another thread meanwhile and
-        # then imports Dask); so is what a run imports on its way (the map's centre tree, the
-        # detection cache's Parquet).
+        # then imports Dask); so is what a run imports on its way (the detection cache's Parquet).
         import pyarrow.parquet  # noqa: F401
-        import scipy.spatial  # noqa: F401
 
         import agvviz.app.run  # noqa: F401
 

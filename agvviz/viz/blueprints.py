@@ -65,7 +65,6 @@ from agvviz.viz.style import (
     LEGEND,
     SOLVER_COLORS,
     budget_source_color_name,
-    color_name,
     color_of,
     solver_color_name,
 )

@@ -20,7 +20,7 @@ from agvviz.markers.charuco import is_chessboard_id
 from agvviz.evaluation.suspect_report import cause_words
 from agvviz.model.frames import FrameResult
 from agvviz.viz import log_rejections, paths
-from agvviz.viz.columns import ArrowBatch, Columns, Stamp
+from agvviz.viz.columns import Columns, Stamp
 from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
 from agvviz.viz.log_findings import error_values, rejection_row, suspect_row
 from agvviz.viz.zoom_placeholder import ZOOM_SIDE_PX, crop_around, longest_edge_px, zoom_unseen_png
