@@ -11,6 +11,7 @@ manifest, the ``.rrd`` and its sinks, the summary) is :func:`agvviz.app.run.run_
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -137,6 +138,33 @@ def _camera_causes(prepared_scan: Scan, roles: RoleMap, replay: Replay) -> tuple
     return usable, causes
 
 
+#: Scans of the recordings this process read lately, by their files' (path, size, mtime_ns):
+#: the settings of a sweep's detection group prepare one recording at once, in threads
+#: (:mod:`agvviz.replay.detect.lockstep`), and one of them scans it for all.
+_SCANS: dict[tuple, object] = {}
+_SCANS_KEPT = 4
+_SCAN_LOCKS: dict[tuple, threading.Lock] = {}
+_SCAN_LOCKS_LOCK = threading.Lock()
+
+
+def _scanned(recording) -> "object":
+    """:func:`agvviz.recording.source.scan` of ``recording``, once per process and file
+    version (a scan is only read afterwards; its sha256 stays known to the process,
+    :meth:`~agvviz.recording.raw.Recording.sha256`). Problems the scan meets are the run's own
+    read's to report, as before."""
+    key = (recording.kind, *recording.version_key())
+    with _SCAN_LOCKS_LOCK:
+        lock = _SCAN_LOCKS.setdefault(key, threading.Lock())
+    with lock:
+        known = _SCANS.get(key)
+        if known is None:
+            known = scan(recording, ReadReport())
+            if len(_SCANS) >= _SCANS_KEPT:
+                _SCANS.pop(next(iter(_SCANS)))
+            _SCANS[key] = known
+    return known
+
+
 def prepare(
     recording_path,
     settings: RunSettings,
@@ -147,7 +175,7 @@ def prepare(
     """Open and scan the recording, resolve its role map, build the replay and fill its sync
     stage with every non-image message (first pass). Shared by ``run`` and ``inspect``."""
     recording = open_recording(recording_path)
-    recording_scan = scan(recording, ReadReport())
+    recording_scan = _scanned(recording)
     roles = resolve_roles(recording_scan, topics, roles_file)
     body_frame = settings.body_frame if settings.body_frame != "auto" else recording.default_body_frame(
         recording_scan.tf_frames
@@ -214,11 +242,14 @@ class DetectionPlan:
     cache_path: Path | None
     from_cache: bool
     problems: list[str] = field(default_factory=list)
+    #: Where the detections come from when not from this run's pool or the cache ("lead run":
+    #: a lockstep follower's, :mod:`agvviz.replay.detect.lockstep`).
+    source: str = ""
 
     def store(self, read_report: ReadReport) -> None:
         """Store a complete, undamaged detection pass in the cache (a failure to write it is a
         warning: the run itself is fine)."""
-        if self.from_cache or self.cache_path is None or read_report.problems or not self.feed.frames:
+        if self.from_cache or self.source or self.cache_path is None or read_report.problems or not self.feed.frames:
             return
         try:
             detect_cache.save(self.cache_path, self.feed.frames)
@@ -238,7 +269,7 @@ class DetectionPlan:
     def timing(self) -> dict:
         """Not stored in the ``.rrd``: where detections came from and on how many workers."""
         return {
-            "detection_source": "cache" if self.from_cache else "detected",
+            "detection_source": self.source or ("cache" if self.from_cache else "detected"),
             "detect_workers": 0 if self.from_cache else self.feed.jobs,
         }
 
