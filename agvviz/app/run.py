@@ -41,8 +41,7 @@ from agvviz.replay.run import (
 )
 from agvviz.replay.sinks import FanOut
 from agvviz.settings import RunSettings, as_dict, inapplicable, without
-from agvviz.viz.run_logger import RunLogger
-from agvviz.viz.run_sinks import RrdSink, StudyRrdSink
+from agvviz.viz.run_process import RrdWriter
 
 if TYPE_CHECKING:
     from agvviz.replay.detect.lockstep import Lockstep
@@ -96,6 +95,8 @@ def _run_study(
     report logged beside the manifest and summary. ``progress(trials_done)`` as trials are
     solved, ``on_total(trials)`` once."""
     from agvviz.replay.studies.monte_carlo import trials_timing
+    from agvviz.viz.run_logger import RunLogger
+    from agvviz.viz.run_sinks import StudyRrdSink
 
     trial_role = {STUDY_MONTE_CARLO: ROLE_CORNERS, STUDY_CNOEM: ROLE_MARKER_MAP}[composition.study]  # one message per trial
     if on_total is not None and trial_role in prepared.roles.roles:
@@ -253,14 +254,16 @@ def run_recording(
         detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
         if lead_of is not None:
             detection.feed = lead_of.tee(detection.feed, roles.roles, prepared.time_source, read_report)
-    with RunLogger(
-        out_path, recording_name=recording_name, recording_id=recording_id, inputs=inputs,
+    # The .rrd is written by a process of its own (viz.run_process): this one solves meanwhile.
+    with RrdWriter(
+        out_path, settings, recording_name=recording_name, recording_id=recording_id, inputs=tuple(inputs),
         recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px, images=images,
-    ) as logger:
+    ) as writer:
+        logger = writer.logger
         logger.log_manifest(manifest)
         if replay.ctx.marker_map is not None:
             logger.log_world_static(_markers_from_map(replay.ctx.marker_map))
-        rrd = RrdSink(logger, settings)
+        rrd = writer.sink
         stats = RunStatistics(settings, progress if progress_role is None else None)
         sinks = FanOut([rrd, stats])
         t_start = time.perf_counter()
@@ -296,7 +299,7 @@ def run_recording(
         manifest=manifest,
         read_report=read_report,
         timing={**timing(scores, wall_time_s), **detection.timing()},
-        recording_start_ns=logger.recording_start_ns,
+        recording_start_ns=writer.recording_start_ns,
     )
 
 

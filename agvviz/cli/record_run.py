@@ -154,10 +154,12 @@ def _run(
     cache_dir=None, budget: bool = False, fail_if: list[str] = (), junit_xml: Optional[Path] = None,
     images: str = "all",
 ) -> Path:
-    if jobs != 1:  # detection workers' imports run on another core while this one starts up
-        from agvviz.replay.detect.workers import start_fork_server
+    # The fork server of the detection workers and of the .rrd writer: their imports run on
+    # another core while this one starts up.
+    from agvviz.replay.detect.workers import start_fork_server
+    from agvviz.viz.run_process import LOGGER_MODULES
 
-        start_fork_server()
+    start_fork_server(also=LOGGER_MODULES)
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
     from agvviz.app.run import run_recording

@@ -1,0 +1,236 @@
+"""A run's ``.rrd`` written by a process of its own (issue 27): the replay solves while another
+core logs.
+
+:class:`RrdWriter` starts a child process that owns the run's
+:class:`~agvviz.viz.run_logger.RunLogger` and :class:`~agvviz.viz.run_sinks.RrdSink`; the run
+process hands it, through a pipe, the sink callbacks the ``.rrd`` acts on (:data:`SINK_CALLS`)
+and the logger calls :func:`agvviz.app.run.run_recording` makes (:data:`LOGGER_CALLS`), in the
+order it makes them. The child logs exactly what an in-process logger would: the same calls with
+equal values (pickled), so the file is the same. What the run process saves is the logging
+itself and ``import rerun`` (≈0.4 s, done in the fork server meanwhile); it pays pickling (≈0.05
+s for 200 frames of images).
+
+- The child is forked from the detection workers' fork server
+  (:func:`agvviz.replay.detect.workers.pool_context`; spawned where there is none), which
+  imports the logging modules beside the run's own start-up (:data:`LOGGER_MODULES`).
+- :meth:`RrdWriter.close` asks the child to finish the file (blueprint, rename into place) and
+  waits; an error the child met — a write failure, a value it refused — is raised there, with
+  its own type when it is one of :mod:`agvviz.errors` (or of the modules it came from).
+- :meth:`RrdWriter.discard` (an error or an interruption in the run process) makes the child
+  remove its unfinished file. The child ignores Ctrl-C and SIGTERM (the run process handles them
+  and tells it); if the run process dies without a word, the child sees its pipe close and
+  removes its file.
+- The pipe holds a few callbacks: a child slower than the replay slows the replay, memory does
+  not grow.
+
+This module imports nothing of Rerun: the run process never needs it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import signal
+from pathlib import Path
+
+#: Sink callbacks :class:`~agvviz.viz.run_sinks.RrdSink` acts on; the others are not sent.
+SINK_CALLS = ("cameras_changed", "frame", "fused", "corrected", "finished")
+#: What the run process calls on the logger itself.
+LOGGER_CALLS = ("log_manifest", "log_world_static", "log_summary", "log_error_budget")
+#: What the fork server imports for the child (besides the detection workers' modules).
+LOGGER_MODULES = ("agvviz.viz.run_sinks",)
+#: How long :meth:`RrdWriter.discard` waits for the child to remove its file (seconds).
+DISCARD_WAIT_S = 10.0
+#: The run process looks for an early error of the child every this many calls.
+POLL_EVERY_CALLS = 32
+
+_CALL, _CLOSE, _DISCARD = "call", "close", "discard"
+
+
+class RrdWriter:
+    """The run's ``.rrd`` (``out_path``) written by a child process: :attr:`sink` is the replay
+    graph's sink, :attr:`logger` takes :data:`LOGGER_CALLS`. ``logger_kwargs`` are
+    :class:`~agvviz.viz.run_logger.RunLogger`'s; ``settings`` the run's (for the sink). Use as a
+    context manager: an exception discards the file, else :meth:`close` finishes it."""
+
+    def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
+        from agvviz.replay.detect.workers import pool_context
+
+        context = pool_context()
+        self._conn, child_conn = context.Pipe(duplex=True)
+        self._process = context.Process(
+            target=_serve, args=(child_conn, str(out_path), settings, logger_kwargs), name="agvviz rrd writer",
+            daemon=True,
+        )
+        self._process.start()
+        child_conn.close()
+        self._calls = 0
+        self._done = False
+        #: What the child's logger knows at the end (``recording_start_ns``), after :meth:`close`.
+        self.recording_start_ns: int | None = logger_kwargs.get("recording_start_ns")
+        self.sink = _Calls(self, "sink", SINK_CALLS)
+        self.logger = _Calls(self, "logger", LOGGER_CALLS)
+
+    def _call(self, target: str, method: str, args: tuple) -> None:
+        self._calls += 1
+        if self._calls % POLL_EVERY_CALLS == 0 and self._conn.poll():
+            self._raise(self._conn.recv())  # the child failed: stop the run now
+        try:
+            self._conn.send((_CALL, target, method, args))
+        except (BrokenPipeError, ConnectionResetError, EOFError):
+            self._raise(self._reply())
+
+    def _reply(self):
+        try:
+            return self._conn.recv()
+        except (EOFError, OSError):
+            code = self._process.exitcode if not self._process.is_alive() else None
+            return ("error", "RunError", "agvviz.errors", f"the process writing the .rrd ended (exit {code})")
+
+    def _raise(self, reply) -> None:
+        self._finish()
+        raise _error(reply)
+
+    def close(self) -> None:
+        """Finish the file (the child logs what is left, ships the layout, renames the file into
+        place) and wait; raises the child's error, if it met one (no file is written then)."""
+        if self._done:
+            return
+        try:
+            self._conn.send((_CLOSE,))
+        except (BrokenPipeError, ConnectionResetError, EOFError):
+            pass
+        reply = self._reply()
+        self._finish()
+        if reply[0] != "ok":
+            raise _error(reply)
+        self.recording_start_ns = reply[1]
+
+    def discard(self) -> None:
+        """Have the child remove its unfinished file, and wait for it (at most
+        :data:`DISCARD_WAIT_S`)."""
+        if self._done:
+            return
+        try:
+            self._conn.send((_DISCARD,))
+            if self._conn.poll(DISCARD_WAIT_S):
+                self._conn.recv()
+        except (BrokenPipeError, ConnectionResetError, EOFError, OSError):
+            pass
+        self._finish()
+
+    def _finish(self) -> None:
+        self._done = True
+        self._conn.close()
+        self._process.join(DISCARD_WAIT_S)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+
+    def __enter__(self) -> "RrdWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.discard()
+        else:
+            self.close()
+
+
+class _Calls:
+    """Stands for the child's sink or logger: each of ``methods`` is sent; any other sink
+    callback does nothing (the ``.rrd`` does not act on it)."""
+
+    def __init__(self, writer: RrdWriter, target: str, methods: tuple[str, ...]):
+        self._writer, self._target, self._methods = writer, target, methods
+
+    def __getattr__(self, name: str):
+        if name in self._methods:
+            return lambda *args: self._writer._call(self._target, name, _plain(args))
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return _ignored
+
+
+def _ignored(*args, **kwargs) -> None:
+    return None
+
+
+def _plain(args: tuple) -> tuple:
+    """Arguments as they pickle: a read-only mapping (a camera snapshot) as a dict."""
+    from types import MappingProxyType
+
+    return tuple(dict(a) if isinstance(a, MappingProxyType) else a for a in args)
+
+
+def _error(reply) -> BaseException:
+    """The exception a child's ``("error", type name, module, message)`` stands for: its own
+    type when that takes a message alone, else :class:`~agvviz.errors.RunError`."""
+    from agvviz.errors import RunError
+
+    _, name, module, message = reply
+    try:
+        cls = getattr(importlib.import_module(module), name)
+        if isinstance(cls, type) and issubclass(cls, Exception):
+            return cls(message)
+    except Exception:  # noqa: BLE001 — a type that cannot be rebuilt from its message
+        pass
+    return RunError(f"{name}: {message}")
+
+
+def _serve(conn, out_path: str, settings, logger_kwargs: dict) -> None:
+    """The child: log every call it is handed, then finish or remove the file."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run process handles Ctrl-C and SIGTERM
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    logger = None
+    error = None
+    try:
+        from agvviz.viz.run_logger import RunLogger
+        from agvviz.viz.run_sinks import RrdSink
+
+        logger = RunLogger(Path(out_path), **logger_kwargs)
+        targets = {"logger": logger, "sink": RrdSink(logger, settings)}
+    except Exception as exc:  # noqa: BLE001 — reported to the run process
+        error = exc
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):  # the run process is gone
+            if logger is not None:
+                logger.discard()
+            return
+        kind = message[0]
+        if kind == _CALL:
+            if error is None:
+                _, target, method, args = message
+                try:
+                    getattr(targets[target], method)(*args)
+                except Exception as exc:  # noqa: BLE001 — reported to the run process
+                    error = exc
+                    if logger is not None:
+                        logger.discard()
+                    _send(conn, _describe(error))
+            continue
+        if kind == _CLOSE and error is None:
+            try:
+                logger.close()
+            except Exception as exc:  # noqa: BLE001
+                error = exc
+            else:
+                _send(conn, ("ok", logger.recording_start_ns))
+                return
+        if logger is not None:
+            logger.discard()
+        _send(conn, _describe(error) if error is not None else ("ok", None))
+        return
+
+
+def _describe(exc: BaseException) -> tuple:
+    return ("error", type(exc).__name__, type(exc).__module__, str(exc))
+
+
+def _send(conn, reply) -> None:
+    try:
+        conn.send(reply)
+    except (BrokenPipeError, ConnectionResetError, EOFError, OSError):
+        pass
