@@ -202,9 +202,9 @@ class LocalRuns:
 
         import agvviz.app.run  # noqa: F401
         from agvviz.replay.detect.workers import start_fork_server
-        from agvviz.viz.run_process import LOGGER_MODULES
+        from agvviz.viz import run_process  # noqa: F401 — its .rrd writer forks from the server too (preload_too)
 
-        start_fork_server(also=LOGGER_MODULES)  # the detection pool's and .rrd writers' (signals ignored)
+        start_fork_server()  # the detection pool's and .rrd writers' (signals ignored)
         self._thread.start()
         return self
 

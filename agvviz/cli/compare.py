@@ -132,9 +132,9 @@ def sweep(
     """
     if scheduler is None:  # the detection pool's fork server: its imports run beside this process's
         from agvviz.replay.detect.workers import start_fork_server
-        from agvviz.viz.run_process import LOGGER_MODULES
+        from agvviz.viz import run_process  # noqa: F401 — its .rrd writer forks from the server too (preload_too)
 
-        start_fork_server(also=LOGGER_MODULES)
+        start_fork_server()
     from agvviz.app.sweep import grid_settings, parse_grid, ranking_rows
     from agvviz.app.sweep import sweep as sweep_runs
 

@@ -157,9 +157,9 @@ def _run(
     # The fork server of the detection workers and of the .rrd writer: their imports run on
     # another core while this one starts up.
     from agvviz.replay.detect.workers import start_fork_server
-    from agvviz.viz.run_process import LOGGER_MODULES
+    from agvviz.viz import run_process  # noqa: F401 — its .rrd writer forks from the server too (preload_too)
 
-    start_fork_server(also=LOGGER_MODULES)
+    start_fork_server()
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
     from agvviz.app.run import run_recording

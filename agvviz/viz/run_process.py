@@ -12,7 +12,8 @@ s for 200 frames of images).
 
 - The child is forked from the detection workers' fork server
   (:func:`agvviz.replay.detect.workers.pool_context`; spawned where there is none), which
-  imports the logging modules beside the run's own start-up (:data:`LOGGER_MODULES`).
+  imports the logging modules beside the run's own start-up (:data:`LOGGER_MODULES`, named to
+  it when this module is imported).
 - :meth:`RrdWriter.close` asks the child to finish the file (blueprint, rename into place) and
   waits; an error the child met — a write failure, a value it refused — is raised there, with
   its own type when it is one of :mod:`agvviz.errors` (or of the modules it came from).
@@ -33,6 +34,8 @@ import os
 import signal
 from pathlib import Path
 
+from agvviz.replay.detect.workers import pool_context, preload_too
+
 #: Sink callbacks :class:`~agvviz.viz.run_sinks.RrdSink` acts on; the others are not sent.
 SINK_CALLS = ("cameras_changed", "frame", "fused", "corrected", "finished")
 #: What the run process calls on the logger itself.
@@ -46,6 +49,8 @@ POLL_EVERY_CALLS = 32
 
 _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
 
+preload_too(LOGGER_MODULES)  # the fork server imports them for the writer, once this module is imported
+
 
 class RrdWriter:
     """The run's ``.rrd`` (``out_path``) written by a child process: :attr:`sink` is the replay
@@ -54,8 +59,6 @@ class RrdWriter:
     context manager: an exception discards the file, else :meth:`close` finishes it."""
 
     def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
-        from agvviz.replay.detect.workers import pool_context
-
         context = pool_context()
         self._conn, child_conn = context.Pipe(duplex=True)
         self._process = context.Process(
@@ -195,7 +198,7 @@ def _serve(conn, out_path: str, settings, logger_kwargs: dict) -> None:
     while True:
         try:
             message = conn.recv()
-        except (EOFError, OSError):  # the run process is gone
+        except Exception:  # noqa: BLE001 — the run process is gone (or died mid-message)
             if logger is not None:
                 logger.discard()
             return

@@ -32,17 +32,28 @@ def has_fork_server() -> bool:
     return "forkserver" in multiprocessing.get_all_start_methods()
 
 
-def start_fork_server(also: tuple[str, ...] = ()) -> None:
-    """Start the fork server of detection workers now, without waiting for it: it imports
-    :data:`WORKER_MODULES` (and the modules ``also`` names: the ``.rrd`` writer's,
-    :data:`agvviz.viz.run_process.LOGGER_MODULES`) while this process goes on. A no-op where
-    there is no fork server, or when this process runs one already (then it is used as it is,
-    and its children import what it lacks on their own)."""
+#: Modules the fork server imports besides :data:`WORKER_MODULES`, named by the other processes
+#: forked from it (:func:`preload_too`; the ``.rrd`` writer's, :mod:`agvviz.viz.run_process`).
+_PRELOAD_TOO: list[str] = []
+
+
+def preload_too(modules: tuple[str, ...]) -> None:
+    """Have the fork server import ``modules`` as well, when it starts after this call."""
+    for module in modules:
+        if module not in _PRELOAD_TOO:
+            _PRELOAD_TOO.append(module)
+
+
+def start_fork_server() -> None:
+    """Start the fork server of detection workers (and of the ``.rrd`` writer) now, without
+    waiting for it: it imports :data:`WORKER_MODULES` and those of :func:`preload_too` while this
+    process goes on. A no-op where there is no fork server, or when this process runs one
+    already (then it is used as it is, and its children import what it lacks on their own)."""
     if not has_fork_server():
         return
     import multiprocessing.forkserver as forkserver
 
-    forkserver.set_forkserver_preload([*WORKER_MODULES, *also])  # no effect once it runs
+    forkserver.set_forkserver_preload([*WORKER_MODULES, *_PRELOAD_TOO])  # no effect once it runs
     # Started ignoring Ctrl-C: the server ignores SIGINT only after its imports, and a Ctrl-C
     # during them (it goes to the whole process group) printed a KeyboardInterrupt traceback.
     with signals_ignored(signal.SIGINT):
