@@ -41,7 +41,7 @@ from agvviz.replay.run import (
 )
 from agvviz.replay.sinks import FanOut
 from agvviz.settings import RunSettings, as_dict, inapplicable, without
-from agvviz.viz.run_process import RrdWriter
+from agvviz.viz.run_process import rrd_writer
 
 if TYPE_CHECKING:
     from agvviz.replay.detect.lockstep import Lockstep
@@ -255,7 +255,7 @@ def run_recording(
         if lead_of is not None:
             detection.feed = lead_of.tee(detection.feed, roles.roles, prepared.time_source, read_report)
     # The .rrd is written by a process of its own (viz.run_process): this one solves meanwhile.
-    with RrdWriter(
+    with rrd_writer(
         out_path, settings, recording_name=recording_name, recording_id=recording_id, inputs=tuple(inputs),
         recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px, images=images,
     ) as writer:

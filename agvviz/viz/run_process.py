@@ -52,20 +52,66 @@ _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
 preload_too(LOGGER_MODULES)  # the fork server imports them for the writer, once this module is imported
 
 
+def rrd_writer(out_path: str | os.PathLike, settings, **logger_kwargs) -> "RrdWriter | InProcessWriter":
+    """The writer of a run's ``.rrd``: :class:`RrdWriter` (a child process), or
+    :class:`InProcessWriter` in a process that may not start one (a daemonic process: a Dask
+    worker's)."""
+    import multiprocessing
+
+    if multiprocessing.current_process().daemon:
+        return InProcessWriter(out_path, settings, **logger_kwargs)
+    return RrdWriter(out_path, settings, **logger_kwargs)
+
+
+class InProcessWriter:
+    """:class:`RrdWriter`'s interface over a logger in this process."""
+
+    def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
+        from agvviz.viz.run_logger import RunLogger
+        from agvviz.viz.run_sinks import RrdSink
+
+        self.logger = RunLogger(Path(out_path), **logger_kwargs)
+        self.sink = RrdSink(self.logger, settings)
+
+    @property
+    def recording_start_ns(self) -> int | None:
+        return self.logger.recording_start_ns
+
+    def close(self) -> None:
+        self.logger.close()
+
+    def discard(self) -> None:
+        self.logger.discard()
+
+    def __enter__(self) -> "InProcessWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.logger.__exit__(exc_type, exc, tb)
+
+
 class RrdWriter:
     """The run's ``.rrd`` (``out_path``) written by a child process: :attr:`sink` is the replay
     graph's sink, :attr:`logger` takes :data:`LOGGER_CALLS`. ``logger_kwargs`` are
     :class:`~agvviz.viz.run_logger.RunLogger`'s; ``settings`` the run's (for the sink). Use as a
-    context manager: an exception discards the file, else :meth:`close` finishes it."""
+    context manager: an exception discards the file, else :meth:`close` finishes it.
+    :class:`~agvviz.errors.RunError` when the process cannot be started."""
 
     def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
+        from agvviz.errors import RunError
+
         context = pool_context()
         self._conn, child_conn = context.Pipe(duplex=True)
         self._process = context.Process(
             target=_serve, args=(child_conn, str(out_path), settings, logger_kwargs), name="agvviz rrd writer",
             daemon=True,
         )
-        self._process.start()
+        try:
+            self._process.start()
+        except OSError as exc:
+            self._conn.close()
+            child_conn.close()
+            raise RunError(f"cannot start the process that writes the .rrd ({exc}); free some memory or processes") from None
         child_conn.close()
         self._calls = 0
         self._done = False
