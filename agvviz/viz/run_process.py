@@ -100,10 +100,13 @@ class RrdWriter:
     def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
         from agvviz.errors import RunError
 
+        # Absolute paths: the child's working folder is the fork server's, not this process's now.
+        out_path = os.path.abspath(out_path)
+        logger_kwargs["inputs"] = tuple(os.path.abspath(p) for p in logger_kwargs.get("inputs", ()))
         context = pool_context()
         self._conn, child_conn = context.Pipe(duplex=True)
         self._process = context.Process(
-            target=_serve, args=(child_conn, str(out_path), settings, logger_kwargs), name="agvviz rrd writer",
+            target=_serve, args=(child_conn, out_path, settings, logger_kwargs), name="agvviz rrd writer",
             daemon=True,
         )
         try:
