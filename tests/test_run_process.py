@@ -83,12 +83,3 @@ def test_a_run_process_that_dies_leaves_no_temporary(tmp_path):
         time.sleep(0.1)
     assert _files(tmp_path) == []
 
-
-def test_a_relative_path_is_this_process_s(recording, tmp_path, monkeypatch):
-    """The child's working folder is the fork server's: a relative output path is still this
-    process's."""
-    run_recording(recording, RunSettings(), tmp_path / "first.rrd", jobs=1, cache_dir=False)  # the server runs
-    (tmp_path / "here").mkdir()
-    monkeypatch.chdir(tmp_path / "here")
-    run_recording(recording, RunSettings(), Path("out") / "rel.rrd", jobs=1, cache_dir=False)
-    assert (tmp_path / "here" / "out" / "rel.rrd").is_file()

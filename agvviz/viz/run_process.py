@@ -100,7 +100,7 @@ class RrdWriter:
     def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
         from agvviz.errors import RunError
 
-        # Absolute paths: the child's working folder is the fork server's, not this process's now.
+        # Absolute paths, whatever the child's working folder.
         out_path = os.path.abspath(out_path)
         logger_kwargs["inputs"] = tuple(os.path.abspath(p) for p in logger_kwargs.get("inputs", ()))
         context = pool_context()
