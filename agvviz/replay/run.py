@@ -25,6 +25,7 @@ from agvviz.model.frames import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TI
 from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
 from agvviz.model.messages import CalibrationMsg, FrameTransformMsg, RecordedMessage
 from agvviz.recording.reader import ReadReport
+from agvviz.recording import scan_cache
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import (
     Recording,
@@ -33,7 +34,6 @@ from agvviz.recording.source import (
     open_recording,
     require_recording_path,
     resolve_roles,
-    scan,
 )
 from agvviz.model.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.replay.detect import cache as detect_cache
@@ -137,17 +137,28 @@ def _camera_causes(prepared_scan: Scan, roles: RoleMap, replay: Replay) -> tuple
     return usable, causes
 
 
+def cache_folder(cache_dir: Path | None | bool) -> Path | None:
+    """The cache folder a run's ``cache_dir`` names: a path; None or True: the default
+    (:func:`agvviz.replay.detect.cache.default_cache_dir`); False: none (None)."""
+    if cache_dir is False:
+        return None
+    return Path(cache_dir) if cache_dir not in (None, True) else detect_cache.default_cache_dir()
+
+
 def prepare(
     recording_path,
     settings: RunSettings,
     topics: dict[str, str] | None = None,
     roles_file: Path | None = None,
     side: SideInputs | None = None,
+    cache_dir: Path | None | bool = False,
 ) -> Prepared:
     """Open and scan the recording, resolve its role map, build the replay and fill its sync
-    stage with every non-image message (first pass). Shared by ``run`` and ``inspect``."""
+    stage with every non-image message (first pass). Shared by ``run`` and ``inspect``.
+    ``cache_dir`` (as :func:`detection_plan`'s; default False: none) keeps the scan and sha256
+    there (:mod:`agvviz.recording.scan_cache`): a second run of the same file reads it once."""
     recording = open_recording(recording_path)
-    recording_scan = scan(recording, ReadReport())
+    recording_scan = scan_cache.cached_scan(recording, cache_folder(cache_dir))
     roles = resolve_roles(recording_scan, topics, roles_file)
     body_frame = settings.body_frame if settings.body_frame != "auto" else recording.default_body_frame(
         recording_scan.tf_frames
@@ -281,7 +292,7 @@ def detection_plan(
     cache_path = None
     cached = None
     if cache_dir is not False:
-        folder = Path(cache_dir) if cache_dir not in (None, True) else detect_cache.default_cache_dir()
+        folder = cache_folder(cache_dir)
         cache_path = detect_cache.entry_path(
             folder, recording_sha256, detect_cache.cache_key(params, detection_inputs(prepared, side))
         )
