@@ -154,7 +154,12 @@ def _run(
     cache_dir=None, budget: bool = False, fail_if: list[str] = (), junit_xml: Optional[Path] = None,
     images: str = "all",
 ) -> Path:
-    if jobs != 1:  # detection workers' imports run on another core while this one starts up
+    from agvviz.recording.scan_cache import seen_before
+
+    # Detection workers' imports run on another core while this one starts up; not for a
+    # recording run before with this cache (its detections are likely cached: the workers
+    # would import OpenCV for nothing; a run that needs them starts them then).
+    if jobs != 1 and (budget or not seen_before(recording, cache_dir)):
         from agvviz.replay.detect.workers import start_fork_server
 
         start_fork_server()

@@ -23,25 +23,60 @@ import struct
 from pathlib import Path
 
 from agvviz import __version__
-from agvviz.recording import outputs
 from agvviz.errors import OutputError
-from agvviz.recording.raw import RawMessage, RawMetadata, ReadReport, Recording
-from agvviz.recording.roles import TopicInfo
+from agvviz.recording import outputs
 
+# Only the standard library at import: :func:`seen_before` runs before the detection workers'
+# fork server starts (agvviz.cli.record_run); the readers (zstandard, protobuf, mcap) come later.
+
+#: The cache folder's environment variable (detections and scans share the folder).
+CACHE_ENV = "AGVVIZ_CACHE_DIR"
 MAGIC = b"agvviz-scan-1\n"
 #: Bump when :class:`~agvviz.recording.source.Scan` or what :func:`scan` puts in it changes.
 SCAN_REVISION = 1
 _LENGTH = struct.Struct("<Q")
 
 
-def file_key(recording: Recording) -> list[list]:
-    """What identifies the recording's files on disk: per file (in hash order) its resolved
-    path, size, mtime_ns, ctime_ns and inode."""
+def default_cache_dir() -> Path:
+    """The cache folder: ``$AGVVIZ_CACHE_DIR``, else ``$XDG_CACHE_HOME/agvviz/detections``,
+    else ``~/.cache/agvviz/detections``."""
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    base = Path(os.environ["XDG_CACHE_HOME"]) if os.environ.get("XDG_CACHE_HOME") else Path.home() / ".cache"
+    return base / "agvviz" / "detections"
+
+
+def _files_key(paths) -> list[list]:
     key = []
-    for path in list(recording.hashed_first) + list(recording.files):
+    for path in paths:
         st = os.stat(path)
         key.append([str(Path(path).resolve()), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino])
     return key
+
+
+def file_key(recording: Recording) -> list[list]:
+    """What identifies the recording's files on disk: per file (in hash order) its resolved
+    path, size, mtime_ns, ctime_ns and inode."""
+    return _files_key(list(recording.hashed_first) + list(recording.files))
+
+
+def seen_before(recording_path, cache_dir) -> bool:
+    """Whether a single-file recording at ``recording_path`` has a scan entry in the cache
+    folder ``cache_dir`` (a path; None or True: the default folder; False: no cache → False),
+    i.e. was run before with this cache, as it is now: its detections are likely cached, so a
+    run need not start detection workers ahead of time. A guess, never a result: a run whose
+    detections turn out not to be cached starts its workers when it needs them. Stat calls
+    only; a folder (a rosbag2 bag) or anything unreadable → False."""
+    if cache_dir is False:
+        return False
+    try:
+        path = Path(recording_path)
+        if not path.is_file():
+            return False
+        folder = Path(cache_dir) if cache_dir not in (None, True) else default_cache_dir()
+        return entry_path(folder, _files_key([path])).is_file()
+    except (OSError, ValueError):
+        return False
 
 
 def entry_path(cache_dir: Path, key: list[list]) -> Path:
@@ -77,6 +112,8 @@ def _encode(key: list[list], sha256: str, scan) -> bytes:
 
 def _decode(blob: bytes, key: list[list]):
     """(sha256, Scan) from an entry's bytes, or None when it is not a valid entry for ``key``."""
+    from agvviz.recording.raw import RawMessage, RawMetadata
+    from agvviz.recording.roles import TopicInfo
     from agvviz.recording.source import Scan
 
     if not blob.startswith(MAGIC) or len(blob) < len(MAGIC) + _LENGTH.size:
@@ -143,6 +180,7 @@ def cached_scan(recording: Recording, cache_dir: Path | None):
     """:func:`agvviz.recording.source.scan` of ``recording``, read from ``cache_dir`` when an
     entry for its files as they are now is there, else scanned and stored (not when a file
     changed during the pass). ``cache_dir`` None: scanned, nothing stored."""
+    from agvviz.recording.raw import ReadReport
     from agvviz.recording.source import scan
 
     if cache_dir is None:
