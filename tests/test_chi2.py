@@ -27,8 +27,10 @@ def test_chi2_sf_matches_scipy(dof):
 
 
 def test_normal_isf_matches_scipy():
-    for p in np.concatenate([np.logspace(-300, -1, 300), np.linspace(0.01, 0.99, 99)]):
+    for p in np.concatenate([np.logspace(-300, -1, 300), np.linspace(0.01, 0.99, 99), [1.0 - 1e-16]]):
         assert chi2.normal_isf(float(p)) == pytest.approx(-float(ndtri(p)), rel=1e-13, abs=1e-15)
+    for p in (0.0, 1.0):  # the ends, as scipy: a tail of 1 is −∞ σ, of 0 is +∞ σ
+        assert chi2.normal_isf(p) == -float(ndtri(p))
 
 
 @pytest.mark.parametrize("q", [0.01, 0.1, 0.5, 0.9, 0.99, 1.0 - 1e-3, 0.9999])
@@ -51,7 +53,7 @@ def test_chi2_sigma_matches_the_scipy_form():
     from agvviz.replay.checks.common import chi2_sigma
 
     for dof in (2, 3, 6):
-        for d2 in (0.5, 4.0, 12.6, 41.0, 200.0, 1200.0):
+        for d2 in (1e-300, 1e-17, 1e-9, 0.5, 4.0, 12.6, 41.0, 200.0, 1200.0):  # tiny d²: a tail of 1.0
             p = float(chdtrc(dof, d2))
             assert chi2_sigma(d2, dof) == pytest.approx(max(0.0, -float(ndtri(p))), rel=1e-12)
     assert chi2_sigma(41.0, 6) == pytest.approx(5.0, abs=0.01)  # the docstring's example

@@ -58,7 +58,11 @@ def chi2_sf(x: float, dof: int) -> float:
 
 
 def normal_isf(p: float) -> float:
-    """The z with P(N(0,1) > z) = p, for 0 < p < 1 (−scipy.special.ndtri(p))."""
+    """The z with P(N(0,1) > z) = p (−scipy.special.ndtri(p)): −∞ at p = 1, +∞ at p = 0."""
+    if p >= 1.0:
+        return -math.inf
+    if p <= 0.0:
+        return math.inf
     return -_STANDARD_NORMAL.inv_cdf(p)
 
 
