@@ -150,3 +150,21 @@ def test_seen_before_names_a_recording_scanned_with_this_cache(recording_file, t
     st = os.stat(path)
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1))
     assert not scan_cache.seen_before(path, cache)  # changed since
+
+
+def test_a_file_changed_during_the_scan_is_not_stored(recording_file, tmp_path, monkeypatch):
+    from agvviz.recording import source
+
+    path = tmp_path / "copy.mcap"
+    shutil.copyfile(recording_file, path)
+    original = source.scan
+
+    def scan_then_touch(recording, report=None):
+        result = original(recording, report)
+        st = os.stat(path)
+        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1))  # written to while it was read
+        return result
+
+    monkeypatch.setattr(source, "scan", scan_then_touch)
+    scan_cache.cached_scan(_fresh(path), tmp_path / "cache")
+    assert not (tmp_path / "cache" / "scans").exists() or not list((tmp_path / "cache" / "scans").iterdir())
