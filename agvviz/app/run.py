@@ -179,7 +179,7 @@ def run_recording(
     if out_path is not None:
         out_path = Path(out_path)
         outputs.prepare_output(out_path, inputs=inputs)
-    prepared = prepare(recording_path, settings, topics, roles_file, side)
+    prepared = prepare(recording_path, settings, topics, roles_file, side, cache_dir=cache_dir)
     recording, roles, replay = prepared.recording, prepared.roles, prepared.replay
     if not prepared.can_run:
         raise unusable_run_error(recording, {}, prepared.causes)

@@ -154,12 +154,15 @@ def _run(
     cache_dir=None, budget: bool = False, fail_if: list[str] = (), junit_xml: Optional[Path] = None,
     images: str = "all",
 ) -> Path:
-    # The fork server of the detection workers and of the .rrd writer: their imports run on
-    # another core while this one starts up.
+    # The fork server of the .rrd writer and the detection workers: their imports run on
+    # another core while this one starts up. The workers' not for a recording run before with
+    # this cache (its detections are likely cached; a run that needs workers after all has them
+    # import OpenCV themselves).
+    from agvviz.recording.scan_cache import seen_before
     from agvviz.replay.detect.workers import start_fork_server
     from agvviz.viz import run_process  # noqa: F401 — its .rrd writer forks from the server too (preload_too)
 
-    start_fork_server()
+    start_fork_server(workers=jobs != 1 and (budget or not seen_before(recording, cache_dir)))
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
     from agvviz.app.run import run_recording

@@ -26,6 +26,7 @@ from agvviz.model.frames import REJECT_CALIBRATION_SIZE, REJECT_IMAGE, REJECT_TI
 from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
 from agvviz.model.messages import CalibrationMsg, FrameTransformMsg, RecordedMessage
 from agvviz.recording.reader import ReadReport
+from agvviz.recording import scan_cache
 from agvviz.recording.roles import IMAGE_TYPES, RoleMap
 from agvviz.recording.source import (
     Recording,
@@ -34,7 +35,6 @@ from agvviz.recording.source import (
     open_recording,
     require_recording_path,
     resolve_roles,
-    scan,
 )
 from agvviz.model.topics import ROLE_CORNERS, ROLE_ODOMETRY, ROLE_UWB_RANGE, calibration_role, image_role
 from agvviz.replay.detect import cache as detect_cache
@@ -138,6 +138,14 @@ def _camera_causes(prepared_scan: Scan, roles: RoleMap, replay: Replay) -> tuple
     return usable, causes
 
 
+def cache_folder(cache_dir: Path | None | bool) -> Path | None:
+    """The cache folder a run's ``cache_dir`` names: a path; None or True: the default
+    (:func:`agvviz.replay.detect.cache.default_cache_dir`); False: none (None)."""
+    if cache_dir is False:
+        return None
+    return Path(cache_dir) if cache_dir not in (None, True) else detect_cache.default_cache_dir()
+
+
 #: Scans of the recordings this process read lately, by their files' (path, size, mtime_ns):
 #: the settings of a sweep's detection group prepare one recording at once, in threads
 #: (:mod:`agvviz.replay.detect.lockstep`), and one of them scans it for all.
@@ -147,18 +155,18 @@ _SCAN_LOCKS: dict[tuple, threading.Lock] = {}
 _SCAN_LOCKS_LOCK = threading.Lock()
 
 
-def _scanned(recording) -> "object":
-    """:func:`agvviz.recording.source.scan` of ``recording``, once per process and file
-    version (a scan is only read afterwards; its sha256 stays known to the process,
-    :meth:`~agvviz.recording.raw.Recording.sha256`). Problems the scan meets are the run's own
-    read's to report, as before."""
+def _scanned(recording, cache: Path | None) -> "object":
+    """The scan of ``recording`` (:func:`agvviz.recording.scan_cache.cached_scan`, from the
+    cache folder ``cache`` when it holds it), once per process and file version: threads that
+    prepare one recording at once wait for the first (a scan is only read afterwards; its
+    sha256 stays known to the process, :meth:`~agvviz.recording.raw.Recording.sha256`)."""
     key = (recording.kind, *recording.version_key())
     with _SCAN_LOCKS_LOCK:
         lock = _SCAN_LOCKS.setdefault(key, threading.Lock())
     with lock:
         known = _SCANS.get(key)
         if known is None:
-            known = scan(recording, ReadReport())
+            known = scan_cache.cached_scan(recording, cache)
             if len(_SCANS) >= _SCANS_KEPT:
                 _SCANS.pop(next(iter(_SCANS)))
             _SCANS[key] = known
@@ -171,11 +179,14 @@ def prepare(
     topics: dict[str, str] | None = None,
     roles_file: Path | None = None,
     side: SideInputs | None = None,
+    cache_dir: Path | None | bool = False,
 ) -> Prepared:
     """Open and scan the recording, resolve its role map, build the replay and fill its sync
-    stage with every non-image message (first pass). Shared by ``run`` and ``inspect``."""
+    stage with every non-image message (first pass). Shared by ``run`` and ``inspect``.
+    ``cache_dir`` (as :func:`detection_plan`'s; default False: none) keeps the scan and sha256
+    there (:mod:`agvviz.recording.scan_cache`): a second run of the same file reads it once."""
     recording = open_recording(recording_path)
-    recording_scan = _scanned(recording)
+    recording_scan = _scanned(recording, cache_folder(cache_dir))
     roles = resolve_roles(recording_scan, topics, roles_file)
     body_frame = settings.body_frame if settings.body_frame != "auto" else recording.default_body_frame(
         recording_scan.tf_frames
@@ -312,7 +323,7 @@ def detection_plan(
     cache_path = None
     cached = None
     if cache_dir is not False:
-        folder = Path(cache_dir) if cache_dir not in (None, True) else detect_cache.default_cache_dir()
+        folder = cache_folder(cache_dir)
         cache_path = detect_cache.entry_path(
             folder, recording_sha256, detect_cache.cache_key(params, detection_inputs(prepared, side))
         )

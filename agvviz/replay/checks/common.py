@@ -7,9 +7,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtrc, ndtri
 
 from agvviz.geometry import so3
+from agvviz.solvers.chi2 import chi2_sf, normal_isf
 from agvviz.model.frames import FrameResult
 from agvviz.model.suspects import (
     CAUSE_EXTRINSIC,
@@ -84,7 +84,7 @@ NEXT_STEP = {
 
 def chi2_sigma(d2: float, dof: int) -> float:
     """A χ²_dof value as the normal σ of the same upper tail (≥ 0): 1 dof gives √d²; 6 dof at
-    d² = 41.0 gives 5 σ. Exact (scipy.special) while the tail is representable, then the
+    d² = 41.0 gives 5 σ. Exact (:mod:`agvviz.solvers.chi2`, closed forms) while the tail is representable, then the
     Wilson–Hilferty approximation (slightly low there: conservative)."""
     if not math.isfinite(d2):
         return math.inf
@@ -92,9 +92,9 @@ def chi2_sigma(d2: float, dof: int) -> float:
         return 0.0
     if dof == 1:
         return math.sqrt(d2)
-    p = float(chdtrc(dof, d2))
+    p = chi2_sf(d2, dof)
     if p > 1e-300:
-        return max(0.0, float(-ndtri(p)))
+        return max(0.0, normal_isf(p))
     k = float(dof)
     z = ((d2 / k) ** (1.0 / 3.0) - (1.0 - 2.0 / (9.0 * k))) / math.sqrt(2.0 / (9.0 * k))
     return max(0.0, z)

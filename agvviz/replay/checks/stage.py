@@ -8,9 +8,9 @@ from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.special import chdtri
 
 from agvviz.geometry import so3
+from agvviz.solvers.chi2 import chi2_quantile
 from agvviz.model.frames import FrameResult
 from agvviz.model import suspects
 from agvviz.replay.checks.common import (
@@ -37,8 +37,8 @@ from agvviz.settings import RunSettings
 #: (``evidence`` in :meth:`CheckStage._ambiguity`) that names a flip — the χ²₆ 99 % quantile on its
 #: own, the 90 % quantile on a frame right after a flip of the same codes (a flip lasts while the
 #: vehicle sees the code from about the same side). Over 0 a frame is never the motion reference.
-FLIP_EVIDENCE_D2 = float(chdtri(6, 0.01))  # 16.8
-FLIP_PERSISTS_D2 = float(chdtri(6, 0.10))  # 10.6
+FLIP_EVIDENCE_D2 = float(chi2_quantile(0.99, [6])[0])  # 16.8
+FLIP_PERSISTS_D2 = float(chi2_quantile(0.90, [6])[0])  # 10.6
 
 
 # -- per-camera state ------------------------------------------------------------------------------

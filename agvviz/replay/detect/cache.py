@@ -17,26 +17,18 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from agvviz import __version__
 from agvviz.recording import outputs
+from agvviz.recording.scan_cache import CACHE_ENV, default_cache_dir  # noqa: F401 — this module's API
 from agvviz.replay.detect.stage import DETECT_REVISION, DetectParams
 from agvviz.model.detections import CodeDetection, FrameDetections
 from agvviz.replay.detect.pool import DetectedFrame
 from agvviz.markers.charuco import ChessboardCorners
 
-CACHE_ENV = "AGVVIZ_CACHE_DIR"
-
-
-def default_cache_dir() -> Path:
-    if os.environ.get(CACHE_ENV):
-        return Path(os.environ[CACHE_ENV])
-    base = Path(os.environ["XDG_CACHE_HOME"]) if os.environ.get("XDG_CACHE_HOME") else Path.home() / ".cache"
-    return base / "agvviz" / "detections"
 
 
 def cache_key(params: DetectParams, inputs: dict) -> str:

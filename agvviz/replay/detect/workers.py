@@ -44,16 +44,19 @@ def preload_too(modules: tuple[str, ...]) -> None:
             _PRELOAD_TOO.append(module)
 
 
-def start_fork_server() -> None:
+def start_fork_server(workers: bool = True) -> None:
     """Start the fork server of detection workers (and of the ``.rrd`` writer) now, without
-    waiting for it: it imports :data:`WORKER_MODULES` and those of :func:`preload_too` while this
-    process goes on. A no-op where there is no fork server, or when this process runs one
-    already (then it is used as it is, and its children import what it lacks on their own)."""
+    waiting for it: it imports :data:`WORKER_MODULES` (unless ``workers`` is False: a run whose
+    detections are likely cached) and those of :func:`preload_too` while this process goes on. A
+    no-op where there is no fork server, or when this process runs one already (then it is used
+    as it is, and its children import what it lacks on their own)."""
     if not has_fork_server():
         return
     import multiprocessing.forkserver as forkserver
 
-    forkserver.set_forkserver_preload([*WORKER_MODULES, *_PRELOAD_TOO])  # no effect once it runs
+    # No effect once it runs. The server forks nothing before its imports are done: the writer's
+    # (what every run needs) first.
+    forkserver.set_forkserver_preload([*_PRELOAD_TOO, *(WORKER_MODULES if workers else ())])
     # Started ignoring Ctrl-C: the server ignores SIGINT only after its imports, and a Ctrl-C
     # during them (it goes to the whole process group) printed a KeyboardInterrupt traceback.
     with signals_ignored(signal.SIGINT):
