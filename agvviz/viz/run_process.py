@@ -31,7 +31,10 @@ from __future__ import annotations
 
 import importlib
 import os
+import pickle
 import signal
+import threading
+from collections import deque
 from pathlib import Path
 
 from agvviz.replay.detect.workers import pool_context, preload_too
@@ -44,8 +47,9 @@ LOGGER_CALLS = ("log_manifest", "log_world_static", "log_summary", "log_error_bu
 LOGGER_MODULES = ("agvviz.viz.run_sinks",)
 #: How long :meth:`RrdWriter.discard` waits for the child to remove its file (seconds).
 DISCARD_WAIT_S = 10.0
-#: The run process looks for an early error of the child every this many calls.
-POLL_EVERY_CALLS = 32
+#: Pickled calls waiting for the child at most (bytes): the run goes on meanwhile (while the
+#: child starts, or logs a burst); beyond it, the run waits.
+QUEUED_BYTES = 64 * 1024 * 1024
 
 _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
 
@@ -95,11 +99,13 @@ class RrdWriter:
     graph's sink, :attr:`logger` takes :data:`LOGGER_CALLS`. ``logger_kwargs`` are
     :class:`~agvviz.viz.run_logger.RunLogger`'s; ``settings`` the run's (for the sink). Use as a
     context manager: an exception discards the file, else :meth:`close` finishes it.
-    :class:`~agvviz.errors.RunError` when the process cannot be started."""
+
+    The calls are pickled here and handed to a sender thread, which starts the child (the fork
+    server may still be importing: the run does not wait for it) and sends them in order; at
+    most :data:`QUEUED_BYTES` wait (then the run waits for the child). A child that cannot start
+    or fails is raised as an error at the next call or at :meth:`close`."""
 
     def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
-        from agvviz.errors import RunError
-
         # Absolute paths, whatever the child's working folder.
         out_path = os.path.abspath(out_path)
         logger_kwargs["inputs"] = tuple(os.path.abspath(p) for p in logger_kwargs.get("inputs", ()))
@@ -109,14 +115,8 @@ class RrdWriter:
             target=_serve, args=(child_conn, out_path, settings, logger_kwargs), name="agvviz rrd writer",
             daemon=True,
         )
-        try:
-            self._process.start()
-        except OSError as exc:
-            self._conn.close()
-            child_conn.close()
-            raise RunError(f"cannot start the process that writes the .rrd ({exc}); free some memory or processes") from None
-        child_conn.close()
-        self._calls = 0
+        self._sender = _Sender(self._process, self._conn, child_conn)
+        self._sender.start()
         self._done = False
         #: What the child's logger knows at the end (``recording_start_ns``), after :meth:`close`.
         self.recording_start_ns: int | None = logger_kwargs.get("recording_start_ns")
@@ -124,23 +124,23 @@ class RrdWriter:
         self.logger = _Calls(self, "logger", LOGGER_CALLS)
 
     def _call(self, target: str, method: str, args: tuple) -> None:
-        self._calls += 1
-        if self._calls % POLL_EVERY_CALLS == 0 and self._conn.poll():
-            self._raise(self._conn.recv())  # the child failed: stop the run now
-        try:
-            self._conn.send((_CALL, target, method, args))
-        except (BrokenPipeError, ConnectionResetError, EOFError):
-            self._raise(self._reply())
+        if self._sender.reply is not None:  # the child failed (or never started): stop the run now
+            self._raise(self._sender.reply)
+        self._sender.put(pickle.dumps((_CALL, target, method, args), protocol=pickle.HIGHEST_PROTOCOL))
 
     def _reply(self):
+        """The child's answer to :data:`_CLOSE` or :data:`_DISCARD` (or what it said before)."""
+        self._sender.join()
+        if self._sender.reply is not None:
+            return self._sender.reply
         try:
             return self._conn.recv()
         except (EOFError, OSError):
-            code = self._process.exitcode if not self._process.is_alive() else None
-            return ("error", "RunError", "agvviz.errors", f"the process writing the .rrd ended (exit {code})")
+            code = self._process.exitcode if self._process.pid is not None and not self._process.is_alive() else None
+            return _ended(f"the process writing the .rrd ended (exit {code})")
 
     def _raise(self, reply) -> None:
-        self._finish()
+        self.discard()
         raise _error(reply)
 
     def close(self) -> None:
@@ -148,10 +148,7 @@ class RrdWriter:
         place) and wait; raises the child's error, if it met one (no file is written then)."""
         if self._done:
             return
-        try:
-            self._conn.send((_CLOSE,))
-        except (BrokenPipeError, ConnectionResetError, EOFError):
-            pass
+        self._sender.put(pickle.dumps((_CLOSE,)), last=True)
         reply = self._reply()
         self._finish()
         if reply[0] != "ok":
@@ -163,17 +160,21 @@ class RrdWriter:
         :data:`DISCARD_WAIT_S`)."""
         if self._done:
             return
+        self._done = True
+        self._sender.put(pickle.dumps((_DISCARD,)), last=True, drop_queued=True)
+        self._sender.join(DISCARD_WAIT_S)
         try:
-            self._conn.send((_DISCARD,))
-            if self._conn.poll(DISCARD_WAIT_S):
+            if self._sender.reply is None and self._process.pid is not None and self._conn.poll(DISCARD_WAIT_S):
                 self._conn.recv()
-        except (BrokenPipeError, ConnectionResetError, EOFError, OSError):
+        except (EOFError, OSError):
             pass
         self._finish()
 
     def _finish(self) -> None:
         self._done = True
         self._conn.close()
+        if self._process.pid is None:  # never started
+            return
         self._process.join(DISCARD_WAIT_S)
         if self._process.is_alive():
             self._process.kill()
@@ -187,6 +188,66 @@ class RrdWriter:
             self.discard()
         else:
             self.close()
+
+
+class _Sender(threading.Thread):
+    """Starts the writer's process and sends it the pickled calls in order. ``reply`` is set
+    when the child answered early (its error) or could not be started or reached."""
+
+    def __init__(self, process, conn, child_conn):
+        super().__init__(name="agvviz rrd writer sender", daemon=True)
+        self._process, self._conn, self._child_conn = process, conn, child_conn
+        self._queue: deque[bytes] = deque()
+        self._queued_bytes = 0
+        self._last = False
+        self._wake = threading.Condition()
+        self.reply = None
+
+    def put(self, data: bytes, *, last: bool = False, drop_queued: bool = False) -> None:
+        with self._wake:
+            if self._last:
+                return
+            if drop_queued:
+                self._queue.clear()
+                self._queued_bytes = 0
+            while self._queued_bytes > QUEUED_BYTES and self.reply is None and self.is_alive():
+                self._wake.wait(0.1)
+            self._queue.append(data)
+            self._queued_bytes += len(data)
+            self._last = last
+            self._wake.notify_all()
+
+    def run(self) -> None:
+        try:
+            self._process.start()
+        except OSError as exc:
+            self.reply = _ended(f"cannot start the process that writes the .rrd ({exc}); free some memory or processes")
+            return
+        finally:
+            self._child_conn.close()
+        while True:
+            with self._wake:
+                while not self._queue:
+                    self._wake.wait()
+                data = self._queue.popleft()
+                self._queued_bytes -= len(data)
+                last = self._last and not self._queue
+                self._wake.notify_all()
+            try:
+                if self._conn.poll():  # the child answers early only to say it failed
+                    self.reply = self._conn.recv()
+                    return
+                self._conn.send_bytes(data)
+            except (EOFError, OSError):
+                code = self._process.exitcode if not self._process.is_alive() else None
+                self.reply = _ended(f"the process writing the .rrd ended (exit {code})")
+                return
+            if last:
+                return
+
+
+def _ended(message: str) -> tuple:
+    return ("error", "RunError", "agvviz.errors", message)
 
 
 class _Calls:
@@ -246,7 +307,7 @@ def _serve(conn, out_path: str, settings, logger_kwargs: dict) -> None:
         error = exc
     while True:
         try:
-            message = conn.recv()
+            message = pickle.loads(conn.recv_bytes())
         except Exception:  # noqa: BLE001 — the run process is gone (or died mid-message)
             if logger is not None:
                 logger.discard()
