@@ -472,6 +472,18 @@ def _entity_key(index: int, label: str) -> str:
     return f"s{index + 1}_" + re.sub(r"[^A-Za-z0-9_-]+", "_", label)
 
 
+def _reprojected_reader(run_path: Path, cams: list[str], to_first: dict[int, int]):
+    """A function reading a setting's reprojected corners (``run_path``), its frames mapped
+    onto the sweep's clock (``to_first``): called by the writer when it draws that setting, so
+    one setting's corners are in memory at a time."""
+    def read() -> dict[str, dict[int, np.ndarray]]:
+        return {
+            cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
+            for cam, per in run_series.reprojected_corners(run_path, cams).items()
+        }
+    return read
+
+
 def _write_sweep_file(
     out: Path, recording: Path, ranked: list[SweepEntry], series: dict[int, RunSeries],
     entries: list[SweepEntry], rank_by: str, images: bool,
@@ -495,13 +507,10 @@ def _write_sweep_file(
         s = series[index_of[id(entry)]]
         ia, ib = match_frames(first.time_ns, s.time_ns)
         to_first = {int(s.frames[j]): int(first.frames[i]) for i, j in zip(ia, ib)}
-        reprojected = {
-            cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
-            for cam, per in (run_series.reprojected_corners(entry.run_path, cams) if images else {}).items()
-        }
         runs.append(OverlayRun(
             entry.key, f"#{entry.rank} {entry.label}",
-            first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib), reprojected,
+            first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib),
+            _reprojected_reader(entry.run_path, cams, to_first) if images else {},
             T_truth=None if s.T_truth is None else s.T_truth[ib], short_label=f"#{entry.rank}",
         ))
     index = [

@@ -52,7 +52,7 @@ import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 import rerun as rr
@@ -93,8 +93,10 @@ class OverlayRun:
         Estimated ``T_world_agv``; NaN on frames the run did not solve.
     errors : dict
         Key of :data:`ERROR_LABELS` → (N,) float, NaN where unknown.
-    reprojected : dict
-        Camera name → {overlay frame → (K, 2) reprojected corners in image pixels}.
+    reprojected : dict or callable
+        Camera name → {overlay frame → (K, 2) reprojected corners in image pixels}; or a
+        function returning that dict, called when the run is drawn and its result dropped
+        after (a sweep holds one setting's corners at a time, not every setting's).
     T_truth : (N, 4, 4) float, optional
         The run's own truth ``T_world_agv`` on its frames (NaN where unknown); given, the 3D
         view draws the run's position error on each frame as a magnified arrow.
@@ -108,7 +110,8 @@ class OverlayRun:
     time_ns: np.ndarray
     T_est: np.ndarray
     errors: dict[str, np.ndarray] = field(default_factory=dict)
-    reprojected: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    reprojected: dict[str, dict[int, np.ndarray]] | Callable[[], dict[str, dict[int, np.ndarray]]] = field(
+        default_factory=dict)
     T_truth: np.ndarray | None = None
     short_label: str | None = None
 
@@ -383,11 +386,13 @@ def write_overlay(
             for key, values in run.errors.items():
                 _send_scalars(rec, clock, paths.overlay_error(key, run.key), run.frames, run.time_ns, values)
             if store is not None:
+                reprojected = run.reprojected() if callable(run.reprojected) else run.reprojected
                 for cam in cam_names:
                     _send_corners(
                         rec, clock, paths.overlay_reprojected(cam, run.key), run.frames, run.time_ns,
-                        run.reprojected.get(cam, {}), color_of(index),
+                        reprojected.get(cam, {}), color_of(index),
                     )
+                del reprojected
         for key, (frames, time_ns, values) in deltas.items():
             _send_scalars(rec, clock, paths.overlay_delta(key), frames, time_ns, values)
             _send_zero_line(rec, clock, key, frames, time_ns)
@@ -411,7 +416,11 @@ def _elapsed_origin_ns(store, runs: list[OverlayRun], truth: OverlayTruth | None
     """Origin of the ``elapsed`` timeline: the source run's own (``time − elapsed`` of its
     first per-frame row, so copied images and drawn series agree), else the first stamp drawn."""
     if store is not None:
-        for chunk in store.stream().filter(is_static=False):
+        # Only the entity of that first row is read: a stream of every per-frame chunk is
+        # loaded ahead of its reader, the whole file for a small one, even if one chunk is used.
+        entity = _first_temporal_entity(store)
+        stream = store.stream().filter(is_static=False, **({"content": entity} if entity else {}))
+        for chunk in stream:
             names = chunk.timeline_names
             if paths.TIMELINE_TIME in names and paths.TIMELINE_ELAPSED in names and chunk.num_rows:
                 batch = chunk.to_record_batch()
@@ -423,6 +432,19 @@ def _elapsed_origin_ns(store, runs: list[OverlayRun], truth: OverlayTruth | None
     if truth is not None and len(truth.time_ns):
         firsts.append(int(np.min(truth.time_ns)))
     return min(firsts, default=0)
+
+
+def _first_temporal_entity(store) -> str | None:
+    """The entity of the first per-frame chunk of ``store`` in file order, from the chunk index
+    of a store read from a file (no chunk data loaded); None for a store in memory."""
+    chunk_index = getattr(store, "_chunk_index", None)  # Rerun's LazyStore (0.41), private
+    if chunk_index is None:
+        return None
+    table = chunk_index().to_arrow()
+    for entity, static in zip(table.column("chunk_entity_path").to_pylist(), table.column("chunk_is_static").to_pylist()):
+        if not static:
+            return entity
+    return None
 
 
 def _log_static(
@@ -485,14 +507,23 @@ def _log_static(
 def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike) -> set[str]:
     """Copy every entity of the run ``.rrd`` at ``run_path`` but its camera images (and the
     recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged. Returns the
-    run's entity paths (without the prefix)."""
+    run's entity paths (without the prefix).
+
+    One entity at a time, each written out (``flush``) before the next is read: Rerun loads a
+    whole stream's chunks ahead of the writer, so a run's layers copied in one stream were
+    held in memory whole (≈45 MB at 2000 frames); one entity's are a few MB."""
     store = read_rrd(run_path).store
-    entities = [p.lstrip("/") for p in store.schema().entity_paths()]
-    left_out = ["/__properties/**", *[f"/{e}" for e in paths.camera_images(entities)]]
+    entities = sorted(p.lstrip("/") for p in store.schema().entity_paths())
+    left_out = {"__properties", *paths.camera_images(entities)}
     prefix = "/" + paths.sweep_setting(key)
-    rec.send_chunks(
-        store.stream().drop(content=left_out).map(lambda chunk: chunk.with_entity_path(prefix + chunk.entity_path))
-    )
+    for entity in entities:
+        if entity in left_out or entity.startswith("__properties/"):
+            continue
+        rec.send_chunks(
+            store.stream().filter(content=f"/{entity}")
+            .map(lambda chunk: chunk.with_entity_path(prefix + chunk.entity_path))
+        )
+        rec.flush()
     return set(entities)
 
 
