@@ -28,6 +28,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from agvviz.recording import outputs
+from agvviz.recording.source import open_recording
 from agvviz.evaluation import statistics
 from agvviz.evaluation.comparison import QUANTITIES, RunSeries, match_frames, metric_names, quantity_values, run_metrics
 from agvviz.evaluation.trajectory import ALIGNMENTS, EvaluationError
@@ -183,7 +184,7 @@ def sweep_out_dirs(recordings: Sequence[Path], out_dir: str | os.PathLike | None
 
 def _count_frames(recording: Path) -> int:
     """Frames of ``recording`` for the progress bar; 0 when it cannot be counted (a bag folder,
-    a file that is no recording: its runs report why)."""
+    a damaged file: its runs report why)."""
     from agvviz.errors import AgvvizError
     from agvviz.recording.reader import count_image_times
 
@@ -246,14 +247,19 @@ def sweep(
     the others then only solve, from the detection cache (:mod:`agvviz.app.cluster`); each run
     is read back as it ends, while the others solve. A run that fails is reported in its
     entry (``error``) and ranked last; the others go on. Needs Dask (``agvviz[distributed]``).
+
+    Raises
+    ------
+    RecordingError
+        A recording is missing or is no recording (an ``.rrd``, a text file): the error
+        ``agvviz run`` gives, before any setting starts and before anything is written.
+    CompareError
+        A bad grid, metric, alignment, ``jobs`` or output folder.
     """
     single = isinstance(recording, (str, os.PathLike))
     recordings = [Path(recording)] if single else [Path(r) for r in recording]
     if not recordings:
         raise CompareError("nothing to sweep: give at least one recording")
-    for path in recordings:
-        if not path.exists():  # an .mcap file or a rosbag2 directory
-            raise CompareError(f"recording not found: {path}")
     if rank_by not in metric_names():
         raise CompareError(f"unknown metric {rank_by!r} to rank by; known: {', '.join(metric_names())}")
     if align not in ALIGNMENTS:
@@ -266,6 +272,10 @@ def sweep(
         raise CompareError("--jobs sets the processes of the local cluster; with --scheduler the cluster's own "
                            "workers run the sweep: give one or the other")
     settings_list = grid_settings(grid, base)
+    for path in recordings:
+        # What is no recording (a missing path, an .rrd, a text file) is refused here with the
+        # one line `agvviz run` gives, before any setting starts or anything is written.
+        open_recording(path)
     out_dirs = sweep_out_dirs(recordings, out_dir)
     from agvviz.app import cluster
 
