@@ -52,7 +52,7 @@ import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import rerun as rr
@@ -71,6 +71,12 @@ TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 #: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about
 #: the AGV body's size, visible in a view of the whole trajectory.
 ERROR_VECTOR_TARGET_M = 0.5
+#: Camera images are written out (a flush) whenever this many bytes, or rows of image chunks,
+#: have been given to the recording stream: Rerun queues what it is given without bound, so
+#: frames given faster than the file is written piled up in memory (a sweep's 2000 frames
+#: ≈ +150-200 MB) and stayed with the process.
+FLUSH_IMAGE_BYTES = 8 << 20
+FLUSH_IMAGE_ROWS = 32
 
 
 class OverlayError(InputError):
@@ -359,12 +365,13 @@ def write_overlay(
         if frames_from is not None:
             frames_store = read_rrd(frames_from).store
             for cam in cam_names:
-                rec.send_chunks(frames_store.stream().filter(content=f"/{paths.overlay_image(cam)}", is_static=False,
-                                                             components=["EncodedImage:blob", "EncodedImage:media_type"]))
+                _send_paced(rec, frames_store.stream().filter(content=f"/{paths.overlay_image(cam)}", is_static=False,
+                                                              components=["EncodedImage:blob", "EncodedImage:media_type"]))
             rrd.check()
         if frames is not None and cam_names:
             images, clocks = frames
-            log_images(rec, images, {c: clocks.get(c, []) for c in cam_names}, {c: paths.overlay_image(c) for c in cam_names})
+            log_images(rec, _paced_images(rec, images), {c: clocks.get(c, []) for c in cam_names},
+                       {c: paths.overlay_image(c) for c in cam_names})
             rec.reset_time()
             rrd.check()
         layer_entities = {}  # run key → the entities its layers hold (for the layout)
@@ -527,6 +534,30 @@ def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike)
     return set(entities)
 
 
+def _paced_images(rec: rr.RecordingStream, images: Iterable[RecordedImage]) -> Iterator[RecordedImage]:
+    """``images`` as they come, the stream flushed after every :data:`FLUSH_IMAGE_BYTES` of
+    them: the file is written as fast as the frames are logged, not queued in memory."""
+    given = 0
+    for image in images:
+        yield image
+        given += len(image[3])
+        if given >= FLUSH_IMAGE_BYTES:
+            rec.flush()
+            given = 0
+
+
+def _send_paced(rec: rr.RecordingStream, chunks: Iterable) -> None:
+    """Send ``chunks`` (camera images) one by one, flushing after every
+    :data:`FLUSH_IMAGE_ROWS` images (see :data:`FLUSH_IMAGE_BYTES`)."""
+    rows = 0
+    for chunk in chunks:
+        rec.send_chunks(chunk)
+        rows += chunk.num_rows
+        if rows >= FLUSH_IMAGE_ROWS:
+            rec.flush()
+            rows = 0
+
+
 def _index_markdown(index: list[dict]) -> str:
     """``sweep/index``: the runs of a sweep ``.rrd`` as a table and a JSON block (read back by
     :func:`agvviz.viz.readback.sweep_index`)."""
@@ -545,10 +576,11 @@ def _copy_from_source(
     re-encoded); a camera of ``fixed_cams`` from its world-fixed entity."""
     rec.send_chunks(store.stream().filter(content=[f"/{paths.MARKERS}", f"/{paths.MARKERS_FILL}"]))
     for cam in cam_names if images else []:
-        rec.send_chunks(
+        _send_paced(
+            rec,
             store.stream()
             .filter(content=f"/{paths.image(cam, cam in fixed_cams)}", is_static=False)
-            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_image(cam)}"))
+            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_image(cam)}")),
         )
     for cam in cam_names:
         rec.send_chunks(
