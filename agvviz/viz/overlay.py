@@ -62,6 +62,7 @@ from agvviz.viz.frames import CameraClock, RecordedImage, log_images
 from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_blueprint
 from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
 from agvviz.viz.readback import read_rrd
+from agvviz.viz import rrd_file
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
 
@@ -74,7 +75,7 @@ ERROR_VECTOR_TARGET_M = 0.5
 #: Camera images are written out (a flush) whenever this many bytes, or rows of image chunks,
 #: have been given to the recording stream: Rerun queues what it is given without bound, so
 #: frames given faster than the file is written piled up in memory (a sweep's 2000 frames
-#: ≈ +150-200 MB) and stayed with the process.
+#: ≈ +100-200 MB) and stayed with the process.
 FLUSH_IMAGE_BYTES = 8 << 20
 FLUSH_IMAGE_ROWS = 32
 
@@ -536,12 +537,17 @@ def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike)
 
 def _paced_images(rec: rr.RecordingStream, images: Iterable[RecordedImage]) -> Iterator[RecordedImage]:
     """``images`` as they come, the stream flushed after every :data:`FLUSH_IMAGE_BYTES` of
-    them: the file is written as fast as the frames are logged, not queued in memory."""
+    them: the file is written as fast as the frames are logged, not queued in memory.
+
+    A flush cuts the chunk being batched, so it comes only right after an image the batcher
+    has cut a chunk at anyway (one of at least ``rrd_file.BATCHER_FLUSH_NUM_BYTES``): the
+    chunks are those of an unpaced write (`rerun rrd compare --unordered` finds them equal).
+    Smaller frames are not paced."""
     given = 0
     for image in images:
-        yield image
+        yield image  # logged when the next one is asked for
         given += len(image[3])
-        if given >= FLUSH_IMAGE_BYTES:
+        if given >= FLUSH_IMAGE_BYTES and len(image[3]) >= rrd_file.BATCHER_FLUSH_NUM_BYTES:
             rec.flush()
             given = 0
 
