@@ -313,9 +313,8 @@ def test_sweep_lead_that_fails_hands_the_lead_on(tmp_path):
                                                       "ranking.md", "sweep.rrd"]
 
 
-def test_sweep_without_dask_is_one_line(tmp_path, monkeypatch):
-    recording = tmp_path / "r.mcap"
-    recording.write_bytes(b"")
+def test_sweep_without_dask_is_one_line(tmp_path, monkeypatch, qr_small):
+    recording = qr_small  # a recording: what is none is refused before Dask is looked for
     monkeypatch.setitem(sys.modules, "distributed", None)  # `import distributed` raises ImportError
     with pytest.raises(InputError, match=r"pip install 'agvviz\[distributed\]'"):
         sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp_path / "out")
