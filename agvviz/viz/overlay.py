@@ -72,10 +72,9 @@ TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 #: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about
 #: the AGV body's size, visible in a view of the whole trajectory.
 ERROR_VECTOR_TARGET_M = 0.5
-#: Camera images are written out (a flush) whenever this many bytes, or rows of image chunks,
-#: have been given to the recording stream: Rerun queues what it is given without bound, so
-#: frames given faster than the file is written piled up in memory (a sweep's 2000 frames
-#: ≈ +100-200 MB) and stayed with the process.
+#: Camera images are written out (a flush) after this many bytes, or rows of image chunks:
+#: Rerun queues what it is given without bound, and frames given faster than the file was
+#: written piled up in the process (a sweep's 2000 frames: +100-200 MB).
 FLUSH_IMAGE_BYTES = 8 << 20
 FLUSH_IMAGE_ROWS = 32
 
@@ -117,8 +116,7 @@ class OverlayRun:
     time_ns: np.ndarray
     T_est: np.ndarray
     errors: dict[str, np.ndarray] = field(default_factory=dict)
-    reprojected: dict[str, dict[int, np.ndarray]] | Callable[[], dict[str, dict[int, np.ndarray]]] = field(
-        default_factory=dict)
+    reprojected: dict[str, dict[int, np.ndarray]] | Callable[[], dict] = field(default_factory=dict)
     T_truth: np.ndarray | None = None
     short_label: str | None = None
 
@@ -366,8 +364,9 @@ def write_overlay(
         if frames_from is not None:
             frames_store = read_rrd(frames_from).store
             for cam in cam_names:
-                _send_paced(rec, frames_store.stream().filter(content=f"/{paths.overlay_image(cam)}", is_static=False,
-                                                              components=["EncodedImage:blob", "EncodedImage:media_type"]))
+                _send_paced(rec, frames_store.stream().filter(
+                    content=f"/{paths.overlay_image(cam)}", is_static=False,
+                    components=["EncodedImage:blob", "EncodedImage:media_type"]))
             rrd.check()
         if frames is not None and cam_names:
             images, clocks = frames
@@ -400,7 +399,6 @@ def write_overlay(
                         rec, clock, paths.overlay_reprojected(cam, run.key), run.frames, run.time_ns,
                         reprojected.get(cam, {}), color_of(index),
                     )
-                del reprojected
         for key, (frames, time_ns, values) in deltas.items():
             _send_scalars(rec, clock, paths.overlay_delta(key), frames, time_ns, values)
             _send_zero_line(rec, clock, key, frames, time_ns)
@@ -449,10 +447,8 @@ def _first_temporal_entity(store) -> str | None:
     if chunk_index is None:
         return None
     table = chunk_index().to_arrow()
-    for entity, static in zip(table.column("chunk_entity_path").to_pylist(), table.column("chunk_is_static").to_pylist()):
-        if not static:
-            return entity
-    return None
+    entities, static = table.column("chunk_entity_path").to_pylist(), table.column("chunk_is_static").to_pylist()
+    return next((entity for entity, fixed in zip(entities, static) if not fixed), None)
 
 
 def _log_static(
@@ -537,12 +533,11 @@ def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike)
 
 def _paced_images(rec: rr.RecordingStream, images: Iterable[RecordedImage]) -> Iterator[RecordedImage]:
     """``images`` as they come, the stream flushed after every :data:`FLUSH_IMAGE_BYTES` of
-    them: the file is written as fast as the frames are logged, not queued in memory.
-
-    A flush cuts the chunk being batched, so it comes only right after an image the batcher
-    has cut a chunk at anyway (one of at least ``rrd_file.BATCHER_FLUSH_NUM_BYTES``): the
-    chunks are those of an unpaced write (`rerun rrd compare --unordered` finds them equal).
-    Smaller frames are not paced."""
+    them: the file is written as fast as the frames are logged, not queued in memory. A flush
+    cuts the chunk being batched, so it comes only right after an image the batcher has cut a
+    chunk at anyway (one of at least ``rrd_file.BATCHER_FLUSH_NUM_BYTES``): the chunks are an
+    unpaced write's (`rerun rrd compare --unordered` finds them equal). Smaller frames are not
+    paced."""
     given = 0
     for image in images:
         yield image  # logged when the next one is asked for
@@ -553,8 +548,7 @@ def _paced_images(rec: rr.RecordingStream, images: Iterable[RecordedImage]) -> I
 
 
 def _send_paced(rec: rr.RecordingStream, chunks: Iterable) -> None:
-    """Send ``chunks`` (camera images) one by one, flushing after every
-    :data:`FLUSH_IMAGE_ROWS` images (see :data:`FLUSH_IMAGE_BYTES`)."""
+    """Send ``chunks`` (camera images) one by one, a flush after every :data:`FLUSH_IMAGE_ROWS`."""
     rows = 0
     for chunk in chunks:
         rec.send_chunks(chunk)
