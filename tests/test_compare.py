@@ -252,22 +252,21 @@ def test_sweep_grid_errors_are_clear(tmp_path):
         sweep(recording, parse_grid(["lm_max_iterations=3,03"]), out_dir=tmp_path)
 
 
-def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp_path):
-    """Two recordings × two solvers, and a text file named .mcap: each recording's runs, tables
-    and overlay go to its own folder; every run of a recording reuses its one detection; the
-    file that is no recording fails its own entries, with the reader's message, and no other.
-    Each recording is detected once: by its first setting's run (the lead), which the other
-    follows in the same pass."""
-    a, b, bad = tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "bad.mcap"
+def test_sweep_of_several_recordings_detects_once(tmp_path):
+    """Two recordings × two solvers: each recording's runs, tables and overlay go to its own
+    folder; every run of a recording reuses its one detection. Each recording is detected once:
+    by its first setting's run (the lead), which the other follows in
+    the same pass. (A path that is no
+    recording refuses the whole sweep before it starts: tests/test_sweep_input.py.)"""
+    a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
     scenario_registry.record("qr_floor", a, seed=1, overrides=TINY)
     scenario_registry.record("qr_floor", b, seed=2, overrides=TINY)
-    bad.write_text("this is not an MCAP recording\n")
     out = tmp_path / "sweep"
     reports = []
-    outcome = sweep([a, b, bad], parse_grid(["solver=lm,p4p"]), out_dir=out, jobs=2, images=False,
+    outcome = sweep([a, b], parse_grid(["solver=lm,p4p"]), out_dir=out, jobs=2, images=False,
                     progress=lambda frames, runs: reports.append((frames, runs)), on_total=reports.append)
-    assert [r.recording for r in outcome.recordings] == [a, b, bad]
-    assert [e.recording for e in outcome.entries] == [a, a, b, b, bad, bad]
+    assert [r.recording for r in outcome.recordings] == [a, b]
+    assert [e.recording for e in outcome.entries] == [a, a, b, b]
     for recording in (a, b):
         result = next(r for r in outcome.recordings if r.recording == recording)
         assert result.out_dir == out / recording.stem
@@ -283,19 +282,13 @@ def test_sweep_of_several_recordings_detects_once_and_fails_only_the_bad_one(tmp
         assert sorted(p.name for p in result.out_dir.iterdir()) == ["ranking.csv", "ranking.md", "sweep.rrd"]
         with open(result.csv_path, newline="") as f:
             assert [r["status"] for r in csv.DictReader(f)] == ["ok", "ok"]
-    failed = next(r for r in outcome.recordings if r.recording == bad)
-    assert [e.ok for e in failed.entries] == [False, False] and failed.overlay_path is None
-    for entry in failed.entries:
-        assert entry.error.startswith(("RecordingError", "RunError")) and "bad.mcap" in entry.error, entry.error
-        assert "\n" not in entry.error and not entry.run_path.exists()
-    assert "failed: RecordingError" in failed.csv_path.read_text() or "failed: RunError" in failed.csv_path.read_text()
     # The first recording's files are the outcome's own (as for a sweep of one recording).
     assert outcome.csv_path == out / "a" / "ranking.csv"
-    # Progress: the total first (2 recordings × 2 runs × 5 frames; the bad file has no frames to
-    # count), then counts that never go down and end at the total, 6 runs done.
+    # Progress: the total first (2 recordings × 2 runs × 5 frames), then counts that never go
+    # down and end at the total, 4 runs done.
     assert reports[0] == 20
     counts = reports[1:]
-    assert counts[-1] == (20, 6)
+    assert counts[-1] == (20, 4)
     assert all(x[0] <= y[0] and x[1] <= y[1] for x, y in zip(counts, counts[1:]))
     assert not [n for d in out.iterdir() for n in (p.name for p in d.iterdir()) if n.endswith(".tmp")]
 
@@ -320,11 +313,10 @@ def test_sweep_lead_that_fails_hands_the_lead_on(tmp_path):
                                                       "ranking.md", "sweep.rrd"]
 
 
-def test_sweep_on_a_cluster_without_dask_is_one_line(tmp_path, monkeypatch):
+def test_sweep_on_a_cluster_without_dask_is_one_line(tmp_path, monkeypatch, qr_small):
     """--scheduler needs Dask: without it, one line before anything is written (a local sweep
     does not need it)."""
-    recording = tmp_path / "r.mcap"
-    recording.write_bytes(b"")
+    recording = qr_small  # a recording: what is none is refused before Dask is looked for
     monkeypatch.setitem(sys.modules, "distributed", None)  # `import distributed` raises ImportError
     with pytest.raises(InputError, match=r"pip install 'agvviz\[distributed\]'"):
         sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp_path / "out", scheduler="tcp://127.0.0.1:1")

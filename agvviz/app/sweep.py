@@ -28,6 +28,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from agvviz.recording import outputs
+from agvviz.recording.source import open_recording
 from agvviz.evaluation import statistics
 from agvviz.evaluation.comparison import QUANTITIES, RunSeries, match_frames, metric_names, quantity_values, run_metrics
 from agvviz.evaluation.trajectory import ALIGNMENTS, EvaluationError
@@ -183,7 +184,7 @@ def sweep_out_dirs(recordings: Sequence[Path], out_dir: str | os.PathLike | None
 
 def _count_frames(recording: Path) -> int:
     """Frames of ``recording`` for the progress bar; 0 when it cannot be counted (a bag folder,
-    a file that is no recording: its runs report why)."""
+    a damaged file: its runs report why)."""
     from agvviz.errors import AgvvizError
     from agvviz.recording.reader import count_image_times
 
@@ -247,14 +248,19 @@ def sweep(
     does, and the others follow it in the same pass and only solve (:mod:`agvviz.app.cluster`,
     :mod:`agvviz.replay.detect.lockstep`); each group's runs are read back as it ends. A run that
     fails is reported in its entry (``error``) and ranked last; the others go on.
+
+    Raises
+    ------
+    RecordingError
+        A recording is missing or is no recording (an ``.rrd``, a text file): the error
+        ``agvviz run`` gives, before any setting starts and before anything is written.
+    CompareError
+        A bad grid, metric, alignment, ``jobs`` or output folder.
     """
     single = isinstance(recording, (str, os.PathLike))
     recordings = [Path(recording)] if single else [Path(r) for r in recording]
     if not recordings:
         raise CompareError("nothing to sweep: give at least one recording")
-    for path in recordings:
-        if not path.exists():  # an .mcap file or a rosbag2 directory
-            raise CompareError(f"recording not found: {path}")
     if rank_by not in metric_names():
         raise CompareError(f"unknown metric {rank_by!r} to rank by; known: {', '.join(metric_names())}")
     if align not in ALIGNMENTS:
@@ -267,6 +273,10 @@ def sweep(
         raise CompareError("--jobs sets the processes of the local cluster; with --scheduler the cluster's own "
                            "workers run the sweep: give one or the other")
     settings_list = grid_settings(grid, base)
+    for path in recordings:
+        # What is no recording (a missing path, an .rrd, a text file) is refused here with the
+        # one line `agvviz run` gives, before any setting starts or anything is written.
+        open_recording(path)
     out_dirs = sweep_out_dirs(recordings, out_dir)
     from agvviz.app import cluster
 
@@ -470,6 +480,18 @@ def _entity_key(index: int, label: str) -> str:
     return f"s{index + 1}_" + re.sub(r"[^A-Za-z0-9_-]+", "_", label)
 
 
+def _reprojected_reader(run_path: Path, cams: list[str], to_first: dict[int, int]):
+    """A function reading a setting's reprojected corners (``run_path``), its frames mapped
+    onto the sweep's clock (``to_first``): called by the writer when it draws that setting, so
+    one setting's corners are in memory at a time."""
+    def read() -> dict[str, dict[int, np.ndarray]]:
+        return {
+            cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
+            for cam, per in run_series.reprojected_corners(run_path, cams).items()
+        }
+    return read
+
+
 def _write_sweep_file(
     out: Path, recording: Path, ranked: list[SweepEntry], series: dict[int, RunSeries],
     entries: list[SweepEntry], rank_by: str, images: bool,
@@ -493,13 +515,10 @@ def _write_sweep_file(
         s = series[index_of[id(entry)]]
         ia, ib = match_frames(first.time_ns, s.time_ns)
         to_first = {int(s.frames[j]): int(first.frames[i]) for i, j in zip(ia, ib)}
-        reprojected = {
-            cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
-            for cam, per in (run_series.reprojected_corners(entry.run_path, cams) if images else {}).items()
-        }
         runs.append(OverlayRun(
             entry.key, f"#{entry.rank} {entry.label}",
-            first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib), reprojected,
+            first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib),
+            _reprojected_reader(entry.run_path, cams, to_first) if images else {},
             T_truth=None if s.T_truth is None else s.T_truth[ib], short_label=f"#{entry.rank}",
         ))
     index = [

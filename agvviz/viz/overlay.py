@@ -52,7 +52,7 @@ import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import rerun as rr
@@ -62,6 +62,7 @@ from agvviz.viz.frames import CameraClock, RecordedImage, log_images
 from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_blueprint
 from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
 from agvviz.viz.readback import read_rrd
+from agvviz.viz import rrd_file
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
 
@@ -71,6 +72,11 @@ TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 #: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about
 #: the AGV body's size, visible in a view of the whole trajectory.
 ERROR_VECTOR_TARGET_M = 0.5
+#: Camera images are written out (a flush) after this many bytes, or rows of image chunks:
+#: Rerun queues what it is given without bound, and frames given faster than the file was
+#: written piled up in the process (a sweep's 2000 frames: +100-200 MB).
+FLUSH_IMAGE_BYTES = 8 << 20
+FLUSH_IMAGE_ROWS = 32
 
 
 class OverlayError(InputError):
@@ -93,8 +99,10 @@ class OverlayRun:
         Estimated ``T_world_agv``; NaN on frames the run did not solve.
     errors : dict
         Key of :data:`ERROR_LABELS` → (N,) float, NaN where unknown.
-    reprojected : dict
-        Camera name → {overlay frame → (K, 2) reprojected corners in image pixels}.
+    reprojected : dict or callable
+        Camera name → {overlay frame → (K, 2) reprojected corners in image pixels}; or a
+        function returning that dict, called when the run is drawn and its result dropped
+        after (a sweep holds one setting's corners at a time, not every setting's).
     T_truth : (N, 4, 4) float, optional
         The run's own truth ``T_world_agv`` on its frames (NaN where unknown); given, the 3D
         view draws the run's position error on each frame as a magnified arrow.
@@ -108,7 +116,7 @@ class OverlayRun:
     time_ns: np.ndarray
     T_est: np.ndarray
     errors: dict[str, np.ndarray] = field(default_factory=dict)
-    reprojected: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    reprojected: dict[str, dict[int, np.ndarray]] | Callable[[], dict] = field(default_factory=dict)
     T_truth: np.ndarray | None = None
     short_label: str | None = None
 
@@ -356,12 +364,14 @@ def write_overlay(
         if frames_from is not None:
             frames_store = read_rrd(frames_from).store
             for cam in cam_names:
-                rec.send_chunks(frames_store.stream().filter(content=f"/{paths.overlay_image(cam)}", is_static=False,
-                                                             components=["EncodedImage:blob", "EncodedImage:media_type"]))
+                _send_paced(rec, frames_store.stream().filter(
+                    content=f"/{paths.overlay_image(cam)}", is_static=False,
+                    components=["EncodedImage:blob", "EncodedImage:media_type"]))
             rrd.check()
         if frames is not None and cam_names:
             images, clocks = frames
-            log_images(rec, images, {c: clocks.get(c, []) for c in cam_names}, {c: paths.overlay_image(c) for c in cam_names})
+            log_images(rec, _paced_images(rec, images), {c: clocks.get(c, []) for c in cam_names},
+                       {c: paths.overlay_image(c) for c in cam_names})
             rec.reset_time()
             rrd.check()
         layer_entities = {}  # run key → the entities its layers hold (for the layout)
@@ -383,10 +393,11 @@ def write_overlay(
             for key, values in run.errors.items():
                 _send_scalars(rec, clock, paths.overlay_error(key, run.key), run.frames, run.time_ns, values)
             if store is not None:
+                reprojected = run.reprojected() if callable(run.reprojected) else run.reprojected
                 for cam in cam_names:
                     _send_corners(
                         rec, clock, paths.overlay_reprojected(cam, run.key), run.frames, run.time_ns,
-                        run.reprojected.get(cam, {}), color_of(index),
+                        reprojected.get(cam, {}), color_of(index),
                     )
         for key, (frames, time_ns, values) in deltas.items():
             _send_scalars(rec, clock, paths.overlay_delta(key), frames, time_ns, values)
@@ -411,7 +422,11 @@ def _elapsed_origin_ns(store, runs: list[OverlayRun], truth: OverlayTruth | None
     """Origin of the ``elapsed`` timeline: the source run's own (``time − elapsed`` of its
     first per-frame row, so copied images and drawn series agree), else the first stamp drawn."""
     if store is not None:
-        for chunk in store.stream().filter(is_static=False):
+        # Only the entity of that first row is read: a stream of every per-frame chunk is
+        # loaded ahead of its reader, the whole file for a small one, even if one chunk is used.
+        entity = _first_temporal_entity(store)
+        stream = store.stream().filter(is_static=False, **({"content": entity} if entity else {}))
+        for chunk in stream:
             names = chunk.timeline_names
             if paths.TIMELINE_TIME in names and paths.TIMELINE_ELAPSED in names and chunk.num_rows:
                 batch = chunk.to_record_batch()
@@ -423,6 +438,17 @@ def _elapsed_origin_ns(store, runs: list[OverlayRun], truth: OverlayTruth | None
     if truth is not None and len(truth.time_ns):
         firsts.append(int(np.min(truth.time_ns)))
     return min(firsts, default=0)
+
+
+def _first_temporal_entity(store) -> str | None:
+    """The entity of the first per-frame chunk of ``store`` in file order, from the chunk index
+    of a store read from a file (no chunk data loaded); None for a store in memory."""
+    chunk_index = getattr(store, "_chunk_index", None)  # Rerun's LazyStore (0.41), private
+    if chunk_index is None:
+        return None
+    table = chunk_index().to_arrow()
+    entities, static = table.column("chunk_entity_path").to_pylist(), table.column("chunk_is_static").to_pylist()
+    return next((entity for entity, fixed in zip(entities, static) if not fixed), None)
 
 
 def _log_static(
@@ -485,15 +511,51 @@ def _log_static(
 def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike) -> set[str]:
     """Copy every entity of the run ``.rrd`` at ``run_path`` but its camera images (and the
     recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged. Returns the
-    run's entity paths (without the prefix)."""
+    run's entity paths (without the prefix).
+
+    One entity at a time, each written out (``flush``) before the next is read: Rerun loads a
+    whole stream's chunks ahead of the writer, so a run's layers copied in one stream were
+    held in memory whole (≈45 MB at 2000 frames); one entity's are a few MB."""
     store = read_rrd(run_path).store
-    entities = [p.lstrip("/") for p in store.schema().entity_paths()]
-    left_out = ["/__properties/**", *[f"/{e}" for e in paths.camera_images(entities)]]
+    entities = sorted(p.lstrip("/") for p in store.schema().entity_paths())
+    left_out = {"__properties", *paths.camera_images(entities)}
     prefix = "/" + paths.sweep_setting(key)
-    rec.send_chunks(
-        store.stream().drop(content=left_out).map(lambda chunk: chunk.with_entity_path(prefix + chunk.entity_path))
-    )
+    for entity in entities:
+        if entity in left_out or entity.startswith("__properties/"):
+            continue
+        rec.send_chunks(
+            store.stream().filter(content=f"/{entity}")
+            .map(lambda chunk: chunk.with_entity_path(prefix + chunk.entity_path))
+        )
+        rec.flush()
     return set(entities)
+
+
+def _paced_images(rec: rr.RecordingStream, images: Iterable[RecordedImage]) -> Iterator[RecordedImage]:
+    """``images`` as they come, the stream flushed after every :data:`FLUSH_IMAGE_BYTES` of
+    them: the file is written as fast as the frames are logged, not queued in memory. A flush
+    cuts the chunk being batched, so it comes only right after an image the batcher has cut a
+    chunk at anyway (one of at least ``rrd_file.BATCHER_FLUSH_NUM_BYTES``): the chunks are an
+    unpaced write's (`rerun rrd compare --unordered` finds them equal). Smaller frames are not
+    paced."""
+    given = 0
+    for image in images:
+        yield image  # logged when the next one is asked for
+        given += len(image[3])
+        if given >= FLUSH_IMAGE_BYTES and len(image[3]) >= rrd_file.BATCHER_FLUSH_NUM_BYTES:
+            rec.flush()
+            given = 0
+
+
+def _send_paced(rec: rr.RecordingStream, chunks: Iterable) -> None:
+    """Send ``chunks`` (camera images) one by one, a flush after every :data:`FLUSH_IMAGE_ROWS`."""
+    rows = 0
+    for chunk in chunks:
+        rec.send_chunks(chunk)
+        rows += chunk.num_rows
+        if rows >= FLUSH_IMAGE_ROWS:
+            rec.flush()
+            rows = 0
 
 
 def _index_markdown(index: list[dict]) -> str:
@@ -514,10 +576,11 @@ def _copy_from_source(
     re-encoded); a camera of ``fixed_cams`` from its world-fixed entity."""
     rec.send_chunks(store.stream().filter(content=[f"/{paths.MARKERS}", f"/{paths.MARKERS_FILL}"]))
     for cam in cam_names if images else []:
-        rec.send_chunks(
+        _send_paced(
+            rec,
             store.stream()
             .filter(content=f"/{paths.image(cam, cam in fixed_cams)}", is_static=False)
-            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_image(cam)}"))
+            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_image(cam)}")),
         )
     for cam in cam_names:
         rec.send_chunks(

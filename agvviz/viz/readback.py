@@ -177,10 +177,14 @@ def has_rows(src: str | os.PathLike | RrdContents, entity: str, component: str) 
     return bool(_rows(src, entity, component, required=False))
 
 
-def _rows(src: str | os.PathLike | RrdContents, entity: str, component: str, required: bool = True) -> list[dict]:
+def _rows(
+    src: str | os.PathLike | RrdContents, entity: str, component: str, required: bool = True, values: bool = True,
+) -> list[dict]:
     """Rows of ``entity`` that carry ``component``, each as {column name: value} (row id,
     timelines present on that row's chunk, the component), sorted by row id = logging order.
-    None is :class:`RrdReadError` unless ``required`` is False (then an empty list)."""
+    None is :class:`RrdReadError` unless ``required`` is False (then an empty list). With
+    ``values`` False the rows hold the row id and timelines only (the component's values are
+    not turned into Python objects: a run's clock from its corners without the corners)."""
     contents = _contents(src)
     entity = entity.lstrip("/")
     if entity not in contents.entity_paths:
@@ -191,12 +195,17 @@ def _rows(src: str | os.PathLike | RrdContents, entity: str, component: str, req
     try:
         for chunk in contents.store.stream().filter(content=f"/{entity}", components=component):
             if chunk.entity_path.lstrip("/") == entity:
-                rows += _int_times(chunk.to_record_batch()).to_pylist()
+                batch = _int_times(chunk.to_record_batch())
+                if not values:
+                    batch = batch.filter(batch.column(component).is_valid())
+                    batch = batch.select([name for name in batch.schema.names if ":" not in name])
+                rows += batch.to_pylist()
     except (KeyboardInterrupt, SystemExit):
         raise
     except BaseException as exc:  # noqa: BLE001 — damaged chunk data
         raise RrdReadError(f"cannot read {entity!r} from {contents.path}: {_one_line(exc)}; {_REWRITE}") from exc
-    rows = [row for row in rows if row.get(component) is not None]
+    if values:
+        rows = [row for row in rows if row.get(component) is not None]
     if not rows and required:
         raise RrdReadError(f"{contents.path}: entity {entity!r} has no {component!r} data")
     return sorted(rows, key=lambda row: row[_ROW_ID])
@@ -348,7 +357,7 @@ def frame_times(src: str | os.PathLike | RrdContents, entity: str, component: st
     """
     return {
         int(row[paths.TIMELINE_FRAME]): int(row[paths.TIMELINE_TIME])
-        for row in _rows(src, entity, component)
+        for row in _rows(src, entity, component, values=False)
         if row.get(paths.TIMELINE_FRAME) is not None and row.get(paths.TIMELINE_TIME) is not None
     }
 
@@ -382,7 +391,7 @@ def frame_stamps(src: str | os.PathLike | RrdContents, entity: str, component: s
     logging order: on a run's detected corners, the clock its frames were logged on."""
     return [
         (int(row[paths.TIMELINE_FRAME]), int(row[paths.TIMELINE_TIME]), int(row.get(paths.TIMELINE_ELAPSED) or 0))
-        for row in _rows(src, entity, component)
+        for row in _rows(src, entity, component, values=False)
         if row.get(paths.TIMELINE_FRAME) is not None and row.get(paths.TIMELINE_TIME) is not None
     ]
 
