@@ -49,7 +49,7 @@ LOGGER_MODULES = ("agvviz.viz.run_sinks",)
 DISCARD_WAIT_S = 10.0
 #: Pickled calls waiting for the child at most (bytes): the run goes on meanwhile (while the
 #: child starts, or logs a burst); beyond it, the run waits.
-QUEUED_BYTES = 64 * 1024 * 1024
+QUEUED_BYTES = 32 * 1024 * 1024
 
 _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
 
