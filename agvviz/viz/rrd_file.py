@@ -166,9 +166,11 @@ class AtomicRrd:
         recording_id: str,
         recording_name: str,
         inputs: Iterable[str | os.PathLike] = (),
+        tmp_path: str | os.PathLike | None = None,
     ):
         self.out_path = outputs.prepare_output(out_path, inputs=inputs)
-        self._tmp_path = outputs.temp_path(self.out_path)
+        # (another process's name for it: the process that will move it into place, see commit)
+        self._tmp_path = Path(tmp_path) if tmp_path is not None else outputs.temp_path(self.out_path)
         self._pump: _Pump | None = None
         self._fd = -1
         self.closed = False
@@ -215,8 +217,11 @@ class AtomicRrd:
             self.discard()
             raise error
 
-    def commit(self, blueprint: rrb.Blueprint | None = None) -> Path:
-        """Send ``blueprint`` (the file's layout), finish the file and move it into place."""
+    def commit(self, blueprint: rrb.Blueprint | None = None, publish: bool = True) -> Path:
+        """Send ``blueprint`` (the file's layout), finish the file and move it into place;
+        returns ``out_path``. ``publish=False``: finish it but leave it at its temporary path
+        (returned), for the process that named that path to move into place
+        (:mod:`agvviz.viz.run_process`)."""
         if self.closed:
             raise RuntimeError(f"{self.out_path} was already committed or discarded")
         self.closed = True
@@ -241,15 +246,16 @@ class AtomicRrd:
                     f"cannot write {self.out_path}: the file came out incomplete (no .rrd footer); "
                     "check the disk has space and try again"
                 )
-            try:
-                os.replace(self._tmp_path, self.out_path)
-            except OSError as exc:
-                raise outputs.output_error(exc, self.out_path) from exc
+            if publish:
+                try:
+                    os.replace(self._tmp_path, self.out_path)
+                except OSError as exc:
+                    raise outputs.output_error(exc, self.out_path) from exc
         except BaseException:
             self._cleanup(disconnect=False)
             raise
         outputs.release_temp(self._tmp_path)
-        return self.out_path
+        return self.out_path if publish else self._tmp_path
 
     def discard(self) -> None:
         """Stop writing and delete the unfinished file; ``out_path`` is left untouched."""

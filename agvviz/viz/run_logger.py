@@ -83,6 +83,8 @@ class RunLogger:
         False: the camera images are left out (``run --images none`` and a sweep's layers:
         every other entity is logged as in a full run; :mod:`agvviz.viz.frames` adds the
         frames from the recording).
+    tmp_path : path, optional
+        The temporary file's name (default: one of this process's beside ``out_path``).
     """
 
     def __init__(
@@ -95,9 +97,11 @@ class RunLogger:
         recording_start_ns: int | None = None,
         max_reproj_px: float | None = None,
         images: bool = True,
+        tmp_path: str | os.PathLike | None = None,
     ):
         # OutputError (from agvviz.errors) when out_path is an input or cannot be written.
-        self._file = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=inputs)
+        self._file = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=inputs,
+                               tmp_path=tmp_path)
         self._rec = self._file.rec
         #: ``elapsed`` = log time − this (ns); set from the first frame when not given.
         self.recording_start_ns = None if recording_start_ns is None else int(recording_start_ns)
@@ -297,9 +301,11 @@ class RunLogger:
         )
         self._rec.log(paths.RUN_NO_TRUTH, _markdown(text), static=True)
 
-    def close(self) -> None:
+    def close(self, publish: bool = True) -> Path:
         """Finish the file: log the rejected-frame crosses where the plots' axes put them, send
-        the buffered columns, ship the default blueprint, write the footer, move it into place."""
+        the buffered columns, ship the default blueprint, write the footer, move it into place
+        (``publish=False``: leave it at its temporary path, see
+        :meth:`agvviz.viz.rrd_file.AtomicRrd.commit`). Returns where the file is."""
         self._check_open()
         axes = self.plot_axes()
         if not self.has_truth:
@@ -327,7 +333,7 @@ class RunLogger:
                 sigma_axis=plot_axis([self._columns.extents[paths.ERROR_POSITION_SIGMA_M]])
                 if paths.ERROR_POSITION_SIGMA_M in self._columns.extents else None,
             )
-        self._file.commit(blueprint)
+        return self._file.commit(blueprint, publish=publish)
 
     def discard(self) -> None:
         """Stop logging and delete the unfinished file; ``out_path`` is left untouched."""

@@ -14,9 +14,11 @@ s for 200 frames of images).
   (:func:`agvviz.replay.detect.workers.pool_context`; spawned where there is none), which
   imports the logging modules beside the run's own start-up (:data:`LOGGER_MODULES`, named to
   it when this module is imported).
-- :meth:`RrdWriter.close` asks the child to finish the file (blueprint, rename into place) and
-  waits; an error the child met — a write failure, a value it refused — is raised there, with
-  its own type when it is one of :mod:`agvviz.errors` (or of the modules it came from).
+- :meth:`RrdWriter.close` asks the child to finish the file (blueprint, footer) and waits; the
+  child writes under the run process's temporary name, which the run process then moves into
+  place itself — an interruption before that removes it, as with a logger in process. An error
+  the child met — a write failure, a value it refused — is raised there, with its own type when
+  it is one of :mod:`agvviz.errors` (or of the modules it came from).
 - :meth:`RrdWriter.discard` (an error or an interruption in the run process) makes the child
   remove its unfinished file. The child ignores Ctrl-C and SIGTERM (the run process handles them
   and tells it); if the run process dies without a word, the child sees its pipe close and
@@ -106,9 +108,18 @@ class RrdWriter:
     or fails is raised as an error at the next call or at :meth:`close`."""
 
     def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
+        from agvviz.recording import outputs
+
         # Absolute paths, whatever the child's working folder.
-        out_path = os.path.abspath(out_path)
+        self._out_path = Path(os.path.abspath(out_path))
         logger_kwargs["inputs"] = tuple(os.path.abspath(p) for p in logger_kwargs.get("inputs", ()))
+        # The child writes the file under this process's temporary name, and this process moves it
+        # into place (close): an interruption before that removes it here, as an in-process
+        # logger's would be; after it, the output is complete.
+        self._tmp_path = outputs.temp_path(self._out_path)
+        outputs.register_temp(self._tmp_path)
+        logger_kwargs["tmp_path"] = str(self._tmp_path)
+        out_path = str(self._out_path)
         context = pool_context()
         self._conn, child_conn = context.Pipe(duplex=True)
         self._process = context.Process(
@@ -148,12 +159,30 @@ class RrdWriter:
         place) and wait; raises the child's error, if it met one (no file is written then)."""
         if self._done:
             return
+        from agvviz.recording import outputs
+
         self._sender.put(pickle.dumps((_CLOSE,)), last=True)
         reply = self._reply()
         self._finish()
         if reply[0] != "ok":
+            self._remove_temp()
             raise _error(reply)
+        try:
+            os.replace(self._tmp_path, self._out_path)
+        except OSError as exc:
+            self._remove_temp()
+            raise outputs.output_error(exc, self._out_path) from exc
+        outputs.release_temp(self._tmp_path)
         self.recording_start_ns = reply[1]
+
+    def _remove_temp(self) -> None:
+        from agvviz.recording import outputs
+
+        try:
+            os.unlink(self._tmp_path)
+        except OSError:
+            pass
+        outputs.release_temp(self._tmp_path)
 
     def discard(self) -> None:
         """Have the child remove its unfinished file, and wait for it (at most
@@ -169,6 +198,7 @@ class RrdWriter:
         except (EOFError, OSError):
             pass
         self._finish()
+        self._remove_temp()
 
     def _finish(self) -> None:
         self._done = True
@@ -326,7 +356,7 @@ def _serve(conn, out_path: str, settings, logger_kwargs: dict) -> None:
             continue
         if kind == _CLOSE and error is None:
             try:
-                logger.close()
+                logger.close(publish=False)  # the run process moves it into place
             except Exception as exc:  # noqa: BLE001
                 error = exc
             else:
