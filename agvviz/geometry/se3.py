@@ -163,22 +163,30 @@ def J_point_wrt_left_perturbation(points_a: np.ndarray) -> np.ndarray:
     return J
 
 
+_EYE3 = np.eye(3)
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
 def is_rigid(T: np.ndarray, atol: float = 1e-6) -> bool:
-    """True when ``T`` is a finite 4×4 rigid transform (orthonormal, det +1, last row 0001)."""
+    """True when ``T`` is a finite 4×4 rigid transform (orthonormal, det +1, last row 0001).
+
+    The tests are ``np.allclose``'s (|a − b| ≤ atol + 1e-5·|b|), written out: this runs for every
+    pose a solver returns, and ``allclose``'s own overhead was most of its cost."""
     T = np.asarray(T)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         return False
     R = T[:3, :3]
-    return (
-        np.allclose(R.T @ R, np.eye(3), atol=atol)
+    return bool(
+        np.all(np.abs(R.T @ R - _EYE3) <= atol + 1e-5 * _EYE3)
         and abs(np.linalg.det(R) - 1.0) < atol
-        and np.allclose(T[3], [0, 0, 0, 1], atol=atol)
+        and np.all(np.abs(T[3] - _LAST_ROW) <= atol + 1e-5 * _LAST_ROW)
     )
 
 
 def from_quaternion_xyzw(q_xyzw: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Transform from a unit quaternion (x, y, z, w) and a translation."""
-    x, y, z, w = np.asarray(q_xyzw, dtype=float) / np.linalg.norm(q_xyzw)
+    # (as Python floats: the same double arithmetic without numpy's per-scalar cost)
+    x, y, z, w = (np.asarray(q_xyzw, dtype=float) / np.linalg.norm(q_xyzw)).tolist()
     R = np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

@@ -4,6 +4,8 @@ uncompressed image, a checked calibration, and the image size bound of the recor
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from agvviz.geometry import PinholeCamera, se3
@@ -28,11 +30,12 @@ def cam_name(topic: str, frame_id: str) -> str:
 
 
 def matrix_from_pose(position, orientation, what: str) -> np.ndarray:
-    t = np.array([position.x, position.y, position.z], dtype=float)
-    q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=float)
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))) or np.linalg.norm(q) < 1e-9:
+    t = (float(position.x), float(position.y), float(position.z))
+    q = (float(orientation.x), float(orientation.y), float(orientation.z), float(orientation.w))
+    # (plain floats: this runs for every pose message, and numpy's per-call cost was most of it)
+    if not all(map(math.isfinite, t + q)) or math.hypot(*q) < 1e-9:
         raise MessageDecodeError(f"{what}: translation/quaternion must be finite with a non-zero quaternion")
-    return se3.from_quaternion_xyzw(q, t)
+    return se3.from_quaternion_xyzw(np.array(q), np.array(t))
 
 
 def raw_frame(topic: str, frame_id: str, encoding: str, width: int, height: int, step: int,
