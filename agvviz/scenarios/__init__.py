@@ -34,6 +34,17 @@ def available() -> dict[str, ModuleType]:
 
 
 def get(name: str) -> ModuleType:
+    """The scenario module ``name``: its own module when it is named so (every scenario is),
+    without importing the others; else a search of them all."""
+    if isinstance(name, str) and name.isidentifier():
+        try:
+            module = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{name}":
+                raise
+        else:
+            if getattr(module, "NAME", None) == name and hasattr(module, "record"):
+                return module
     scenarios = available()
     if name not in scenarios:
         raise ScenarioError(f"unknown scenario {name!r}; available: {', '.join(scenarios)}")
