@@ -49,12 +49,12 @@ LOGGER_CALLS = ("log_manifest", "log_world_static", "log_summary", "log_error_bu
 LOGGER_MODULES = ("agvviz.viz.run_sinks",)
 #: How long :meth:`RrdWriter.discard` waits for the child to remove its file (seconds).
 DISCARD_WAIT_S = 10.0
-#: Pickled calls waiting for the child at most (bytes) while it starts (the fork server may
-#: still be importing): the run goes on meanwhile; beyond it, the run waits.
-QUEUED_BYTES_STARTING = 32 * 1024 * 1024
-#: ... and once it runs: a child slower than the run slows the run, and the memory held does
-#: not grow with the recording's length.
-QUEUED_BYTES = 4 * 1024 * 1024
+#: Pickled calls waiting for the child at most, in bytes and in calls: the run goes on meanwhile
+#: (while the child starts — the fork server may still be importing — or logs a burst); beyond
+#: either, the run waits. A few seconds of frames either way, the same on a long recording as
+#: on a short one.
+QUEUED_BYTES = 32 * 1024 * 1024
+QUEUED_CALLS = 256
 
 _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
 
@@ -107,9 +107,9 @@ class RrdWriter:
 
     The calls are pickled here and handed to a sender thread, which starts the child (the fork
     server may still be importing: the run does not wait for it) and sends them in order; at
-    most :data:`QUEUED_BYTES_STARTING` wait while it starts, :data:`QUEUED_BYTES` once it runs
-    (then the run waits for the child). A child that cannot start or fails is raised as an error
-    at the next call or at :meth:`close`."""
+    most :data:`QUEUED_BYTES` and :data:`QUEUED_CALLS` wait (then the run waits for the child).
+    A child that cannot start or fails is raised as an error at the next call or at
+    :meth:`close`."""
 
     def __init__(self, out_path: str | os.PathLike, settings, **logger_kwargs):
         from agvviz.recording import outputs
@@ -235,7 +235,6 @@ class _Sender(threading.Thread):
         self._queued_bytes = 0
         self._last = False
         self._wake = threading.Condition()
-        self._limit = QUEUED_BYTES_STARTING
         self.reply = None
 
     def put(self, data: bytes, *, last: bool = False, drop_queued: bool = False) -> None:
@@ -245,7 +244,10 @@ class _Sender(threading.Thread):
             if drop_queued:
                 self._queue.clear()
                 self._queued_bytes = 0
-            while self._queued_bytes > self._limit and self.reply is None and self.is_alive():
+            while (
+                (self._queued_bytes > QUEUED_BYTES or len(self._queue) >= QUEUED_CALLS)
+                and self.reply is None and self.is_alive()
+            ):
                 self._wake.wait(0.1)
             self._queue.append(data)
             self._queued_bytes += len(data)
@@ -260,9 +262,6 @@ class _Sender(threading.Thread):
             return
         finally:
             self._child_conn.close()
-        with self._wake:
-            self._limit = QUEUED_BYTES  # what waited while it started may still be sent first
-            self._wake.notify_all()
         while True:
             with self._wake:
                 while not self._queue:
