@@ -255,8 +255,7 @@ def test_sweep_grid_errors_are_clear(tmp_path):
 def test_sweep_of_several_recordings_detects_once(tmp_path):
     """Two recordings × two solvers: each recording's runs, tables and overlay go to its own
     folder; every run of a recording reuses its one detection. Each recording is detected once:
-    by its first setting's run (the lead), which the other follows in
-    the same pass. (A path that is no
+    by its first setting's run (the lead), the other reads the cache. (A path that is no
     recording refuses the whole sweep before it starts: tests/test_sweep_input.py.)"""
     a, b = tmp_path / "a.mcap", tmp_path / "b.mcap"
     scenario_registry.record("qr_floor", a, seed=1, overrides=TINY)
@@ -276,8 +275,8 @@ def test_sweep_of_several_recordings_detects_once(tmp_path):
             assert entry.ok and entry.recording == recording
             assert str(entry.out_path) == f"{out / recording.stem / 'sweep.rrd'}#{entry.label}"
             assert entry.metrics["frames"] == 5
-        # the group's one detection, by its lead (lm, first in the grid), followed by p4p
-        assert {e.label: e.timing["detection_source"] for e in result.entries} == {"lm": "detected", "p4p": "lead run"}
+        # the group's one detection, by its lead (lm, first in the grid), reused by p4p
+        assert {e.label: e.timing["detection_source"] for e in result.entries} == {"lm": "detected", "p4p": "cache"}
         assert result.overlay_path == out / recording.stem / "sweep.rrd" and result.overlay_path.is_file()
         assert sorted(p.name for p in result.out_dir.iterdir()) == ["ranking.csv", "ranking.md", "sweep.rrd"]
         with open(result.csv_path, newline="") as f:
@@ -294,9 +293,10 @@ def test_sweep_of_several_recordings_detects_once(tmp_path):
 
 
 def test_sweep_lead_that_fails_hands_the_lead_on(tmp_path):
-    """The first setting of a detection group (its lead) detects, the others follow it in the
-    same pass. A lead that fails (here: its kept run's path is a folder) hands the lead to the
-    next setting, which detects; the third follows that one."""
+    """The first setting of a detection group (its lead) detects, the others read the cache. A
+    lead that fails (here: its kept run's path is a folder) hands the lead to the next setting,
+    which detects; the third reads the cache (in the sweep process: a local sweep solves one
+    setting there beside the workers)."""
     recording = tmp_path / "r.mcap"
     scenario_registry.record("qr_floor", recording, seed=4, overrides=TINY)
     out = tmp_path / "sweep"
@@ -307,22 +307,20 @@ def test_sweep_lead_that_fails_hands_the_lead_on(tmp_path):
     by_label = {e.label: e for e in outcome.entries}
     assert not by_label["lm"].ok and by_label["lm"].error.startswith("OutputError")
     assert by_label["p4p"].ok and by_label["p4p"].timing["detection_source"] == "detected"
-    assert by_label["ippe"].ok and by_label["ippe"].timing["detection_source"] == "lead run"
+    assert by_label["ippe"].ok and by_label["ippe"].timing["detection_source"] == "cache"
     assert by_label["ippe"].metrics["frames"] == by_label["p4p"].metrics["frames"] == 5
     assert sorted(p.name for p in out.iterdir()) == ["r-ippe.rrd", "r-lm.rrd", "r-p4p.rrd", "ranking.csv",
                                                       "ranking.md", "sweep.rrd"]
 
 
-def test_sweep_on_a_cluster_without_dask_is_one_line(tmp_path, monkeypatch, qr_small):
-    """--scheduler needs Dask: without it, one line before anything is written (a local sweep
-    does not need it)."""
+def test_sweep_without_dask_is_one_line(tmp_path, monkeypatch, qr_small):
     recording = qr_small  # a recording: what is none is refused before Dask is looked for
     monkeypatch.setitem(sys.modules, "distributed", None)  # `import distributed` raises ImportError
     with pytest.raises(InputError, match=r"pip install 'agvviz\[distributed\]'"):
-        sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp_path / "out", scheduler="tcp://127.0.0.1:1")
+        sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp_path / "out")
     assert not (tmp_path / "out").exists()
     result = CliRunner().invoke(app, ["sweep", str(recording), "--set", "solver=lm,p4p", "--out-dir",
-                                      str(tmp_path / "out"), "--scheduler", "tcp://127.0.0.1:1"])
+                                      str(tmp_path / "out")])
     assert result.exit_code == 2, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert lines[-1] == f"error: {cluster.DASK_MISSING}", result.output

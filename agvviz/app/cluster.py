@@ -1,40 +1,41 @@
-"""The engine of ``agvviz sweep``: each detection group's settings in one pass, in this process
-or on a Dask cluster.
+"""The engine of ``agvviz sweep``: Dask distributed runs the sweep's replays.
 
-A sweep's runs (:class:`RunTask`: recording, settings, output ``.rrd``) are grouped by recording
-and detection settings (:func:`detection_groups`, :func:`agvviz.replay.detect.stage.detection_settings`).
-A group runs in one pass (:func:`run_group`): its first setting, the *lead*, reads the recording
-and detects it on the detect stage's pool of processes, as ``agvviz run`` does (filling the
-detection cache); the others *follow* it in lockstep, each in a thread of the same process,
-taking every message with its detections and only solving
-(:mod:`agvviz.replay.detect.lockstep`). A follower that could not follow (its lead failed) runs
-again with the others like it, the first of them leading.
+:func:`open_client` gives a Dask client of a new ``distributed.LocalCluster`` (worker processes
+on this machine, one thread each) or of an existing cluster given by its scheduler's address;
+:func:`run_sweep_tasks` runs a sweep's runs (recording, settings, output ``.rrd``) on it. It
+groups them by recording and detection settings (:func:`agvviz.replay.detect.stage.detection_settings`);
+each group's first setting, its *lead*, runs first and alone: it detects the recording on both
+cores and solves meanwhile, in one pass, as ``agvviz run`` does, and fills the detection cache.
+On a local cluster the leads run in the sweep process itself while the cluster starts
+(:class:`LocalRuns`), on an existing cluster as tasks. When a lead is done, its group's other
+settings go to the workers, which have imported agvviz meanwhile, and only solve (from the
+cache); a local sweep keeps one of them in its own process, which has imported everything too
+and would otherwise wait. A lead that failed hands the lead to the next setting of its group.
+A task's failure — an error of agvviz, a worker process that died — comes back as that run's
+one-line message; the other runs go on.
 
-- A local sweep (:class:`LocalRuns`) runs its groups in its own process, one after the other:
-  the lead's detection pool already fills every CPU, so more processes would gain nothing, and
-  no worker has to start or import anything.
-- On an existing Dask cluster (``--scheduler``, :func:`open_client`) each group is one task
-  (:func:`run_group_task`).
+Progress: workers report frames done through Dask's event log (``Worker.log_event``, at most
+every :data:`PROGRESS_EVERY_S` per task); a task that finishes counts all its frames.
 
-A setting's failure comes back as that run's one-line message (:class:`TaskResult`); the other
-runs go on.
+Interruption (Ctrl-C, SIGTERM): the sweep sets a Dask ``Event`` that every running task checks
+between frames (it then stops, and its unfinished ``.rrd`` is removed), cancels the futures and
+closes the cluster. The local cluster's worker processes ignore SIGINT and SIGTERM (see
+:func:`_start_method`, :func:`dask_setup`), so a Ctrl-C at the terminal, which reaches the whole
+process group, is handled by the sweep process alone. They end when the sweep process ends,
+even by SIGKILL (Dask's own parent watch); a small reaper process then removes the temporary
+files they leave.
+On an existing cluster (``--scheduler``) the stop event ends the running tasks the same way.
 
-Progress: a local sweep reads each run's frames done; on a cluster, tasks report them through
-Dask's event log (``Worker.log_event``, at most every :data:`PROGRESS_EVERY_S` per run); a run
-that finishes counts all its frames.
+Dask is an optional dependency (``pip install 'agvviz[distributed]'``); without it a sweep
+fails at once with :data:`DASK_MISSING` — there is no second, serial engine.
 
-Interruption (Ctrl-C, SIGTERM): local runs stop at their next frame (their unfinished ``.rrd``
-files are removed); on a cluster the sweep sets a Dask ``Event`` that every running task checks
-between frames, and cancels the others.
-
-Dask is an optional dependency (``pip install 'agvviz[distributed]'``), needed for
-``--scheduler`` only; without it such a sweep fails at once with :data:`DASK_MISSING`. Only this
-module imports Dask, and only inside functions.
+Only this module imports Dask, and only inside functions (the reaper starts without it).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -47,23 +48,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator
 
-from agvviz.errors import InputError
 from agvviz.recording import outputs
 from agvviz.replay.detect.workers import signals_ignored
+from agvviz.errors import InputError
 
 if TYPE_CHECKING:
     from agvviz.settings import RunSettings
 
-#: The one-line error of a sweep on a cluster (--scheduler) without Dask.
-DASK_MISSING = (
-    "agvviz sweep --scheduler runs on Dask distributed, which is not installed: pip install 'agvviz[distributed]'"
-)
+#: The one-line error of a sweep without Dask.
+DASK_MISSING = "agvviz sweep runs on Dask distributed, which is not installed: pip install 'agvviz[distributed]'"
 #: A worker reports its task's frames done at most this often (seconds).
 PROGRESS_EVERY_S = 0.25
 #: A running task looks at the sweep's stop event at most this often (seconds).
 STOP_CHECK_EVERY_S = 0.5
 #: How long to wait for an existing cluster's scheduler to answer (seconds).
 CONNECT_TIMEOUT_S = 10.0
+#: How long the local cluster's workers get to stop before they are killed (seconds): at the
+#: end of a sweep, and when it was interrupted (a task stops at its next frame, and a worker
+#: killed instead leaves temporary files that the sweep removes).
+CLOSE_TIMEOUT_S = 10.0
+STOP_TIMEOUT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -83,9 +87,6 @@ class TaskResult:
 
     timing: dict = field(default_factory=dict)
     error: str | None = None
-    #: It did not run for a reason of its group's, not its own (its lead stopped early, or it
-    #: could not follow the lead): to be run again on its own.
-    retry: bool = False
 
 
 class SweepStopped(Exception):
@@ -174,165 +175,178 @@ def _detect_jobs(share: int) -> int:
 
 
 class LocalRuns:
-    """A local sweep's runs, in this process: each detection group (:func:`detection_groups`) in
-    one pass (:func:`run_group`), one group after the other, in a thread.
+    """The runs a local sweep makes in its own process: each detection group's lead, at once,
+    while the cluster starts, and then some of the groups' other settings, beside the workers.
 
-    A group's lead detects the recording on the detect stage's own pool of ``jobs`` processes,
-    which fills both cores; its other settings follow it in lockstep and only solve. Nothing is
-    gained by more processes on one machine — the lead's pool already uses every CPU — so a
-    local sweep starts no cluster. ``results[i]`` is task i's :class:`TaskResult` once its group
-    is done, ``frames[i]`` counts its frames done. :meth:`close` stops the runs at their next
-    frame.
+    The lead of a detection group (:func:`detection_groups`) is its first setting: it detects
+    the recording on the detect stage's own pool of ``jobs`` processes and solves meanwhile, in
+    one pass, as ``agvviz run`` does (which fills the detection cache). With a local cluster
+    every process is on this machine, so nothing is gained by sending a lead to a worker — and
+    much is lost: the cluster must first start and the worker then starts its own detection
+    pool. Once the leads are done this process has imported everything a run needs, as the
+    workers have, and would only wait: :func:`run_sweep_tasks` hands it one more setting of each
+    group (:meth:`add`) while the workers solve the others. The runs go one after the other, in a
+    thread; ``results[i]`` is task i's :class:`TaskResult` once it is done, ``frames[i]`` counts
+    its frames done. :meth:`close` stops the thread at its next frame.
     """
 
     def __init__(self, tasks: list[RunTask], cache_dir: Path | None, jobs: int):
         self.tasks = tasks
-        self.groups = list(detection_groups(tasks).values())
+        self.leads = [members[0] for members in detection_groups(tasks).values()]
         self.cache_dir, self.jobs = cache_dir, max(1, jobs)
         self.results: dict[int, TaskResult] = {}
         self.frames: dict[int, int] = {}
+        self._queue = list(self.leads)
+        self._wake = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run_all, name="agvviz sweep local runs", daemon=True)
 
     def start(self) -> "LocalRuns":
         # Imported here, in the calling thread: two threads importing one module at once can
-        # deadlock on its import lock (the sweep counts frames in another thread meanwhile);
-        # so is what a run imports on its way (the detection cache's Parquet).
+        # deadlock on its import lock (the sweep counts frames in another thread meanwhile and
+        # then imports Dask); so is what a run imports on its way (the detection cache's Parquet).
         import pyarrow.parquet  # noqa: F401
 
         import agvviz.app.run  # noqa: F401
-        from agvviz.replay.detect.workers import start_fork_server
-        from agvviz.viz import run_process  # noqa: F401 — its .rrd writer forks from the server too (preload_too)
 
-        start_fork_server()  # the detection pool's and .rrd writers' (signals ignored)
+        _start_method()  # the fork server (signals ignored) that the detection pool and the workers share
         self._thread.start()
         return self
 
-    def _progress(self, index: int) -> Callable[[int], None]:
-        def progress(frames_done: int) -> None:
-            self.frames[index] = frames_done
-            if self._stop.is_set():
-                raise SweepStopped("the sweep was interrupted")
-
-        return progress
+    def add(self, index: int) -> None:
+        """Run task ``index`` here too, after those already given (it reads its detections from
+        the cache: one process)."""
+        with self._wake:
+            self._queue.append(index)
+            self._wake.notify()
 
     def _run_all(self) -> None:
-        for members in self.groups:
-            if self._stop.is_set():
-                return
-            results = run_group(self.tasks, members, jobs=self.jobs, cache_dir=self.cache_dir,
-                                progress_of=self._progress, stopped=self._stop.is_set)
-            if self._stop.is_set():  # interrupted: nobody waits for the results
-                return
-            self.results.update(results)
+        while True:
+            with self._wake:
+                while not self._queue and not self._stop.is_set():
+                    self._wake.wait()
+                if self._stop.is_set():
+                    return
+                index = self._queue.pop(0)
 
-    @property
-    def done(self) -> bool:
-        return not self._thread.is_alive()
+            def progress(frames_done: int, index: int = index) -> None:
+                self.frames[index] = frames_done
+                if self._stop.is_set():
+                    raise SweepStopped("the sweep was interrupted")
+
+            jobs = self.jobs if index in self.leads else 1
+            result = _run(self.tasks[index], jobs, progress, self.cache_dir)
+            if self._stop.is_set():  # interrupted: nobody waits for the result
+                return
+            self.results[index] = result
 
     def close(self) -> None:
         """Stop (at the next frame) and wait for the thread."""
-        self._stop.set()
+        with self._wake:
+            self._stop.set()
+            self._wake.notify()
         if self._thread.is_alive():
             self._thread.join()
 
 
-def run_group(
-    tasks: list[RunTask], members: list[int], *, jobs: int, cache_dir: Path | None,
-    progress_of: Callable[[int], Callable[[int], None]], stopped: Callable[[], bool] = lambda: False,
-) -> dict[int, TaskResult]:
-    """Run one detection group's tasks (``members``, indices of ``tasks``) in one pass: the
-    first leads — it reads the recording and detects it on ``jobs`` processes (from the cache
-    when it is there) — and the others follow it, each in its own thread, taking its messages
-    and detections (:mod:`agvviz.replay.detect.lockstep`). A follower that could not follow (its
-    lead stopped early: it failed; other topics or clock) runs again with the others like it,
-    the first of them leading. ``progress_of(i)`` is task i's ``progress(frames_done)``;
-    ``stopped()`` says the sweep was interrupted (nothing is run again then). Returns each
-    member's :class:`TaskResult`."""
-    from agvviz.replay.detect.lockstep import Lockstep
-
-    results: dict[int, TaskResult] = {}
-    todo = list(members)
-    while todo and not stopped():
-        lead, followers = todo[0], todo[1:]
-        lockstep = Lockstep(len(followers))
-
-        def follow(k: int, index: int) -> None:
-            try:
-                results[index] = _run(tasks[index], 1, progress_of(index), cache_dir, follow=(lockstep, k))
-            finally:
-                lockstep.close(k)
-
-        threads = [
-            threading.Thread(target=follow, args=(k, index), name=f"agvviz sweep follower {index}", daemon=True)
-            for k, index in enumerate(followers)
-        ]
-        for thread in threads:
-            thread.start()
-        try:
-            results[lead] = _run(tasks[lead], jobs, progress_of(lead), cache_dir,
-                                 lead_of=lockstep if followers else None)
-        finally:
-            lockstep.lead_done()
-            for thread in threads:
-                thread.join()
-        todo = [i for i in followers if results[i].retry]
-    return results
-
-
-def _run(
-    task: RunTask, jobs: int, progress: Callable[[int], None], cache_dir: Path | None, *, lead_of=None, follow=None,
-) -> TaskResult:
+def _run(task: RunTask, jobs: int, progress: Callable[[int], None], cache_dir: Path | None) -> TaskResult:
     """Replay one setting (:func:`agvviz.app.run.run_recording`) with ``jobs`` detection
-    processes (its group's detections come from the cache when they are there; ``lead_of`` /
-    ``follow``: in lockstep, see :func:`run_group`); a failure, an interruption
-    (:class:`SweepStopped` from ``progress``) included, is the result's error."""
+    processes (its group's detections come from the cache when they are there); a failure, an
+    interruption (:class:`SweepStopped` from ``progress``) included, is the result's error."""
     from agvviz.app.run import run_recording
-    from agvviz.replay.detect.lockstep import LeadFailed, LockstepMismatch
 
     extra = {"cache_dir": cache_dir} if cache_dir is not None else {}
     try:
         outcome = run_recording(task.recording, task.settings, task.out_path, progress=progress, jobs=jobs,
-                                images=task.images, lead_of=lead_of, follow=follow, **extra)
-    except (LeadFailed, LockstepMismatch) as exc:
-        return TaskResult(error=one_line(exc), retry=True)
+                                images=task.images, **extra)
     except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
         return TaskResult(error=one_line(exc))
     return TaskResult(timing=dict(outcome.timing))
 
 
-def run_group_task(
-    tasks: list[RunTask], members: list[int], cache_dir: str | None, topic: str, stop_name: str, share: int = 1,
-) -> dict[int, TaskResult]:
-    """Worker: one detection group's tasks in one pass (:func:`run_group`); the lead detects on
-    ``share`` processes (its share of the cluster's threads; in-process in a daemonic worker)."""
+def run_task(
+    recording: str, settings: "RunSettings", out_path: str, cache_dir: str | None, topic: str, stop_name: str,
+    unit: int, images: bool = True, share: int = 1,
+) -> TaskResult:
+    """Worker: replay one setting. A group's lead (``share`` > 1: its share of the cluster's
+    threads) detects on that many processes (in-process in a daemonic worker) and fills the
+    cache; the others read their group's detections from it and only solve."""
     import cv2
 
     cv2.setNumThreads(1)  # one thread per worker: the workers already fill the CPUs
-    reporters = {i: _Reporter(topic, stop_name, i) for i in members}
-    stop = reporters[members[0]].stop
-    return run_group(
-        tasks, members, jobs=_detect_jobs(share), cache_dir=Path(cache_dir) if cache_dir is not None else None,
-        progress_of=reporters.__getitem__, stopped=stop.is_set,
-    )
+    reporter = _Reporter(topic, stop_name, unit)
+    task = RunTask(Path(recording), settings, Path(out_path), images)
+    return _run(task, _detect_jobs(share), reporter, Path(cache_dir) if cache_dir is not None else None)
 
 
-# -- temporaries left behind -------------------------------------------------------------------
-@contextmanager
-def reaper(folders: list[Path]) -> Iterator[None]:
-    """A local sweep's guard: a small process that, once this one has ended in any way (even by
-    SIGKILL), removes the temporary files its runs left in ``folders`` (:func:`reap`)."""
-    with signals_ignored(signal.SIGINT, signal.SIGTERM):  # the reaper outlives any signal to the group
-        started = _start_reaper(folders)
-    try:
-        yield
-    finally:
-        for folder in folders:
-            outputs.remove_stale_temps(folder)
-        if started is not None:
-            process, write_fd = started
-            os.close(write_fd)
-            process.wait()
+# -- the cluster -------------------------------------------------------------------------------
+def _start_method() -> str:
+    """Dask's way to start the local workers: forked from the fork server, which this starts
+    with SIGINT and SIGTERM ignored, where there is one; else spawned.
+
+    A Ctrl-C at the terminal, or a SIGTERM to the process group, reaches every process of the
+    sweep: the fork server must outlive it (the workers' exit is watched through it), and the
+    workers ignore it too (they inherit SIGINT ignored; :func:`dask_setup` for SIGTERM) — the
+    sweep process alone handles it, stopping the tasks and closing the cluster. A fork server
+    already running in this process (a library user's) is used as it is."""
+    import multiprocessing
+    import multiprocessing.forkserver
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return "spawn"
+    from agvviz.viz.run_process import LOGGER_MODULES
+
+    # no effect once it runs; the .rrd writers of the runs here fork from it too
+    multiprocessing.forkserver.set_forkserver_preload(["distributed", "agvviz.app.run", *LOGGER_MODULES])
+    with signals_ignored(signal.SIGINT, signal.SIGTERM):
+        multiprocessing.forkserver.ensure_running()
+    return "forkserver"
+
+
+def start_fork_server() -> None:
+    """Start the local cluster's fork server now (:func:`_start_method`), so that its imports run
+    beside the caller's own."""
+    _start_method()
+
+
+def _ignore_signal(signum, frame) -> None:
+    """A do-nothing handler: unlike SIG_IGN, processes started by exec get the default back."""
+
+
+def _import_replay() -> None:
+    import agvviz.app.run  # noqa: F401
+
+
+def dask_setup(worker) -> None:
+    """Dask preload of the local cluster's workers (run in each worker's main thread).
+
+    SIGTERM, inherited ignored from the fork server, stays without effect here (the sweep
+    process handles it) but through a handler, so the processes a task starts by exec (detection
+    pools) get the default SIGTERM back (their parent-death signal). The replay's modules are
+    imported in the background meanwhile, so a worker whose first run waits for a detection does
+    not import them then."""
+    signal.signal(signal.SIGTERM, _ignore_signal)
+    threading.Thread(target=_import_replay, name="agvviz import", daemon=True).start()
+
+
+def _local_cluster(distributed, workers: int):
+    import dask
+
+    with dask.config.set({
+        "distributed.worker.multiprocessing-method": _start_method(),
+        # Workers may start processes (detection pools): not daemonic. They still end with the
+        # sweep process (Dask's parent watch).
+        "distributed.worker.daemon": False,
+        # A task whose worker died fails at once (a replay that crashes a process would again).
+        "distributed.scheduler.allowed-failures": 0,
+    }):
+        return distributed.LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, silence_logs=logging.CRITICAL, memory_limit=0,
+            preload=[__name__],  # dask_setup
+            # No dashboard; the scheduler's own HTTP routes on a free local port (its default,
+            # 8787, warns when another cluster has it).
+            dashboard_address=None, scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+        )
 
 
 def _start_reaper(folders: list[Path]) -> tuple[subprocess.Popen, int] | None:
@@ -355,12 +369,12 @@ def _start_reaper(folders: list[Path]) -> tuple[subprocess.Popen, int] | None:
 def reap(grace_s: float = 5.0) -> None:
     """Reaper process: wait for the sweep process to end (end of standard input), then remove
     agvviz temporaries of dead processes in the folders named on the command line, retrying for
-    ``grace_s`` while its detection workers finish dying."""
+    ``grace_s`` while the workers finish dying."""
     sweep_pid = os.getppid()
     sys.stdin.buffer.read()
     folders = sys.argv[1:]
     # The sweep process has ended, though it may linger as a zombie until whoever started it
-    # waits for it, and so still look alive: its own temporaries (its runs') go at once.
+    # waits for it, and so still look alive: its own temporaries (its local runs') go at once.
     for folder in folders:
         for name in os.listdir(folder) if os.path.isdir(folder) else []:
             match = outputs.TEMP_RE.match(name)
@@ -379,22 +393,55 @@ def reap(grace_s: float = 5.0) -> None:
         time.sleep(0.1)
 
 
-
-# -- the cluster -------------------------------------------------------------------------------
 @contextmanager
-def open_client(scheduler: str) -> Iterator[object]:
-    """A Dask client of the cluster at ``scheduler`` (``--scheduler``); the cluster is the
-    caller's and stays as it is. :class:`InputError` when it cannot be reached."""
-    distributed = import_distributed()
+def open_client(
+    scheduler: str | None, workers: int, temp_folders: list[Path], before_cluster: Callable[[], None] | None = None,
+) -> Iterator[object]:
+    """A Dask client: of the cluster at ``scheduler``, or of a new local cluster of ``workers``
+    processes (closed on leaving, with the reaper for ``temp_folders``). ``before_cluster``: a
+    local cluster calls it once its reaper runs, before its workers start (the sweep starts its
+    own runs then, :class:`LocalRuns`)."""
+    if scheduler is not None:
+        distributed = import_distributed()
+        try:
+            distributed.comm.resolve_address(scheduler)  # a malformed address or unknown host: at once
+            client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {' '.join(str(exc).split())}") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    with signals_ignored(signal.SIGINT, signal.SIGTERM):  # the reaper outlives any signal to the group
+        reaper = _start_reaper(temp_folders)
+    cluster = client = None
+    interrupted = False
     try:
-        distributed.comm.resolve_address(scheduler)  # a malformed address or unknown host: at once
-        client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {' '.join(str(exc).split())}") from None
-    try:
+        if before_cluster is not None:
+            before_cluster()
+        distributed = import_distributed()
+        cluster = _local_cluster(distributed, workers)
+        client = distributed.Client(cluster, set_as_default=False)
         yield client
+    except BaseException:
+        interrupted = True
+        raise
     finally:
-        client.close()
+        try:
+            if client is not None:
+                client.close()
+            if cluster is not None:  # a worker still busy after 0.8 × the timeout is killed
+                cluster.close(timeout=STOP_TIMEOUT_S if interrupted else CLOSE_TIMEOUT_S)
+        except Exception:  # noqa: BLE001 — a close that timed out: the workers end with this process
+            pass
+        finally:
+            for folder in temp_folders:  # left by a worker that was killed
+                outputs.remove_stale_temps(folder)
+            if reaper is not None:
+                process, write_fd = reaper
+                os.close(write_fd)
+                process.wait()
 
 
 def run_sweep_tasks(
@@ -407,86 +454,108 @@ def run_sweep_tasks(
     local: LocalRuns | None = None,
     on_result: Callable[[int, TaskResult], None] | None = None,
 ) -> list[TaskResult]:
-    """Run ``tasks``, each :func:`detection_groups` group in one pass (:func:`run_group`): in
-    this process (``local``, a :class:`LocalRuns` already started for these ``tasks``), or as
-    one task per group on the Dask ``client``'s cluster (:func:`open_client`). The results in
-    the order of ``tasks``.
+    """Run ``tasks`` on the Dask ``client``'s cluster (see :func:`open_client`): each
+    :func:`detection_groups` group's lead (its first task) first, which detects and fills the
+    cache, then the group's other tasks, which only solve; the results in the order of
+    ``tasks``. ``local``: the leads run in this process (:class:`LocalRuns`, already started
+    for these ``tasks``) instead of as tasks on the cluster.
 
-    ``on_result(index, result)`` is called in this thread as each group ends (the sweep reads
-    its runs back meanwhile, while the next groups run). ``frames``: frames per recording, for
+    ``on_result(index, result)`` is called in this thread as each task ends (the sweep reads
+    the run back meanwhile, while the others solve). ``frames``: frames per recording, for
     ``progress(frames_done, runs_finished)`` (see :func:`progress_total`). Interrupted
     (Ctrl-C), it stops the running tasks (at their next frame) and cancels the others.
     """
+    from distributed import Event
+
     if not tasks:
         return []
     frames = frames or {}
+    groups = list(detection_groups(tasks).values())
+    leads = [members[0] for members in groups]
+    token = uuid.uuid4().hex[:12]
+    topic, stop_name = f"agvviz-sweep-progress-{token}", f"agvviz-sweep-stop-{token}"
     expected = [frames.get(t.recording, 0) for t in tasks]  # progress: each task's frames
     done_frames = [0] * len(tasks)
     lock = threading.Lock()
+
+    def on_event(event) -> None:  # in the client's event-loop thread
+        _, (unit, count) = event
+        with lock:  # frames of a recording that could not be counted are not shown
+            done_frames[unit] = max(done_frames[unit], min(int(count), expected[unit]))
+
     results: list[TaskResult | None] = [None] * len(tasks)
-    pending: dict[object, list[int]] = {}  # future -> its group
-    stop_name = None
-    if local is None:
-        from distributed import Event
+    client.subscribe_topic(topic, on_event)
+    cache = str(Path(cache_dir).resolve()) if cache_dir is not None else None
+    share = max(1, sum(client.nthreads().values()) // len(groups))
+    pending: dict[object, int] = {}  # future -> its task
 
-        groups = list(detection_groups(tasks).values())
-        token = uuid.uuid4().hex[:12]
-        topic, stop_name = f"agvviz-sweep-progress-{token}", f"agvviz-sweep-stop-{token}"
+    def submit(i: int, share: int = 1) -> None:
+        task = tasks[i]
+        future = client.submit(
+            run_task, str(task.recording.resolve()), task.settings, str(task.out_path.resolve()), cache, topic,
+            stop_name, i, task.images, share, key=f"agvviz-run-{token}-{i}", pure=False,
+        )
+        pending[future] = i
 
-        def on_event(event) -> None:  # in the client's event-loop thread
-            _, (unit, count) = event
-            with lock:  # frames of a recording that could not be counted are not shown
-                done_frames[unit] = max(done_frames[unit], min(int(count), expected[unit]))
-
-        client.subscribe_topic(topic, on_event)
-        cache = str(Path(cache_dir).resolve()) if cache_dir is not None else None
-        share = max(1, sum(client.nthreads().values()) // len(groups))
-        resolved = [RunTask(t.recording.resolve(), t.settings, t.out_path.resolve(), t.images) for t in tasks]
-        for n, members in enumerate(groups):
-            future = client.submit(run_group_task, resolved, members, cache, topic, stop_name, share,
-                                   key=f"agvviz-group-{token}-{n}", pure=False)
-            pending[future] = members
+    waiting = {members[0]: members[1:] for members in groups}  # a running lead → its group's other tasks
+    running_here = set(leads) if local is not None else set()  # tasks of `local`, not yet ended
     try:
-        while pending or (local is not None and not all(r is not None for r in results)):
-            ended: list[tuple[int, TaskResult]] = []
+        if local is None:
+            for lead in leads:
+                submit(lead, share)
+        while pending or running_here:
+            ended = []
             for future in [f for f in pending if f.done()]:
-                members = pending.pop(future)
+                i = pending.pop(future)
                 try:
-                    group_results = future.result()
+                    result = future.result()
                 except Exception as exc:  # noqa: BLE001 — a worker that died, a cancelled task
-                    group_results = {i: TaskResult(error=one_line(exc)) for i in members}
-                ended += sorted(group_results.items())
-            if local is not None:
-                for i in range(len(tasks)):
-                    if results[i] is None:
-                        with lock:
-                            done_frames[i] = max(done_frames[i], min(local.frames.get(i, 0), expected[i]))
-                        if i in local.results:
-                            ended.append((i, local.results[i]))
-                if local.done and not ended and not all(r is not None for r in results):
-                    raise RuntimeError("the sweep's local runs ended without a result for every setting")
+                    result = TaskResult(error=one_line(exc))
+                ended.append((i, result))
+            for i in sorted(running_here):
+                with lock:
+                    done_frames[i] = max(done_frames[i], min(local.frames.get(i, 0), expected[i]))
+                if i in local.results:
+                    running_here.discard(i)
+                    ended.append((i, local.results[i]))
             for i, result in ended:
                 with lock:
                     done_frames[i] = expected[i]
                 results[i] = result
-            for i, result in ended:
+                rest = waiting.pop(i, [])
+                if rest and result.error is not None:
+                    # A lead that failed may not have detected (its output, its solver): the
+                    # next task of its group leads in its place, on the cluster.
+                    waiting[rest[0]] = rest[1:]
+                    submit(rest[0], share)
+                    continue
+                # A lead that ran: its group's detections are in the cache, the others only
+                # solve. They are submitted now rather than as the lead's dependents, which
+                # Dask would all place on the one worker holding its result. A local sweep
+                # keeps the last of them in this process, which would otherwise only wait.
+                if rest and local is not None:
+                    local.add(rest[-1])
+                    running_here.add(rest[-1])
+                    rest = rest[:-1]
+                for member in rest:
+                    submit(member)
+            for i, result in ended:  # after the submissions: the workers go on meanwhile
                 if on_result is not None:
                     on_result(i, result)
             if progress is not None:
                 with lock:
                     total_done = sum(done_frames)
                 progress(total_done, sum(r is not None for r in results))
-            if pending or (local is not None and not all(r is not None for r in results)):
+            if pending or running_here:
                 time.sleep(0.05)
     except BaseException:  # interrupted: stop the running tasks, drop the others
         if local is not None:
             local.close()
-        if stop_name is not None:
-            try:
-                Event(stop_name, client=client).set()
-                client.cancel(list(pending))
-            except Exception:  # noqa: BLE001 — the cluster may be gone already
-                pass
+        try:
+            Event(stop_name, client=client).set()
+            client.cancel(list(pending))
+        except Exception:  # noqa: BLE001 — the cluster may be gone already; closing follows
+            pass
         raise
     return results
 

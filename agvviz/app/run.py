@@ -15,7 +15,7 @@ import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
@@ -28,7 +28,6 @@ from agvviz.model.topics import ROLE_CORNERS, ROLE_MARKER_MAP, image_role
 from agvviz.replay.graph import STUDY_CNOEM, STUDY_MONTE_CARLO, Composition
 from agvviz.replay.run import (
     UNUSABLE_REJECTIONS,
-    DetectionPlan,
     NoUsableFrameError,
     Prepared,
     SideInputs,
@@ -42,9 +41,6 @@ from agvviz.replay.run import (
 from agvviz.replay.sinks import FanOut
 from agvviz.settings import RunSettings, as_dict, inapplicable, without
 from agvviz.viz.run_process import rrd_writer
-
-if TYPE_CHECKING:
-    from agvviz.replay.detect.lockstep import Lockstep
 
 @dataclass
 class RunOutcome:
@@ -134,8 +130,6 @@ def run_recording(
     cache_dir: Path | None | bool = None,
     error_budget=None,
     images: bool = True,
-    lead_of: "Lockstep | None" = None,
-    follow: "tuple[Lockstep, int] | None" = None,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -161,12 +155,6 @@ def run_recording(
     ``images=False`` (``run --images none``) leaves the camera images out of the ``.rrd``: the
     layers only, for long logs (the manifest is a full run's: a sweep's layers equal a standalone
     run's); ``agvviz view`` adds the frames from the recording (:mod:`agvviz.viz.frames`).
-
-    ``lead_of`` and ``follow`` run several settings of one recording in one pass
-    (:mod:`agvviz.replay.detect.lockstep`, a sweep's detection group): ``lead_of`` a
-    :class:`~agvviz.replay.detect.lockstep.Lockstep` this run reads and detects for;
-    ``follow=(lockstep, i)`` makes this run its follower ``i``, which takes the lead's messages
-    and detections instead of reading and detecting (the ``.rrd`` is the same either way).
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":
@@ -246,14 +234,7 @@ def run_recording(
         return _run_study(prepared, composition, settings, out_path, inputs, manifest, recording_id, progress, on_total)
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    if follow is not None:
-        lockstep, index = follow
-        feed = lockstep.follower(index, replay.detect_params, roles.roles, prepared.time_source)
-        detection = DetectionPlan(feed, None, from_cache=False, source="lead run")
-    else:
-        detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
-        if lead_of is not None:
-            detection.feed = lead_of.tee(detection.feed, roles.roles, prepared.time_source, read_report)
+    detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
     # The .rrd is written by a process of its own (viz.run_process): this one solves meanwhile.
     with rrd_writer(
         out_path, settings, recording_name=recording_name, recording_id=recording_id, inputs=tuple(inputs),
@@ -270,8 +251,6 @@ def run_recording(
         graph = run_graph(prepared, settings, sinks, read_report, composition=composition, detection=detection,
                           progress=progress if progress_role is not None else None, progress_role=progress_role)
         wall_time_s = time.perf_counter() - t_start
-        if follow is not None:  # what the lead read is what this run replayed
-            read_report = detection.feed.read_report
         scores = stats.scores
         correction_only = graph.corrected and not scores  # corner observations, no frame
         if not scores and not correction_only and not graph.has_uwb:

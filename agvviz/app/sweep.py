@@ -213,7 +213,7 @@ def sweep(
     cache_dir: str | os.PathLike | None = None,
     keep_runs: bool = False,
 ) -> SweepOutcome:
-    """Replay every recording under every combination of ``grid``, here or on a Dask cluster.
+    """Replay every recording under every combination of ``grid`` on a Dask cluster.
 
     Parameters
     ----------
@@ -228,15 +228,14 @@ def sweep(
         the frames once), ``ranking.csv`` and ``ranking.md``; with ``keep_runs`` also
         ``<stem>-<label>.rrd`` per setting (a self-contained run).
     jobs : int, optional
-        Detection processes of each group's lead in a local sweep (default: one per CPU).
+        Worker processes of the local cluster (default: one per CPU, at most one per run).
     rank_by : str
         Metric to rank by (lower is better, except ``solved``/``solved_pct``).
     progress : callable, optional
         ``progress(frames_done, runs_finished)`` summed over all runs (``on_total(frames)`` is
         called first with the total).
     scheduler : str, optional
-        Address of an existing Dask cluster's scheduler (needs Dask, ``agvviz[distributed]``);
-        None runs the sweep in this process.
+        Address of an existing Dask cluster's scheduler; None starts a local cluster.
     cache_dir : path, optional
         Detection cache folder (default: :func:`agvviz.replay.detect.cache.default_cache_dir`).
     keep_runs : bool
@@ -244,10 +243,10 @@ def sweep(
         setting runs layers-only into a temporary folder and lives in ``sweep.rrd`` alone.
 
     Each recording is detected once per distinct detection settings of the grid: the first such
-    setting (its lead) reads the recording and detects it on every core, as ``agvviz run``
-    does, and the others follow it in the same pass and only solve (:mod:`agvviz.app.cluster`,
-    :mod:`agvviz.replay.detect.lockstep`); each group's runs are read back as it ends. A run that
-    fails is reported in its entry (``error``) and ranked last; the others go on.
+    setting (its lead) detects on every core and solves in one pass, as ``agvviz run`` does, and
+    the others then only solve, from the detection cache (:mod:`agvviz.app.cluster`); each run
+    is read back as it ends, while the others solve. A run that fails is reported in its
+    entry (``error``) and ranked last; the others go on. Needs Dask (``agvviz[distributed]``).
 
     Raises
     ------
@@ -280,8 +279,11 @@ def sweep(
     out_dirs = sweep_out_dirs(recordings, out_dir)
     from agvviz.app import cluster
 
-    if scheduler is not None:
-        cluster.require_distributed()  # without Dask: one line, before anything is written
+    if scheduler is None:
+        # The fork server that the workers and the detection pool are forked from imports Dask
+        # and agvviz's replay (≈1.5 s): started first, it does so while this process imports them.
+        cluster.start_fork_server()
+    cluster.require_distributed()  # without Dask: one line, before anything is written
     per_recording = []
     for path, folder in zip(recordings, out_dirs):
         entries = []
@@ -299,51 +301,51 @@ def sweep(
     all_entries = [e for entries in per_recording for e in entries]
     series: dict[int, RunSeries] = {}  # index in all_entries → its run, read back as it ends
     tasks = [cluster.RunTask(e.recording, e.settings, e.run_path, images=keep_runs) for e in all_entries]
+    workers = min(jobs or os.cpu_count() or 1, len(tasks))
     cache = Path(cache_dir) if cache_dir is not None else None
     local = None
+
+    def start_here() -> None:
+        # On a local cluster the leads (each detection group's first setting: it detects and
+        # solves, as `agvviz run` does) start here at once — after the cluster's reaper, which
+        # removes their temporaries if this process is killed — while the workers start; this
+        # process then solves one more setting of each group beside them (cluster.LocalRuns).
+        # On an existing cluster every run is its task.
+        nonlocal local
+        for folder in out_dirs:
+            outputs.prepare_dir(folder, option="--out-dir")
+        local = cluster.LocalRuns(tasks, cache, workers).start()
+
+    # Frames for the progress bar are counted while the cluster starts (a read of each file).
     # What the threads will run is imported first, here: two threads importing one module at
     # once can deadlock on its import lock.
     import agvviz.recording.reader  # noqa: F401
 
+    if scheduler is None:
+        import agvviz.app.run  # noqa: F401
     frames: dict[Path, int] = {}
     counter = None
     if progress is not None or on_total is not None:
-        # Frames for the progress bar are counted beside the first runs (a read of each file).
         counter = threading.Thread(
             target=lambda: frames.update({path: _count_frames(path) for path in recordings}),
             name="agvviz count frames", daemon=True,
         )
-    read_back = lambda i, result: _read_back(all_entries[i], result, series, i, align, rpe_delta)  # noqa: E731
+        counter.start()
     try:
-        if scheduler is None:
-            # A local sweep runs every detection group in this process, each in one pass
-            # (cluster.LocalRuns): the lead's detection pool fills the CPUs.
-            for folder in out_dirs:
-                outputs.prepare_dir(folder, option="--out-dir")
-            with cluster.reaper([folder.resolve() for folder in out_dirs]):
-                local = cluster.LocalRuns(tasks, cache, jobs or os.cpu_count() or 1).start()
-                try:
-                    if counter is not None:
-                        counter.start()
-                        counter.join()
-                        if on_total is not None:
-                            on_total(cluster.progress_total(tasks, frames))
-                    cluster.run_sweep_tasks(None, tasks, cache_dir=cache, frames=frames, progress=progress,
-                                            local=local, on_result=read_back)
-                finally:
-                    local.close()  # (interrupted: the runs stop at their next frame) before the reaper goes
-        else:
-            # The cluster first: an unreachable scheduler leaves nothing behind.
-            with cluster.open_client(scheduler) as client:
+        # The cluster first: an unreachable scheduler leaves nothing behind.
+        with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs],
+                                 before_cluster=start_here) as client:
+            if scheduler is not None:
                 for folder in out_dirs:
                     outputs.prepare_dir(folder, option="--out-dir")
-                if counter is not None:
-                    counter.start()
-                    counter.join()
-                    if on_total is not None:
-                        on_total(cluster.progress_total(tasks, frames))
-                cluster.run_sweep_tasks(client, tasks, cache_dir=cache, frames=frames, progress=progress,
-                                        on_result=read_back)
+            if counter is not None:
+                counter.join()
+                if on_total is not None:
+                    on_total(cluster.progress_total(tasks, frames))
+            cluster.run_sweep_tasks(
+                client, tasks, cache_dir=cache, frames=frames, progress=progress, local=local,
+                on_result=lambda i, result: _read_back(all_entries[i], result, series, i, align, rpe_delta),
+            )
     finally:
         if local is not None:
             local.close()

@@ -103,10 +103,10 @@ def sweep(
     set_: List[str] = typer.Option(
         [], "--set", metavar="KEY=V1,V2", help="setting=value1,value2,... (repeatable); the sweep runs every combination",
     ),
-    jobs: Optional[int] = typer.Option(None, "--jobs", help="detection processes of a local sweep "
-                                       "(default: number of CPUs)"),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="worker processes of the local cluster (default: "
+                                       "number of CPUs)"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="address of an existing Dask cluster's "
-                                            "scheduler (tcp://host:8786) to run on instead of this machine"),
+                                            "scheduler (tcp://host:8786) to run on instead of a local cluster"),
     out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="default runs/sweep-<recording>; with several "
                                            "recordings one folder per recording under it (default runs/sweep)"),
     rank_by: str = typer.Option("position_rmse_mm", "--rank-by", help="metric to rank by (lower is better, "
@@ -117,22 +117,20 @@ def sweep(
     keep_runs: bool = typer.Option(False, "--keep-runs", help="also write each setting's self-contained run "
                                    ".rrd (<recording>-<setting>.rrd; each holds every frame again)"),
 ) -> None:
-    """Replay each RECORDING under every combination of the --set values; rank each recording's runs.
+    """Replay each RECORDING under every combination of the --set values on a Dask cluster; rank each recording's runs.
 
-    Each recording is read and detected once per detection settings; the settings solve in the
-    same pass.
+    Each recording is detected once per detection settings; every setting then only solves.
     Writes sweep.rrd (the frames once, each setting's layers under settings/<key>/, the ranking
     and a layout that overlays the settings), ranking.csv and ranking.md into --out-dir (with
     several recordings, into --out-dir/<recording name>/); --keep-runs adds one run .rrd per
     setting. `agvviz diff sweep.rrd#lm sweep.rrd#ippe` compares two settings. A setting that fails is reported and
     the others go on. Names are the run settings of `agvviz run --help` (lm.max_iters is accepted
-    for lm_max_iterations). --scheduler runs it on a Dask cluster (pip install 'agvviz\\[distributed]').
+    for lm_max_iterations). Needs Dask: pip install 'agvviz\\[distributed]'.
 
     Example: agvviz sweep recordings/qr_floor.mcap --set solver=p4p,lm,ippe --set lm_max_iterations=3,10
     """
-    if scheduler is None:  # the detection pool's fork server: its imports run beside this process's
-        from agvviz.replay.detect.workers import start_fork_server
-        from agvviz.viz import run_process  # noqa: F401 — its .rrd writer forks from the server too (preload_too)
+    if scheduler is None:  # its imports run beside this process's (agvviz.app.cluster imports little)
+        from agvviz.app.cluster import start_fork_server
 
         start_fork_server()
     from agvviz.app.sweep import grid_settings, parse_grid, ranking_rows

@@ -147,8 +147,8 @@ def cache_folder(cache_dir: Path | None | bool) -> Path | None:
 
 
 #: Scans of the recordings this process read lately, by their files' (path, size, mtime_ns):
-#: the settings of a sweep's detection group prepare one recording at once, in threads
-#: (:mod:`agvviz.replay.detect.lockstep`), and one of them scans it for all.
+#: a process that runs several settings of one recording (a sweep's, one after the other or in
+#: threads) scans it once.
 _SCANS: dict[tuple, object] = {}
 _SCANS_KEPT = 4
 _SCAN_LOCKS: dict[tuple, threading.Lock] = {}
@@ -253,14 +253,11 @@ class DetectionPlan:
     cache_path: Path | None
     from_cache: bool
     problems: list[str] = field(default_factory=list)
-    #: Where the detections come from when not from this run's pool or the cache ("lead run":
-    #: a lockstep follower's, :mod:`agvviz.replay.detect.lockstep`).
-    source: str = ""
 
     def store(self, read_report: ReadReport) -> None:
         """Store a complete, undamaged detection pass in the cache (a failure to write it is a
         warning: the run itself is fine)."""
-        if self.from_cache or self.source or self.cache_path is None or read_report.problems or not self.feed.frames:
+        if self.from_cache or self.cache_path is None or read_report.problems or not self.feed.frames:
             return
         try:
             detect_cache.save(self.cache_path, self.feed.frames)
@@ -280,7 +277,7 @@ class DetectionPlan:
     def timing(self) -> dict:
         """Not stored in the ``.rrd``: where detections came from and on how many workers."""
         return {
-            "detection_source": self.source or ("cache" if self.from_cache else "detected"),
+            "detection_source": "cache" if self.from_cache else "detected",
             "detect_workers": 0 if self.from_cache else self.feed.jobs,
         }
 
