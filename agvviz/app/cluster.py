@@ -257,8 +257,9 @@ def _run(task: RunTask, jobs: int, progress: Callable[[int], None], cache_dir: P
 
     extra = {"cache_dir": cache_dir} if cache_dir is not None else {}
     try:
+        # The .rrd in this process: a sweep keeps every core busy already.
         outcome = run_recording(task.recording, task.settings, task.out_path, progress=progress, jobs=jobs,
-                                images=task.images, **extra)
+                                images=task.images, writer_process=False, **extra)
     except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
         return TaskResult(error=one_line(exc))
     return TaskResult(timing=dict(outcome.timing))
@@ -294,10 +295,7 @@ def _start_method() -> str:
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return "spawn"
-    from agvviz.viz.run_process import LOGGER_MODULES
-
-    # no effect once it runs; the .rrd writers of the runs here fork from it too
-    multiprocessing.forkserver.set_forkserver_preload(["distributed", "agvviz.app.run", *LOGGER_MODULES])
+    multiprocessing.forkserver.set_forkserver_preload(["distributed", "agvviz.app.run"])  # no effect once it runs
     with signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"

@@ -130,6 +130,7 @@ def run_recording(
     cache_dir: Path | None | bool = None,
     error_budget=None,
     images: bool = True,
+    writer_process: bool = True,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -155,6 +156,10 @@ def run_recording(
     ``images=False`` (``run --images none``) leaves the camera images out of the ``.rrd``: the
     layers only, for long logs (the manifest is a full run's: a sweep's layers equal a standalone
     run's); ``agvviz view`` adds the frames from the recording (:mod:`agvviz.viz.frames`).
+
+    ``writer_process`` (default): the ``.rrd`` is written by a process of its own
+    (:mod:`agvviz.viz.run_process`), beside the replay; False: in this process (a sweep's runs,
+    which already keep every core busy).
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":
@@ -237,7 +242,7 @@ def run_recording(
     detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
     # The .rrd is written by a process of its own (viz.run_process): this one solves meanwhile.
     with rrd_writer(
-        out_path, settings, recording_name=recording_name, recording_id=recording_id, inputs=tuple(inputs),
+        out_path, settings, in_process=not writer_process, recording_name=recording_name, recording_id=recording_id, inputs=tuple(inputs),
         recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px, images=images,
     ) as writer:
         logger = writer.logger

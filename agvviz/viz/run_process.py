@@ -61,13 +61,15 @@ _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
 preload_too(LOGGER_MODULES)  # the fork server imports them for the writer, once this module is imported
 
 
-def rrd_writer(out_path: str | os.PathLike, settings, **logger_kwargs) -> "RrdWriter | InProcessWriter":
+def rrd_writer(
+    out_path: str | os.PathLike, settings, in_process: bool = False, **logger_kwargs,
+) -> "RrdWriter | InProcessWriter":
     """The writer of a run's ``.rrd``: :class:`RrdWriter` (a child process), or
-    :class:`InProcessWriter` in a process that may not start one (a daemonic process: a Dask
-    worker's)."""
+    :class:`InProcessWriter` when asked (``in_process``) or in a process that may not start one
+    (a daemonic process: a Dask worker's)."""
     import multiprocessing
 
-    if multiprocessing.current_process().daemon:
+    if in_process or multiprocessing.current_process().daemon:
         return InProcessWriter(out_path, settings, **logger_kwargs)
     return RrdWriter(out_path, settings, **logger_kwargs)
 
