@@ -33,10 +33,10 @@ def recording(tmp_path_factory) -> Path:
     return path
 
 
-def test_the_child_writes_the_file_an_in_process_logger_writes(recording, tmp_path, monkeypatch):
+def test_the_child_writes_the_file_an_in_process_logger_writes(recording, tmp_path):
     child = run_recording(recording, RunSettings(), tmp_path / "child.rrd", jobs=1, cache_dir=False)
-    monkeypatch.setattr("agvviz.app.run.rrd_writer", run_process.InProcessWriter)
-    here = run_recording(recording, RunSettings(), tmp_path / "here.rrd", jobs=1, cache_dir=False)
+    here = run_recording(recording, RunSettings(), tmp_path / "here.rrd", jobs=1, cache_dir=False,
+                         writer_process=False)
     assert child.summary == here.summary and child.recording_start_ns == here.recording_start_ns
     if not RERUN.exists():
         pytest.skip(f"the rerun CLI is not at {RERUN}")
