@@ -240,9 +240,11 @@ def run_recording(
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
-    # The .rrd is written by a process of its own (viz.run_process): this one solves meanwhile.
+    # The .rrd is written by a process of its own (viz.run_process): this one solves meanwhile
+    # (in this process when asked: a sweep's runs).
     with rrd_writer(
-        out_path, settings, in_process=not writer_process, recording_name=recording_name, recording_id=recording_id, inputs=tuple(inputs),
+        out_path, settings, in_process=not writer_process,
+        recording_name=recording_name, recording_id=recording_id, inputs=tuple(inputs),
         recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px, images=images,
     ) as writer:
         logger = writer.logger

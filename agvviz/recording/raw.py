@@ -209,10 +209,6 @@ class Recording:
         for path in self.files:
             yield from self.format.iter_raw(path, topics, report, digest)
 
-    def version_key(self) -> tuple:
-        """(resolved path, size, mtime_ns) of each of its files: what changes when they do."""
-        return self._hash_key()
-
     def _hash_key(self) -> tuple:
         key = []
         for path in self.hashed_first + self.files:

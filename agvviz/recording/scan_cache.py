@@ -50,6 +50,14 @@ def default_cache_dir() -> Path:
     return base / "agvviz" / "detections"
 
 
+def cache_folder(cache_dir: Path | None | bool) -> Path | None:
+    """The cache folder a run's ``cache_dir`` names: a path; None or True: the default
+    (:func:`default_cache_dir`); False: none (None)."""
+    if cache_dir is False:
+        return None
+    return Path(cache_dir) if cache_dir not in (None, True) else default_cache_dir()
+
+
 def _files_key(paths) -> list[list]:
     key = []
     for path in paths:
@@ -78,8 +86,7 @@ def seen_before(recording_path, cache_dir) -> bool:
         path = Path(recording_path)
         if not path.is_file():
             return False
-        folder = Path(cache_dir) if cache_dir not in (None, True) else default_cache_dir()
-        return entry_path(folder, _files_key([path])).is_file()
+        return entry_path(cache_folder(cache_dir), _files_key([path])).is_file()
     except (OSError, ValueError):
         return False
 

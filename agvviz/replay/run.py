@@ -11,7 +11,6 @@ manifest, the ``.rrd`` and its sinks, the summary) is :func:`agvviz.app.run.run_
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -138,41 +137,6 @@ def _camera_causes(prepared_scan: Scan, roles: RoleMap, replay: Replay) -> tuple
     return usable, causes
 
 
-def cache_folder(cache_dir: Path | None | bool) -> Path | None:
-    """The cache folder a run's ``cache_dir`` names: a path; None or True: the default
-    (:func:`agvviz.replay.detect.cache.default_cache_dir`); False: none (None)."""
-    if cache_dir is False:
-        return None
-    return Path(cache_dir) if cache_dir not in (None, True) else detect_cache.default_cache_dir()
-
-
-#: Scans of the recordings this process read lately, by their files' (path, size, mtime_ns):
-#: a process that runs several settings of one recording (a sweep's, one after the other or in
-#: threads) scans it once.
-_SCANS: dict[tuple, object] = {}
-_SCANS_KEPT = 4
-_SCAN_LOCKS: dict[tuple, threading.Lock] = {}
-_SCAN_LOCKS_LOCK = threading.Lock()
-
-
-def _scanned(recording, cache: Path | None) -> "object":
-    """The scan of ``recording`` (:func:`agvviz.recording.scan_cache.cached_scan`, from the
-    cache folder ``cache`` when it holds it), once per process and file version: threads that
-    prepare one recording at once wait for the first (a scan is only read afterwards; its
-    sha256 stays known to the process, :meth:`~agvviz.recording.raw.Recording.sha256`)."""
-    key = (recording.kind, *recording.version_key())
-    with _SCAN_LOCKS_LOCK:
-        lock = _SCAN_LOCKS.setdefault(key, threading.Lock())
-    with lock:
-        known = _SCANS.get(key)
-        if known is None:
-            known = scan_cache.cached_scan(recording, cache)
-            if len(_SCANS) >= _SCANS_KEPT:
-                _SCANS.pop(next(iter(_SCANS)))
-            _SCANS[key] = known
-    return known
-
-
 def prepare(
     recording_path,
     settings: RunSettings,
@@ -186,7 +150,7 @@ def prepare(
     ``cache_dir`` (as :func:`detection_plan`'s; default False: none) keeps the scan and sha256
     there (:mod:`agvviz.recording.scan_cache`): a second run of the same file reads it once."""
     recording = open_recording(recording_path)
-    recording_scan = _scanned(recording, cache_folder(cache_dir))
+    recording_scan = scan_cache.cached_scan(recording, scan_cache.cache_folder(cache_dir))
     roles = resolve_roles(recording_scan, topics, roles_file)
     body_frame = settings.body_frame if settings.body_frame != "auto" else recording.default_body_frame(
         recording_scan.tf_frames
@@ -320,7 +284,7 @@ def detection_plan(
     cache_path = None
     cached = None
     if cache_dir is not False:
-        folder = cache_folder(cache_dir)
+        folder = scan_cache.cache_folder(cache_dir)
         cache_path = detect_cache.entry_path(
             folder, recording_sha256, detect_cache.cache_key(params, detection_inputs(prepared, side))
         )

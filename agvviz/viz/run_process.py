@@ -38,6 +38,7 @@ import signal
 import threading
 from collections import deque
 from pathlib import Path
+from types import MappingProxyType
 
 from agvviz.replay.detect.workers import pool_context, preload_too
 
@@ -310,8 +311,6 @@ def _ignored(*args, **kwargs) -> None:
 
 def _plain(args: tuple) -> tuple:
     """Arguments as they pickle: a read-only mapping (a camera snapshot) as a dict."""
-    from types import MappingProxyType
-
     return tuple(dict(a) if isinstance(a, MappingProxyType) else a for a in args)
 
 
