@@ -49,8 +49,9 @@ def _exit_now(code: int) -> None:
     """End the process with ``code`` once the command is over and its exit functions ran,
     without the interpreter's teardown of every module and object (≈0.15-0.2 s of CPU after a
     run, issue 27: Rerun, pyarrow, OpenCV and numpy torn down only to exit). Only with no other
-    Python thread alive (the interpreter would join it) and no profiler or tracer; the exit functions (atexit: Rerun's
-    shutdown, multiprocessing's children, logging) run as at a normal exit."""
+    Python thread alive (the interpreter would join it) and no profiler or tracer; the exit
+    functions (atexit: Rerun's shutdown, multiprocessing's children, logging) run as at a normal
+    exit."""
     if threading.active_count() > 1 or sys.getprofile() is not None or sys.gettrace() is not None:
         return  # another thread to join, or a profiler / coverage tracer that reports at the end
     try:
