@@ -1,35 +1,37 @@
-"""The engine of ``agvviz sweep``: Dask distributed runs the sweep's replays.
+"""The engines of ``agvviz sweep``: a local pool of processes, or Dask distributed.
 
-:func:`open_client` gives a Dask client of a new ``distributed.LocalCluster`` (worker processes
-on this machine, one thread each) or of an existing cluster given by its scheduler's address;
-:func:`run_sweep_tasks` runs a sweep's runs (recording, settings, output ``.rrd``) on it. It
-groups them by recording and detection settings (:func:`agvviz.replay.detect.stage.detection_settings`);
-each group's first setting, its *lead*, runs first and alone: it detects the recording on both
-cores and solves meanwhile, in one pass, as ``agvviz run`` does, and fills the detection cache.
-On a local cluster the leads run in the sweep process itself while the cluster starts
-(:class:`LocalRuns`), on an existing cluster as tasks. When a lead is done, its group's other
-settings go to the workers, which have imported agvviz meanwhile, and only solve (from the
-cache); a local sweep keeps one of them in its own process, which has imported everything too
-and would otherwise wait. A lead that failed hands the lead to the next setting of its group.
-A task's failure — an error of agvviz, a worker process that died — comes back as that run's
+:func:`run_sweep_tasks` runs a sweep's runs (recording, settings, output ``.rrd``) on the engine
+:func:`open_engine` gives. It groups them by recording and detection settings
+(:func:`agvviz.replay.detect.stage.detection_settings`); each group's first setting, its *lead*,
+runs first: it detects the recording on every core and solves meanwhile, in one pass, as
+``agvviz run`` does, and fills the detection cache. When a lead is done, its group's other
+settings only solve, from the cache. A lead that failed hands the lead to the next setting of
+its group. A run's failure — an error of agvviz, a process that died — comes back as that run's
 one-line message; the other runs go on.
 
-Progress: workers report frames done through Dask's event log (``Worker.log_event``, at most
-every :data:`PROGRESS_EVERY_S` per task); a task that finishes counts all its frames.
+**Local** (:class:`LocalEngine`, the default): one pool of ``--jobs`` processes, forked from the
+fork server, which imports a run's modules while the sweep starts. The leads run in the sweep
+process (:class:`LocalRuns`) and detect on the pool; the other settings then solve on the same
+processes — no process starts after the work is known, and none imports anything then — and the
+last setting of each group in the sweep process, which would otherwise wait. (Issue 27: a local
+Dask cluster cost ≈1.1 s of CPU — importing Dask in the sweep process and the fork server,
+starting its scheduler and workers — while the lead detected, and its workers were processes of
+their own beside the detection pool's.) Progress comes through an array shared with the pool,
+the stop through a shared event.
 
-Interruption (Ctrl-C, SIGTERM): the sweep sets a Dask ``Event`` that every running task checks
-between frames (it then stops, and its unfinished ``.rrd`` is removed), cancels the futures and
-closes the cluster. The local cluster's worker processes ignore SIGINT and SIGTERM (see
-:func:`_start_method`, :func:`dask_setup`), so a Ctrl-C at the terminal, which reaches the whole
-process group, is handled by the sweep process alone. They end when the sweep process ends,
-even by SIGKILL (Dask's own parent watch); a small reaper process then removes the temporary
-files they leave.
-On an existing cluster (``--scheduler``) the stop event ends the running tasks the same way.
+**Dask** (:class:`DaskEngine`, ``--scheduler ADDRESS``): every run is a task on that cluster's
+workers; a lead detects on its share of the cluster's threads. Workers report frames done
+through Dask's event log (``Worker.log_event``, at most every :data:`PROGRESS_EVERY_S` per
+task); the stop is a Dask ``Event``. Dask is an optional dependency (``pip install
+'agvviz[distributed]'``); without it ``--scheduler`` fails at once with :data:`DASK_MISSING`.
+Only this module imports Dask, and only inside functions.
 
-Dask is an optional dependency (``pip install 'agvviz[distributed]'``); without it a sweep
-fails at once with :data:`DASK_MISSING` — there is no second, serial engine.
-
-Only this module imports Dask, and only inside functions (the reaper starts without it).
+Interruption (Ctrl-C, SIGTERM): the sweep sets the stop event, which every running run checks
+between frames (it then stops, and its unfinished ``.rrd`` is removed), and drops the runs not
+started. The pool's processes and the fork server ignore SIGINT (see :func:`_start_method`), so
+a Ctrl-C at the terminal, which reaches the whole process group, is handled by the sweep
+process alone. They end when the sweep process ends, even by SIGKILL (their parent-death
+signal); a small reaper process then removes the temporary files they leave.
 """
 
 from __future__ import annotations
@@ -49,13 +51,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator
 
 from agvviz.recording import outputs
-from agvviz.replay.detect.workers import signals_ignored
+from agvviz.replay.detect.workers import init_worker, signals_ignored
 from agvviz.errors import InputError
 
 if TYPE_CHECKING:
     from agvviz.settings import RunSettings
 
-#: The one-line error of a sweep without Dask.
+#: The one-line error of a sweep on a Dask cluster (``--scheduler``) without Dask installed.
 DASK_MISSING = "agvviz sweep runs on Dask distributed, which is not installed: pip install 'agvviz[distributed]'"
 #: A worker reports its task's frames done at most this often (seconds).
 PROGRESS_EVERY_S = 0.25
@@ -63,8 +65,8 @@ PROGRESS_EVERY_S = 0.25
 STOP_CHECK_EVERY_S = 0.5
 #: How long to wait for an existing cluster's scheduler to answer (seconds).
 CONNECT_TIMEOUT_S = 10.0
-#: How long the local cluster's workers get to stop before they are killed (seconds): at the
-#: end of a sweep, and when it was interrupted (a task stops at its next frame, and a worker
+#: How long the local pool's processes get to stop before they are killed (seconds): at the
+#: end of a sweep, and when it was interrupted (a run stops at its next frame, and a process
 #: killed instead leaves temporary files that the sweep removes).
 CLOSE_TIMEOUT_S = 10.0
 STOP_TIMEOUT_S = 5.0
@@ -120,6 +122,8 @@ def one_line(exc: BaseException) -> str:
     name = type(exc).__name__
     if name == "KilledWorker":
         return "KilledWorker: the worker process running it died (crashed, ran out of memory or was killed)"
+    if name == "BrokenProcessPool":
+        return "BrokenProcessPool: a process of the sweep's pool died (crashed, ran out of memory or was killed)"
     if name == "CancelledError":
         return "cancelled: the task was cancelled on the cluster"
     return " ".join(f"{name}: {exc}".split())
@@ -174,97 +178,6 @@ def _detect_jobs(share: int) -> int:
     return max(1, min(share, os.cpu_count() or 1))
 
 
-class LocalRuns:
-    """The runs a local sweep makes in its own process: each detection group's lead, at once,
-    while the cluster starts, and then some of the groups' other settings, beside the workers.
-
-    The lead of a detection group (:func:`detection_groups`) is its first setting: it detects
-    the recording on the detect stage's own pool of ``jobs`` processes and solves meanwhile, in
-    one pass, as ``agvviz run`` does (which fills the detection cache). With a local cluster
-    every process is on this machine, so nothing is gained by sending a lead to a worker — and
-    much is lost: the cluster must first start and the worker then starts its own detection
-    pool. Once the leads are done this process has imported everything a run needs, as the
-    workers have, and would only wait: :func:`run_sweep_tasks` hands it one more setting of each
-    group (:meth:`add`) while the workers solve the others. The runs go one after the other, in a
-    thread; ``results[i]`` is task i's :class:`TaskResult` once it is done, ``frames[i]`` counts
-    its frames done. :meth:`close` stops the thread at its next frame.
-    """
-
-    def __init__(self, tasks: list[RunTask], cache_dir: Path | None, jobs: int):
-        self.tasks = tasks
-        self.leads = [members[0] for members in detection_groups(tasks).values()]
-        self.cache_dir, self.jobs = cache_dir, max(1, jobs)
-        self.results: dict[int, TaskResult] = {}
-        self.frames: dict[int, int] = {}
-        self._queue = list(self.leads)
-        self._wake = threading.Condition()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run_all, name="agvviz sweep local runs", daemon=True)
-
-    def start(self) -> "LocalRuns":
-        # Imported here, in the calling thread: two threads importing one module at once can
-        # deadlock on its import lock (the sweep counts frames in another thread meanwhile and
-        # then imports Dask); so is what a run imports on its way (the detection cache's Parquet).
-        import pyarrow.parquet  # noqa: F401
-
-        import agvviz.app.run  # noqa: F401
-
-        _start_method()  # the fork server (signals ignored) that the detection pool and the workers share
-        self._thread.start()
-        return self
-
-    def add(self, index: int) -> None:
-        """Run task ``index`` here too, after those already given (it reads its detections from
-        the cache: one process)."""
-        with self._wake:
-            self._queue.append(index)
-            self._wake.notify()
-
-    def _run_all(self) -> None:
-        while True:
-            with self._wake:
-                while not self._queue and not self._stop.is_set():
-                    self._wake.wait()
-                if self._stop.is_set():
-                    return
-                index = self._queue.pop(0)
-
-            def progress(frames_done: int, index: int = index) -> None:
-                self.frames[index] = frames_done
-                if self._stop.is_set():
-                    raise SweepStopped("the sweep was interrupted")
-
-            jobs = self.jobs if index in self.leads else 1
-            result = _run(self.tasks[index], jobs, progress, self.cache_dir)
-            if self._stop.is_set():  # interrupted: nobody waits for the result
-                return
-            self.results[index] = result
-
-    def close(self) -> None:
-        """Stop (at the next frame) and wait for the thread."""
-        with self._wake:
-            self._stop.set()
-            self._wake.notify()
-        if self._thread.is_alive():
-            self._thread.join()
-
-
-def _run(task: RunTask, jobs: int, progress: Callable[[int], None], cache_dir: Path | None) -> TaskResult:
-    """Replay one setting (:func:`agvviz.app.run.run_recording`) with ``jobs`` detection
-    processes (its group's detections come from the cache when they are there); a failure, an
-    interruption (:class:`SweepStopped` from ``progress``) included, is the result's error."""
-    from agvviz.app.run import run_recording
-
-    extra = {"cache_dir": cache_dir} if cache_dir is not None else {}
-    try:
-        # The .rrd in this process: a sweep keeps every core busy already.
-        outcome = run_recording(task.recording, task.settings, task.out_path, progress=progress, jobs=jobs,
-                                images=task.images, writer_process=False, **extra)
-    except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
-        return TaskResult(error=one_line(exc))
-    return TaskResult(timing=dict(outcome.timing))
-
-
 def run_task(
     recording: str, settings: "RunSettings", out_path: str, cache_dir: str | None, topic: str, stop_name: str,
     unit: int, images: bool = True, share: int = 1,
@@ -280,71 +193,311 @@ def run_task(
     return _run(task, _detect_jobs(share), reporter, Path(cache_dir) if cache_dir is not None else None)
 
 
-# -- the cluster -------------------------------------------------------------------------------
+
+# -- the local sweep -----------------------------------------------------------------------------
+class LocalRuns:
+    """The runs a local sweep makes in its own process, one after the other, in a thread: each
+    detection group's lead at once, and then one more setting of each group beside the pool.
+
+    A lead (the first setting of a :func:`detection_groups` group) detects the recording on the
+    sweep's process pool (``executor``, ``jobs`` processes) and solves meanwhile, in one pass, as
+    ``agvviz run`` does (which fills the detection cache). Once the leads are done this process
+    has imported everything a run needs and would only wait: :func:`run_sweep_tasks` hands it
+    one more setting of each group (:meth:`add`) while the pool solves the others.
+    ``results[i]`` is task i's :class:`TaskResult` once it is done, ``frames[i]`` counts its
+    frames done. :meth:`close` stops the thread at its next frame.
+    """
+
+    def __init__(self, tasks: list[RunTask], cache_dir: Path | None, jobs: int, executor=None):
+        self.tasks = tasks
+        self.cache_dir, self.jobs, self.executor = cache_dir, max(1, jobs), executor
+        self.results: dict[int, TaskResult] = {}
+        self.frames: dict[int, int] = {}
+        self._queue: list[tuple[int, bool]] = []  # (task, whether it leads: detects on the pool)
+        self._wake = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run_all, name="agvviz sweep local runs", daemon=True)
+
+    def start(self) -> "LocalRuns":
+        # Imported here, in the calling thread: two threads importing one module at once can
+        # deadlock on its import lock (the sweep counts frames in another thread meanwhile);
+        # so is what a run imports on its way (the detection cache's Parquet).
+        import pyarrow.parquet  # noqa: F401
+
+        import agvviz.app.run  # noqa: F401
+
+        self._thread.start()
+        return self
+
+    def add(self, index: int, lead: bool = False) -> None:
+        """Run task ``index`` here too, after those already given: a lead detects on the pool,
+        the others read their detections from the cache (one process)."""
+        with self._wake:
+            self._queue.append((index, lead))
+            self._wake.notify()
+
+    def _run_all(self) -> None:
+        while True:
+            with self._wake:
+                while not self._queue and not self._stop.is_set():
+                    self._wake.wait()
+                if self._stop.is_set():
+                    return
+                index, lead = self._queue.pop(0)
+
+            def progress(frames_done: int, index: int = index) -> None:
+                self.frames[index] = frames_done
+                if self._stop.is_set():
+                    raise SweepStopped("the sweep was interrupted")
+
+            if lead:
+                result = _run(self.tasks[index], self.jobs, progress, self.cache_dir, executor=self.executor)
+            else:
+                result = _run(self.tasks[index], 1, progress, self.cache_dir)
+            if self._stop.is_set():  # interrupted: nobody waits for the result
+                return
+            self.results[index] = result
+
+    def close(self) -> None:
+        """Stop (at the next frame) and wait for the thread."""
+        with self._wake:
+            self._stop.set()
+            self._wake.notify()
+        if self._thread.is_alive():
+            self._thread.join()
+
+
+def _run(
+    task: RunTask, jobs: int, progress: Callable[[int], None], cache_dir: Path | None, executor=None,
+) -> TaskResult:
+    """Replay one setting (:func:`agvviz.app.run.run_recording`) with ``jobs`` detection
+    processes (``executor``: the sweep's pool; its group's detections come from the cache when
+    they are there); a failure, an interruption (:class:`SweepStopped` from ``progress``)
+    included, is the result's error."""
+    from agvviz.app.run import run_recording
+
+    extra = {"cache_dir": cache_dir} if cache_dir is not None else {}
+    try:
+        # The .rrd in this process: a sweep keeps every core busy already.
+        outcome = run_recording(task.recording, task.settings, task.out_path, progress=progress, jobs=jobs,
+                                images=task.images, writer_process=False, executor=executor, **extra)
+    except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
+        return TaskResult(error=one_line(exc))
+    return TaskResult(timing=dict(outcome.timing))
+
+
+# -- the local pool's worker side ----------------------------------------------------------------
+#: In a process of a local sweep's pool: the frames done of every task (shared with the sweep
+#: process) and the sweep's stop event (:func:`_init_pool_worker`).
+_POOL_SHARED: dict[str, object] = {}
+
+
+def _init_pool_worker(frames_done, stop) -> None:
+    """A local sweep's pool process: a detection worker's set-up (Ctrl-C is the sweep process's
+    to handle, die with it, one OpenCV thread) and the sweep's shared progress and stop event."""
+    init_worker()
+    _POOL_SHARED.update(frames_done=frames_done, stop=stop)
+
+
+def _pool_task(index: int, task: RunTask, cache_dir: Path | None) -> TaskResult:
+    """In a local sweep's pool process: replay task ``index`` (its detections from the cache),
+    counting its frames done in the shared array and stopping at the next frame once the
+    sweep's stop event is set."""
+    frames_done, stop = _POOL_SHARED["frames_done"], _POOL_SHARED["stop"]
+    last_check = time.monotonic()
+
+    def progress(done: int) -> None:
+        nonlocal last_check
+        frames_done[index] = done
+        now = time.monotonic()
+        if now - last_check >= STOP_CHECK_EVERY_S:
+            last_check = now
+            if stop.is_set():
+                raise SweepStopped("the sweep was interrupted")
+
+    if stop.is_set():
+        return TaskResult(error="SweepStopped: the sweep was interrupted")
+    return _run(task, 1, progress, cache_dir)
+
+
+# -- the engines ---------------------------------------------------------------------------------
+class LocalEngine:
+    """A local sweep: a pool of ``jobs`` processes, forked from the fork server (which has
+    imported a run's modules: :func:`_start_method`) before any run starts, and this process.
+
+    Each detection group's lead runs here (:class:`LocalRuns`) and detects on the pool; its
+    group's other settings then solve on the same processes, which have imported everything
+    and hold nothing else — no process starts after the work is known — and the last of them
+    here. Progress and the stop come through a shared array and event.
+    """
+
+    def __init__(self, tasks: list[RunTask], cache_dir: Path | None, jobs: int):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        context = multiprocessing.get_context(_start_method())
+        self.tasks, self.cache_dir = tasks, cache_dir
+        self._frames_done = context.RawArray("q", max(1, len(tasks)))
+        self._stop = context.Event()
+        self.pool = ProcessPoolExecutor(
+            max(1, jobs), mp_context=context, initializer=_init_pool_worker, initargs=(self._frames_done, self._stop),
+        )
+        self.here = LocalRuns(tasks, cache_dir, jobs, executor=self.pool)
+        self._pending: dict[object, int] = {}  # a pool future → its task
+        self._here: set[int] = set()  # tasks given to this process, not yet ended
+
+    def start(self) -> "LocalEngine":
+        self.here.start()
+        return self
+
+    def start_lead(self, index: int) -> None:
+        self.here.add(index, lead=True)
+        self._here.add(index)
+
+    def start_followers(self, indices: list[int]) -> None:
+        """The pool solves these, this process the last of them (it would otherwise wait)."""
+        if not indices:
+            return
+        self.here.add(indices[-1])
+        self._here.add(indices[-1])
+        for index in indices[:-1]:
+            future = self.pool.submit(_pool_task, index, self.tasks[index], self.cache_dir)
+            self._pending[future] = index
+
+    def busy(self) -> bool:
+        return bool(self._pending or self._here)
+
+    def frames_done(self, index: int) -> int:
+        return max(self.here.frames.get(index, 0), int(self._frames_done[index]))
+
+    def ended(self) -> list[tuple[int, TaskResult]]:
+        done = []
+        for future in [f for f in self._pending if f.done()]:
+            index = self._pending.pop(future)
+            try:
+                result = future.result()
+            except Exception as exc:  # noqa: BLE001 — a pool process that died, a cancelled task
+                result = TaskResult(error=one_line(exc))
+            done.append((index, result))
+        for index in sorted(self._here):
+            if index in self.here.results:
+                self._here.discard(index)
+                done.append((index, self.here.results[index]))
+        return done
+
+    def stop(self) -> None:
+        """Interrupted: every run stops at its next frame; tasks not started are dropped."""
+        self._stop.set()
+        for future in self._pending:
+            future.cancel()
+        self.here.close()
+
+    def close(self, timeout_s: float) -> None:
+        """Stop the thread and the pool; processes still busy after ``timeout_s`` are killed."""
+        self.here.close()
+        processes = list((getattr(self.pool, "_processes", None) or {}).values())
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        deadline = time.monotonic() + timeout_s
+        for process in processes:
+            process.join(timeout=max(0.0, deadline - time.monotonic()))
+        for process in processes:
+            if process.is_alive():
+                process.kill()
+                process.join(timeout=1.0)
+
+
+class DaskEngine:
+    """A sweep on an existing Dask cluster (``--scheduler``): every run is a task. A lead gets
+    its share of the cluster's threads to detect on (:func:`run_task`); progress comes through
+    Dask's event log and the stop through a Dask ``Event``."""
+
+    def __init__(self, client, tasks: list[RunTask], cache_dir: Path | None):
+        self.client, self.tasks = client, tasks
+        self.cache = str(Path(cache_dir).resolve()) if cache_dir is not None else None
+        token = uuid.uuid4().hex[:12]
+        self.topic, self.stop_name, self.token = f"agvviz-sweep-progress-{token}", f"agvviz-sweep-stop-{token}", token
+        self.share = max(1, sum(client.nthreads().values()) // max(1, len(detection_groups(tasks))))
+        self._frames: dict[int, int] = {}
+        self._lock = threading.Lock()
+        self._pending: dict[object, int] = {}
+        client.subscribe_topic(self.topic, self._on_event)
+
+    def _on_event(self, event) -> None:  # in the client's event-loop thread
+        _, (unit, count) = event
+        with self._lock:
+            self._frames[unit] = max(self._frames.get(unit, 0), int(count))
+
+    def _submit(self, index: int, share: int) -> None:
+        task = self.tasks[index]
+        future = self.client.submit(
+            run_task, str(task.recording.resolve()), task.settings, str(task.out_path.resolve()), self.cache,
+            self.topic, self.stop_name, index, task.images, share, key=f"agvviz-run-{self.token}-{index}", pure=False,
+        )
+        self._pending[future] = index
+
+    def start_lead(self, index: int) -> None:
+        self._submit(index, self.share)
+
+    def start_followers(self, indices: list[int]) -> None:
+        # Submitted now rather than as the lead's dependents, which Dask would all place on the
+        # one worker holding its result.
+        for index in indices:
+            self._submit(index, 1)
+
+    def busy(self) -> bool:
+        return bool(self._pending)
+
+    def frames_done(self, index: int) -> int:
+        with self._lock:
+            return self._frames.get(index, 0)
+
+    def ended(self) -> list[tuple[int, TaskResult]]:
+        done = []
+        for future in [f for f in self._pending if f.done()]:
+            index = self._pending.pop(future)
+            try:
+                result = future.result()
+            except Exception as exc:  # noqa: BLE001 — a worker that died, a cancelled task
+                result = TaskResult(error=one_line(exc))
+            done.append((index, result))
+        return done
+
+    def stop(self) -> None:
+        from distributed import Event
+
+        try:
+            Event(self.stop_name, client=self.client).set()
+            self.client.cancel(list(self._pending))
+        except Exception:  # noqa: BLE001 — the cluster may be gone already; closing follows
+            pass
+
+
+# -- the local pool's processes ----------------------------------------------------------------
 def _start_method() -> str:
-    """Dask's way to start the local workers: forked from the fork server, which this starts
-    with SIGINT and SIGTERM ignored, where there is one; else spawned.
+    """How a local sweep's pool starts: forked from the fork server, which this starts with
+    SIGINT and SIGTERM ignored and :mod:`agvviz.app.run` imported, where there is one; else
+    spawned.
 
     A Ctrl-C at the terminal, or a SIGTERM to the process group, reaches every process of the
-    sweep: the fork server must outlive it (the workers' exit is watched through it), and the
-    workers ignore it too (they inherit SIGINT ignored; :func:`dask_setup` for SIGTERM) — the
-    sweep process alone handles it, stopping the tasks and closing the cluster. A fork server
-    already running in this process (a library user's) is used as it is."""
+    sweep: the fork server must outlive it (the pool's processes are its children), and the
+    pool's processes ignore SIGINT (:func:`agvviz.replay.detect.workers.init_worker`) — the
+    sweep process alone handles it, stopping the runs. A fork server already running in this
+    process (a library user's) is used as it is."""
     import multiprocessing
     import multiprocessing.forkserver
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return "spawn"
-    multiprocessing.forkserver.set_forkserver_preload(["distributed", "agvviz.app.run"])  # no effect once it runs
+    multiprocessing.forkserver.set_forkserver_preload(["agvviz.app.run"])  # no effect once it runs
     with signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"
 
 
 def start_fork_server() -> None:
-    """Start the local cluster's fork server now (:func:`_start_method`), so that its imports run
+    """Start the local pool's fork server now (:func:`_start_method`), so that its imports run
     beside the caller's own."""
     _start_method()
-
-
-def _ignore_signal(signum, frame) -> None:
-    """A do-nothing handler: unlike SIG_IGN, processes started by exec get the default back."""
-
-
-def _import_replay() -> None:
-    import agvviz.app.run  # noqa: F401
-
-
-def dask_setup(worker) -> None:
-    """Dask preload of the local cluster's workers (run in each worker's main thread).
-
-    SIGTERM, inherited ignored from the fork server, stays without effect here (the sweep
-    process handles it) but through a handler, so the processes a task starts by exec (detection
-    pools) get the default SIGTERM back (their parent-death signal). The replay's modules are
-    imported in the background meanwhile, so a worker whose first run waits for a detection does
-    not import them then."""
-    signal.signal(signal.SIGTERM, _ignore_signal)
-    threading.Thread(target=_import_replay, name="agvviz import", daemon=True).start()
-
-
-def _local_cluster(distributed, workers: int):
-    import dask
-
-    with dask.config.set({
-        "distributed.worker.multiprocessing-method": _start_method(),
-        # Workers may start processes (detection pools): not daemonic. They still end with the
-        # sweep process (Dask's parent watch).
-        "distributed.worker.daemon": False,
-        # A task whose worker died fails at once (a replay that crashes a process would again).
-        "distributed.scheduler.allowed-failures": 0,
-    }):
-        return distributed.LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, silence_logs=logging.CRITICAL, memory_limit=0,
-            preload=[__name__],  # dask_setup
-            # No dashboard; the scheduler's own HTTP routes on a free local port (its default,
-            # 8787, warns when another cluster has it).
-            dashboard_address=None, scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-        )
 
 
 def _start_reaper(folders: list[Path]) -> tuple[subprocess.Popen, int] | None:
@@ -392,13 +545,15 @@ def reap(grace_s: float = 5.0) -> None:
 
 
 @contextmanager
-def open_client(
-    scheduler: str | None, workers: int, temp_folders: list[Path], before_cluster: Callable[[], None] | None = None,
-) -> Iterator[object]:
-    """A Dask client: of the cluster at ``scheduler``, or of a new local cluster of ``workers``
-    processes (closed on leaving, with the reaper for ``temp_folders``). ``before_cluster``: a
-    local cluster calls it once its reaper runs, before its workers start (the sweep starts its
-    own runs then, :class:`LocalRuns`)."""
+def open_engine(
+    tasks: list[RunTask], *, scheduler: str | None, jobs: int, cache_dir: Path | None, temp_folders: list[Path],
+    before_start: Callable[[], None] | None = None,
+) -> Iterator[LocalEngine | DaskEngine]:
+    """The engine that runs a sweep's ``tasks``: a :class:`DaskEngine` on the cluster at
+    ``scheduler`` (:class:`~agvviz.errors.InputError` when it cannot be reached or Dask is
+    missing), or a :class:`LocalEngine` of ``jobs`` processes, closed on leaving, with the
+    reaper for ``temp_folders``. ``before_start`` is called once the cluster answered or the
+    reaper runs, before any run starts (the sweep prepares its folders then)."""
     if scheduler is not None:
         distributed = import_distributed()
         try:
@@ -407,34 +562,30 @@ def open_client(
         except (OSError, TimeoutError, ValueError) as exc:
             raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {' '.join(str(exc).split())}") from None
         try:
-            yield client
+            if before_start is not None:
+                before_start()
+            yield DaskEngine(client, tasks, cache_dir)
         finally:
             client.close()
         return
     with signals_ignored(signal.SIGINT, signal.SIGTERM):  # the reaper outlives any signal to the group
         reaper = _start_reaper(temp_folders)
-    cluster = client = None
+    engine = None
     interrupted = False
     try:
-        if before_cluster is not None:
-            before_cluster()
-        distributed = import_distributed()
-        cluster = _local_cluster(distributed, workers)
-        client = distributed.Client(cluster, set_as_default=False)
-        yield client
+        if before_start is not None:
+            before_start()
+        engine = LocalEngine(tasks, cache_dir, jobs).start()
+        yield engine
     except BaseException:
         interrupted = True
         raise
     finally:
         try:
-            if client is not None:
-                client.close()
-            if cluster is not None:  # a worker still busy after 0.8 × the timeout is killed
-                cluster.close(timeout=STOP_TIMEOUT_S if interrupted else CLOSE_TIMEOUT_S)
-        except Exception:  # noqa: BLE001 — a close that timed out: the workers end with this process
-            pass
+            if engine is not None:
+                engine.close(timeout_s=STOP_TIMEOUT_S if interrupted else CLOSE_TIMEOUT_S)
         finally:
-            for folder in temp_folders:  # left by a worker that was killed
+            for folder in temp_folders:  # left by a process that was killed
                 outputs.remove_stale_temps(folder)
             if reaper is not None:
                 process, write_fd = reaper
@@ -443,117 +594,55 @@ def open_client(
 
 
 def run_sweep_tasks(
-    client,
+    engine: LocalEngine | DaskEngine,
     tasks: list[RunTask],
     *,
-    cache_dir: Path | None = None,
-    frames: dict[Path, int] | None = None,
+    frames: Callable[[], dict[Path, int]] | None = None,
     progress: Callable[[int, int], None] | None = None,
-    local: LocalRuns | None = None,
     on_result: Callable[[int, TaskResult], None] | None = None,
 ) -> list[TaskResult]:
-    """Run ``tasks`` on the Dask ``client``'s cluster (see :func:`open_client`): each
-    :func:`detection_groups` group's lead (its first task) first, which detects and fills the
-    cache, then the group's other tasks, which only solve; the results in the order of
-    ``tasks``. ``local``: the leads run in this process (:class:`LocalRuns`, already started
-    for these ``tasks``) instead of as tasks on the cluster.
+    """Run ``tasks`` on ``engine`` (see :func:`open_engine`): each :func:`detection_groups`
+    group's lead (its first task) first, which detects and fills the cache, then the group's
+    other tasks, which only solve; the results in the order of ``tasks``. A lead that failed
+    may not have detected (its output, its solver): the next task of its group leads instead.
 
     ``on_result(index, result)`` is called in this thread as each task ends (the sweep reads
-    the run back meanwhile, while the others solve). ``frames``: frames per recording, for
+    the run back meanwhile, while the others solve). ``frames()``: frames per recording (asked
+    once the leads have started: the sweep counts them meanwhile), for
     ``progress(frames_done, runs_finished)`` (see :func:`progress_total`). Interrupted
-    (Ctrl-C), it stops the running tasks (at their next frame) and cancels the others.
+    (Ctrl-C), it stops the running tasks (at their next frame) and drops the others.
     """
-    from distributed import Event
-
     if not tasks:
         return []
-    frames = frames or {}
-    groups = list(detection_groups(tasks).values())
-    leads = [members[0] for members in groups]
-    token = uuid.uuid4().hex[:12]
-    topic, stop_name = f"agvviz-sweep-progress-{token}", f"agvviz-sweep-stop-{token}"
-    expected = [frames.get(t.recording, 0) for t in tasks]  # progress: each task's frames
-    done_frames = [0] * len(tasks)
-    lock = threading.Lock()
-
-    def on_event(event) -> None:  # in the client's event-loop thread
-        _, (unit, count) = event
-        with lock:  # frames of a recording that could not be counted are not shown
-            done_frames[unit] = max(done_frames[unit], min(int(count), expected[unit]))
-
     results: list[TaskResult | None] = [None] * len(tasks)
-    client.subscribe_topic(topic, on_event)
-    cache = str(Path(cache_dir).resolve()) if cache_dir is not None else None
-    share = max(1, sum(client.nthreads().values()) // len(groups))
-    pending: dict[object, int] = {}  # future -> its task
-
-    def submit(i: int, share: int = 1) -> None:
-        task = tasks[i]
-        future = client.submit(
-            run_task, str(task.recording.resolve()), task.settings, str(task.out_path.resolve()), cache, topic,
-            stop_name, i, task.images, share, key=f"agvviz-run-{token}-{i}", pure=False,
-        )
-        pending[future] = i
-
+    groups = list(detection_groups(tasks).values())
     waiting = {members[0]: members[1:] for members in groups}  # a running lead → its group's other tasks
-    running_here = set(leads) if local is not None else set()  # tasks of `local`, not yet ended
     try:
-        if local is None:
-            for lead in leads:
-                submit(lead, share)
-        while pending or running_here:
-            ended = []
-            for future in [f for f in pending if f.done()]:
-                i = pending.pop(future)
-                try:
-                    result = future.result()
-                except Exception as exc:  # noqa: BLE001 — a worker that died, a cancelled task
-                    result = TaskResult(error=one_line(exc))
-                ended.append((i, result))
-            for i in sorted(running_here):
-                with lock:
-                    done_frames[i] = max(done_frames[i], min(local.frames.get(i, 0), expected[i]))
-                if i in local.results:
-                    running_here.discard(i)
-                    ended.append((i, local.results[i]))
+        for members in groups:
+            engine.start_lead(members[0])
+        counts = frames() if frames is not None else {}
+        expected = [counts.get(t.recording, 0) for t in tasks]  # progress: each task's frames
+        while engine.busy():
+            ended = engine.ended()
             for i, result in ended:
-                with lock:
-                    done_frames[i] = expected[i]
                 results[i] = result
                 rest = waiting.pop(i, [])
                 if rest and result.error is not None:
-                    # A lead that failed may not have detected (its output, its solver): the
-                    # next task of its group leads in its place, on the cluster.
                     waiting[rest[0]] = rest[1:]
-                    submit(rest[0], share)
-                    continue
-                # A lead that ran: its group's detections are in the cache, the others only
-                # solve. They are submitted now rather than as the lead's dependents, which
-                # Dask would all place on the one worker holding its result. A local sweep
-                # keeps the last of them in this process, which would otherwise only wait.
-                if rest and local is not None:
-                    local.add(rest[-1])
-                    running_here.add(rest[-1])
-                    rest = rest[:-1]
-                for member in rest:
-                    submit(member)
-            for i, result in ended:  # after the submissions: the workers go on meanwhile
+                    engine.start_lead(rest[0])
+                else:
+                    engine.start_followers(rest)
+            for i, result in ended:  # after the submissions: the others go on meanwhile
                 if on_result is not None:
                     on_result(i, result)
-            if progress is not None:
-                with lock:
-                    total_done = sum(done_frames)
-                progress(total_done, sum(r is not None for r in results))
-            if pending or running_here:
+            if progress is not None:  # frames of a recording that could not be counted are not shown
+                done = sum(expected[i] if results[i] is not None else min(engine.frames_done(i), expected[i])
+                           for i in range(len(tasks)))
+                progress(done, sum(r is not None for r in results))
+            if engine.busy():
                 time.sleep(0.05)
     except BaseException:  # interrupted: stop the running tasks, drop the others
-        if local is not None:
-            local.close()
-        try:
-            Event(stop_name, client=client).set()
-            client.cancel(list(pending))
-        except Exception:  # noqa: BLE001 — the cluster may be gone already; closing follows
-            pass
+        engine.stop()
         raise
     return results
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 import uuid
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -131,6 +132,7 @@ def run_recording(
     error_budget=None,
     images: bool = True,
     writer_process: bool = True,
+    executor: Executor | None = None,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -144,9 +146,11 @@ def run_recording(
     (not stored). Raises :class:`RunError` — and writes nothing — when the recording has no
     camera image or none of its frames can be used, one line per cause.
 
-    ``jobs`` detection worker processes (default: one per CPU; 1 = detect in this process);
-    ``cache_dir`` the detection cache folder (None: :func:`agvviz.replay.detect.cache.default_cache_dir`,
-    False: no cache). Neither changes the run's results.
+    ``jobs`` detection worker processes (default: one per CPU; 1 = detect in this process), or
+    ``executor``, a process pool of the caller's of ``jobs`` processes to detect on (a local
+    sweep's, whose processes then solve its other settings); ``cache_dir`` the detection cache
+    folder (None: :func:`agvviz.replay.detect.cache.default_cache_dir`, False: no cache). None
+    of them changes the run's results.
 
     ``error_budget`` (an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this recording
     under these settings, from :func:`agvviz.app.budget.error_budget`) goes into
@@ -239,7 +243,7 @@ def run_recording(
         return _run_study(prepared, composition, settings, out_path, inputs, manifest, recording_id, progress, on_total)
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
-    detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir)
+    detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir, executor)
     # The .rrd is written by a process of its own (viz.run_process): this one solves meanwhile
     # (in this process when asked: a sweep's runs).
     with rrd_writer(

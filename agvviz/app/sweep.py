@@ -280,10 +280,11 @@ def sweep(
     from agvviz.app import cluster
 
     if scheduler is None:
-        # The fork server that the workers and the detection pool are forked from imports Dask
-        # and agvviz's replay (≈1.5 s): started first, it does so while this process imports them.
+        # The fork server that the pool is forked from imports agvviz's replay (≈0.5 s): started
+        # first, it does so while this process imports it.
         cluster.start_fork_server()
-    cluster.require_distributed()  # without Dask: one line, before anything is written
+    else:
+        cluster.require_distributed()  # without Dask: one line, before anything is written
     per_recording = []
     for path, folder in zip(recordings, out_dirs):
         entries = []
@@ -303,20 +304,14 @@ def sweep(
     tasks = [cluster.RunTask(e.recording, e.settings, e.run_path, images=keep_runs) for e in all_entries]
     workers = min(jobs or os.cpu_count() or 1, len(tasks))
     cache = Path(cache_dir) if cache_dir is not None else None
-    local = None
 
-    def start_here() -> None:
-        # On a local cluster the leads (each detection group's first setting: it detects and
-        # solves, as `agvviz run` does) start here at once — after the cluster's reaper, which
-        # removes their temporaries if this process is killed — while the workers start; this
-        # process then solves one more setting of each group beside them (cluster.LocalRuns).
-        # On an existing cluster every run is its task.
-        nonlocal local
+    def prepare_dirs() -> None:
+        # Once the scheduler answered (an unreachable one leaves nothing behind), or once the
+        # local pool's reaper runs (it removes the temporaries of a killed sweep).
         for folder in out_dirs:
             outputs.prepare_dir(folder, option="--out-dir")
-        local = cluster.LocalRuns(tasks, cache, workers).start()
 
-    # Frames for the progress bar are counted while the cluster starts (a read of each file).
+    # Frames for the progress bar are counted while the runs start (a read of each file).
     # What the threads will run is imported first, here: two threads importing one module at
     # once can deadlock on its import lock.
     import agvviz.recording.reader  # noqa: F401
@@ -331,24 +326,20 @@ def sweep(
             name="agvviz count frames", daemon=True,
         )
         counter.start()
-    try:
-        # The cluster first: an unreachable scheduler leaves nothing behind.
-        with cluster.open_client(scheduler, workers, [folder.resolve() for folder in out_dirs],
-                                 before_cluster=start_here) as client:
-            if scheduler is not None:
-                for folder in out_dirs:
-                    outputs.prepare_dir(folder, option="--out-dir")
+    with cluster.open_engine(tasks, scheduler=scheduler, jobs=workers, cache_dir=cache,
+                             temp_folders=[folder.resolve() for folder in out_dirs], before_start=prepare_dirs) as engine:
+
+        def counted() -> dict[Path, int]:  # once the leads run
             if counter is not None:
                 counter.join()
                 if on_total is not None:
                     on_total(cluster.progress_total(tasks, frames))
-            cluster.run_sweep_tasks(
-                client, tasks, cache_dir=cache, frames=frames, progress=progress, local=local,
-                on_result=lambda i, result: _read_back(all_entries[i], result, series, i, align, rpe_delta),
-            )
-    finally:
-        if local is not None:
-            local.close()
+            return frames
+
+        cluster.run_sweep_tasks(
+            engine, tasks, frames=counted, progress=progress,
+            on_result=lambda i, result: _read_back(all_entries[i], result, series, i, align, rpe_delta),
+        )
     try:
         done, first = [], 0
         for path, folder, entries in zip(recordings, out_dirs, per_recording):

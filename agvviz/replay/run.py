@@ -11,6 +11,7 @@ manifest, the ``.rrd`` and its sinks, the summary) is :func:`agvviz.app.run.run_
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -275,11 +276,13 @@ def detection_inputs(prepared: "Prepared", side: SideInputs | None) -> dict:
 
 def detection_plan(
     prepared: "Prepared", recording_sha256: str, side: SideInputs | None, jobs: int | None,
-    cache_dir: Path | None | bool,
+    cache_dir: Path | None | bool, executor: Executor | None = None,
 ) -> DetectionPlan:
     """The detect stage of a run of ``prepared``: the cache entry of its recording
     (``recording_sha256``) and detection settings, read when it is there (``cache_dir``: None
-    the default folder, False no cache), else a worker pool of at most ``jobs`` processes."""
+    the default folder, False no cache), else a worker pool of at most ``jobs`` processes, or
+    ``executor``, a process pool of the caller's (``jobs``: its processes; see
+    :class:`DetectionFeed`)."""
     params = prepared.replay.detect_params
     cache_path = None
     cached = None
@@ -294,7 +297,7 @@ def detection_plan(
     workers = min(jobs or default_jobs(), max(1, frames // (2 * params.segment_frames)))
     feed = DetectionFeed(
         params, prepared.replay.detect_job, jobs=workers, cached=cached,
-        keep=cache_path is not None and cached is None,
+        keep=cache_path is not None and cached is None, executor=executor,
     )
     return DetectionPlan(feed, cache_path, cached is not None)
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import os
 from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator
@@ -70,6 +70,11 @@ class DetectionFeed:
     no calibration at its time); ``cached`` are the detections of an earlier run of the same
     recording and detection settings, in order. After iterating, :attr:`frames` holds every
     frame's :class:`DetectedFrame` (for the cache) when ``keep`` is True.
+
+    ``executor``: a process pool of the caller's (a local sweep's: its processes go on to solve
+    the sweep's other settings) that the segments run on in place of a pool of the feed's own;
+    ``jobs`` is then its number of processes. The feed never shuts it down; on an error it
+    cancels its own segments that have not started.
     """
 
     def __init__(
@@ -79,6 +84,7 @@ class DetectionFeed:
         jobs: int = 1,
         cached: list[DetectedFrame] | None = None,
         keep: bool = True,
+        executor: Executor | None = None,
     ):
         self.params = params
         self.job_of = job_of
@@ -89,13 +95,18 @@ class DetectionFeed:
         self.cache_mismatch = ""  # why the cached detections were abandoned part-way, if they were
         self.keyframes = 0  # frames handed out that had a full detection
         self.tracked_frames = 0  # frames handed out whose codes were tracked
-        self._pool: ProcessPoolExecutor | None = None
+        self._pool: Executor | None = None
+        self._executor = executor  # the caller's pool, or None: the feed starts its own
+        self._submitted: list[Future] = []  # segments sent to the caller's pool
 
     # -- the pool -----------------------------------------------------------------------------
     def start(self) -> None:
         """Start the worker processes (call early: they import OpenCV while the run starts)."""
         if self.jobs > 1 and self._pool is None and self.cached is None:
-            self._pool = ProcessPoolExecutor(self.jobs, mp_context=pool_context(), initializer=init_worker)
+            if self._executor is not None:
+                self._pool = self._executor
+            else:
+                self._pool = ProcessPoolExecutor(self.jobs, mp_context=pool_context(), initializer=init_worker)
 
     def close(self, cancel: bool = False) -> None:
         """Stop the workers; ``cancel`` (an error or Ctrl-C): drop queued segments and end the
@@ -103,6 +114,12 @@ class DetectionFeed:
         if self._pool is None:
             return
         pool, self._pool = self._pool, None
+        if pool is self._executor:  # the caller's: left running, only this feed's segments dropped
+            if cancel:
+                for future in self._submitted:
+                    future.cancel()
+            self._submitted = []
+            return
         if cancel:
             processes = list(getattr(pool, "_processes", {}).values())
             pool.shutdown(wait=False, cancel_futures=True)
@@ -126,6 +143,8 @@ class DetectionFeed:
             future.set_result(detect_segment(self.params, segment.jobs))
         else:
             future = self._pool.submit(detect_segment, self.params, segment.jobs)
+            if self._pool is self._executor:
+                self._submitted = [f for f in self._submitted if not f.done()] + [future]
         segment.future = future
 
     @staticmethod
