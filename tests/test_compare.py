@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 
 from agvviz import scenarios as scenario_registry
 from agvviz.cli.main import app
-from agvviz.app import cluster
+from agvviz.app import dask_engine
 from agvviz.app.diff import COMPACT_METRICS, CompareError, diff, diff_table, diff_table_title, diff_verdict, format_p
 from agvviz.app.run_series import cameras_of, fixed_cameras_of, load_run
 from agvviz.app.sweep import SweepEntry, parse_grid, sweep
@@ -313,17 +313,24 @@ def test_sweep_lead_that_fails_hands_the_lead_on(tmp_path):
                                                       "ranking.md", "sweep.rrd"]
 
 
-def test_sweep_without_dask_is_one_line(tmp_path, monkeypatch, qr_small):
+def test_sweep_without_dask_runs_locally_and_scheduler_is_one_line(tmp_path, monkeypatch, qr_small):
+    """Dask is needed for --scheduler alone: a local sweep runs on its own pool without it, and
+    a sweep on a cluster without Dask installed is refused in one line, before anything is
+    written."""
     recording = qr_small  # a recording: what is none is refused before Dask is looked for
     monkeypatch.setitem(sys.modules, "distributed", None)  # `import distributed` raises ImportError
+    outcome = sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp_path / "local", images=False,
+                    cache_dir=tmp_path / "cache")
+    assert all(e.ok for e in outcome.entries), [e.error for e in outcome.entries]
     with pytest.raises(InputError, match=r"pip install 'agvviz\[distributed\]'"):
-        sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp_path / "out")
+        sweep(recording, parse_grid(["solver=lm,p4p"]), out_dir=tmp_path / "out", scheduler="tcp://127.0.0.1:1")
     assert not (tmp_path / "out").exists()
     result = CliRunner().invoke(app, ["sweep", str(recording), "--set", "solver=lm,p4p", "--out-dir",
-                                      str(tmp_path / "out")])
+                                      str(tmp_path / "out"), "--scheduler", "tcp://127.0.0.1:1"])
     assert result.exit_code == 2, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
-    assert lines[-1] == f"error: {cluster.DASK_MISSING}", result.output
+    assert lines[-1] == f"error: {dask_engine.DASK_MISSING}", result.output
+    assert not (tmp_path / "out").exists()
 
 
 def test_sweep_on_an_existing_cluster(tmp_path):

@@ -1,8 +1,8 @@
-"""The engines of ``agvviz sweep``: a local pool of processes, or Dask distributed.
+"""How ``agvviz sweep`` runs its runs: the loop, and the local engine (a pool of processes).
 
-:func:`run_sweep_tasks` runs a sweep's runs (recording, settings, output ``.rrd``) on the engine
-:func:`open_engine` gives. It groups them by recording and detection settings
-(:func:`agvviz.replay.detect.stage.detection_settings`); each group's first setting, its *lead*,
+:func:`run_sweep_tasks` runs a sweep's runs (recording, settings, output ``.rrd``) on an engine,
+:func:`local_engine` or a Dask cluster's (:mod:`agvviz.app.dask_engine`). It groups them by
+recording and detection settings (:func:`agvviz.replay.detect.stage.detection_settings`); each group's first setting, its *lead*,
 runs first: it detects the recording on every core and solves meanwhile, in one pass, as
 ``agvviz run`` does, and fills the detection cache. When a lead is done, its group's other
 settings only solve, from the cache. A lead that failed hands the lead to the next setting of
@@ -19,12 +19,8 @@ starting its scheduler and workers — while the lead detected, and its workers 
 their own beside the detection pool's.) Progress comes through an array shared with the pool,
 the stop through a shared event.
 
-**Dask** (:class:`DaskEngine`, ``--scheduler ADDRESS``): every run is a task on that cluster's
-workers; a lead detects on its share of the cluster's threads. Workers report frames done
-through Dask's event log (``Worker.log_event``, at most every :data:`PROGRESS_EVERY_S` per
-task); the stop is a Dask ``Event``. Dask is an optional dependency (``pip install
-'agvviz[distributed]'``); without it ``--scheduler`` fails at once with :data:`DASK_MISSING`.
-Only this module imports Dask, and only inside functions.
+**Dask** (``--scheduler ADDRESS``, :mod:`agvviz.app.dask_engine`): every run is a task on that
+cluster's workers, under the same loop.
 
 Interruption (Ctrl-C, SIGTERM): the sweep sets the stop event, which every running run checks
 between frames (it then stops, and its unfinished ``.rrd`` is removed), and drops the runs not
@@ -37,14 +33,12 @@ signal); a small reaper process then removes the temporary files they leave.
 from __future__ import annotations
 
 import json
-import logging
 import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,19 +46,12 @@ from typing import TYPE_CHECKING, Callable, Iterator
 
 from agvviz.recording import outputs
 from agvviz.replay.detect.workers import init_worker, signals_ignored
-from agvviz.errors import InputError
 
 if TYPE_CHECKING:
     from agvviz.settings import RunSettings
 
-#: The one-line error of a sweep on a Dask cluster (``--scheduler``) without Dask installed.
-DASK_MISSING = "agvviz sweep runs on Dask distributed, which is not installed: pip install 'agvviz[distributed]'"
-#: A worker reports its task's frames done at most this often (seconds).
-PROGRESS_EVERY_S = 0.25
 #: A running task looks at the sweep's stop event at most this often (seconds).
 STOP_CHECK_EVERY_S = 0.5
-#: How long to wait for an existing cluster's scheduler to answer (seconds).
-CONNECT_TIMEOUT_S = 10.0
 #: How long the local pool's processes get to stop before they are killed (seconds): at the
 #: end of a sweep, and when it was interrupted (a run stops at its next frame, and a process
 #: killed instead leaves temporary files that the sweep removes).
@@ -95,28 +82,6 @@ class SweepStopped(Exception):
     """Raised inside a task when the sweep was interrupted (its stop event is set)."""
 
 
-def require_distributed() -> None:
-    """:class:`InputError` (:data:`DASK_MISSING`) unless ``distributed`` can be imported; does
-    not import it (≈0.7 s: a local sweep imports it while its first runs have started)."""
-    import importlib.util
-
-    try:
-        found = importlib.util.find_spec("distributed") is not None
-    except (ImportError, ValueError):
-        found = False
-    if not found:
-        raise InputError(DASK_MISSING)
-
-
-def import_distributed():
-    """The ``distributed`` package, or :class:`InputError` (:data:`DASK_MISSING`)."""
-    try:
-        import distributed
-    except ImportError:
-        raise InputError(DASK_MISSING) from None
-    return distributed
-
-
 def one_line(exc: BaseException) -> str:
     """``Type: message`` on one line; a worker that died is said so plainly."""
     name = type(exc).__name__
@@ -142,56 +107,6 @@ def detection_groups(tasks: list[RunTask]) -> dict[tuple[str, str], list[int]]:
     for index, task in enumerate(tasks):
         groups.setdefault(detection_key(task), []).append(index)
     return groups
-
-
-# -- worker side -------------------------------------------------------------------------------
-class _Reporter:
-    """A task's ``progress(frames_done)``: sends its count to the sweep's event topic (throttled)
-    and raises :class:`SweepStopped` once the sweep's stop event is set."""
-
-    def __init__(self, topic: str, stop_name: str, unit: int):
-        from distributed import Event, get_worker
-
-        self.worker = get_worker()
-        self.topic, self.unit = topic, unit
-        self.stop = Event(stop_name)
-        self.last_sent = self.last_check = time.monotonic()
-
-    def __call__(self, frames_done: int) -> None:
-        now = time.monotonic()
-        if now - self.last_sent >= PROGRESS_EVERY_S:
-            self.last_sent = now
-            self.worker.log_event(self.topic, [self.unit, int(frames_done)])
-        if now - self.last_check >= STOP_CHECK_EVERY_S:
-            self.last_check = now
-            if self.stop.is_set():
-                raise SweepStopped("the sweep was interrupted")
-
-
-def _detect_jobs(share: int) -> int:
-    """Detection processes of one detection task: its share of the cluster's threads, at most
-    this machine's CPUs; 1 (in-process) in a daemonic worker, which may not start processes."""
-    import multiprocessing
-
-    if multiprocessing.current_process().daemon:
-        return 1
-    return max(1, min(share, os.cpu_count() or 1))
-
-
-def run_task(
-    recording: str, settings: "RunSettings", out_path: str, cache_dir: str | None, topic: str, stop_name: str,
-    unit: int, images: bool = True, share: int = 1,
-) -> TaskResult:
-    """Worker: replay one setting. A group's lead (``share`` > 1: its share of the cluster's
-    threads) detects on that many processes (in-process in a daemonic worker) and fills the
-    cache; the others read their group's detections from it and only solve."""
-    import cv2
-
-    cv2.setNumThreads(1)  # one thread per worker: the workers already fill the CPUs
-    reporter = _Reporter(topic, stop_name, unit)
-    task = RunTask(Path(recording), settings, Path(out_path), images)
-    return _run(task, _detect_jobs(share), reporter, Path(cache_dir) if cache_dir is not None else None)
-
 
 
 # -- the local sweep -----------------------------------------------------------------------------
@@ -406,72 +321,6 @@ class LocalEngine:
                 process.join(timeout=1.0)
 
 
-class DaskEngine:
-    """A sweep on an existing Dask cluster (``--scheduler``): every run is a task. A lead gets
-    its share of the cluster's threads to detect on (:func:`run_task`); progress comes through
-    Dask's event log and the stop through a Dask ``Event``."""
-
-    def __init__(self, client, tasks: list[RunTask], cache_dir: Path | None):
-        self.client, self.tasks = client, tasks
-        self.cache = str(Path(cache_dir).resolve()) if cache_dir is not None else None
-        token = uuid.uuid4().hex[:12]
-        self.topic, self.stop_name, self.token = f"agvviz-sweep-progress-{token}", f"agvviz-sweep-stop-{token}", token
-        self.share = max(1, sum(client.nthreads().values()) // max(1, len(detection_groups(tasks))))
-        self._frames: dict[int, int] = {}
-        self._lock = threading.Lock()
-        self._pending: dict[object, int] = {}
-        client.subscribe_topic(self.topic, self._on_event)
-
-    def _on_event(self, event) -> None:  # in the client's event-loop thread
-        _, (unit, count) = event
-        with self._lock:
-            self._frames[unit] = max(self._frames.get(unit, 0), int(count))
-
-    def _submit(self, index: int, share: int) -> None:
-        task = self.tasks[index]
-        future = self.client.submit(
-            run_task, str(task.recording.resolve()), task.settings, str(task.out_path.resolve()), self.cache,
-            self.topic, self.stop_name, index, task.images, share, key=f"agvviz-run-{self.token}-{index}", pure=False,
-        )
-        self._pending[future] = index
-
-    def start_lead(self, index: int) -> None:
-        self._submit(index, self.share)
-
-    def start_followers(self, indices: list[int]) -> None:
-        # Submitted now rather than as the lead's dependents, which Dask would all place on the
-        # one worker holding its result.
-        for index in indices:
-            self._submit(index, 1)
-
-    def busy(self) -> bool:
-        return bool(self._pending)
-
-    def frames_done(self, index: int) -> int:
-        with self._lock:
-            return self._frames.get(index, 0)
-
-    def ended(self) -> list[tuple[int, TaskResult]]:
-        done = []
-        for future in [f for f in self._pending if f.done()]:
-            index = self._pending.pop(future)
-            try:
-                result = future.result()
-            except Exception as exc:  # noqa: BLE001 — a worker that died, a cancelled task
-                result = TaskResult(error=one_line(exc))
-            done.append((index, result))
-        return done
-
-    def stop(self) -> None:
-        from distributed import Event
-
-        try:
-            Event(self.stop_name, client=self.client).set()
-            self.client.cancel(list(self._pending))
-        except Exception:  # noqa: BLE001 — the cluster may be gone already; closing follows
-            pass
-
-
 # -- the local pool's processes ----------------------------------------------------------------
 def _start_method() -> str:
     """How a local sweep's pool starts: forked from the fork server, which this starts with
@@ -545,29 +394,13 @@ def reap(grace_s: float = 5.0) -> None:
 
 
 @contextmanager
-def open_engine(
-    tasks: list[RunTask], *, scheduler: str | None, jobs: int, cache_dir: Path | None, temp_folders: list[Path],
+def local_engine(
+    tasks: list[RunTask], *, jobs: int, cache_dir: Path | None, temp_folders: list[Path],
     before_start: Callable[[], None] | None = None,
-) -> Iterator[LocalEngine | DaskEngine]:
-    """The engine that runs a sweep's ``tasks``: a :class:`DaskEngine` on the cluster at
-    ``scheduler`` (:class:`~agvviz.errors.InputError` when it cannot be reached or Dask is
-    missing), or a :class:`LocalEngine` of ``jobs`` processes, closed on leaving, with the
-    reaper for ``temp_folders``. ``before_start`` is called once the cluster answered or the
-    reaper runs, before any run starts (the sweep prepares its folders then)."""
-    if scheduler is not None:
-        distributed = import_distributed()
-        try:
-            distributed.comm.resolve_address(scheduler)  # a malformed address or unknown host: at once
-            client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {' '.join(str(exc).split())}") from None
-        try:
-            if before_start is not None:
-                before_start()
-            yield DaskEngine(client, tasks, cache_dir)
-        finally:
-            client.close()
-        return
+) -> Iterator[LocalEngine]:
+    """A :class:`LocalEngine` of ``jobs`` processes for ``tasks``, closed on leaving, with the
+    reaper for ``temp_folders``. ``before_start`` is called once the reaper runs, before any run
+    starts (the sweep prepares its folders then)."""
     with signals_ignored(signal.SIGINT, signal.SIGTERM):  # the reaper outlives any signal to the group
         reaper = _start_reaper(temp_folders)
     engine = None
@@ -594,14 +427,16 @@ def open_engine(
 
 
 def run_sweep_tasks(
-    engine: LocalEngine | DaskEngine,
+    engine,
     tasks: list[RunTask],
     *,
     frames: Callable[[], dict[Path, int]] | None = None,
     progress: Callable[[int, int], None] | None = None,
     on_result: Callable[[int, TaskResult], None] | None = None,
 ) -> list[TaskResult]:
-    """Run ``tasks`` on ``engine`` (see :func:`open_engine`): each :func:`detection_groups`
+    """Run ``tasks`` on ``engine`` (a :class:`LocalEngine`, or a Dask cluster's
+    :class:`agvviz.app.dask_engine.DaskEngine`: ``start_lead``, ``start_followers``, ``busy``,
+    ``ended``, ``frames_done``, ``stop``): each :func:`detection_groups`
     group's lead (its first task) first, which detects and fills the cache, then the group's
     other tasks, which only solve; the results in the order of ``tasks``. A lead that failed
     may not have detected (its output, its solver): the next task of its group leads instead.

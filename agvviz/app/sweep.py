@@ -284,7 +284,9 @@ def sweep(
         # first, it does so while this process imports it.
         cluster.start_fork_server()
     else:
-        cluster.require_distributed()  # without Dask: one line, before anything is written
+        from agvviz.app import dask_engine
+
+        dask_engine.require_distributed()  # without Dask: one line, before anything is written
     per_recording = []
     for path, folder in zip(recordings, out_dirs):
         entries = []
@@ -326,8 +328,12 @@ def sweep(
             name="agvviz count frames", daemon=True,
         )
         counter.start()
-    with cluster.open_engine(tasks, scheduler=scheduler, jobs=workers, cache_dir=cache,
-                             temp_folders=[folder.resolve() for folder in out_dirs], before_start=prepare_dirs) as engine:
+    if scheduler is None:
+        engine_context = cluster.local_engine(tasks, jobs=workers, cache_dir=cache, before_start=prepare_dirs,
+                                              temp_folders=[folder.resolve() for folder in out_dirs])
+    else:
+        engine_context = dask_engine.connect(scheduler, tasks, cache, before_start=prepare_dirs)
+    with engine_context as engine:
 
         def counted() -> dict[Path, int]:  # once the leads run
             if counter is not None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
+import os
 import signal
 import sys
 import threading
@@ -92,6 +93,7 @@ def pool_context():
 def init_worker() -> None:
     """Worker set-up: Ctrl-C is the parent's to handle (it cancels the pool); die with the
     parent; one OpenCV thread (the workers already fill the CPUs)."""
+    _exit_with_starter()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # A fork server started by a process that ignores SIGTERM (a sweep's Dask worker) passes
     # that on; the parent-death signal below must be able to end this worker.
@@ -108,3 +110,25 @@ def init_worker() -> None:
     import cv2
 
     cv2.setNumThreads(1)
+
+
+def _exit_with_starter() -> None:
+    """End this worker as soon as the process that started it (the run or the sweep, not the
+    fork server) has ended, in whatever way — SIGKILL included.
+
+    The parent-death signal alone does not do it: a worker forked from the fork server is the
+    server's child, and holds (as every child of it does) the pipe end whose closing would end
+    the server; so after a SIGKILL of the run, the server and its idle workers waited for each
+    other for ever. A daemon thread waits on the starter's sentinel instead (which
+    :func:`multiprocessing.parent_process` gives a forked or spawned worker) and exits the
+    process; an unfinished output it leaves is a temporary that the next run, or a sweep's
+    reaper, removes."""
+    starter = multiprocessing.parent_process()
+    if starter is None:
+        return
+
+    def wait_then_exit() -> None:
+        starter.join()
+        os._exit(1)
+
+    threading.Thread(target=wait_then_exit, name="agvviz exit with starter", daemon=True).start()
