@@ -71,7 +71,10 @@ def test_a_run_process_that_dies_leaves_no_temporary(tmp_path):
         from agvviz.viz.run_process import RrdWriter
         writer = RrdWriter({str(tmp_path / 'x.rrd')!r}, RunSettings(), recording_name="x", recording_id="x")
         writer.logger.log_manifest({{"recording": "x"}})
-        import time; time.sleep(1.0)
+        import time
+        deadline = time.monotonic() + 60  # the child opens its file once started (slow on a loaded machine)
+        while not any(n.endswith(".tmp") for n in os.listdir({str(tmp_path)!r})) and time.monotonic() < deadline:
+            time.sleep(0.05)
         print(sorted(os.listdir({str(tmp_path)!r})), flush=True)
         os._exit(3)
     """)
