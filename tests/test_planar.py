@@ -121,7 +121,8 @@ def test_solving_planar_does_not_load_scipy_stats():
         "for s in (0.3, None)]; "
         "print(*limits, 'scipy.stats' in sys.modules)"
     )
-    out = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent)], capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent)], capture_output=True, text=True,
+                         check=True)
     chi2_limit, f_limit, loaded = out.stdout.split()
     # both tests ran: χ²(3) and F(3, 2) (4 points: 8 residuals − 6) at 0.999
     assert float(chi2_limit) == pytest.approx(16.266, abs=1e-3) and float(f_limit) == pytest.approx(999.17, abs=0.01)
