@@ -138,7 +138,8 @@ def wilcoxon_paired(a: np.ndarray, b: np.ndarray) -> float:
     * N ≤ 50, no zero and no tie — the exact null distribution of the rank sum;
     * N ≤ 13 with a zero or a tie — scipy's permutation test, which then enumerates all 2^N
       sign flips (no random draw): the same exact sum over the average ranks, here by
-      :func:`_rank_sum_counts` (zeros flip to themselves and only double every count);
+      :func:`_rank_sum_counts` (zeros flip to themselves and only double every count; scipy's
+      comparison tolerance, 100 ulp of t, is far below the ½ between distinct rank sums);
     * otherwise the normal approximation with scipy's tie correction, no continuity correction.
 
     Both exact forms give ``min(1, 2·min(P(T ≤ t), P(T ≥ t)))`` as a ratio of integers, equal
