@@ -14,6 +14,9 @@ Usage:  python bench/bench_sweep.py [--workdir DIR] [--repeats 3] [--solvers lm,
    Target ≤ 1.3 (before: 1.98 on a quiet machine). The machine is shared: quote the pairs.
    With ``--baseline-tree DIR`` every repeat also measures that checkout's pair (e.g. the tree
    before issue 27), alternating with this one, so before and after meet the same load.
+   Then, in the same repeat, `agvviz diff sweep.rrd#<first solver> sweep.rrd#<second>` of that
+   sweep: its wall and CPU seconds (user + system of the reaped process, from getrusage; the
+   diff reads, compares — bootstrap and Wilcoxon — and prints), paired between the trees.
 3. Each solver's position RMSE inside the sweep file (ranking.csv) against a standalone
    `agvviz run --set solver=S` (its summary): they must be equal.
 
@@ -33,6 +36,7 @@ import argparse
 import csv
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -59,6 +63,7 @@ def main() -> None:
         (work / sub).mkdir(parents=True)
     recording = work / "qr_floor.mcap"
     counter = iter(range(10_000))
+    reaped_cpu = [0.0]  # CPU seconds of the last command's reaped processes (getrusage)
 
     def agvviz(tree: Path, *argv: str, cold: bool = True) -> tuple[float, float]:
         n = next(counter)
@@ -68,6 +73,7 @@ def main() -> None:
         log = work / "logs" / f"{n:03d}-{argv[0]}.log"
         print(f"  $ agvviz {' '.join(argv)}   (in {tree})", flush=True)
         t0 = time.perf_counter()
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu_s: dict[int, float] = {}  # the child's process tree: pid → CPU seconds at its last sample
         with open(log, "w") as out:
             child = subprocess.Popen([args.python, "-m", "agvviz", *argv], env=env, cwd=tree, stdout=out,
@@ -76,8 +82,10 @@ def main() -> None:
                 cpu_s.update(_tree_cpu_s(child.pid))
                 time.sleep(0.2)
         wall = time.perf_counter() - t0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
         if child.returncode != 0:
             sys.exit(f"agvviz {' '.join(argv)} failed (exit {child.returncode}); see {log}")
+        reaped_cpu[0] = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
         return wall, sum(cpu_s.values())
 
     if not recording.exists():
@@ -97,6 +105,8 @@ def main() -> None:
         trees["baseline"] = args.baseline_tree.resolve()
     pairs = {name: [] for name in trees}
     cpu_pairs = {name: [] for name in trees}  # CPU seconds of each process tree (user + system)
+    diffs = {name: [] for name in trees}  # (wall s, CPU s) of each `agvviz diff` of two settings
+    first, second = args.solvers.split(",")[:2]
     written = {}
     for _ in range(args.repeats):
         for name, tree in trees.items():
@@ -107,10 +117,14 @@ def main() -> None:
             sweep_s, sweep_cpu_s = agvviz(tree, "sweep", str(recording), "--set", f"solver={args.solvers}", "--jobs",
                                           "2", "--out-dir", str(sweep_dir))
             pairs[name].append((run_s, sweep_s))
+            sweep_file = sweep_dir / "sweep.rrd"
+            diff_s, _ = agvviz(tree, "diff", f"{sweep_file}#{first}", f"{sweep_file}#{second}", cold=False)
+            diffs[name].append((diff_s, reaped_cpu[0]))
             cpu_pairs[name].append((run_cpu_s, sweep_cpu_s))
             written[name] = (run_rrd, sweep_dir)
             print(f"  {name}: run {run_s:.1f} s, sweep {sweep_s:.1f} s, ratio {sweep_s / run_s:.2f}; CPU run "
-                  f"{run_cpu_s:.1f} s, sweep {sweep_cpu_s:.1f} s, ratio {sweep_cpu_s / run_cpu_s:.2f}", flush=True)
+                  f"{run_cpu_s:.1f} s, sweep {sweep_cpu_s:.1f} s, ratio {sweep_cpu_s / run_cpu_s:.2f}; "
+                  f"diff {diff_s:.2f} s, CPU {reaped_cpu[0]:.2f} s", flush=True)
 
     n_solvers = len(args.solvers.split(","))
     print()
@@ -130,6 +144,16 @@ def main() -> None:
         print(f"   CPU (all processes): sweep ÷ run, pairs {', '.join(f'{r:.2f}' for r in cpu_ratios)}: median "
               f"{statistics.median(cpu_ratios):.2f}; run median {statistics.median(r for r, _ in cpu_pairs[name]):.1f} s, "
               f"sweep median {statistics.median(s for _, s in cpu_pairs[name]):.1f} s")
+        diff_walls, diff_cpus = [w for w, _ in diffs[name]], [c for _, c in diffs[name]]
+        print(f"   diff {first} vs {second} of the sweep: wall {', '.join(f'{w:.2f}' for w in diff_walls)} s, "
+              f"median {statistics.median(diff_walls):.2f} s; CPU {', '.join(f'{c:.2f}' for c in diff_cpus)} s, "
+              f"median {statistics.median(diff_cpus):.2f} s")
+    if "baseline" in trees:
+        ratios = [a[1] / b[1] for a, b in zip(cpu_pairs["this tree"], cpu_pairs["baseline"])]
+        diff_ratios = [a[1] / b[1] for a, b in zip(diffs["this tree"], diffs["baseline"])]
+        print(f"this tree ÷ baseline, repeat by repeat: sweep CPU {', '.join(f'{r:.2f}' for r in ratios)} (median "
+              f"{statistics.median(ratios):.2f}); diff CPU {', '.join(f'{r:.2f}' for r in diff_ratios)} (median "
+              f"{statistics.median(diff_ratios):.2f})")
     if args.skip_rmse:
         return
     _, sweep_dir = written["this tree"]

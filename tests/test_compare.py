@@ -161,6 +161,38 @@ def test_worse_setting_is_detected(swept):
         assert row.a == pytest.approx(summary["position_error_mm"]["rmse"], rel=1e-12)
 
 
+_NO_SCIPY_STATS = """
+import sys
+from pathlib import Path
+
+from agvviz.app import run_series, sweep as sweep_module
+from agvviz.cli.main import app
+from agvviz.evaluation.comparison import run_metrics
+from agvviz.settings import RunSettings
+
+a, b = sys.argv[1:3]
+app(["diff", a, b], standalone_mode=False)  # the command, as a user runs it
+series = {0: run_series.load_run(a), 1: run_series.load_run(b)}  # the sweep's ranking
+entries = [sweep_module.SweepEntry(label, RunSettings(), Path(path), metrics=run_metrics(series[i]))
+           for i, (label, path) in enumerate((("a", a), ("b", b)))]
+sweep_module._rank(entries, series, "position_rmse_mm", "none", 1)
+print("RESULT", repr(entries[1].p_vs_best), "scipy.stats" in sys.modules)
+"""
+
+
+def test_diff_and_the_sweep_ranking_do_not_import_scipy_stats(swept):
+    """scipy.stats costs ≈0.8 s of CPU (issue 27): `agvviz diff` and the sweep's ranking get their
+    Wilcoxon p-values without it, the same p as the sweep's own ranking."""
+    _, outcome = swept
+    ecc, none = _entry(outcome, "lm"), _entry(outcome, "lm-refine=none")
+    out = subprocess.run([sys.executable, "-c", _NO_SCIPY_STATS, str(ecc.out_path), str(none.out_path)],
+                         capture_output=True, text=True, check=True).stdout
+    marker, p_value, loaded = out.strip().splitlines()[-1].split()
+    assert marker == "RESULT" and "position_rmse_mm" in out  # the diff printed its table
+    assert float(p_value) == none.p_vs_best < 0.01
+    assert loaded == "False"
+
+
 def test_unknown_metric_fails_before_reading(swept, tmp_path):
     with pytest.raises(ExpressionError, match="unknown metric 'position_rms'.*position_rmse_mm"):
         diff(tmp_path / "missing_a.rrd", tmp_path / "missing_b.rrd", fail_if="B.position_rms > 1")

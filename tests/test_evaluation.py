@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings as hypothesis_settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from agvviz.evaluation import expression, statistics, trajectory
@@ -186,9 +187,136 @@ def test_paired_bootstrap_interval_covers_the_true_difference():
 def test_wilcoxon_against_the_exact_null_distribution():
     a = np.zeros(10)
     b = np.arange(1, 11) * 0.1  # all 10 differences positive: exact two-sided p = 2 / 2^10
-    assert statistics.wilcoxon_paired(a, b) == pytest.approx(2 / 2**10)
+    assert statistics.wilcoxon_paired(a, b) == 2 / 2**10
     assert statistics.wilcoxon_paired(a, a) == 1.0
     assert statistics.wilcoxon_paired(np.zeros(0), np.zeros(0)) == 1.0
+    # d = (1, 2, −3): rank sum of the positives t = 3; subsets of {1, 2, 3} with sum ≤ 3:
+    # {}, {1}, {2}, {3}, {1, 2} — 5 of 8; ≥ 3: 5 of 8 ⇒ p = min(1, 2·5/8) = 1
+    assert statistics.wilcoxon_paired(np.zeros(3), np.array([1.0, 2.0, -3.0])) == 1.0
+    # d = (0, 1, 1, 1, −2): the zero is dropped; the ties (average rank 2, 2, 2; 4) send scipy
+    # to its permutation test over all 2^5 sign flips. Doubled ranks 4, 4, 4, 8; t×2 = 12:
+    # sums ≥ 12 over the 16 subsets: {4,8}×3, {4,4,4}, {4,4,8}×3, {4,4,4,8} = 8 ⇒ 8/16;
+    # sums ≤ 12: 12 of 16 ⇒ p = 2·8/16 = 1
+    assert statistics.wilcoxon_paired(np.zeros(5), np.array([0.0, 1.0, 1.0, 1.0, -2.0])) == 1.0
+    # d = (1, 1, 1, 1, 2): all positive ⇒ only the full set reaches t ⇒ p = 2/16 (zeros: 2^n·…)
+    assert statistics.wilcoxon_paired(np.zeros(6), np.array([0.0, 1.0, 1.0, 1.0, 1.0, 2.0])) == 2 / 32
+    with pytest.raises(ValueError, match="NaN"):
+        statistics.wilcoxon_paired(np.zeros(3), np.array([1.0, np.nan, 2.0]))
+
+
+def test_rank_sum_counts_are_the_subset_counts():
+    """The dynamic programme against brute force over every subset of small weight sets."""
+    import itertools
+
+    rng = np.random.default_rng(7)
+    for n in range(1, 11):
+        weights = rng.integers(1, 9, n)
+        brute = np.zeros(int(weights.sum()) + 1, dtype=np.int64)
+        for mask in itertools.product((0, 1), repeat=n):
+            brute[int(np.dot(mask, weights))] += 1
+        np.testing.assert_array_equal(statistics._rank_sum_counts(weights), brute)
+    # {1..n}: the classic signed-rank null distribution, symmetric, 2^n in all
+    counts = statistics._rank_sum_counts(np.arange(1, 51))
+    assert counts.sum() == 2**50 and np.array_equal(counts, counts[::-1])
+
+
+def _scipy_wilcoxon_p(d: np.ndarray) -> float:
+    from scipy import stats
+
+    return float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
+
+
+def _has_zeros_or_ties(d: np.ndarray) -> bool:
+    nonzero = d[d != 0]
+    return len(nonzero) < len(d) or len(np.unique(np.abs(nonzero))) < len(nonzero)
+
+
+def _uses_scipys_exact_sum(d: np.ndarray) -> bool:
+    """scipy 1.17's method="auto": the exact distribution (no zero, no tie, N ≤ 50) or the
+    permutation test that enumerates all 2^N sign flips (N ≤ 13); the normal form otherwise."""
+    return len(d) <= 13 or (len(d) <= 50 and not _has_zeros_or_ties(d))
+
+
+def _sign_flip_p(d: np.ndarray) -> float:
+    """What scipy's permutation test computes, by brute force: the rank sum of the positives
+    under each of the 2^N sign flips of d (zeros included, as scipy flips them), two-sided. Used
+    for 10 ≤ N ≤ 13, where scipy's own test takes 0.2–5 s a call."""
+    from scipy.stats import rankdata
+
+    nonzero = d != 0
+    ranks = np.zeros(len(d))
+    ranks[nonzero] = rankdata(np.abs(d[nonzero]))
+    signs = 1 - 2 * ((np.arange(2 ** len(d))[:, None] >> np.arange(len(d))) & 1)  # (2^N, N) of ±1
+    null = ((signs * d) > 0) @ ranks
+    observed = ranks[d > 0].sum()
+    return min(1.0, 2 * min(np.count_nonzero(null <= observed), np.count_nonzero(null >= observed)) / len(null))
+
+
+def _assert_matches_scipy(d: np.ndarray) -> None:
+    """Exact branches: both are the same ratio of integer counts (scipy sums dyadic fractions
+    exactly below 2^53), so equal bit for bit. Normal branch: the same z in the same float
+    operations, then erfc against scipy's ndtr, each a few ulps; z ≤ 8 (N ≤ 80) turns an ulp
+    of the argument into ≈2z²·1e-16 ≈ 1e-14 of the tail — measured ≤ 4e-15 — so rel 1e-12."""
+    ours = statistics.wilcoxon_paired(np.zeros(len(d)), d)
+    if not np.any(d != 0):
+        assert ours == 1.0  # scipy: 1 for N ≤ 13, NaN above; identical runs are not told apart
+        return
+    if 10 <= len(d) <= 13 and _has_zeros_or_ties(d):
+        reference = _sign_flip_p(d)  # ties or zeros at N = 10…13: scipy's enumeration, written out
+    else:
+        reference = _scipy_wilcoxon_p(d)
+    if _uses_scipys_exact_sum(d):
+        assert ours == reference, d
+    else:
+        assert ours == pytest.approx(reference, rel=1e-12, abs=0.0), d
+
+
+def test_the_sign_flip_reference_is_scipys_permutation_test():
+    rng = np.random.default_rng(5)
+    for n in range(1, 10):
+        d = rng.integers(-2, 3, n).astype(float)
+        if np.any(d != 0):
+            assert _sign_flip_p(d) == _scipy_wilcoxon_p(d), d
+
+
+def test_wilcoxon_matches_scipy_on_seeded_samples():
+    """Every N from 1 to 80, each draw seeded: continuous, small integers (ties and zeros),
+    rounded (ties), shifted (small p), huge and tiny magnitudes, all equal."""
+    for n in range(1, 81):
+        rng = np.random.default_rng(100 + n)
+        samples = [
+            rng.normal(0.0, 1.0, n),
+            rng.integers(-3, 4, n).astype(float),
+            np.round(rng.normal(0.5, 1.0, n), 1),
+            rng.normal(1.0, 1.0, n) * 1e250,
+            rng.normal(-0.2, 1.0, n) * 1e-250,
+            np.full(n, -2.5),
+            np.abs(rng.normal(0.0, 1.0, n)),
+        ]
+        for d in samples:
+            _assert_matches_scipy(d)
+
+
+@hypothesis_settings(max_examples=400, derandomize=True, deadline=None, database=None,
+                     suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.one_of(st.sampled_from([0.0, 1.0, -1.0, 2.0, -2.0, 0.5, 1e300, -1e300]),
+                          st.floats(-1e300, 1e300, allow_nan=False)), min_size=1, max_size=80))
+def test_wilcoxon_matches_scipy_on_hypothesis_samples(values):
+    """Lists of 1–80 differences mixing a few repeated values (ties, zeros) with any float up to
+    ±1e300 (b − a stays finite)."""
+    _assert_matches_scipy(np.array(values))
+
+
+def test_rmse_ci_uses_the_normal_quantile():
+    from scipy.stats import norm
+
+    errors = np.random.default_rng(3).normal(0.0, 2.0, 50)
+    rmse, low, high = statistics.rmse_ci(errors, confidence=0.9)
+    e2 = errors**2
+    half = norm.ppf(0.95) * np.std(e2, ddof=1) / np.sqrt(50)  # rel 1e-13: chi2.normal_isf's agreement
+    assert rmse == pytest.approx(np.sqrt(np.mean(e2)), rel=1e-15)
+    assert low == pytest.approx(np.sqrt(np.mean(e2) - half), rel=1e-13)
+    assert high == pytest.approx(np.sqrt(np.mean(e2) + half), rel=1e-13)
 
 
 # -- the --fail-if grammar -----------------------------------------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,8 +98,32 @@ def test_planar_error_is_zero_at_truth_and_reads_heading():
     np.testing.assert_allclose(planar_error(planar_pose(1.0, 2.0, 0.51), T), [0, 0, 0.01], atol=1e-12)
 
 
-def test_importing_the_solvers_does_not_load_scipy_stats():
-    """scipy.stats costs ≈0.8 s of every agvviz start; planar imports it on its first prior test."""
-    code = "import sys, agvviz.solvers, agvviz.solvers.planar; print('scipy.stats' in sys.modules)"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
+def test_the_prior_tests_quantiles_are_scipys():
+    """The planar solver's thresholds come from agvviz.solvers.chi2, not scipy.stats."""
+    from scipy import stats
+
+    from agvviz.solvers.planar import _quantile
+
+    assert _quantile("chi2", 0.999, 3) == pytest.approx(stats.chi2.ppf(0.999, 3), rel=1e-12)
+    for dfd in (2, 4, 10, 34):  # 2N − 6 for N = 4 … 20 points
+        assert _quantile("f", 0.999, 3, dfd) == pytest.approx(stats.f.ppf(0.999, 3, dfd), rel=1e-12)
+
+
+def test_solving_planar_does_not_load_scipy_stats():
+    """scipy.stats costs ≈0.8 s of CPU; the planar solver's χ² and F prior tests (noisy pixels,
+    with and without σ) run without it."""
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]); import numpy as np; "
+        "from test_planar import K, POINTS, PlanarPrior, scene, solve_planar; "
+        "_, T_agv_cam, T_world_marker, _, px = scene(1.0); "
+        "px = px + np.random.default_rng(0).normal(0.0, 0.3, px.shape); "
+        "limits = [solve_planar(POINTS, px, K, PlanarPrior(T_agv_cam, T_world_marker, sigma_px=s))[0].test_threshold "
+        "for s in (0.3, None)]; "
+        "print(*limits, 'scipy.stats' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent)], capture_output=True, text=True,
+                         check=True)
+    chi2_limit, f_limit, loaded = out.stdout.split()
+    # both tests ran: χ²(3) and F(3, 2) (4 points: 8 residuals − 6) at 0.999
+    assert float(chi2_limit) == pytest.approx(16.266, abs=1e-3) and float(f_limit) == pytest.approx(999.17, abs=0.01)
+    assert loaded == "False"

@@ -378,9 +378,6 @@ def _read_back(
     except (RrdReadError, EvaluationError) as exc:
         series.pop(index, None)
         entry.error = f"{type(exc).__name__}: {exc}"
-    # The ranking's Wilcoxon test needs scipy.stats (≈1 s to import): imported now, while the
-    # other settings solve, not after the last one.
-    from scipy import stats  # noqa: F401
 
 
 def _finish_recording(

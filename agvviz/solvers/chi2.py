@@ -1,4 +1,4 @@
-"""χ² tails and quantiles, and the normal quantile, without scipy (issue 27).
+"""χ² tails and quantiles, the F quantile and the normal quantile, without scipy (issue 27).
 
 A run needs three of scipy.special's functions (the joint solve's χ² outlier limit, the check
 stage's σ scale); importing scipy.special costs ≈0.25 s of every run's start (it pulls in
@@ -11,9 +11,12 @@ numpy.f2py and numpy.testing through scipy's array-API layer). These are the tex
   its series below a + 1 and by its continued fraction (modified Lentz) above (Numerical
   Recipes §6.2), started from the Wilson–Hilferty approximation;
 * :func:`normal_isf` — the normal upper-tail quantile, −Φ⁻¹(p) by Wichura's AS 241 (the
-  standard library's :class:`statistics.NormalDist`), accurate to about 1e-16.
+  standard library's :class:`statistics.NormalDist`), accurate to about 1e-16;
+* :func:`f_quantile` — the F(dfn, dfd) quantile (scipy.stats.f.ppf; the planar solver's prior
+  test): the regularised incomplete beta function by its continued fraction (modified Lentz,
+  Numerical Recipes §6.4), inverted by Newton's method on its logarithm in log x, bracketed.
 
-They agree with scipy.special to ≈1e-13 relative (tests/test_chi2.py compares them over a grid);
+They agree with scipy to ≈1e-13 relative (tests/test_chi2.py compares them over a grid);
 a value is not bit-identical to scipy's. Pure maths: no I/O.
 """
 
@@ -136,3 +139,108 @@ def chi2_quantile(q: float, dofs) -> np.ndarray:
     dofs = np.asarray(dofs, dtype=float)
     out = np.array([2.0 * _gamma_p_inverse(0.5 * dof, q) for dof in dofs.reshape(-1)], dtype=float)
     return out.reshape(dofs.shape)
+
+
+def _beta_continued_fraction(a: float, b: float, x: float) -> float:
+    """The continued fraction of I_x(a, b) (Numerical Recipes §6.4, betacf), modified Lentz;
+    it converges fast for x < (a + 1)/(a + b + 2)."""
+    c = 1.0
+    d = 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (_TINY if abs(d) < _TINY else d)
+    h = d
+    for m in range(1, _MAX_STEPS):
+        for numerator in (
+            m * (b - m) * x / ((a - 1.0 + 2 * m) * (a + 2 * m)),
+            -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 1.0 + 2 * m)),
+        ):
+            d = 1.0 + numerator * d
+            d = 1.0 / (_TINY if abs(d) < _TINY else d)
+            c = 1.0 + numerator / c
+            c = _TINY if abs(c) < _TINY else c
+            delta = d * c
+            h *= delta
+        if abs(delta - 1.0) < _EPS:
+            break
+    return h
+
+
+def _stirling_remainder(x: float) -> float:
+    """lgamma(x) − ((x − ½) log x − x + ½ log 2π) for x ≥ 10, by its asymptotic series."""
+    x2 = x * x
+    return (1.0 / 12.0 - (1.0 / 360.0 - (1.0 / 1260.0 - 1.0 / (1680.0 * x2)) / x2) / x2) / x
+
+
+def _log_beta(a: float, b: float) -> float:
+    """log B(a, b). With the larger argument ≥ 10, lgamma(a + b) − lgamma(b) is written out by
+    Stirling's series so that the two large logarithms cancel exactly on paper, not in floats
+    (plain lgamma differences lose ≈1e-13 at b = 500)."""
+    small, large = min(a, b), max(a, b)
+    if large < 10.0:
+        return math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
+    # lgamma(s + l) − lgamma(l) = (l − ½) log1p(s/l) + s log(s + l) − s + R(s + l) − R(l)
+    rise = (large - 0.5) * math.log1p(small / large) + small * math.log(small + large) - small
+    rise += _stirling_remainder(small + large) - _stirling_remainder(large)
+    return math.lgamma(small) - rise
+
+
+def _log_beta_tails(a: float, b: float, x: float) -> tuple[float, float]:
+    """(log I_x(a, b), log(1 − I_x(a, b))), the regularised incomplete beta function, 0 < x < 1;
+    the smaller of I and 1 − I is the one computed directly, so both logarithms keep their
+    precision in either tail."""
+    log_front = a * math.log(x) + b * math.log1p(-x) - _log_beta(a, b)
+    if x < (a + 1.0) / (a + b + 2.0):
+        log_lower = log_front + math.log(_beta_continued_fraction(a, b, x) / a)
+        return log_lower, math.log1p(-math.exp(log_lower))
+    log_upper = log_front + math.log(_beta_continued_fraction(b, a, 1.0 - x) / b)
+    return math.log1p(-math.exp(log_upper)), log_upper
+
+
+def _beta_inverse(a: float, b: float, p: float, upper: bool) -> float:
+    """x with I_x(a, b) = p (``upper`` False) or 1 − I_x(a, b) = p (True), 0 < p < 1: Newton's
+    method on the logarithm of that tail against u = log x (I ≈ c·x^a near 0, so nearly linear
+    there), kept inside a bracket of u, halving it when a step leaves it."""
+    log_p = math.log(p)
+    low, high = math.log(1e-300), 0.0
+    u = math.log(0.5)
+    log_beta = _log_beta(a, b)
+    for _ in range(_MAX_STEPS):
+        x = math.exp(u)
+        if x >= 1.0:
+            u = 0.5 * (low + high)
+            continue
+        log_tail = _log_beta_tails(a, b, x)[1 if upper else 0]
+        error = log_tail - log_p
+        if (error > 0.0) != upper:  # the lower tail grows with u, the upper one shrinks
+            high = u
+        else:
+            low = u
+        # d log I / d u = x · x^(a−1) (1−x)^(b−1) / B(a, b) / I; of the upper tail: −(same)/(1 − I)
+        log_slope = a * u + (b - 1.0) * math.log1p(-x) - log_beta - log_tail
+        slope = (-1.0 if upper else 1.0) * math.exp(log_slope) if -700.0 < log_slope < 700.0 else 0.0
+        new_u = u - error / slope if slope != 0.0 else math.nan
+        if not low < new_u < high:  # (NaN included)
+            new_u = 0.5 * (low + high)
+        if abs(new_u - u) <= 4.0 * _EPS * max(1.0, abs(u)):
+            return math.exp(new_u)
+        u = new_u
+    return math.exp(u)
+
+
+def f_quantile(q: float, dfn: float, dfd: float) -> float:
+    """The F(dfn, dfd) quantile ``q``, 0 < q < 1 (scipy.stats.f.ppf(q, dfn, dfd)).
+
+    P(F ≤ x) = I_y(dfn/2, dfd/2) with y = dfn·x / (dfn·x + dfd), so x = dfd·y / (dfn·(1 − y)),
+    and 1 − y solves I_(1−y)(dfd/2, dfn/2) = 1 − q. Whichever of y and 1 − y is below ½ is
+    solved for (the other is 1 − it without loss), each from the tail that q or 1 − q is small in."""
+    if not 0.0 < q < 1.0:
+        raise ValueError(f"q must lie in (0, 1), got {q}")
+    if not (dfn > 0.0 and dfd > 0.0):
+        raise ValueError(f"degrees of freedom must be positive, got {dfn} and {dfd}")
+    a, b = 0.5 * dfn, 0.5 * dfd
+    y = _beta_inverse(a, b, q, upper=False) if q <= 0.5 else _beta_inverse(a, b, 1.0 - q, upper=True)
+    if y <= 0.5:
+        w = 1.0 - y
+    else:
+        w = _beta_inverse(b, a, 1.0 - q, upper=False) if q >= 0.5 else _beta_inverse(b, a, q, upper=True)
+        y = 1.0 - w
+    return dfd * y / (dfn * w)

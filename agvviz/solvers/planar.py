@@ -36,7 +36,7 @@ import numpy as np
 from agvviz.geometry import se3, so3
 from agvviz.geometry.camera import PinholeCamera
 from agvviz.geometry.euler import Rz
-from agvviz.solvers import lm_core
+from agvviz.solvers import chi2, lm_core
 from agvviz.solvers.lm import refine_lm
 
 #: Columns (δx, δy, δψ) of the 6-vector (ρ, φ) the planar solver perturbs.
@@ -226,11 +226,12 @@ def solve_planar(
 
 @functools.lru_cache(maxsize=64)
 def _quantile(distribution: str, level: float, *dof: int) -> float:
-    """Cached scipy quantile (one ppf call costs milliseconds; the arguments repeat). scipy.stats
-    is imported here, not at module level: importing it costs ≈0.8 s of every agvviz start."""
-    from scipy import stats
-
-    return float(getattr(stats, distribution).ppf(level, *dof))
+    """The ``level`` quantile of χ²(dof) or F(dof₁, dof₂) (scipy.stats' ppf), cached (the
+    arguments repeat), from :mod:`agvviz.solvers.chi2`: importing scipy.stats costs ≈0.8 s of
+    CPU, and a sweep over ``solver=planar`` would pay it in every worker."""
+    if distribution == "chi2":
+        return float(chi2.chi2_quantile(level, [dof[0]])[0])
+    return chi2.f_quantile(level, dof[0], dof[1])
 
 
 def covariance_planar(
