@@ -236,6 +236,21 @@ def _pool_task(index: int, task: RunTask, cache_dir: Path | None) -> TaskResult:
 
 
 # -- the engines ---------------------------------------------------------------------------------
+def ended_futures(pending: dict) -> list[tuple[int, TaskResult]]:
+    """The futures of ``pending`` (future → task index) that are done, taken out of it, with
+    their results; a future that raised (a process or worker that died, a cancelled task) gives
+    a failed result."""
+    done = []
+    for future in [f for f in pending if f.done()]:
+        index = pending.pop(future)
+        try:
+            result = future.result()
+        except Exception as exc:  # noqa: BLE001 — reported as that run's failure
+            result = TaskResult(error=one_line(exc))
+        done.append((index, result))
+    return done
+
+
 class LocalEngine:
     """A local sweep: a pool of ``jobs`` processes, forked from the fork server (which has
     imported a run's modules: :func:`_start_method`) before any run starts, and this process.
@@ -286,14 +301,7 @@ class LocalEngine:
         return max(self.here.frames.get(index, 0), int(self._frames_done[index]))
 
     def ended(self) -> list[tuple[int, TaskResult]]:
-        done = []
-        for future in [f for f in self._pending if f.done()]:
-            index = self._pending.pop(future)
-            try:
-                result = future.result()
-            except Exception as exc:  # noqa: BLE001 — a pool process that died, a cancelled task
-                result = TaskResult(error=one_line(exc))
-            done.append((index, result))
+        done = ended_futures(self._pending)
         for index in sorted(self._here):
             if index in self.here.results:
                 self._here.discard(index)

@@ -24,7 +24,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator
 
-from agvviz.app.cluster import STOP_CHECK_EVERY_S, RunTask, SweepStopped, TaskResult, _run, detection_groups, one_line
+from agvviz.app.cluster import (
+    STOP_CHECK_EVERY_S, RunTask, SweepStopped, TaskResult, _run, detection_groups, ended_futures,
+)
 from agvviz.errors import InputError
 
 if TYPE_CHECKING:
@@ -155,15 +157,7 @@ class DaskEngine:
             return self._frames.get(index, 0)
 
     def ended(self) -> list[tuple[int, TaskResult]]:
-        done = []
-        for future in [f for f in self._pending if f.done()]:
-            index = self._pending.pop(future)
-            try:
-                result = future.result()
-            except Exception as exc:  # noqa: BLE001 — a worker that died, a cancelled task
-                result = TaskResult(error=one_line(exc))
-            done.append((index, result))
-        return done
+        return ended_futures(self._pending)
 
     def stop(self) -> None:
         from distributed import Event
