@@ -155,3 +155,21 @@ class PinholeCamera:
         xy = self.undistort_normalized(px)
         r = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
         return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+
+#: Ideal (distortion-free) cameras of :func:`ideal_camera`, by their K's bytes; a few at most.
+_IDEAL_CAMERAS: dict[bytes, PinholeCamera] = {}
+
+
+def ideal_camera(K: np.ndarray) -> PinholeCamera:
+    """``PinholeCamera(K)``: the distortion-free camera of ``K`` (3, 3), built once per K value
+    (the covariance of every frame projects through it; building checks K each time)."""
+    K = np.asarray(K, dtype=float)
+    key = K.tobytes()
+    camera = _IDEAL_CAMERAS.get(key)
+    if camera is None:
+        camera = PinholeCamera(K)
+        if len(_IDEAL_CAMERAS) >= 16:
+            _IDEAL_CAMERAS.clear()
+        _IDEAL_CAMERAS[key] = camera
+    return camera

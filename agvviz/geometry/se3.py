@@ -14,10 +14,13 @@ from agvviz.geometry import so3
 
 def make(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4×4 transform from rotation ``R`` (3×3) and translation ``t`` (3,)."""
-    T = np.eye(4)
+    T = _EYE4.copy()
     T[:3, :3] = R
     T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
     return T
+
+
+_EYE4 = np.eye(4)
 
 
 def inverse(T: np.ndarray) -> np.ndarray:
@@ -185,8 +188,10 @@ def is_rigid(T: np.ndarray, atol: float = 1e-6) -> bool:
 
 def from_quaternion_xyzw(q_xyzw: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Transform from a unit quaternion (x, y, z, w) and a translation."""
-    # (as Python floats: the same double arithmetic without numpy's per-scalar cost)
-    x, y, z, w = (np.asarray(q_xyzw, dtype=float) / np.linalg.norm(q_xyzw)).tolist()
+    # (as Python floats: the same double arithmetic without numpy's per-scalar cost; the norm is
+    # np.linalg.norm's own, sqrt of the dot product, without its per-call cost)
+    q = np.asarray(q_xyzw, dtype=float)
+    x, y, z, w = (q / math.sqrt(q.dot(q))).tolist()
     R = np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

@@ -5,6 +5,8 @@ Rotation vectors ``phi_rad`` are axis × angle (rad). See :mod:`agvviz.conventio
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 _SMALL_ANGLE_RAD = 1e-6
@@ -58,9 +60,12 @@ def log(R: np.ndarray) -> np.ndarray:
     Robust near 0 and near π (where the antisymmetric part vanishes).
     """
     R = np.asarray(R, dtype=float)
-    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # 2 sin θ · axis
-    sin_theta = 0.5 * float(np.linalg.norm(w))
+    # In Python floats (the same double arithmetic as numpy's, without its per-call cost on
+    # scalars): this runs for every pose compared, interpolated or turned into an error.
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    cos_theta = min(max((r00 + r11 + r22 - 1.0) / 2.0, -1.0), 1.0)
+    w = np.array([r21 - r12, r02 - r20, r10 - r01])  # 2 sin θ · axis
+    sin_theta = 0.5 * math.sqrt(w.dot(w))  # np.linalg.norm(w), written out
     # atan2 keeps θ accurate everywhere; arccos alone loses digits near 0 and π, and dividing
     # w by sin(arccos(·)) then turns that into ≈1e-9 rad errors at π − 1e-3.
     theta = float(np.arctan2(sin_theta, cos_theta))

@@ -74,7 +74,7 @@ import numpy as np
 from agvviz.errors import RunError
 
 from agvviz.geometry import se3, so3
-from agvviz.geometry.camera import PinholeCamera
+from agvviz.geometry.camera import ideal_camera
 
 #: Covariance-producing objectives (see the module docstring).
 OBJECTIVES = ("depth", "pixel")
@@ -90,7 +90,7 @@ def pixel_jacobian(T_cam_marker: np.ndarray, points_marker_m: np.ndarray, K: np.
     w = se3.transform_points(T_cam_marker, points_marker_m)
     if not np.all(w[:, 2] > 0.0):
         raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
-    _, J_px_wrt_w = PinholeCamera(np.asarray(K, dtype=float)).project_with_jacobian(w)
+    _, J_px_wrt_w = ideal_camera(K).project_with_jacobian(w)
     return (J_px_wrt_w @ se3.J_point_wrt_left_perturbation(w)).reshape(-1, 6)
 
 
@@ -283,7 +283,7 @@ class _View:
         if not np.all(self.w_cam[:, 2] > 0.0):
             raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
         self.n = len(points_F)
-        self.pixels, self.J_px_wrt_w = PinholeCamera(K).project_with_jacobian(self.w_cam)  # (N, 2), (N, 2, 3)
+        self.pixels, self.J_px_wrt_w = ideal_camera(K).project_with_jacobian(self.w_cam)  # (N, 2), (N, 2, 3)
         self.J_px_wrt_F = self.J_px_wrt_w @ T_cam_F[:3, :3]  # (N, 2, 3): points moved in F
 
     def systematic_parts(self, H: np.ndarray, sigmas: SystematicSigmas) -> dict[str, np.ndarray]:
