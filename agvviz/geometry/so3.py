@@ -10,6 +10,8 @@ import math
 import numpy as np
 
 _SMALL_ANGLE_RAD = 1e-6
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
 
 
 def _one_minus_cos_over_theta_sq(theta: float) -> float:
@@ -44,14 +46,14 @@ def vee(W: np.ndarray) -> np.ndarray:
 def exp(phi_rad: np.ndarray) -> np.ndarray:
     """Rotation matrix of rotation vector ``phi_rad`` (Rodrigues, paper 000 eq 29)."""
     phi = np.asarray(phi_rad, dtype=float)
-    theta = float(np.linalg.norm(phi))
+    theta = math.sqrt(phi.dot(phi))  # np.linalg.norm(phi), written out
     K = hat(phi)
     if theta < _SMALL_ANGLE_RAD:
         # Taylor series to second order; exact to machine precision here.
-        return np.eye(3) + K + 0.5 * K @ K
+        return _EYE3 + K + 0.5 * K @ K
     a = np.sin(theta) / theta
     b = _one_minus_cos_over_theta_sq(theta)
-    return np.eye(3) + a * K + b * K @ K
+    return _EYE3 + a * K + b * K @ K
 
 
 def log(R: np.ndarray) -> np.ndarray:
@@ -90,25 +92,25 @@ def log(R: np.ndarray) -> np.ndarray:
 def left_jacobian(phi_rad: np.ndarray) -> np.ndarray:
     """Left Jacobian J_l(φ) of SO(3) (the V matrix of paper 000 eq 30)."""
     phi = np.asarray(phi_rad, dtype=float)
-    theta = float(np.linalg.norm(phi))
+    theta = math.sqrt(phi.dot(phi))  # np.linalg.norm(phi), written out
     K = hat(phi)
     if theta < _SMALL_ANGLE_RAD:
-        return np.eye(3) + 0.5 * K + K @ K / 6.0
+        return _EYE3 + 0.5 * K + K @ K / 6.0
     a = _one_minus_cos_over_theta_sq(theta)
     b = (theta - np.sin(theta)) / theta**3
-    return np.eye(3) + a * K + b * K @ K
+    return _EYE3 + a * K + b * K @ K
 
 
 def left_jacobian_inv(phi_rad: np.ndarray) -> np.ndarray:
     """Inverse of :func:`left_jacobian`."""
     phi = np.asarray(phi_rad, dtype=float)
-    theta = float(np.linalg.norm(phi))
+    theta = math.sqrt(phi.dot(phi))  # np.linalg.norm(phi), written out
     K = hat(phi)
     if theta < _SMALL_ANGLE_RAD:
-        return np.eye(3) - 0.5 * K + K @ K / 12.0
+        return _EYE3 - 0.5 * K + K @ K / 12.0
     half = theta / 2.0
     c = (1.0 - half / np.tan(half)) / theta**2
-    return np.eye(3) - 0.5 * K + c * K @ K
+    return _EYE3 - 0.5 * K + c * K @ K
 
 
 def project_to_so3(M: np.ndarray) -> np.ndarray:
