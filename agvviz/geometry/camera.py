@@ -69,18 +69,26 @@ class PinholeCamera:
     # -- projection ---------------------------------------------------------------------
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
         """Apply distortion to normalised image coordinates (N, 2)."""
-        p1, p2 = self.dist[2], self.dist[3]
         x, y = xy[:, 0], xy[:, 1]
         r2 = x * x + y * y
         radial, _ = self._radial(r2)
+        return np.stack(self._distorted(x, y, r2, radial), axis=1)
+
+    def _distorted(self, x, y, r2, radial) -> tuple[np.ndarray, np.ndarray]:
+        """(xd, yd): normalised ``x``, ``y`` distorted, given ``r2 = x² + y²`` and its radial factor."""
+        p1, p2 = self.dist[2], self.dist[3]
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], axis=1)
+        return xd, yd
 
     def normalized_to_pixels(self, xy_d: np.ndarray) -> np.ndarray:
+        return self._pixels(xy_d[:, 0], xy_d[:, 1])
+
+    def _pixels(self, xd, yd) -> np.ndarray:
+        """Pixels (N, 2) of distorted normalised coordinates ``xd``, ``yd``."""
         K = self.K
-        u = K[0, 0] * xy_d[:, 0] + K[0, 1] * xy_d[:, 1] + K[0, 2]
-        v = K[1, 1] * xy_d[:, 1] + K[1, 2]
+        u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+        v = K[1, 1] * yd + K[1, 2]
         return np.stack([u, v], axis=1)
 
     def pixels_to_normalized_distorted(self, px: np.ndarray) -> np.ndarray:
@@ -121,7 +129,8 @@ class PinholeCamera:
         J_xy_p[:, 0, 2] = -X / Z**2
         J_xy_p[:, 1, 1] = 1.0 / Z
         J_xy_p[:, 1, 2] = -Y / Z**2
-        px = self.project(p)
+        # the pixels from the same x, y, r² and radial factor (what project(p) computes again)
+        px = self._pixels(*self._distorted(x, y, r2, radial))
         return px, J_uv_xy @ J_xy_p
 
     # -- back-projection ------------------------------------------------------------------
