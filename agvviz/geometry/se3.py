@@ -192,14 +192,15 @@ def from_quaternion_xyzw(q_xyzw: np.ndarray, t: np.ndarray) -> np.ndarray:
     # np.linalg.norm's own, sqrt of the dot product, without its per-call cost)
     q = np.asarray(q_xyzw, dtype=float)
     x, y, z, w = (q / math.sqrt(q.dot(q))).tolist()
-    R = np.array(
+    tx, ty, tz = np.asarray(t, dtype=float).reshape(3).tolist()
+    return np.array(  # make(R, t) in one go
         [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w), tx],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w), ty],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y), tz],
+            [0.0, 0.0, 0.0, 1.0],
         ]
     )
-    return make(R, t)
 
 
 def to_quaternion_xyzw(T_or_R: np.ndarray) -> np.ndarray:

@@ -313,13 +313,13 @@ class _View:
         sigma_K = np.array([sigmas.focal_px, sigmas.focal_px, sigmas.principal_point_px, sigmas.principal_point_px])
         factors["intrinsics"] = -(H @ B_K.reshape(-1, 4)) * sigma_K
         r2 = xn**2 + yn**2
-        f = np.array([self.K[0, 0], self.K[1, 1]])
-        xy = np.stack([xn, yn], axis=1)
+        fx, fy = self.K[0, 0], self.K[1, 1]
+        # u (row 0) scales with fx, v (row 1) with fy; column by column, without stacking them
         B_D = np.zeros((n, 2, 4))
-        B_D[:, :, 0] = r2[:, None] * xy * f
-        B_D[:, :, 1] = r2[:, None] ** 2 * xy * f
-        B_D[:, :, 2] = np.stack([2 * xn * yn, r2 + 2 * yn**2], axis=1) * f
-        B_D[:, :, 3] = np.stack([r2 + 2 * xn**2, 2 * xn * yn], axis=1) * f
+        B_D[:, 0, 0], B_D[:, 1, 0] = r2 * xn * fx, r2 * yn * fy
+        B_D[:, 0, 1], B_D[:, 1, 1] = r2**2 * xn * fx, r2**2 * yn * fy
+        B_D[:, 0, 2], B_D[:, 1, 2] = 2 * xn * yn * fx, (r2 + 2 * yn**2) * fy
+        B_D[:, 0, 3], B_D[:, 1, 3] = (r2 + 2 * xn**2) * fx, 2 * xn * yn * fy
         factors["distortion"] = -(H @ B_D.reshape(-1, 4)) * np.array([sigmas.k1, sigmas.k2, sigmas.p1, sigmas.p2])
         # Per marker: points in F move by dX_F; pixels by J_px_wrt_F · dX_F.
         sigma_map = np.array([sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,
