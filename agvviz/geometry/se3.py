@@ -176,13 +176,13 @@ def is_rigid(T: np.ndarray, atol: float = 1e-6) -> bool:
     The tests are ``np.allclose``'s (|a − b| ≤ atol + 1e-5·|b|), written out: this runs for every
     pose a solver returns, and ``allclose``'s own overhead was most of its cost."""
     T = np.asarray(T)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+    if T.shape != (4, 4) or not np.isfinite(T).all():
         return False
     R = T[:3, :3]
     return bool(
-        np.all(np.abs(R.T @ R - _EYE3) <= atol + 1e-5 * _EYE3)
+        (np.abs(R.T @ R - _EYE3) <= atol + 1e-5 * _EYE3).all()
         and abs(np.linalg.det(R) - 1.0) < atol
-        and np.all(np.abs(T[3] - _LAST_ROW) <= atol + 1e-5 * _LAST_ROW)
+        and (np.abs(T[3] - _LAST_ROW) <= atol + 1e-5 * _LAST_ROW).all()
     )
 
 

@@ -88,7 +88,7 @@ def pixel_jacobian(T_cam_marker: np.ndarray, points_marker_m: np.ndarray, K: np.
     """``J_pixels_wrt_left_perturbation`` (2N, 6) of the ideal pixels of ``points_marker_m``
     (N, 3) at pose ``T_cam_marker``; rows stacked per point as (u, v), δ = (ρ, φ)."""
     w = se3.transform_points(T_cam_marker, points_marker_m)
-    if not np.all(w[:, 2] > 0.0):
+    if not (w[:, 2] > 0.0).all():
         raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
     _, J_px_wrt_w = ideal_camera(K).project_with_jacobian(w)
     return (J_px_wrt_w @ se3.J_point_wrt_left_perturbation(w)).reshape(-1, 6)
@@ -280,7 +280,7 @@ class _View:
         self.K = K
         points_F, self.slices = _stack(markers)
         self.w_cam = se3.transform_points(T_cam_F, points_F)
-        if not np.all(self.w_cam[:, 2] > 0.0):
+        if not (self.w_cam[:, 2] > 0.0).all():
             raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
         self.n = len(points_F)
         self.pixels, self.J_px_wrt_w = ideal_camera(K).project_with_jacobian(self.w_cam)  # (N, 2), (N, 2, 3)
