@@ -134,7 +134,9 @@ def test_left_jacobians_and_quaternion_transform_equal_their_numpy_formulation()
         assert np.array_equal(se3.from_quaternion_xyzw(list(q), tuple(t)), T_reference)
 
 
-@pytest.mark.parametrize("dist", [np.zeros(5), [-0.12, 0.05, 1e-3, -8e-4, 0.01], [0.1, -0.05, 1e-3, 1e-3, 0.02, 0.03, -0.01, 0.005]])
+@pytest.mark.parametrize("dist", [
+    np.zeros(5), [-0.12, 0.05, 1e-3, -8e-4, 0.01], [0.1, -0.05, 1e-3, 1e-3, 0.02, 0.03, -0.01, 0.005],
+])
 def test_projection_with_jacobian_gives_project_s_pixels(dist):
     rng = np.random.default_rng(14)
     camera = PinholeCamera(np.array([[900.0, 0.3, 640.0], [0.0, 910.0, 512.0], [0.0, 0.0, 1.0]]), np.asarray(dist, float))
