@@ -69,25 +69,33 @@ class PinholeCamera:
     # -- projection ---------------------------------------------------------------------
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
         """Apply distortion to normalised image coordinates (N, 2)."""
-        p1, p2 = self.dist[2], self.dist[3]
         x, y = xy[:, 0], xy[:, 1]
         r2 = x * x + y * y
         radial, _ = self._radial(r2)
+        return _columns(*self._distorted(x, y, r2, radial))
+
+    def _distorted(self, x, y, r2, radial) -> tuple[np.ndarray, np.ndarray]:
+        """(xd, yd): normalised ``x``, ``y`` distorted, given ``r2 = x² + y²`` and its radial factor."""
+        p1, p2 = self.dist[2], self.dist[3]
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], axis=1)
+        return xd, yd
 
     def normalized_to_pixels(self, xy_d: np.ndarray) -> np.ndarray:
+        return self._pixels(xy_d[:, 0], xy_d[:, 1])
+
+    def _pixels(self, xd, yd) -> np.ndarray:
+        """Pixels (N, 2) of distorted normalised coordinates ``xd``, ``yd``."""
         K = self.K
-        u = K[0, 0] * xy_d[:, 0] + K[0, 1] * xy_d[:, 1] + K[0, 2]
-        v = K[1, 1] * xy_d[:, 1] + K[1, 2]
-        return np.stack([u, v], axis=1)
+        u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+        v = K[1, 1] * yd + K[1, 2]
+        return _columns(u, v)
 
     def pixels_to_normalized_distorted(self, px: np.ndarray) -> np.ndarray:
         K = self.K
         yd = (px[:, 1] - K[1, 2]) / K[1, 1]
         xd = (px[:, 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
-        return np.stack([xd, yd], axis=1)
+        return _columns(xd, yd)
 
     def project(self, points_cam_m: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of points (N, 3) in the camera frame (z must be > 0)."""
@@ -121,7 +129,8 @@ class PinholeCamera:
         J_xy_p[:, 0, 2] = -X / Z**2
         J_xy_p[:, 1, 1] = 1.0 / Z
         J_xy_p[:, 1, 2] = -Y / Z**2
-        px = self.project(p)
+        # the pixels from the same x, y, r² and radial factor (what project(p) computes again)
+        px = self._pixels(*self._distorted(x, y, r2, radial))
         return px, J_uv_xy @ J_xy_p
 
     # -- back-projection ------------------------------------------------------------------
@@ -155,3 +164,29 @@ class PinholeCamera:
         xy = self.undistort_normalized(px)
         r = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
         return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+
+def _columns(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, 2) of two (N,) columns: ``np.stack([a, b], axis=1)`` without its per-call cost."""
+    out = np.empty((len(a), 2), dtype=np.result_type(a, b))
+    out[:, 0] = a
+    out[:, 1] = b
+    return out
+
+
+#: Ideal (distortion-free) cameras of :func:`ideal_camera`, by their K's bytes; a few at most.
+_IDEAL_CAMERAS: dict[bytes, PinholeCamera] = {}
+
+
+def ideal_camera(K: np.ndarray) -> PinholeCamera:
+    """``PinholeCamera(K)``: the distortion-free camera of ``K`` (3, 3), built once per K value
+    (the covariance of every frame projects through it; building checks K each time)."""
+    K = np.asarray(K, dtype=float)
+    key = K.tobytes()
+    camera = _IDEAL_CAMERAS.get(key)
+    if camera is None:
+        camera = PinholeCamera(K)
+        if len(_IDEAL_CAMERAS) >= 16:
+            _IDEAL_CAMERAS.clear()
+        _IDEAL_CAMERAS[key] = camera
+    return camera

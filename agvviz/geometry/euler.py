@@ -5,6 +5,8 @@ Numpy only. The inverse follows paper 000 eq 57, including its gimbal-lock rule.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from agvviz.conventions import DEFAULT_GIMBAL_THRESHOLD
@@ -45,7 +47,7 @@ def hpr_from_matrix(
     if not 0.0 < gimbal_threshold < 1.0:
         raise ValueError(f"gimbal_threshold must lie in (0, 1), got {gimbal_threshold}")
     R = np.asarray(R, dtype=float)
-    r32 = float(np.clip(R[2, 1], -1.0, 1.0))
+    r32 = min(max(float(R[2, 1]), -1.0), 1.0)
     if abs(r32) > gimbal_threshold:
         pitch = np.pi / 2 if r32 > 0 else -np.pi / 2
         return 0.0, pitch, wrap_angle_rad(np.arctan2(R[0, 2], R[0, 0]))
@@ -59,6 +61,11 @@ def hpr_from_matrix(
 
 def wrap_angle_rad(angle_rad):
     """Wrap an angle (or array of angles) into (-π, π]."""
+    if isinstance(angle_rad, (float, np.floating)):
+        # One angle in Python floats: ``%`` is np.mod's floor remainder (same sign rule), without
+        # numpy's per-call cost (this wraps every pose's heading, pitch and roll).
+        wrapped = (float(angle_rad) + math.pi) % (2.0 * math.pi) - math.pi
+        return math.pi if wrapped == -math.pi else wrapped
     wrapped = np.mod(np.asarray(angle_rad, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
     wrapped = np.where(wrapped == -np.pi, np.pi, wrapped)
     return float(wrapped) if np.ndim(wrapped) == 0 else wrapped

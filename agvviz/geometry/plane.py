@@ -40,7 +40,8 @@ def quad_area_px2(corners_px: np.ndarray) -> float:
     """Area (px²) of the polygon through the first four image points ``corners_px`` (N ≥ 4, 2),
     in order (shoelace formula; NaN when a point is not finite)."""
     x, y = corners_px[:4, 0], corners_px[:4, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    x_next, y_next = np.concatenate((x[1:], x[:1])), np.concatenate((y[1:], y[:1]))  # np.roll(·, -1)
+    return 0.5 * abs(float(np.dot(x, y_next) - np.dot(y, x_next)))
 
 
 def marker_frame_from_corners(

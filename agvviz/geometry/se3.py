@@ -14,10 +14,13 @@ from agvviz.geometry import so3
 
 def make(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4×4 transform from rotation ``R`` (3×3) and translation ``t`` (3,)."""
-    T = np.eye(4)
+    T = _EYE4.copy()
     T[:3, :3] = R
     T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
     return T
+
+
+_EYE4 = np.eye(4)
 
 
 def inverse(T: np.ndarray) -> np.ndarray:
@@ -173,28 +176,31 @@ def is_rigid(T: np.ndarray, atol: float = 1e-6) -> bool:
     The tests are ``np.allclose``'s (|a − b| ≤ atol + 1e-5·|b|), written out: this runs for every
     pose a solver returns, and ``allclose``'s own overhead was most of its cost."""
     T = np.asarray(T)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+    if T.shape != (4, 4) or not np.isfinite(T).all():
         return False
     R = T[:3, :3]
     return bool(
-        np.all(np.abs(R.T @ R - _EYE3) <= atol + 1e-5 * _EYE3)
+        (np.abs(R.T @ R - _EYE3) <= atol + 1e-5 * _EYE3).all()
         and abs(np.linalg.det(R) - 1.0) < atol
-        and np.all(np.abs(T[3] - _LAST_ROW) <= atol + 1e-5 * _LAST_ROW)
+        and (np.abs(T[3] - _LAST_ROW) <= atol + 1e-5 * _LAST_ROW).all()
     )
 
 
 def from_quaternion_xyzw(q_xyzw: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Transform from a unit quaternion (x, y, z, w) and a translation."""
-    # (as Python floats: the same double arithmetic without numpy's per-scalar cost)
-    x, y, z, w = (np.asarray(q_xyzw, dtype=float) / np.linalg.norm(q_xyzw)).tolist()
-    R = np.array(
+    # (as Python floats: the same double arithmetic without numpy's per-scalar cost; the norm is
+    # np.linalg.norm's own, sqrt of the dot product, without its per-call cost)
+    q = np.asarray(q_xyzw, dtype=float)
+    x, y, z, w = (q / math.sqrt(q.dot(q))).tolist()
+    tx, ty, tz = np.asarray(t, dtype=float).reshape(3).tolist()
+    return np.array(  # make(R, t) in one go
         [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w), tx],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w), ty],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y), tz],
+            [0.0, 0.0, 0.0, 1.0],
         ]
     )
-    return make(R, t)
 
 
 def to_quaternion_xyzw(T_or_R: np.ndarray) -> np.ndarray:

@@ -5,9 +5,13 @@ Rotation vectors ``phi_rad`` are axis × angle (rad). See :mod:`agvviz.conventio
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 _SMALL_ANGLE_RAD = 1e-6
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
 
 
 def _one_minus_cos_over_theta_sq(theta: float) -> float:
@@ -42,14 +46,14 @@ def vee(W: np.ndarray) -> np.ndarray:
 def exp(phi_rad: np.ndarray) -> np.ndarray:
     """Rotation matrix of rotation vector ``phi_rad`` (Rodrigues, paper 000 eq 29)."""
     phi = np.asarray(phi_rad, dtype=float)
-    theta = float(np.linalg.norm(phi))
+    theta = math.sqrt(phi.dot(phi))  # np.linalg.norm(phi), written out
     K = hat(phi)
     if theta < _SMALL_ANGLE_RAD:
         # Taylor series to second order; exact to machine precision here.
-        return np.eye(3) + K + 0.5 * K @ K
+        return _EYE3 + K + 0.5 * K @ K
     a = np.sin(theta) / theta
     b = _one_minus_cos_over_theta_sq(theta)
-    return np.eye(3) + a * K + b * K @ K
+    return _EYE3 + a * K + b * K @ K
 
 
 def log(R: np.ndarray) -> np.ndarray:
@@ -58,9 +62,12 @@ def log(R: np.ndarray) -> np.ndarray:
     Robust near 0 and near π (where the antisymmetric part vanishes).
     """
     R = np.asarray(R, dtype=float)
-    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # 2 sin θ · axis
-    sin_theta = 0.5 * float(np.linalg.norm(w))
+    # In Python floats (the same double arithmetic as numpy's, without its per-call cost on
+    # scalars): this runs for every pose compared, interpolated or turned into an error.
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    cos_theta = min(max((r00 + r11 + r22 - 1.0) / 2.0, -1.0), 1.0)
+    w = np.array([r21 - r12, r02 - r20, r10 - r01])  # 2 sin θ · axis
+    sin_theta = 0.5 * math.sqrt(w.dot(w))  # np.linalg.norm(w), written out
     # atan2 keeps θ accurate everywhere; arccos alone loses digits near 0 and π, and dividing
     # w by sin(arccos(·)) then turns that into ≈1e-9 rad errors at π − 1e-3.
     theta = float(np.arctan2(sin_theta, cos_theta))
@@ -85,25 +92,25 @@ def log(R: np.ndarray) -> np.ndarray:
 def left_jacobian(phi_rad: np.ndarray) -> np.ndarray:
     """Left Jacobian J_l(φ) of SO(3) (the V matrix of paper 000 eq 30)."""
     phi = np.asarray(phi_rad, dtype=float)
-    theta = float(np.linalg.norm(phi))
+    theta = math.sqrt(phi.dot(phi))  # np.linalg.norm(phi), written out
     K = hat(phi)
     if theta < _SMALL_ANGLE_RAD:
-        return np.eye(3) + 0.5 * K + K @ K / 6.0
+        return _EYE3 + 0.5 * K + K @ K / 6.0
     a = _one_minus_cos_over_theta_sq(theta)
     b = (theta - np.sin(theta)) / theta**3
-    return np.eye(3) + a * K + b * K @ K
+    return _EYE3 + a * K + b * K @ K
 
 
 def left_jacobian_inv(phi_rad: np.ndarray) -> np.ndarray:
     """Inverse of :func:`left_jacobian`."""
     phi = np.asarray(phi_rad, dtype=float)
-    theta = float(np.linalg.norm(phi))
+    theta = math.sqrt(phi.dot(phi))  # np.linalg.norm(phi), written out
     K = hat(phi)
     if theta < _SMALL_ANGLE_RAD:
-        return np.eye(3) - 0.5 * K + K @ K / 12.0
+        return _EYE3 - 0.5 * K + K @ K / 12.0
     half = theta / 2.0
     c = (1.0 - half / np.tan(half)) / theta**2
-    return np.eye(3) - 0.5 * K + c * K @ K
+    return _EYE3 - 0.5 * K + c * K @ K
 
 
 def project_to_so3(M: np.ndarray) -> np.ndarray:

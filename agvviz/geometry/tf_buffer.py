@@ -92,6 +92,11 @@ class PoseSeries:
         return self._poses[j] if abs(times[j] - t_ns) <= max_dt_ns else None
 
 
+#: ``T_frame_frame`` at the start of :meth:`TransformBuffer._chain` (read-only: shared, never returned).
+_IDENTITY = np.eye(4)
+_IDENTITY.setflags(write=False)
+
+
 @dataclass
 class TransformBuffer:
     """A tree of frames from ``/tf_static`` (fixed) and ``/tf`` (time-varying) transforms.
@@ -147,9 +152,9 @@ class TransformBuffer:
 
     def _chain(self, frame: str, t_ns: int | None, hold=()) -> list[tuple[str, np.ndarray | None]]:
         """[(frame, T_frame_start)] from ``frame`` itself up to its root (cycle-safe)."""
-        chain = [(frame, np.eye(4))]
+        chain = [(frame, _IDENTITY)]
         seen = {frame}
-        T = np.eye(4)
+        T = _IDENTITY
         current = frame
         while True:
             step = self._parent(current, t_ns, hold)

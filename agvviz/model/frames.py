@@ -149,9 +149,12 @@ FrameDraft = make_dataclass(
 )
 
 
+_FIELD_NAMES = tuple(f.name for f in fields(FrameResult))
+
+
 def freeze(draft) -> FrameResult:
     """The :class:`FrameResult` of a finished draft."""
-    values = {f.name: getattr(draft, f.name) for f in fields(FrameResult)}
+    values = {name: getattr(draft, name) for name in _FIELD_NAMES}
     values["observations"] = tuple(values["observations"])
     values["lm_iterations"] = tuple(values["lm_iterations"])
     values["lm_iteration_px"] = tuple(values["lm_iteration_px"])

@@ -87,11 +87,26 @@ def _opcode_name(opcode: int) -> str:
         return f"opcode 0x{opcode:02x}"
 
 
+#: A Message record's fixed fields: channel id, sequence, log time, publish time; then its data.
+_MESSAGE_FIELDS = struct.Struct("<HIQQ")
+
+
+def _message(buffer: bytes, start: int, length: int) -> Message:
+    """The Message record of ``length`` bytes at ``start`` in ``buffer``: ``Message.read``'s
+    fields (EndOfFile when shorter than its fixed fields, as a short read there), read in place,
+    its data copied once."""
+    if length < _MESSAGE_FIELDS.size:
+        raise EndOfFile()
+    channel_id, sequence, log_time, publish_time = _MESSAGE_FIELDS.unpack_from(buffer, start)
+    data = buffer[start + _MESSAGE_FIELDS.size : start + length]
+    return Message(channel_id=channel_id, log_time=log_time, data=data, publish_time=publish_time, sequence=sequence)
+
+
 def parse_record(opcode: int, body: bytes):
     """The mcap record in ``body`` (``None`` for record kinds the reader does not use)."""
-    stream = _stream(body)
     if opcode == Opcode.MESSAGE:
-        return Message.read(stream, len(body))
+        return _message(body, 0, len(body))
+    stream = _stream(body)
     parser = {
         Opcode.HEADER: Header.read,
         Opcode.SCHEMA: Schema.read,
@@ -138,7 +153,9 @@ def chunk_records(chunk: Chunk) -> list:
         start = offset + _RECORD_HEADER.size
         if start + length > len(data):
             raise ValueError(f"{_opcode_name(opcode)} record inside the chunk runs past its end")
-        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+        if opcode == Opcode.MESSAGE:
+            records.append(_message(data, start, length))  # its data sliced once, not twice
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
             records.append(parse_record(opcode, data[start : start + length]))
         elif opcode == 0 or 0x10 <= opcode < 0x80:
             # A chunk holds schemas, channels and messages; a reserved opcode means damage (and a

@@ -87,7 +87,8 @@ def ideal_to_image_px(camera: PinholeCamera, ideal_px: np.ndarray) -> np.ndarray
     """Pixels of the undistorted (ideal) image → pixels of the recorded (distorted) image."""
     if not camera.has_distortion:
         return ideal_px.copy()
-    xy = camera.without_distortion().pixels_to_normalized_distorted(ideal_px)
+    # Ideal pixels → normalised coordinates through K alone (the undistorted camera's K is the same).
+    xy = camera.pixels_to_normalized_distorted(ideal_px)
     return camera.normalized_to_pixels(camera.distort_normalized(xy))
 
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from agvviz.conventions import AGV_FRAME, WORLD_FRAME
 from agvviz.geometry import euler, se3
+from agvviz.geometry.plane import quad_area_px2
 from agvviz.model.frames import FrameResult
 from agvviz.model.fusion import CameraSelection
 from agvviz.solvers.multi_camera import CAMERA_SELECT, RigView, refine_rig_pose
@@ -38,8 +39,7 @@ from agvviz.solvers.multi_camera import CAMERA_SELECT, RigView, refine_rig_pose
 
 def _marker_area_px2(frame: FrameResult) -> float:
     obs = next(o for o in frame.observations if o.marker_id == frame.used_marker_id)
-    x, y = obs.corners_px[:4, 0], obs.corners_px[:4, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    return quad_area_px2(obs.corners_px)
 
 
 def _camera_on_agv(frame: FrameResult, cameras: dict) -> bool:

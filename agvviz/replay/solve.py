@@ -87,7 +87,7 @@ def _path_px(camera: PinholeCamera, path: list, points_marker_m: np.ndarray) -> 
     projected = []
     for T_cam_marker in path:
         points_cam = se3.transform_points(T_cam_marker, points_marker_m)
-        if np.all(points_cam[:, 2] > 0):
+        if (points_cam[:, 2] > 0).all():
             projected.append(camera.project(points_cam))
         else:
             projected.append(np.full((len(points_marker_m), 2), np.nan))
@@ -574,7 +574,7 @@ class Replay:
         observations = []
         for obs in result.observations:
             points_cam = se3.transform_points(T_cam_frame[obs.points_frame], obs.points_world_m)
-            if np.all(points_cam[:, 2] > 0):
+            if (points_cam[:, 2] > 0).all():
                 obs = replace(obs, reprojected_px=camera.project(points_cam))
             observations.append(obs)
         result.observations = observations

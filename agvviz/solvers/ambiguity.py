@@ -89,7 +89,7 @@ def ippe_poses_batch(
             continue
         for j, (rvec, tvec) in enumerate(zip(rvecs[:2], tvecs[:2])):
             pose = se3.make(so3.exp(np.asarray(rvec, float).ravel()), np.asarray(tvec, float).ravel())
-            if not (np.all(np.isfinite(pose)) and np.all(se3.transform_points(pose, obj)[:, 2] > 0.0)):
+            if not (np.isfinite(pose).all() and (se3.transform_points(pose, obj)[:, 2] > 0.0).all()):
                 reasons[k] = "an IPPE solution is non-finite or puts a point behind the camera"
                 T[k] = np.nan
                 break

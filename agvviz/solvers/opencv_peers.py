@@ -89,6 +89,6 @@ def solve_opencv(
     if not ok:
         return None, "opencv found no solution"
     rvec, tvec = np.asarray(rvec, float).ravel(), np.asarray(tvec, float).ravel()
-    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+    if not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
         return None, "non-finite result"
     return se3.make(so3.exp(rvec), tvec), ""

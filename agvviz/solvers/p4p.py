@@ -86,7 +86,7 @@ def solve_p4p(
     # each is a ratio of triangle areas).
     W = np.diag([r[2] * v[0] / (r[0] * v[2]), r[2] * v[1] / (r[1] * v[2]), 1.0])
     depth_ratios = np.array([W[0, 0], W[1, 1], 1.0, r[2] / v[2]])  # z'_i / z'_3, i = 1..4
-    if not np.all(depth_ratios > 0.0):
+    if not (depth_ratios > 0.0).all():
         return None, "point behind camera"
     T = P @ W @ np.linalg.inv(Q)  # eq 15
     g = np.linalg.solve(K, T)  # eq 16
@@ -97,6 +97,6 @@ def solve_p4p(
     T_cam_marker = np.eye(4)
     T_cam_marker[:3, :3] = R
     T_cam_marker[:3, 3] = t
-    if not np.all(np.isfinite(T_cam_marker)):
+    if not np.isfinite(T_cam_marker).all():
         return None, "non-finite result"
     return T_cam_marker, ""

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agvviz.geometry import se3, so3
-from agvviz.geometry.camera import PinholeCamera
+from agvviz.geometry.camera import ideal_camera
 from agvviz.geometry.euler import Rz
 from agvviz.solvers import chi2, lm_core
 from agvviz.solvers.lm import refine_lm
@@ -106,7 +106,7 @@ def pixel_jacobian_planar(
     p_agv = se3.transform_points(T_agv_world, points_world_m)
     T_cam_agv = se3.inverse(T_agv_cam)
     w = se3.transform_points(T_cam_agv, p_agv)
-    _, J_px_wrt_w = PinholeCamera(np.asarray(K, dtype=float)).project_with_jacobian(w)
+    _, J_px_wrt_w = ideal_camera(K).project_with_jacobian(w)
     # p_agv ← Exp(−δ)·p_agv, so ∂p_agv/∂δ = −[I, −p^]; then w = T_cam_agv·p_agv.
     J_w_wrt_delta = -T_cam_agv[:3, :3] @ se3.J_point_wrt_left_perturbation(p_agv)
     return (J_px_wrt_w @ J_w_wrt_delta[:, :, PLANAR_DOF]).reshape(-1, 3)
@@ -121,7 +121,7 @@ def pixel_jacobian_planar_wrt_extrinsic(
     p_agv = se3.transform_points(se3.inverse(T_world_agv), points_world_m)
     T_cam_agv = se3.inverse(T_agv_cam)
     w = se3.transform_points(T_cam_agv, p_agv)
-    _, J_px_wrt_w = PinholeCamera(np.asarray(K, dtype=float)).project_with_jacobian(w)
+    _, J_px_wrt_w = ideal_camera(K).project_with_jacobian(w)
     # w = T_agv_cam⁻¹·Exp(−ξ)·p_agv, so ∂w/∂ξ = −R_cam_agv·[I, −p_agv^].
     J_w_wrt_xi = -T_cam_agv[:3, :3] @ se3.J_point_wrt_left_perturbation(p_agv)
     G = np.eye(6)

@@ -94,8 +94,8 @@ def _input_problem(points_marker_m, pixels_px, K) -> str:
     if points_marker_m.shape[0] < 4:
         return "fewer than 4 points"
     if not (
-        np.all(np.isfinite(points_marker_m)) and np.all(np.isfinite(pixels_px))
-        and np.all(np.isfinite(K))
+        np.isfinite(points_marker_m).all() and np.isfinite(pixels_px).all()
+        and np.isfinite(K).all()
     ):
         return "non-finite input"
     if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.array_equal(K[2], [0, 0, 1])):
@@ -207,4 +207,4 @@ def solve(
 
 def _all_in_front(T_cam_marker: np.ndarray, points_marker_m: np.ndarray) -> bool:
     """True when every point has positive depth in the camera frame."""
-    return bool(np.all(se3.transform_points(T_cam_marker, points_marker_m)[:, 2] > 0.0))
+    return bool((se3.transform_points(T_cam_marker, points_marker_m)[:, 2] > 0.0).all())

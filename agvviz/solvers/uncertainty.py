@@ -74,7 +74,7 @@ import numpy as np
 from agvviz.errors import RunError
 
 from agvviz.geometry import se3, so3
-from agvviz.geometry.camera import PinholeCamera
+from agvviz.geometry.camera import ideal_camera
 
 #: Covariance-producing objectives (see the module docstring).
 OBJECTIVES = ("depth", "pixel")
@@ -88,9 +88,9 @@ def pixel_jacobian(T_cam_marker: np.ndarray, points_marker_m: np.ndarray, K: np.
     """``J_pixels_wrt_left_perturbation`` (2N, 6) of the ideal pixels of ``points_marker_m``
     (N, 3) at pose ``T_cam_marker``; rows stacked per point as (u, v), δ = (ρ, φ)."""
     w = se3.transform_points(T_cam_marker, points_marker_m)
-    if not np.all(w[:, 2] > 0.0):
+    if not (w[:, 2] > 0.0).all():
         raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
-    _, J_px_wrt_w = PinholeCamera(np.asarray(K, dtype=float)).project_with_jacobian(w)
+    _, J_px_wrt_w = ideal_camera(K).project_with_jacobian(w)
     return (J_px_wrt_w @ se3.J_point_wrt_left_perturbation(w)).reshape(-1, 6)
 
 
@@ -280,10 +280,10 @@ class _View:
         self.K = K
         points_F, self.slices = _stack(markers)
         self.w_cam = se3.transform_points(T_cam_F, points_F)
-        if not np.all(self.w_cam[:, 2] > 0.0):
+        if not (self.w_cam[:, 2] > 0.0).all():
             raise UncertaintyError("a point is not in front of the camera: no pixel Jacobian")
         self.n = len(points_F)
-        self.pixels, self.J_px_wrt_w = PinholeCamera(K).project_with_jacobian(self.w_cam)  # (N, 2), (N, 2, 3)
+        self.pixels, self.J_px_wrt_w = ideal_camera(K).project_with_jacobian(self.w_cam)  # (N, 2), (N, 2, 3)
         self.J_px_wrt_F = self.J_px_wrt_w @ T_cam_F[:3, :3]  # (N, 2, 3): points moved in F
 
     def systematic_parts(self, H: np.ndarray, sigmas: SystematicSigmas) -> dict[str, np.ndarray]:
@@ -313,13 +313,13 @@ class _View:
         sigma_K = np.array([sigmas.focal_px, sigmas.focal_px, sigmas.principal_point_px, sigmas.principal_point_px])
         factors["intrinsics"] = -(H @ B_K.reshape(-1, 4)) * sigma_K
         r2 = xn**2 + yn**2
-        f = np.array([self.K[0, 0], self.K[1, 1]])
-        xy = np.stack([xn, yn], axis=1)
+        fx, fy = self.K[0, 0], self.K[1, 1]
+        # u (row 0) scales with fx, v (row 1) with fy; column by column, without stacking them
         B_D = np.zeros((n, 2, 4))
-        B_D[:, :, 0] = r2[:, None] * xy * f
-        B_D[:, :, 1] = r2[:, None] ** 2 * xy * f
-        B_D[:, :, 2] = np.stack([2 * xn * yn, r2 + 2 * yn**2], axis=1) * f
-        B_D[:, :, 3] = np.stack([r2 + 2 * xn**2, 2 * xn * yn], axis=1) * f
+        B_D[:, 0, 0], B_D[:, 1, 0] = r2 * xn * fx, r2 * yn * fy
+        B_D[:, 0, 1], B_D[:, 1, 1] = r2**2 * xn * fx, r2**2 * yn * fy
+        B_D[:, 0, 2], B_D[:, 1, 2] = 2 * xn * yn * fx, (r2 + 2 * yn**2) * fy
+        B_D[:, 0, 3], B_D[:, 1, 3] = (r2 + 2 * xn**2) * fx, 2 * xn * yn * fy
         factors["distortion"] = -(H @ B_D.reshape(-1, 4)) * np.array([sigmas.k1, sigmas.k2, sigmas.p1, sigmas.p2])
         # Per marker: points in F move by dX_F; pixels by J_px_wrt_F · dX_F.
         sigma_map = np.array([sigmas.map_position_m, sigmas.map_position_m, sigmas.map_height_m,

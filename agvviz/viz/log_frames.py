@@ -565,7 +565,7 @@ def as_array(value, shape: tuple[int, int], what: str) -> np.ndarray:
     a = np.asarray(value, dtype=float)
     if a.ndim != 2 or any(want not in (-1, got) for want, got in zip(shape, a.shape)):
         raise RunLogError(f"{what} must have shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise RunLogError(f"{what} contains NaN or inf")
     return a
 
@@ -576,7 +576,7 @@ _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 def as_transform(T, what: str) -> np.ndarray:
     T = as_array(T, (4, 4), what)
     # np.allclose(T[3], [0, 0, 0, 1]) (rtol 1e-5, atol 1e-8) for finite T, without its overhead
-    if not np.all(np.abs(T[3] - _LAST_ROW) <= 1e-8 + 1e-5 * _LAST_ROW):
+    if not (np.abs(T[3] - _LAST_ROW) <= 1e-8 + 1e-5 * _LAST_ROW).all():
         raise RunLogError(f"{what} is not a homogeneous transform (last row {T[3].tolist()})")
     return T
 

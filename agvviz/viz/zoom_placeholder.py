@@ -54,7 +54,8 @@ def zoom_unseen_png(last_seen_frame: int, codes_in_view: bool, gray: bool, side_
 
 def longest_edge_px(corners_px: np.ndarray) -> float:
     """Longest edge of a code's outline (TL, TR, BR, BL) in pixels."""
-    return float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
+    previous = np.concatenate((corners_px[-1:], corners_px[:-1]))  # np.roll(corners_px, 1, axis=0)
+    return float(np.max(np.linalg.norm(corners_px - previous, axis=1)))
 
 
 def crop_around(image_bytes: bytes, corners_px: np.ndarray) -> tuple[bytes, np.ndarray, float, bool] | None:

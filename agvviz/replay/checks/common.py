@@ -151,9 +151,12 @@ def floor_cov(cs: CheckSettings) -> np.ndarray:
 
 def _lever(offset_m: np.ndarray) -> np.ndarray:
     """(6, 6): (position, rotation) of a pose to those of a point ``offset_m`` away, rigidly attached."""
-    J = np.eye(6)
+    J = _EYE6.copy()
     J[:3, 3:] = -so3.hat(offset_m)
     return J
+
+
+_EYE6 = np.eye(6)
 
 
 def _left_cov(frame: FrameResult) -> np.ndarray:
@@ -183,7 +186,8 @@ def carried_difference_cov(
         _left_cov(frame), frame.cov_common_factors if common else None, frame.T_world_agv[:3, 3],
     )
     J = _lever(T_carried[:3, 3] - ref.T_world_agv[:3, 3])
-    return C + J @ floor_cov(cs) @ J.T + floor_cov(cs)
+    floor = floor_cov(cs)
+    return C + J @ floor @ J.T + floor
 
 
 def is_planar_step(step: np.ndarray) -> bool:

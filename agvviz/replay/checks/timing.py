@@ -213,7 +213,9 @@ class ClockChecks:
             return None
         w = -(now - then)
         # the reference's own heading lag swings the carried step: + ω_ref × (p − p_ref)
-        w[:3] += np.cross(then[3:], T_world_agv[:3, 3] - T_ref[:3, 3])
+        # (np.cross of two 3-vectors written out in Python floats: the same products and differences)
+        (a0, a1, a2), (b0, b1, b2) = then[3:].tolist(), (T_world_agv[:3, 3] - T_ref[:3, 3]).tolist()
+        w[:3] += (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0)
         return w
 
     def _odometry_twist(self, t_ns: int, T_world_agv: np.ndarray) -> np.ndarray | None:
@@ -268,7 +270,7 @@ class ClockChecks:
         steps = state.steps_ns
         result = None
         if len(steps) >= 3:
-            period_ns = float(np.median(steps))
+            period_ns = _median(steps)
             jitter_ns = max(TIME_JITTER_S * 1e9, TIME_JITTER_SHARE * period_ns)
             # A step of a whole number of periods is frames dropped: the stamps are right and the
             # pose is not in doubt (said in the detail, not failed); a step off every multiple of
@@ -286,3 +288,13 @@ class ClockChecks:
         if step_ns > 0:
             steps.append(step_ns)
         return result
+
+
+def _median(values) -> float:
+    """np.median of a few integers (a frame's last steps, ns), without its per-call cost: the
+    middle value, or the mean of the two middle ones (each exact as a double, so their sum is)."""
+    ordered = sorted(values)
+    n = len(ordered)
+    if n % 2:
+        return float(ordered[n // 2])
+    return (float(ordered[n // 2 - 1]) + float(ordered[n // 2])) / 2.0
