@@ -25,9 +25,9 @@ from agvviz.viz.readback import points2d, read_rrd
 SMALL = ["duration_s=3", "rate_hz=10", "width_px=640", "height_px=512", "focal_px=500", "realism=typical"]
 
 
-def _eager_copy_layers(rec, key, run_path):
+def _eager_copy_layers(rec, key, run):
     """The writer before: a run's layers in one stream."""
-    store = read_rrd(run_path).store
+    store = run.store
     entities = [p.lstrip("/") for p in store.schema().entity_paths()]
     left_out = ["/__properties/**", *[f"/{e}" for e in paths.camera_images(entities)]]
     prefix = "/" + paths.sweep_setting(key)
@@ -46,7 +46,7 @@ def test_the_streamed_sweep_file_equals_the_eager_one(tmp_path, monkeypatch):
         settings = RunSettings(solver=solver)
         layers = run_recording(recording, settings, tmp_path / f"{solver}.layers.rrd", jobs=1, images=False).out_path
         entry = sweep_module.SweepEntry(solver, settings, tmp_path / "sweep.rrd", recording=recording, run_path=layers,
-                                        key=sweep_module._entity_key(index, solver))
+                                        key=sweep_module._entity_key(index, solver), run=read_rrd(layers))
         entry.rank = index + 1
         entries.append(entry)
         series[index] = load_run(layers)
@@ -66,7 +66,7 @@ def test_the_streamed_sweep_file_equals_the_eager_one(tmp_path, monkeypatch):
     monkeypatch.setattr(sweep_module, "_reprojected_reader",
                         lambda *args: lambda: read_when_drawn.append(args[0]) or reader(*args)())
     streamed = write(tmp_path / "streamed" / "sweep.rrd")
-    assert read_when_drawn == [e.run_path for e in entries]  # each setting's corners, once, when drawn
+    assert read_when_drawn == [e.run for e in entries]  # each setting's corners, once, when drawn
     assert len(flushes) >= len(series[0].frames)  # paced: a flush per frame (and per layers entity)
     # Eager, as before.
     monkeypatch.setattr(overlay, "FLUSH_IMAGE_BYTES", 1 << 62)

@@ -39,7 +39,7 @@ from agvviz.app.sweep_report import HIGHER_IS_BETTER, ranking_markdown
 from agvviz.replay.run import recording_images
 from agvviz.viz import paths
 from agvviz.viz.overlay import OverlayRun, write_overlay
-from agvviz.viz.readback import SETTING_SEPARATOR, RrdReadError, read_rrd
+from agvviz.viz.readback import SETTING_SEPARATOR, RrdContents, RrdReadError, read_rrd
 
 #: The sweep ``.rrd`` of a recording, in its folder.
 SWEEP_FILE = "sweep.rrd"
@@ -113,6 +113,7 @@ class SweepEntry:
     recording: Path | None = None  # the recording replayed
     run_path: Path | None = None  # the .rrd its run writes: its kept run or its layers-only run
     key: str = ""  # its subtree in the sweep .rrd: settings/<key>
+    run: RrdContents | None = None  # its run, opened once as it ended (read back, drawn, copied)
 
     @property
     def ok(self) -> bool:
@@ -373,7 +374,8 @@ def _read_back(
     if not entry.ok:
         return
     try:
-        series[index] = run_series.load_run(entry.run_path)
+        entry.run = read_rrd(entry.run_path)
+        series[index] = run_series.load_run(entry.run)
         entry.metrics = run_metrics(series[index], align=align, rpe_delta=rpe_delta)
     except (RrdReadError, EvaluationError) as exc:
         series.pop(index, None)
@@ -476,14 +478,14 @@ def _entity_key(index: int, label: str) -> str:
     return f"s{index + 1}_" + re.sub(r"[^A-Za-z0-9_-]+", "_", label)
 
 
-def _reprojected_reader(run_path: Path, cams: list[str], to_first: dict[int, int]):
-    """A function reading a setting's reprojected corners (``run_path``), its frames mapped
+def _reprojected_reader(run: RrdContents, cams: list[str], to_first: dict[int, int]):
+    """A function reading a setting's reprojected corners (its ``run``), its frames mapped
     onto the sweep's clock (``to_first``): called by the writer when it draws that setting, so
     one setting's corners are in memory at a time."""
     def read() -> dict[str, dict[int, np.ndarray]]:
         return {
             cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
-            for cam, per in run_series.reprojected_corners(run_path, cams).items()
+            for cam, per in run_series.reprojected_corners(run, cams).items()
         }
     return read
 
@@ -498,7 +500,7 @@ def _write_sweep_file(
     index_of = {id(e): i for i, e in enumerate(entries)}
     ok = [e for e in ranked if e.ok]
     first = series[index_of[id(ok[0])]]
-    first_contents = read_rrd(ok[0].run_path)
+    first_contents = ok[0].run
     cams = run_series.cameras_of(first_contents) if images else []
     frames = None
     if cams and not paths.camera_images(first_contents.entity_paths):  # layers-only runs: frames from the recording
@@ -514,7 +516,7 @@ def _write_sweep_file(
         runs.append(OverlayRun(
             entry.key, f"#{entry.rank} {entry.label}",
             first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib),
-            _reprojected_reader(entry.run_path, cams, to_first) if images else {},
+            _reprojected_reader(entry.run, cams, to_first) if images else {},
             T_truth=None if s.T_truth is None else s.T_truth[ib], short_label=f"#{entry.rank}",
         ))
     index = [
@@ -526,12 +528,12 @@ def _write_sweep_file(
         recording_name=f"sweep {recording.stem}",
         runs=runs,
         truth=run_series.overlay_truth(first),
-        source=ok[0].run_path,
+        source=ok[0].run,
         cam_names=cams,
         fixed_cams=run_series.fixed_cameras_of(first_contents) & set(cams),
         report_markdown=ranking_markdown(recording.name, ranked, rank_by),
         inputs=(recording, *[e.run_path for e in ok]),
-        layers={e.key: e.run_path for e in ok},
+        layers={e.key: e.run for e in ok},
         index=index,
         frames=frames,
     )

@@ -44,8 +44,6 @@ id, size-only chunking, streamed to a temporary file beside the target and renam
 
 from __future__ import annotations
 
-from agvviz.errors import InputError
-
 import json
 import math
 import os
@@ -57,11 +55,12 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 import rerun as rr
 
+from agvviz.errors import InputError
 from agvviz.viz import paths
 from agvviz.viz.frames import CameraClock, RecordedImage, log_images
 from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_blueprint
 from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
-from agvviz.viz.readback import read_rrd
+from agvviz.viz.readback import RrdContents, read_rrd
 from agvviz.viz import rrd_file
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
@@ -287,13 +286,13 @@ def write_overlay(
     recording_name: str,
     runs: list[OverlayRun],
     truth: OverlayTruth | None,
-    source: str | os.PathLike | None,
+    source: str | os.PathLike | RrdContents | None,
     cam_names: list[str],
     report_markdown: str,
     deltas: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
     inputs: tuple[str | os.PathLike, ...] = (),
     fixed_cams: set[str] | frozenset[str] = frozenset(),
-    layers: dict[str, str | os.PathLike] | None = None,
+    layers: dict[str, str | os.PathLike | RrdContents] | None = None,
     index: list[dict] | None = None,
     frames: tuple[Iterable[RecordedImage], dict[str, CameraClock]] | None = None,
     frames_from: str | os.PathLike | None = None,
@@ -310,8 +309,8 @@ def write_overlay(
     runs : list of OverlayRun
         Drawn in this order and colour (:data:`agvviz.viz.style.PALETTE`).
     truth : OverlayTruth, optional
-    source : path, optional
-        Run ``.rrd`` (the first run's) whose marker map is copied, and the images and
+    source : path or RrdContents, optional
+        Run ``.rrd`` (the first run's; its path, or opened already) whose marker map is copied, and the images and
         detected corners of ``cam_names``.
     cam_names : list of str
         Cameras whose images and corners are drawn; empty leaves the images out (a much
@@ -327,7 +326,7 @@ def write_overlay(
         uwb_room's wall cameras): their images and detected corners are read from there, not
         from under the AGV. The reprojected corners of each run are in its ``reprojected``.
     layers : dict, optional
-        Run key → run ``.rrd`` (full or layers-only) whose every entity but the camera images
+        Run key → run ``.rrd`` (full or layers-only; its path, or opened already) whose every entity but the camera images
         is copied under ``settings/<key>/`` (:func:`paths.sweep_setting`), chunk by chunk.
     index : list of dict, optional
         One entry per run of ``layers`` (key, label, rank, settings): ``sweep/index``.
@@ -345,11 +344,11 @@ def write_overlay(
     if out_path.suffix != ".rrd":
         raise OverlayError(f"the overlay must be a .rrd file, got {out_path}")
     recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-overlay:{recording_name}"))
-    sources = tuple(inputs) + ((source,) if source is not None else ())
+    sources = tuple(inputs) + ((_opened(source).path,) if source is not None else ())
     # Error arrows only when some run has frames with both an estimate and a truth.
     error_vectors_m = [position_errors_m(run)[1] for run in runs]
     magnification = error_magnification(error_vectors_m) if any(len(v) for v in error_vectors_m) else None
-    store = read_rrd(source).store if source is not None else None
+    store = _opened(source).store if source is not None else None
     clock = _Clock(_elapsed_origin_ns(store, runs, truth))
     with AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=sources) as rrd:
         rec = rrd.rec
@@ -375,8 +374,8 @@ def write_overlay(
             rec.reset_time()
             rrd.check()
         layer_entities = {}  # run key → the entities its layers hold (for the layout)
-        for key, run_path in (layers or {}).items():
-            layer_entities[key] = _copy_layers(rec, key, run_path)
+        for key, run in (layers or {}).items():
+            layer_entities[key] = _copy_layers(rec, key, run)
             rrd.check()
         if index is not None:
             rec.log(paths.SWEEP_INDEX, rr.TextDocument(_index_markdown(index), media_type=rr.MediaType.MARKDOWN),
@@ -508,15 +507,20 @@ def _log_static(
         )
 
 
-def _copy_layers(rec: rr.RecordingStream, key: str, run_path: str | os.PathLike) -> set[str]:
-    """Copy every entity of the run ``.rrd`` at ``run_path`` but its camera images (and the
+def _opened(run: str | os.PathLike | RrdContents) -> RrdContents:
+    """A run ``.rrd`` by its path, or opened by the caller (a sweep opens each run once)."""
+    return run if isinstance(run, RrdContents) else read_rrd(run)
+
+
+def _copy_layers(rec: rr.RecordingStream, key: str, run: str | os.PathLike | RrdContents) -> set[str]:
+    """Copy every entity of the run ``.rrd`` ``run`` (a path, or opened) but its camera images (and the
     recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged. Returns the
     run's entity paths (without the prefix).
 
     One entity at a time, each written out (``flush``) before the next is read: Rerun loads a
     whole stream's chunks ahead of the writer, so a run's layers copied in one stream were
     held in memory whole (≈45 MB at 2000 frames); one entity's are a few MB."""
-    store = read_rrd(run_path).store
+    store = _opened(run).store
     entities = sorted(p.lstrip("/") for p in store.schema().entity_paths())
     left_out = {"__properties", *paths.camera_images(entities)}
     prefix = "/" + paths.sweep_setting(key)
