@@ -345,3 +345,18 @@ def test_lm_paths_equal_input(tmp_path):
         assert len(got) == len(want)
         for got_strip, want_strip in zip(got, want):
             np.testing.assert_array_equal(got_strip, want_strip)
+
+
+def test_timelines_read_as_int64_equal_pyarrows_cast():
+    """readback reads timestamp/duration timelines as their int64 values from the same buffers
+    (no pyarrow.compute): equal to ``cast(pa.int64())``, with nulls and on a slice."""
+    import pyarrow as pa
+
+    from agvviz.viz.readback import _as_int64
+
+    values = [0, 1_700_000_000_123_456_789, None, -5, 2**62, None, 7]
+    for kind in (pa.timestamp("ns"), pa.duration("ns"), pa.timestamp("us")):
+        column = pa.array(values, type=kind)
+        for part in (column, column.slice(2, 4), column.slice(1)):
+            assert _as_int64(part).equals(part.cast(pa.int64()))
+            assert _as_int64(part).to_pylist() == part.cast(pa.int64()).to_pylist()

@@ -332,8 +332,9 @@ class LocalEngine:
 # -- the local pool's processes ----------------------------------------------------------------
 def _start_method() -> str:
     """How a local sweep's pool starts: forked from the fork server, which this starts with
-    SIGINT and SIGTERM ignored and :mod:`agvviz.app.run` imported, where there is one; else
-    spawned.
+    SIGINT and SIGTERM ignored and :mod:`agvviz.app.run` and the ``.rrd`` logger's modules
+    imported (a setting's layers are written by the process that solves it: Rerun's import cost
+    each pool process ≈0.3 s of CPU at its first setting), where there is one; else spawned.
 
     A Ctrl-C at the terminal, or a SIGTERM to the process group, reaches every process of the
     sweep: the fork server must outlive it (the pool's processes are its children), and the
@@ -345,7 +346,9 @@ def _start_method() -> str:
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return "spawn"
-    multiprocessing.forkserver.set_forkserver_preload(["agvviz.app.run"])  # no effect once it runs
+    from agvviz.viz.run_process import LOGGER_MODULES
+
+    multiprocessing.forkserver.set_forkserver_preload(["agvviz.app.run", *LOGGER_MODULES])  # no effect once it runs
     with signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"
