@@ -228,3 +228,23 @@ def test_replay_without_a_feed_detects_in_process(recording):
     replay = Replay(RunSettings(tracking=False))
     frames = [f for f in (replay.feed(m) for m in iter_messages(recording)) if f is not None]
     assert len(frames) == 40 and sum(f.solved for f in frames) >= 36
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_feed_hands_every_detection_over_once_the_last_segment_is_back(recording, jobs):
+    """``on_complete`` (a sweep's lead stores its cache then, and its other settings start):
+    called once, before the replay has taken the last frames, with exactly the frames the feed
+    keeps for the cache by the end — the same numbers, cameras, times and detections."""
+    prepared = prepare(recording, RunSettings())
+    feed = DetectionFeed(prepared.replay.detect_params, prepared.replay.detect_job, jobs=jobs)
+    handed, frames_left = [], []
+    feed.on_complete = lambda frames: handed.append(list(frames))
+    with feed:
+        for message, detections in feed.annotate(iter_messages(recording)):
+            if detections is not None and handed and not frames_left:
+                frames_left.append(len(feed.frames))  # frames handed out when it was called
+    assert len(handed) == 1
+    assert frames_left and frames_left[0] < len(feed.frames)  # before the replay was through
+    assert [(f.seq, f.cam_name, f.log_time_ns) for f in handed[0]] == [
+        (f.seq, f.cam_name, f.log_time_ns) for f in feed.frames]
+    assert [_codes(f.detections) for f in handed[0]] == [_codes(f.detections) for f in feed.frames]

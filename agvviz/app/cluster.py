@@ -39,6 +39,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,6 +129,7 @@ class LocalRuns:
         self.cache_dir, self.jobs, self.executor = cache_dir, max(1, jobs), executor
         self.results: dict[int, TaskResult] = {}
         self.frames: dict[int, int] = {}
+        self.detected: deque[int] = deque()  # leads whose detections are in the cache (they may still solve)
         self._queue: list[tuple[int, bool]] = []  # (task, whether it leads: detects on the pool)
         self._wake = threading.Condition()
         self._stop = threading.Event()
@@ -166,7 +168,8 @@ class LocalRuns:
                     raise SweepStopped("the sweep was interrupted")
 
             if lead:
-                result = _run(self.tasks[index], self.jobs, progress, self.cache_dir, executor=self.executor)
+                result = _run(self.tasks[index], self.jobs, progress, self.cache_dir, executor=self.executor,
+                              on_detected=lambda index=index: self.detected.append(index))
             else:
                 result = _run(self.tasks[index], 1, progress, self.cache_dir)
             if self._stop.is_set():  # interrupted: nobody waits for the result
@@ -184,18 +187,20 @@ class LocalRuns:
 
 def _run(
     task: RunTask, jobs: int, progress: Callable[[int], None], cache_dir: Path | None, executor=None,
+    on_detected: Callable[[], None] | None = None,
 ) -> TaskResult:
     """Replay one setting (:func:`agvviz.app.run.run_recording`) with ``jobs`` detection
     processes (``executor``: the sweep's pool; its group's detections come from the cache when
-    they are there); a failure, an interruption (:class:`SweepStopped` from ``progress``)
-    included, is the result's error."""
+    they are there; ``on_detected()`` once it stored them); a failure, an interruption
+    (:class:`SweepStopped` from ``progress``) included, is the result's error."""
     from agvviz.app.run import run_recording
 
     extra = {"cache_dir": cache_dir} if cache_dir is not None else {}
     try:
         # The .rrd in this process: a sweep keeps every core busy already.
         outcome = run_recording(task.recording, task.settings, task.out_path, progress=progress, jobs=jobs,
-                                images=task.images, writer_process=False, executor=executor, **extra)
+                                images=task.images, writer_process=False, executor=executor,
+                                on_detected=on_detected, **extra)
     except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
         return TaskResult(error=one_line(exc))
     return TaskResult(timing=dict(outcome.timing))
@@ -296,6 +301,14 @@ class LocalEngine:
 
     def busy(self) -> bool:
         return bool(self._pending or self._here)
+
+    def detected(self) -> list[int]:
+        """Leads whose detections went into the cache since the last call: their groups' other
+        settings can start, on the pool that has just finished detecting, while they finish."""
+        done = []
+        while self.here.detected:  # (appended to by the thread of this process's runs)
+            done.append(self.here.detected.popleft())
+        return done
 
     def frames_done(self, index: int) -> int:
         return max(self.here.frames.get(index, 0), int(self._frames_done[index]))
@@ -447,9 +460,10 @@ def run_sweep_tasks(
 ) -> list[TaskResult]:
     """Run ``tasks`` on ``engine`` (a :class:`LocalEngine`, or a Dask cluster's
     :class:`agvviz.app.dask_engine.DaskEngine`: ``start_lead``, ``start_followers``, ``busy``,
-    ``ended``, ``frames_done``, ``stop``): each :func:`detection_groups`
+    ``detected``, ``ended``, ``frames_done``, ``stop``): each :func:`detection_groups`
     group's lead (its first task) first, which detects and fills the cache, then the group's
-    other tasks, which only solve; the results in the order of ``tasks``. A lead that failed
+    other tasks, which only solve — as soon as the lead's detections are stored where the engine
+    says so (a local lead, while it finishes its own solve), else when it ends; the results in the order of ``tasks``. A lead that failed
     may not have detected (its output, its solver): the next task of its group leads instead.
 
     ``on_result(index, result)`` is called in this thread as each task ends (the sweep reads
@@ -469,6 +483,8 @@ def run_sweep_tasks(
         counts = frames() if frames is not None else {}
         expected = [counts.get(t.recording, 0) for t in tasks]  # progress: each task's frames
         while engine.busy():
+            for i in engine.detected():  # its detections are in the cache: the others start now
+                engine.start_followers(waiting.pop(i, []))
             ended = engine.ended()
             for i, result in ended:
                 results[i] = result

@@ -133,6 +133,7 @@ def run_recording(
     images: bool = True,
     writer_process: bool = True,
     executor: Executor | None = None,
+    on_detected: Callable[[], None] | None = None,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -150,7 +151,9 @@ def run_recording(
     ``executor``, a process pool of the caller's of ``jobs`` processes to detect on (a local
     sweep's, whose processes then solve its other settings); ``cache_dir`` the detection cache
     folder (None: :func:`agvviz.replay.detect.cache.default_cache_dir`, False: no cache). None
-    of them changes the run's results.
+    of them changes the run's results. ``on_detected()`` is called once the run's detections
+    are stored in the cache, as soon as the last one is back (a sweep's lead: the other
+    settings start from them while it finishes); not when they came from the cache.
 
     ``error_budget`` (an :class:`agvviz.evaluation.error_budget.ErrorBudget` of this recording
     under these settings, from :func:`agvviz.app.budget.error_budget`) goes into
@@ -244,6 +247,8 @@ def run_recording(
 
     read_report = ReadReport(messages=0, chunks_ok=0, chunks_lost=0, problems=[])
     detection = detection_plan(prepared, recording_sha256, side, jobs, cache_dir, executor)
+    if on_detected is not None:
+        detection.store_when_detected(read_report, on_detected)
     # The .rrd is written by a process of its own (viz.run_process): this one solves meanwhile
     # (in this process when asked: a sweep's runs).
     with rrd_writer(

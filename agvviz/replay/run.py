@@ -218,16 +218,32 @@ class DetectionPlan:
     cache_path: Path | None
     from_cache: bool
     problems: list[str] = field(default_factory=list)
+    stored: bool = False
 
-    def store(self, read_report: ReadReport) -> None:
-        """Store a complete, undamaged detection pass in the cache (a failure to write it is a
-        warning: the run itself is fine)."""
-        if self.from_cache or self.cache_path is None or read_report.problems or not self.feed.frames:
-            return
+    def store(self, read_report: ReadReport, frames: list | None = None) -> bool:
+        """Store a complete, undamaged detection pass (``frames``, default the feed's) in the
+        cache, once (a failure to write it is a warning: the run itself is fine); whether it is
+        stored."""
+        frames = self.feed.frames if frames is None else frames
+        if self.stored or self.from_cache or self.cache_path is None or read_report.problems or not frames:
+            return self.stored
         try:
-            detect_cache.save(self.cache_path, self.feed.frames)
+            detect_cache.save(self.cache_path, frames)
         except (OSError, OutputError) as exc:
             self.problems.append(f"the detection cache was not stored ({exc}); runs will detect again")
+            return False
+        self.stored = True
+        return True
+
+    def store_when_detected(self, read_report: ReadReport, then: Callable[[], None]) -> None:
+        """Store the detections as soon as the last one is back, while the replay finishes,
+        and then call ``then()`` (a sweep's lead: its group's other settings start from them).
+        The file has been read to its end by then, so ``read_report`` is complete."""
+        def complete(frames: list) -> None:
+            if self.store(read_report, frames):
+                then()
+
+        self.feed.on_complete = complete
 
     def summary(self) -> dict:
         """What the detect stage did (the same whether detected now or read from the cache)."""

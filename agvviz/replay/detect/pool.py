@@ -92,6 +92,10 @@ class DetectionFeed:
         self.cached = cached
         self.keep = keep
         self.frames: list[DetectedFrame] = []
+        # Called once, with every frame's DetectedFrame in order (``keep``), as soon as the last
+        # segment is back — before the replay has taken them all (a sweep stores its lead's
+        # detections then, and its other settings start solving from them).
+        self.on_complete: Callable[[list[DetectedFrame]], None] | None = None
         self.cache_mismatch = ""  # why the cached detections were abandoned part-way, if they were
         self.keyframes = 0  # frames handed out that had a full detection
         self.tracked_frames = 0  # frames handed out whose codes were tracked
@@ -209,6 +213,8 @@ class DetectionFeed:
                     close_segment(job.cam_name)
             if not pending:
                 return
+            if self.on_complete is not None and exhausted and not filling and all(s.future.done() for s in in_flight):
+                self._complete(seq, pending)
             message, job, segment, position = pending.popleft()
             if segment is None:
                 yield message, None
@@ -222,6 +228,19 @@ class DetectionFeed:
                 self.frames.append(DetectedFrame(seq, job.cam_name, message.time_ns, detections))
             seq += 1
             yield message, detections
+
+    def _complete(self, seq: int, pending) -> None:
+        """Every segment is back: hand :attr:`on_complete` the frames handed out so far and
+        those still waiting in ``pending`` (numbered from ``seq``), unless a segment failed
+        (its error is raised where the replay takes that frame)."""
+        on_complete, self.on_complete = self.on_complete, None
+        if not self.keep or any(s.future.exception() is not None for _, _, s, _ in pending if s is not None):
+            return
+        waiting = [(message, job, segment, position) for message, job, segment, position in pending if segment is not None]
+        on_complete(self.frames + [
+            DetectedFrame(seq + k, job.cam_name, message.time_ns, segment.future.result()[position])
+            for k, (message, job, segment, position) in enumerate(waiting)
+        ])
 
     def _from_cache(self, messages: Iterable[RecordedMessage]):
         """Cached detections handed out in order; a frame that does not match its record (it
