@@ -1,10 +1,10 @@
 """Library API behind ``agvviz sweep``: returns values, prints nothing.
 
 :func:`sweep` replays one or several recordings under the cross product of setting values
-(:func:`parse_grid`, :func:`grid_settings`) on a Dask cluster (:mod:`agvviz.app.cluster`; each
-recording detected once per detection settings, by its first setting's run), ranks each
-recording's runs (:func:`ranking_rows`), and writes per recording one sweep ``.rrd`` and the ranking as CSV and
-markdown (issue 27). The sweep ``.rrd`` (:func:`agvviz.viz.overlay.write_overlay` with
+(:func:`parse_grid`, :func:`grid_settings`) on a local pool or a Dask cluster
+(:mod:`agvviz.app.cluster`; each recording detected once per detection settings, by its first
+setting's run), ranks each recording's runs (:func:`ranking_rows`), and writes per recording one
+sweep ``.rrd`` and the ranking as CSV and markdown (issue 27). The sweep ``.rrd`` (:func:`agvviz.viz.overlay.write_overlay` with
 ``layers``) holds the frames and the static world once, each setting's layers under
 ``settings/<key>/`` (its layers-only run, copied as chunks), the ranking with p-values and the
 verdict (:func:`agvviz.app.sweep_report.ranking_markdown`) and a layout that overlays the
@@ -214,7 +214,7 @@ def sweep(
     cache_dir: str | os.PathLike | None = None,
     keep_runs: bool = False,
 ) -> SweepOutcome:
-    """Replay every recording under every combination of ``grid`` on a Dask cluster.
+    """Replay every recording under every combination of ``grid``, locally or on a Dask cluster.
 
     Parameters
     ----------
@@ -229,14 +229,14 @@ def sweep(
         the frames once), ``ranking.csv`` and ``ranking.md``; with ``keep_runs`` also
         ``<stem>-<label>.rrd`` per setting (a self-contained run).
     jobs : int, optional
-        Worker processes of the local cluster (default: one per CPU, at most one per run).
+        Processes of the local pool (default: one per CPU, at most one per run).
     rank_by : str
         Metric to rank by (lower is better, except ``solved``/``solved_pct``).
     progress : callable, optional
         ``progress(frames_done, runs_finished)`` summed over all runs (``on_total(frames)`` is
         called first with the total).
     scheduler : str, optional
-        Address of an existing Dask cluster's scheduler; None starts a local cluster.
+        Address of an existing Dask cluster's scheduler; None runs on a local pool.
     cache_dir : path, optional
         Detection cache folder (default: :func:`agvviz.replay.detect.cache.default_cache_dir`).
     keep_runs : bool
@@ -247,7 +247,7 @@ def sweep(
     setting (its lead) detects on every core and solves in one pass, as ``agvviz run`` does, and
     the others then only solve, from the detection cache (:mod:`agvviz.app.cluster`); each run
     is read back as it ends, while the others solve. A run that fails is reported in its
-    entry (``error``) and ranked last; the others go on. Needs Dask (``agvviz[distributed]``).
+    entry (``error``) and ranked last; the others go on. ``scheduler`` needs Dask (``agvviz[distributed]``).
 
     Raises
     ------
@@ -270,7 +270,7 @@ def sweep(
     if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
         raise CompareError(f"--jobs must be a whole number ≥ 1 (or left out for one per CPU), got {jobs}")
     if jobs is not None and scheduler is not None:
-        raise CompareError("--jobs sets the processes of the local cluster; with --scheduler the cluster's own "
+        raise CompareError("--jobs sets the processes of the local pool; with --scheduler the cluster's own "
                            "workers run the sweep: give one or the other")
     settings_list = grid_settings(grid, base)
     for path in recordings:

@@ -103,10 +103,10 @@ def sweep(
     set_: List[str] = typer.Option(
         [], "--set", metavar="KEY=V1,V2", help="setting=value1,value2,... (repeatable); the sweep runs every combination",
     ),
-    jobs: Optional[int] = typer.Option(None, "--jobs", help="worker processes of the local cluster (default: "
-                                       "number of CPUs)"),
+    jobs: Optional[int] = typer.Option(None, "--jobs", help="processes of the local pool that detects and solves "
+                                       "(default: number of CPUs)"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="address of an existing Dask cluster's "
-                                            "scheduler (tcp://host:8786) to run on instead of a local cluster"),
+                                            "scheduler (tcp://host:8786) to run on instead of the local pool"),
     out_dir: Optional[Path] = typer.Option(None, "--out-dir", help="default runs/sweep-<recording>; with several "
                                            "recordings one folder per recording under it (default runs/sweep)"),
     rank_by: str = typer.Option("position_rmse_mm", "--rank-by", help="metric to rank by (lower is better, "
@@ -117,7 +117,7 @@ def sweep(
     keep_runs: bool = typer.Option(False, "--keep-runs", help="also write each setting's self-contained run "
                                    ".rrd (<recording>-<setting>.rrd; each holds every frame again)"),
 ) -> None:
-    """Replay each RECORDING under every combination of the --set values on a Dask cluster; rank each recording's runs.
+    """Replay each RECORDING under every combination of the --set values; rank each recording's runs.
 
     Each recording is detected once per detection settings; every setting then only solves.
     Writes sweep.rrd (the frames once, each setting's layers under settings/<key>/, the ranking
@@ -125,7 +125,8 @@ def sweep(
     several recordings, into --out-dir/<recording name>/); --keep-runs adds one run .rrd per
     setting. `agvviz diff sweep.rrd#lm sweep.rrd#ippe` compares two settings. A setting that fails is reported and
     the others go on. Names are the run settings of `agvviz run --help` (lm.max_iters is accepted
-    for lm_max_iterations). Needs Dask: pip install 'agvviz\\[distributed]'.
+    for lm_max_iterations). Runs on a pool of --jobs processes, or on an existing Dask cluster
+    with --scheduler (needs pip install 'agvviz\\[distributed]').
 
     Example: agvviz sweep recordings/qr_floor.mcap --set solver=p4p,lm,ippe --set lm_max_iterations=3,10
     """
