@@ -2,8 +2,8 @@
 
 :func:`run_sweep_tasks` runs a sweep's runs (recording, settings, output ``.rrd``) on an engine,
 :func:`local_engine` or a Dask cluster's (:mod:`agvviz.app.dask_engine`). It groups them by
-recording and detection settings (:func:`agvviz.replay.detect.stage.detection_settings`); each group's first setting, its *lead*,
-runs first: it detects the recording on every core and solves meanwhile, in one pass, as
+recording and detection settings (:func:`agvviz.replay.detect.stage.detection_settings`); each
+group's first setting, its *lead*, runs first: it detects the recording on every core and solves meanwhile, in one pass, as
 ``agvviz run`` does, and fills the detection cache. When a lead is done, its group's other
 settings only solve, from the cache. A lead that failed hands the lead to the next setting of
 its group. A run's failure — an error of agvviz, a process that died — comes back as that run's
@@ -14,7 +14,7 @@ fork server, which imports a run's modules while the sweep starts. The leads run
 process (:class:`LocalRuns`) and detect on the pool; the other settings then solve on the same
 processes — no process starts after the work is known, and none imports anything then — and the
 last setting of each group in the sweep process, which would otherwise wait. (Issue 27: a local
-Dask cluster cost ≈1.1 s of CPU — importing Dask in the sweep process and the fork server,
+Dask cluster cost about 1 s of CPU — importing Dask in the sweep process and the fork server,
 starting its scheduler and workers — while the lead detected, and its workers were processes of
 their own beside the detection pool's.) Progress comes through an array shared with the pool,
 the stop through a shared event.
@@ -26,8 +26,9 @@ Interruption (Ctrl-C, SIGTERM): the sweep sets the stop event, which every runni
 between frames (it then stops, and its unfinished ``.rrd`` is removed), and drops the runs not
 started. The pool's processes and the fork server ignore SIGINT (see :func:`_start_method`), so
 a Ctrl-C at the terminal, which reaches the whole process group, is handled by the sweep
-process alone. They end when the sweep process ends, even by SIGKILL (their parent-death
-signal); a small reaper process then removes the temporary files they leave.
+process alone. They end when the sweep process ends, even by SIGKILL (each waits on its
+starter's sentinel, :func:`agvviz.replay.detect.workers.init_worker`); a small reaper process
+then removes the temporary files they leave.
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ def detection_groups(tasks: list[RunTask]) -> dict[tuple[str, str], list[int]]:
     return groups
 
 
-# -- the local sweep -----------------------------------------------------------------------------
+# -- the local sweep ------------------------------------------------------------------------------
 class LocalRuns:
     """The runs a local sweep makes in its own process, one after the other, in a thread: each
     detection group's lead at once, and then one more setting of each group beside the pool.
@@ -206,7 +207,7 @@ def _run(
     return TaskResult(timing=dict(outcome.timing))
 
 
-# -- the local pool's worker side ----------------------------------------------------------------
+# -- the local pool's worker side -----------------------------------------------------------------
 #: In a process of a local sweep's pool: the frames done of every task (shared with the sweep
 #: process) and the sweep's stop event (:func:`_init_pool_worker`).
 _POOL_SHARED: dict[str, object] = {}
@@ -240,7 +241,7 @@ def _pool_task(index: int, task: RunTask, cache_dir: Path | None) -> TaskResult:
     return _run(task, 1, progress, cache_dir)
 
 
-# -- the engines ---------------------------------------------------------------------------------
+# -- the engines ----------------------------------------------------------------------------------
 def ended_futures(pending: dict) -> list[tuple[int, TaskResult]]:
     """The futures of ``pending`` (future → task index) that are done, taken out of it, with
     their results; a future that raised (a process or worker that died, a cancelled task) gives
@@ -342,7 +343,7 @@ class LocalEngine:
                 process.join(timeout=1.0)
 
 
-# -- the local pool's processes ----------------------------------------------------------------
+# -- the local pool's processes -------------------------------------------------------------------
 def _start_method() -> str:
     """How a local sweep's pool starts: forked from the fork server, which this starts with
     SIGINT and SIGTERM ignored and :mod:`agvviz.app.run` and the ``.rrd`` logger's modules
@@ -463,8 +464,9 @@ def run_sweep_tasks(
     ``detected``, ``ended``, ``frames_done``, ``stop``): each :func:`detection_groups`
     group's lead (its first task) first, which detects and fills the cache, then the group's
     other tasks, which only solve — as soon as the lead's detections are stored where the engine
-    says so (a local lead, while it finishes its own solve), else when it ends; the results in the order of ``tasks``. A lead that failed
-    may not have detected (its output, its solver): the next task of its group leads instead.
+    says so (a local lead, while it finishes its own solve), else when it ends; the results in
+    the order of ``tasks``. A lead that failed may not have detected (its output, its solver):
+    the next task of its group leads instead.
 
     ``on_result(index, result)`` is called in this thread as each task ends (the sweep reads
     the run back meanwhile, while the others solve). ``frames()``: frames per recording (asked

@@ -33,15 +33,18 @@ if TYPE_CHECKING:
     from agvviz.settings import RunSettings
 
 #: The one-line error of a sweep on a Dask cluster (``--scheduler``) without Dask installed.
-DASK_MISSING = "agvviz sweep runs on Dask distributed, which is not installed: pip install 'agvviz[distributed]'"
+DASK_MISSING = (
+    "agvviz sweep --scheduler runs on Dask distributed, which is not installed: pip install 'agvviz[distributed]'"
+)
 #: A worker reports its task's frames done at most this often (seconds).
 PROGRESS_EVERY_S = 0.25
 #: How long to wait for an existing cluster's scheduler to answer (seconds).
 CONNECT_TIMEOUT_S = 10.0
 
+
 def require_distributed() -> None:
     """:class:`InputError` (:data:`DASK_MISSING`) unless ``distributed`` can be imported; does
-    not import it (≈0.7 s: a local sweep imports it while its first runs have started)."""
+    not import it (≈0.7 s: checked before anything is written, imported once connecting)."""
     import importlib.util
 
     try:
@@ -61,7 +64,7 @@ def import_distributed():
     return distributed
 
 
-# -- the worker side -------------------------------------------------------------------------------
+# -- the worker side ------------------------------------------------------------------------------
 class _Reporter:
     """A task's ``progress(frames_done)``: sends its count to the sweep's event topic (throttled)
     and raises :class:`SweepStopped` once the sweep's stop event is set."""

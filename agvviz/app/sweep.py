@@ -4,8 +4,8 @@
 (:func:`parse_grid`, :func:`grid_settings`) on a local pool or a Dask cluster
 (:mod:`agvviz.app.cluster`; each recording detected once per detection settings, by its first
 setting's run), ranks each recording's runs (:func:`ranking_rows`), and writes per recording one
-sweep ``.rrd`` and the ranking as CSV and markdown (issue 27). The sweep ``.rrd`` (:func:`agvviz.viz.overlay.write_overlay` with
-``layers``) holds the frames and the static world once, each setting's layers under
+sweep ``.rrd`` and the ranking as CSV and markdown (issue 27). The sweep ``.rrd``
+(:func:`agvviz.viz.overlay.write_overlay` with ``layers``) holds the frames and the static world once, each setting's layers under
 ``settings/<key>/`` (its layers-only run, copied as chunks), the ranking with p-values and the
 verdict (:func:`agvviz.app.sweep_report.ranking_markdown`) and a layout that overlays the
 settings; ``FILE#LABEL`` reads one setting back. Self-contained per-setting ``.rrd`` runs are
@@ -281,7 +281,8 @@ def sweep(
     from agvviz.app import cluster
 
     if scheduler is None:
-        # The fork server that the pool is forked from imports agvviz's replay (≈0.5 s): started
+        # The fork server that the pool is forked from imports agvviz's replay and the .rrd
+        # logger (≈0.8 s): started
         # first, it does so while this process imports it.
         cluster.start_fork_server()
     else:

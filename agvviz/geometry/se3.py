@@ -21,6 +21,7 @@ def make(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 _EYE4 = np.eye(4)
+_EYE4.setflags(write=False)  # shared: make() copies it
 
 
 def inverse(T: np.ndarray) -> np.ndarray:
@@ -168,6 +169,8 @@ def J_point_wrt_left_perturbation(points_a: np.ndarray) -> np.ndarray:
 
 _EYE3 = np.eye(3)
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+_EYE3.setflags(write=False)
+_LAST_ROW.setflags(write=False)
 
 
 def is_rigid(T: np.ndarray, atol: float = 1e-6) -> bool:

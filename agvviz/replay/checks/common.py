@@ -157,6 +157,7 @@ def _lever(offset_m: np.ndarray) -> np.ndarray:
 
 
 _EYE6 = np.eye(6)
+_EYE6.setflags(write=False)  # shared: _lever copies it
 
 
 def _left_cov(frame: FrameResult) -> np.ndarray:

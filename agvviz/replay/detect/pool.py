@@ -236,7 +236,8 @@ class DetectionFeed:
         on_complete, self.on_complete = self.on_complete, None
         if not self.keep or any(s.future.exception() is not None for _, _, s, _ in pending if s is not None):
             return
-        waiting = [(message, job, segment, position) for message, job, segment, position in pending if segment is not None]
+        waiting = [(message, job, segment, position)
+                   for message, job, segment, position in pending if segment is not None]
         on_complete(self.frames + [
             DetectedFrame(seq + k, job.cam_name, message.time_ns, segment.future.result()[position])
             for k, (message, job, segment, position) in enumerate(waiting)

@@ -102,8 +102,8 @@ def init_worker() -> None:
         try:
             import ctypes
 
-            # PR_SET_PDEATHSIG: SIGTERM when the parent (the fork server, which ends with the run)
-            # dies, so no worker runs on alone.
+            # PR_SET_PDEATHSIG: SIGTERM when the parent dies (the fork server, or the run for a
+            # spawned worker); the run itself is watched by _exit_with_starter.
             ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)
         except (OSError, AttributeError):
             pass
