@@ -168,3 +168,77 @@ def test_a_file_changed_during_the_scan_is_not_stored(recording_file, tmp_path, 
     monkeypatch.setattr(source, "scan", scan_then_touch)
     scan_cache.cached_scan(_fresh(path), tmp_path / "cache")
     assert not (tmp_path / "cache" / "scans").exists() or not list((tmp_path / "cache" / "scans").iterdir())
+
+
+# -- a recording found intact is read again without its CRC checks ---------------------------------
+def _crc_bytes(monkeypatch) -> list[int]:
+    """How many bytes the MCAP reader computes CRCs of from now on."""
+    import zlib
+
+    from agvviz.recording import mcap_records, mcap_stream
+
+    calls = [0]
+
+    class Counting:
+        @staticmethod
+        def crc32(data, *args):
+            calls[0] += len(data)
+            return zlib.crc32(data, *args)
+
+    monkeypatch.setattr(mcap_records, "zlib", Counting)
+    monkeypatch.setattr(mcap_stream, "zlib", Counting)
+    return calls
+
+
+def _messages(recording) -> tuple[list, ReadReport]:
+    report = ReadReport()
+    items = [(m.topic, m.log_time_ns, m.data) for m in recording.iter_raw(report) if isinstance(m, raw.RawMessage)]
+    return items, report
+
+
+@pytest.mark.parametrize("cached", [True, False], ids=["from the cache entry", "scanned, no cache folder"])
+def test_an_intact_recording_is_read_again_without_its_crc_checks(recording_file, tmp_path, monkeypatch, cached):
+    """A scan that read every byte and found no damage marks the recording verified: a later
+    read of it computes no CRC of its data (only of the small summary section, whose schemas and
+    channels the read takes) and yields exactly what a checked read yields. A touched file is
+    checked again: the data section, each chunk and each message, so more than the file."""
+    path = tmp_path / "copy.mcap"
+    shutil.copyfile(recording_file, path)
+    reference, reference_report = _messages(_fresh(path))
+    assert not reference_report.problems and reference_report.chunks_ok > 0
+    cache = tmp_path / "cache" if cached else None
+    scan_cache.cached_scan(_fresh(path), cache)
+    recording = _fresh(path)
+    scan_cache.cached_scan(recording, cache)
+    assert recording.verified()
+    size = path.stat().st_size
+    crc_bytes = _crc_bytes(monkeypatch)
+    items, report = _messages(recording)
+    assert crc_bytes[0] < 0.01 * size
+    assert items == reference
+    assert (report.problems, report.chunks_ok, report.chunks_lost) == ([], reference_report.chunks_ok, 0)
+    st = os.stat(path)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1))  # the same bytes, touched
+    assert not recording.verified()
+    crc_bytes[0] = 0
+    items, report = _messages(recording)
+    assert crc_bytes[0] > size and items == reference and not report.problems
+
+
+def test_a_damaged_recording_is_checked_at_every_read(recording_file, tmp_path, monkeypatch):
+    """A recording whose scan found damage (here a bit flip only the data section's CRC can
+    tell) is never marked verified: a read from its cache entry reports the damage again."""
+    from agvviz.recording.mcap_records import DATA_SECTION_CRC_PROBLEM
+
+    data = bytearray(recording_file.read_bytes())
+    at = data.index(b"seed\x01\x00\x00\x003") + 8  # the seed's value "3" in the metadata record
+    data[at] ^= 0x01  # "3" -> "2": still a valid seed
+    bad = tmp_path / "seed_flip.mcap"
+    bad.write_bytes(bytes(data))
+    scan_cache.cached_scan(_fresh(bad), tmp_path / "cache")
+    recording = _fresh(bad)
+    scan_cache.cached_scan(recording, tmp_path / "cache")
+    assert not recording.verified()
+    crc_bytes = _crc_bytes(monkeypatch)
+    _, report = _messages(recording)
+    assert crc_bytes[0] > bad.stat().st_size and DATA_SECTION_CRC_PROBLEM in report.problems

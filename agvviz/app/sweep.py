@@ -352,7 +352,7 @@ def sweep(
         done, first = [], 0
         for path, folder, entries in zip(recordings, out_dirs, per_recording):
             own = {i - first: run for i, run in series.items() if first <= i < first + len(entries)}
-            done.append(_finish_recording(path, folder, entries, own, rank_by, align, rpe_delta, images))
+            done.append(_finish_recording(path, folder, entries, own, rank_by, align, rpe_delta, images, cache))
             first += len(entries)
     finally:
         if not keep_runs:
@@ -385,7 +385,7 @@ def _read_back(
 
 def _finish_recording(
     recording: Path, out_dir: Path, entries: list[SweepEntry], series: dict[int, RunSeries], rank_by: str,
-    align: str, rpe_delta: int, images: bool,
+    align: str, rpe_delta: int, images: bool, cache_dir: Path | None = None,
 ) -> RecordingSweep:
     """Rank one recording's runs (``series``: each that ran, read back by its index in
     ``entries``), write its tables and its sweep ``.rrd``."""
@@ -395,7 +395,8 @@ def _finish_recording(
     overlay_path = None
     ok = [e for e in ranked if e.ok]
     if ok:
-        overlay_path = _write_sweep_file(out_dir / SWEEP_FILE, recording, ranked, series, entries, rank_by, images)
+        overlay_path = _write_sweep_file(out_dir / SWEEP_FILE, recording, ranked, series, entries, rank_by, images,
+                                         cache_dir)
     return RecordingSweep(recording, out_dir, ranked, overlay_path, csv_path, markdown_path)
 
 
@@ -493,7 +494,7 @@ def _reprojected_reader(run: RrdContents, cams: list[str], to_first: dict[int, i
 
 def _write_sweep_file(
     out: Path, recording: Path, ranked: list[SweepEntry], series: dict[int, RunSeries],
-    entries: list[SweepEntry], rank_by: str, images: bool,
+    entries: list[SweepEntry], rank_by: str, images: bool, cache_dir: Path | None = None,
 ) -> Path:
     """The sweep ``.rrd``: the settings that ran drawn together on the best one's clock, each
     one's layers under ``settings/<key>/``, the frames once (from the recording, or copied from
@@ -506,7 +507,8 @@ def _write_sweep_file(
     frames = None
     if cams and not paths.camera_images(first_contents.entity_paths):  # layers-only runs: frames from the recording
         frames = (
-            recording_images(recording, first.manifest.get("roles", {}), first.manifest.get("time_source", "log")),
+            recording_images(recording, first.manifest.get("roles", {}), first.manifest.get("time_source", "log"),
+                             cache_dir),
             run_series.image_clocks(first_contents),
         )
     runs = []

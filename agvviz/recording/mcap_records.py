@@ -119,8 +119,10 @@ def parse_record(opcode: int, body: bytes):
     return parser(stream) if parser else None
 
 
-def chunk_records(chunk: Chunk) -> list:
-    """Schemas, channels and messages inside ``chunk``, after decompression and CRC check.
+def chunk_records(chunk: Chunk, check_crc: bool = True) -> list:
+    """Schemas, channels and messages inside ``chunk``, after decompression and CRC check
+    (``check_crc`` False: no CRC check, for a file read whole and found intact before, see
+    :meth:`agvviz.recording.raw.Recording.mark_verified`).
 
     Raises one of ``DAMAGE_ERRORS`` when any of it is damaged (the whole chunk is then lost:
     without a matching CRC nothing in it can be trusted).
@@ -144,7 +146,7 @@ def chunk_records(chunk: Chunk) -> list:
         raise ValueError(
             f"chunk holds {len(data)} bytes after decompression, its header says {chunk.uncompressed_size}"
         )
-    if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+    if check_crc and chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
         raise ValueError("chunk CRC mismatch (the chunk's bytes are damaged)")
     records = []
     offset = 0
@@ -359,7 +361,8 @@ DATA_SECTION_CRC_PROBLEM = (
 
 
 def top_level_records(
-    f, size: int, report: ReadReport, read_chunks: bool = True, tail: _Tail | None = None
+    f, size: int, report: ReadReport, read_chunks: bool = True, tail: _Tail | None = None,
+    check_crc: bool = True,
 ):
     """Yield the parsed top-level records of the data section in file order, salvaging.
 
@@ -370,14 +373,15 @@ def top_level_records(
     included) compared with the DataEnd record's ``data_section_crc`` (0 = not set: other
     writers may leave it out); a mismatch with no other damage found is reported as
     :data:`DATA_SECTION_CRC_PROBLEM`. At DataEnd, ``tail`` (the checked end of the file)
-    adds its problems and must agree on where the data section ends.
+    adds its problems and must agree on where the data section ends. ``check_crc`` False
+    skips the data section's CRC (a file read whole and found intact before).
     """
     offset = len(MCAP_MAGIC)
     # Where a resync scan starts: the end of the last chunk read. The records after it are not
     # CRC-checked, so a damaged length among them may have jumped over an intact chunk.
     resync_from = offset
     crc = zlib.crc32(MCAP_MAGIC)
-    crc_complete = read_chunks  # every byte up to ``offset`` went into ``crc``
+    crc_complete = read_chunks and check_crc  # every byte up to ``offset`` went into ``crc``
     problems_before = len(report.problems)
     while True:
         f.seek(offset)

@@ -78,11 +78,16 @@ class _Duplicates:
         ]
 
 
-def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = None, digest=None) -> Iterator:
+def iter_raw(
+    path, topics: set[str] | None = None, report: ReadReport | None = None, digest=None, verified: bool = False,
+) -> Iterator:
     """Stream :class:`RawMessage` and :class:`RawMetadata` items in file order.
 
     Messages on topics outside ``topics`` (when given) are not yielded. A message that repeats
-    an earlier one exactly (same topic, log time and bytes) is dropped and reported. Damage is
+    an earlier one exactly (same topic, log time and bytes) is dropped and reported. With
+    ``verified`` (the file was read whole before and found intact, without a repeated message,
+    and is unchanged since: :meth:`agvviz.recording.raw.Recording.mark_verified`) the CRCs are
+    not computed again and messages are not searched for repeats: that read found none. Damage is
     written to ``report`` (``report.messages`` is left to the caller), including a data
     section CRC mismatch and damage after the data section (summary, footer). Raises
     :class:`RecordingError` when the file is missing or not MCAP. With ``digest`` (a
@@ -104,7 +109,7 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
                 return None
             if topics is not None and channel.topic not in topics:
                 return None
-            if duplicates.message_seen(channel.topic, message):
+            if not verified and duplicates.message_seen(channel.topic, message):
                 return None
             schema = schemas.get(channel.schema_id)
             schema_name = schema.name if schema else ""
@@ -129,11 +134,11 @@ def iter_raw(path, topics: set[str] | None = None, report: ReadReport | None = N
 
         anything_read = False
         try:
-            for offset, record in top_level_records(f, size, report, tail=tail):
+            for offset, record in top_level_records(f, size, report, tail=tail, check_crc=not verified):
                 anything_read = True
                 if isinstance(record, Chunk):
                     try:
-                        inner = chunk_records(record)
+                        inner = chunk_records(record, check_crc=not verified)
                     except DAMAGE_ERRORS as exc:
                         report.chunks_lost += 1
                         report.problems.append(

@@ -9,9 +9,14 @@ its own key fields and agvviz's version and is used only when both still match; 
 unreadable, truncated or foreign is ignored and the recording is scanned as usual.
 
 Layout of an entry (written atomically, :func:`agvviz.recording.outputs.atomic_write_bytes`):
-``MAGIC``, an 8-byte little-endian length, that many bytes of JSON (key, version, sha256, the
-:class:`~agvviz.recording.source.Scan` fields, the context messages' headers with their payload
-lengths), then the payloads back to back (message data, schema data).
+``MAGIC``, an 8-byte little-endian length, that many bytes of JSON (key, version, sha256,
+``intact``, the :class:`~agvviz.recording.source.Scan` fields, the context messages' headers with
+their payload lengths), then the payloads back to back (message data, schema data).
+
+``intact``: the scan read every byte and found no damage, no CRC mismatch and no repeated
+message. A recording loaded from such an entry is marked verified
+(:meth:`~agvviz.recording.raw.Recording.mark_verified`): the run's later reads of it skip those
+checks, which could find nothing new in the same bytes. A damaged file is checked at every read.
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ if TYPE_CHECKING:
 CACHE_ENV = "AGVVIZ_CACHE_DIR"
 MAGIC = b"agvviz-scan-1\n"
 #: Bump when :class:`~agvviz.recording.source.Scan` or what :func:`scan` puts in it changes.
-SCAN_REVISION = 1
+SCAN_REVISION = 2
 _LENGTH = struct.Struct("<Q")
 
 
@@ -96,7 +101,7 @@ def entry_path(cache_dir: Path, key: list[list]) -> Path:
     return Path(cache_dir) / "scans" / f"{digest}.scan"
 
 
-def _encode(key: list[list], sha256: str, scan) -> bytes:
+def _encode(key: list[list], sha256: str, scan, intact: bool) -> bytes:
     payloads: list[bytes] = []
     schemas: dict[bytes, int] = {}  # one copy of each schema text, not one per message
     messages = []
@@ -109,7 +114,7 @@ def _encode(key: list[list], sha256: str, scan) -> bytes:
     payloads += schema_texts
     payloads += [m.data for m in scan.context]
     header = {
-        "version": __version__, "revision": SCAN_REVISION, "key": key, "sha256": sha256,
+        "version": __version__, "revision": SCAN_REVISION, "key": key, "sha256": sha256, "intact": intact,
         "topics": [[i.topic, i.schema_name, i.encoding, i.count, i.frame_id, i.child_frame]
                    for i in scan.topics.values()],
         "first_ns": scan.first_ns, "last_ns": scan.last_ns, "first_problem": scan.first_problem,
@@ -123,7 +128,8 @@ def _encode(key: list[list], sha256: str, scan) -> bytes:
 
 
 def _decode(blob: bytes, key: list[list]):
-    """(sha256, Scan) from an entry's bytes, or None when it is not a valid entry for ``key``."""
+    """(sha256, Scan, intact) from an entry's bytes, or None when it is not a valid entry for
+    ``key``."""
     from agvviz.recording.raw import RawMessage, RawMetadata
     from agvviz.recording.roles import TopicInfo
     from agvviz.recording.source import Scan
@@ -157,12 +163,13 @@ def _decode(blob: bytes, key: list[list]):
     )
     if not isinstance(header["sha256"], str) or len(header["sha256"]) != 64:
         return None
-    return header["sha256"], scan
+    return header["sha256"], scan, header.get("intact") is True
 
 
 def load(cache_dir: Path, recording: Recording):
     """The cached Scan of ``recording`` (its sha256 remembered, :meth:`Recording.sha256` then
-    reads nothing), or None: no entry, a changed file, or an entry that does not read."""
+    reads nothing; marked verified when the scan found it intact), or None: no entry, a changed
+    file, or an entry that does not read."""
     try:
         key = file_key(recording)
         blob = entry_path(cache_dir, key).read_bytes()
@@ -171,16 +178,19 @@ def load(cache_dir: Path, recording: Recording):
         return None
     if found is None:
         return None
-    sha256, scan = found
+    sha256, scan, intact = found
     recording.remember_sha256(sha256)
+    if intact:
+        recording.mark_verified(key)
     return scan
 
 
-def store(cache_dir: Path, recording: Recording, scan, key: list[list]) -> None:
+def store(cache_dir: Path, recording: Recording, scan, key: list[list], intact: bool = False) -> None:
     """Keep ``scan`` and the sha256 the same pass computed under ``key`` (the files' key taken
-    before the pass); a cache that cannot be written is skipped (the next run scans again)."""
+    before the pass), and whether that pass found the files ``intact`` (no damage, no repeated
+    message); a cache that cannot be written is skipped (the next run scans again)."""
     try:
-        blob = _encode(key, recording.sha256(), scan)
+        blob = _encode(key, recording.sha256(), scan, intact)
         path = entry_path(cache_dir, key)
         path.parent.mkdir(parents=True, exist_ok=True)
         outputs.atomic_write_bytes(path, blob)
@@ -191,24 +201,29 @@ def store(cache_dir: Path, recording: Recording, scan, key: list[list]) -> None:
 def cached_scan(recording: Recording, cache_dir: Path | None):
     """:func:`agvviz.recording.source.scan` of ``recording``, read from ``cache_dir`` when an
     entry for its files as they are now is there, else scanned and stored (not when a file
-    changed during the pass). ``cache_dir`` None: scanned, nothing stored."""
+    changed during the pass). ``cache_dir`` None: scanned, nothing stored. Either way a
+    recording the scan found intact is marked so (:meth:`Recording.mark_verified`): the run's
+    later reads of it skip the CRC checks."""
     from agvviz.recording.raw import ReadReport
     from agvviz.recording.source import scan
 
-    if cache_dir is None:
-        return scan(recording, ReadReport())
-    found = load(cache_dir, recording)
+    found = load(cache_dir, recording) if cache_dir is not None else None
     if found is not None:
         return found
     try:
         key = file_key(recording)
     except OSError:
         key = None
-    result = scan(recording, ReadReport())
+    report = ReadReport()
+    result = scan(recording, report)
     try:
         unchanged = key is not None and file_key(recording) == key
     except OSError:
         unchanged = False
     if unchanged:
-        store(cache_dir, recording, result, key)
+        intact = not report.problems and report.chunks_lost == 0
+        if intact:
+            recording.mark_verified(key)
+        if cache_dir is not None:
+            store(cache_dir, recording, result, key, intact)
     return result

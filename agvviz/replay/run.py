@@ -455,18 +455,25 @@ class _DetectedCount(NullSink):
             self.progress(self.frames)
 
 
-def recording_images(recording_path, roles: dict[str, str], time_source: str) -> Iterator[tuple[str, int, str, bytes]]:
+def recording_images(
+    recording_path, roles: dict[str, str], time_source: str, cache_dir: Path | None | bool = False,
+) -> Iterator[tuple[str, int, str, bytes]]:
     """``(camera, time_ns, image_format, bytes)`` of every camera image of a recording, in file
     order, as a run whose manifest has ``roles`` (role → topic) and ``time_source`` read them:
     the time is the replay clock's (the header stamp under ``time_source="header"``, else the
     log time); undecodable images are left out (the run rejected them too). For the frames of a
-    layers-only run and of a sweep ``.rrd`` (:mod:`agvviz.viz.frames`)."""
+    layers-only run and of a sweep ``.rrd`` (:mod:`agvviz.viz.frames`). ``cache_dir`` (as
+    :func:`prepare`'s): where a run kept the recording's scan, which says whether the file was
+    found intact (then it is read without its CRC checks)."""
     from agvviz.model.messages import CompressedFrame
     from agvviz.model.topics import camera_of_role
     from agvviz.recording.formats import decode
     from agvviz.recording.raw import MessageDecodeError, RawMetadata
 
     recording = open_recording(recording_path)
+    folder = scan_cache.cache_folder(cache_dir)
+    if folder is not None:
+        scan_cache.load(folder, recording)  # marks it verified when a run found it intact
     cam_of_topic = {}
     for role, topic in roles.items():
         cam = camera_of_role(role)

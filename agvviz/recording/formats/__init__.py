@@ -6,10 +6,12 @@ A format is one module with the same small set of names:
 * ``recognises(path) -> bool`` — is this path (file or directory) mine?
 * ``open_recording(path) -> Recording`` — its files in order, its writer's header and
   counts; raises :class:`~agvviz.errors.RecordingError` with what to do;
-* ``iter_raw(file, topics, report, digest=None)`` — one file's
+* ``iter_raw(file, topics, report, digest=None, verified=False)`` — one file's
   :class:`~agvviz.recording.raw.RawMessage` and :class:`~agvviz.recording.raw.RawMetadata`
   in file order, salvaging damage into the :class:`~agvviz.recording.raw.ReadReport` (and
-  the file's bytes into ``digest``);
+  the file's bytes into ``digest``); ``verified``: the file was read whole before and found
+  intact (:meth:`~agvviz.recording.raw.Recording.mark_verified`), checks that cannot find
+  anything new (CRCs, repeated messages) may be skipped;
 * ``decodes(raw) -> bool`` and ``decode(raw)`` — the messages it decodes (by encoding: an
   MCAP file may carry ROS 2 or ROS 1 messages) into :mod:`agvviz.model.messages` values;
 * ``describe(files) -> str`` — what ``agvviz inspect`` adds after the path.

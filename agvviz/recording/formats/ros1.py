@@ -354,11 +354,12 @@ def _index(f, index_pos: int, size: int, report: ReadReport) -> tuple[dict[int, 
     return connections, total
 
 
-def iter_raw(path, topics: set[str] | None, report: ReadReport, digest=None) -> Iterator[RawMessage]:
+def iter_raw(path, topics: set[str] | None, report: ReadReport, digest=None, verified: bool = False) -> Iterator[RawMessage]:
     """The messages of a ROS 1 bag in file order (see the module docstring); problems go to
     ``report``. Raises :class:`RecordingError` only when the file is missing or not a bag.
     With ``digest`` (a ``hashlib`` object) every byte of the file goes into it once the stream
-    has ended (:class:`~agvviz.recording.raw.HashedReads`)."""
+    has ended (:class:`~agvviz.recording.raw.HashedReads`). ``verified`` changes nothing here:
+    a bag has no CRC to skip."""
     path = Path(path)
     f, size = _open(path, digest)
     with f:
