@@ -18,6 +18,7 @@ from mcap.exceptions import McapError
 
 from agvviz.conventions import AGV_FRAME
 from agvviz.errors import RecordingError
+from agvviz.recording.file_identity import files_key
 
 #: Largest uncompressed chunk read (bytes). Writers cut chunks at ~1 MiB (agvviz, Foxglove SDK,
 #: rosbag2); 256 MiB leaves room for chunks of raw 4K frames and keeps a bomb from exhausting memory.
@@ -184,7 +185,7 @@ class Recording:
     bag_topic_counts: dict[str, int] = field(default_factory=dict)  # metadata.yaml's per topic
     #: Files whose bytes the sha256 covers before :attr:`files` (a rosbag2 directory's metadata.yaml).
     hashed_first: list[Path] = field(default_factory=list)
-    #: The files' key (:func:`agvviz.recording.scan_cache.file_key`) when a whole read found them
+    #: The files' key (:meth:`file_key`) when a whole read found them
     #: intact (:meth:`mark_verified`); None: not known.
     verified_key: list | None = None
 
@@ -217,7 +218,7 @@ class Recording:
 
     def mark_verified(self, key: list) -> None:
         """A read of every byte of the files as they were under ``key`` (their
-        :func:`~agvviz.recording.scan_cache.file_key`, taken before that read and equal after
+        :meth:`file_key`, taken before that read and equal after
         it) found no damage, no CRC mismatch and no repeated message: later reads of the same
         files skip those checks (issue 27: each re-read of a 43 MB recording spent ≈30 ms of its
         ≈55 ms on three CRC passes). The trust is the scan cache's: a file written, replaced or
@@ -228,12 +229,15 @@ class Recording:
         """Whether the files are still those :meth:`mark_verified` was told of (stat calls)."""
         if self.verified_key is None:
             return False
-        from agvviz.recording.scan_cache import file_key
-
         try:
-            return file_key(self) == self.verified_key
+            return self.file_key() == self.verified_key
         except OSError:
             return False
+
+    def file_key(self) -> list[list]:
+        """What identifies the files on disk as they are now, in hash order
+        (:func:`~agvviz.recording.file_identity.files_key`); raises ``OSError``."""
+        return files_key(list(self.hashed_first) + list(self.files))
 
     def _hash_key(self) -> tuple:
         key = []

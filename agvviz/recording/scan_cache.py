@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 from agvviz import __version__
 from agvviz.errors import OutputError
 from agvviz.recording import outputs
+from agvviz.recording.file_identity import files_key
 
 if TYPE_CHECKING:
     from agvviz.recording.raw import Recording
@@ -63,18 +64,9 @@ def cache_folder(cache_dir: Path | None | bool) -> Path | None:
     return Path(cache_dir) if cache_dir not in (None, True) else default_cache_dir()
 
 
-def _files_key(paths) -> list[list]:
-    key = []
-    for path in paths:
-        st = os.stat(path)
-        key.append([str(Path(path).resolve()), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino])
-    return key
-
-
 def file_key(recording: Recording) -> list[list]:
-    """What identifies the recording's files on disk: per file (in hash order) its resolved
-    path, size, mtime_ns, ctime_ns and inode."""
-    return _files_key(list(recording.hashed_first) + list(recording.files))
+    """What identifies the recording's files on disk (:meth:`Recording.file_key`)."""
+    return recording.file_key()
 
 
 def seen_before(recording_path, cache_dir) -> bool:
@@ -91,7 +83,7 @@ def seen_before(recording_path, cache_dir) -> bool:
         path = Path(recording_path)
         if not path.is_file():
             return False
-        return entry_path(cache_folder(cache_dir), _files_key([path])).is_file()
+        return entry_path(cache_folder(cache_dir), files_key([path])).is_file()
     except (OSError, ValueError):
         return False
 
