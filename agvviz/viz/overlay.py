@@ -339,56 +339,105 @@ def write_overlay(
         (a diff of two settings of one sweep: their layers hold no images).
     """
     _check(runs)
-    deltas = deltas or {}
-    out_path = Path(out_path)
-    if out_path.suffix != ".rrd":
-        raise OverlayError(f"the overlay must be a .rrd file, got {out_path}")
-    recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-overlay:{recording_name}"))
     sources = tuple(inputs) + ((_opened(source).path,) if source is not None else ())
-    # Error arrows only when some run has frames with both an estimate and a truth.
-    error_vectors_m = [position_errors_m(run)[1] for run in runs]
-    magnification = error_magnification(error_vectors_m) if any(len(v) for v in error_vectors_m) else None
-    store = _opened(source).store if source is not None else None
-    clock = _Clock(_elapsed_origin_ns(store, runs, truth))
-    with AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=sources) as rrd:
-        rec = rrd.rec
+    with OverlayFile(out_path, recording_name=recording_name, inputs=sources) as overlay:
+        if frames is not None and cam_names:
+            overlay.log_frames(*frames, cam_names)
+        for key, run in (layers or {}).items():
+            overlay.copy_layers(key, run)
+        return overlay.finish(
+            runs=runs, truth=truth, source=source, cam_names=cam_names, report_markdown=report_markdown,
+            deltas=deltas, fixed_cams=fixed_cams, index=index, frames_from=frames_from,
+        )
+
+
+class OverlayFile:
+    """An overlay ``.rrd`` (:func:`write_overlay`) written in parts, for a sweep whose settings
+    end one by one (issue 27): the frames, and each run's layers, as soon as they are known;
+    :meth:`finish` then draws what needs every run (the ranking, the trajectories, the errors, the
+    layout) and moves the file into place. Use as a context manager: an error before
+    :meth:`finish` discards the file; :meth:`discard` does so on purpose.
+
+    ``out_path`` must end in ``.rrd`` and must not be one of ``inputs`` (the files it is made
+    from, :class:`~agvviz.errors.OutputError`, also through links)."""
+
+    def __init__(self, out_path: str | os.PathLike, *, recording_name: str, inputs: tuple[str | os.PathLike, ...] = ()):
+        out_path = Path(out_path)
+        if out_path.suffix != ".rrd":
+            raise OverlayError(f"the overlay must be a .rrd file, got {out_path}")
+        recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-overlay:{recording_name}"))
+        self._rrd = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=inputs)
+        #: The cameras whose frames :meth:`log_frames` logged, and on which clocks.
+        self.frames_logged: tuple[list[str], dict[str, CameraClock]] | None = None
+        self._layer_entities: dict[str, set[str]] = {}  # run key → the entities its layers hold
+
+    def log_frames(self, images: Iterable[RecordedImage], clocks: dict[str, CameraClock], cam_names: list[str]) -> None:
+        """The recording's camera ``images`` of ``cam_names`` under ``image/<cam>``, each on the
+        frame of ``clocks`` (the first run's clock: see :func:`write_overlay`'s ``frames``)."""
+        rec = self._rrd.rec
+        clocks = {c: clocks.get(c, []) for c in cam_names}
+        log_images(rec, _paced_images(rec, images), clocks, {c: paths.overlay_image(c) for c in cam_names})
+        rec.reset_time()
+        self._rrd.check()
+        self.frames_logged = (list(cam_names), clocks)
+
+    def copy_layers(self, key: str, run: str | os.PathLike | RrdContents) -> None:
+        """Every entity of the run ``run`` but its camera images under ``settings/<key>/``."""
+        self._layer_entities[key] = _copy_layers(self._rrd.rec, key, run)
+        self._rrd.check()
+
+    def finish(
+        self,
+        *,
+        runs: list[OverlayRun],
+        truth: OverlayTruth | None,
+        source: str | os.PathLike | RrdContents | None,
+        cam_names: list[str],
+        report_markdown: str,
+        deltas: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
+        fixed_cams: set[str] | frozenset[str] = frozenset(),
+        index: list[dict] | None = None,
+        frames_from: str | os.PathLike | None = None,
+    ) -> Path:
+        """Draw ``runs`` (and the rest, as :func:`write_overlay` says) and move the file into place;
+        returns its path. The camera images come from :meth:`log_frames` when it ran, else from
+        ``frames_from``, else from ``source``."""
+        _check(runs)
+        deltas = deltas or {}
+        rec = self._rrd.rec
+        # Error arrows only when some run has frames with both an estimate and a truth.
+        error_vectors_m = [position_errors_m(run)[1] for run in runs]
+        magnification = error_magnification(error_vectors_m) if any(len(v) for v in error_vectors_m) else None
+        store = _opened(source).store if source is not None else None
+        clock = _Clock(_elapsed_origin_ns(store, runs, truth))
         _log_static(rec, runs, truth, report_markdown, list(deltas))
         rec.log(paths.COMPARE_KEY, rr.TextDocument(
             key_markdown(runs, truth is not None and len(truth.T_world_agv) > 0, magnification,
                          bool(cam_names) and store is not None),
             media_type=rr.MediaType.MARKDOWN), static=True)
         if store is not None:
-            _copy_from_source(rec, store, cam_names, fixed_cams, images=frames is None and frames_from is None)
-            rrd.check()
-        if frames_from is not None:
+            images = self.frames_logged is None and frames_from is None
+            _copy_from_source(rec, store, cam_names, fixed_cams, images=images)
+            self._rrd.check()
+        if frames_from is not None and self.frames_logged is None:
             frames_store = read_rrd(frames_from).store
             for cam in cam_names:
                 _send_paced(rec, frames_store.stream().filter(
                     content=f"/{paths.overlay_image(cam)}", is_static=False,
                     components=["EncodedImage:blob", "EncodedImage:media_type"]))
-            rrd.check()
-        if frames is not None and cam_names:
-            images, clocks = frames
-            log_images(rec, _paced_images(rec, images), {c: clocks.get(c, []) for c in cam_names},
-                       {c: paths.overlay_image(c) for c in cam_names})
-            rec.reset_time()
-            rrd.check()
-        layer_entities = {}  # run key → the entities its layers hold (for the layout)
-        for key, run in (layers or {}).items():
-            layer_entities[key] = _copy_layers(rec, key, run)
-            rrd.check()
+            self._rrd.check()
         if index is not None:
             rec.log(paths.SWEEP_INDEX, rr.TextDocument(_index_markdown(index), media_type=rr.MediaType.MARKDOWN),
                     static=True)
         if truth is not None:
             _send_transforms(rec, clock, paths.AGV_TRUTH, truth.frames, truth.time_ns, truth.T_world_agv)
-        for index, run in enumerate(runs):
+        for number, run in enumerate(runs):
             solved = np.all(np.isfinite(run.T_est.reshape(len(run.T_est), 16)), axis=1)
             _send_transforms(
                 rec, clock, paths.overlay_agv(run.key), run.frames[solved], run.time_ns[solved], run.T_est[solved]
             )
             if magnification is not None:
-                _send_error_vectors(rec, clock, run, index, magnification)
+                _send_error_vectors(rec, clock, run, number, magnification)
             for key, values in run.errors.items():
                 _send_scalars(rec, clock, paths.overlay_error(key, run.key), run.frames, run.time_ns, values)
             if store is not None:
@@ -396,16 +445,26 @@ def write_overlay(
                 for cam in cam_names:
                     _send_corners(
                         rec, clock, paths.overlay_reprojected(cam, run.key), run.frames, run.time_ns,
-                        reprojected.get(cam, {}), color_of(index),
+                        reprojected.get(cam, {}), color_of(number),
                     )
         for key, (frames, time_ns, values) in deltas.items():
             _send_scalars(rec, clock, paths.overlay_delta(key), frames, time_ns, values)
             _send_zero_line(rec, clock, key, frames, time_ns)
-        rrd.commit(overlay_blueprint(
+        return self._rrd.commit(overlay_blueprint(
             runs, cam_names if store is not None else [], list(deltas), truth, magnification, fixed_cams,
-            layer_entities=layer_entities,
+            layer_entities=self._layer_entities,
         ))
-    return out_path
+
+    def discard(self) -> None:
+        """Delete the unfinished file (nothing is left at its path)."""
+        self._rrd.discard()
+
+    def __enter__(self) -> "OverlayFile":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.discard()
 
 
 def _send_zero_line(rec: rr.RecordingStream, clock: _Clock, key: str, frames, time_ns) -> None:
