@@ -16,7 +16,9 @@ import rerun as rr
 
 from agvviz import scenarios as scenario_registry
 from agvviz.app import sweep as sweep_module
+from agvviz.app import sweep_file
 from agvviz.app.run import run_recording
+from agvviz.app import run_series
 from agvviz.app.run_series import load_run
 from agvviz.settings import RunSettings
 from agvviz.viz import overlay, paths, rrd_file
@@ -35,24 +37,43 @@ def _eager_copy_layers(rec, key, run):
     return set(entities)
 
 
-def test_the_streamed_sweep_file_equals_the_eager_one(tmp_path, monkeypatch):
+def _rerun_cli() -> Path:
     cli = Path(sys.executable).parent / "rerun"
     if not cli.is_file():
         pytest.skip(f"rerun CLI not found next to {sys.executable}; needed for `rerun rrd compare`")
-    recording = tmp_path / "qr.mcap"
+    return cli
+
+
+def _compare(cli: Path, a: Path, b: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([cli, "rrd", "compare", "--unordered", a, b], capture_output=True, text=True,
+                          timeout=120, check=False)
+
+
+@pytest.fixture(scope="module")
+def layered(tmp_path_factory):
+    """A recording, two settings' layers-only runs as a sweep makes them, their entries (ranked
+    in order) and read-back series."""
+    tmp = tmp_path_factory.mktemp("layered")
+    recording = tmp / "qr.mcap"
     scenario_registry.record("qr_floor", recording, seed=4, overrides=SMALL)
     entries, series = [], {}
     for index, solver in enumerate(("lm", "ippe")):
         settings = RunSettings(solver=solver)
-        layers = run_recording(recording, settings, tmp_path / f"{solver}.layers.rrd", jobs=1, images=False).out_path
-        entry = sweep_module.SweepEntry(solver, settings, tmp_path / "sweep.rrd", recording=recording, run_path=layers,
+        layers = run_recording(recording, settings, tmp / f"{solver}.layers.rrd", jobs=1, images=False).out_path
+        entry = sweep_module.SweepEntry(solver, settings, tmp / "sweep.rrd", recording=recording, run_path=layers,
                                         key=sweep_module._entity_key(index, solver), run=read_rrd(layers))
         entry.rank = index + 1
         entries.append(entry)
         series[index] = load_run(layers)
+    return recording, entries, series
+
+
+def test_the_streamed_sweep_file_equals_the_eager_one(layered, tmp_path, monkeypatch):
+    cli = _rerun_cli()
+    recording, entries, series = layered
 
     def write(out: Path) -> Path:
-        return sweep_module._write_sweep_file(out, recording, entries, series, entries, "position_rmse_mm", True)
+        return sweep_file.write_sweep_file(out, recording, entries, series, entries, "position_rmse_mm", True)
 
     # Streamed, flushed after every image: the batcher cuts a chunk at every image of this
     # recording (≥ 8 kB), as at the default resolution (≈300 kB each) with its default 256 kB.
@@ -62,8 +83,8 @@ def test_the_streamed_sweep_file_equals_the_eager_one(tmp_path, monkeypatch):
     flush = rr.RecordingStream.flush
     monkeypatch.setattr(rr.RecordingStream, "flush", lambda self, *a, **k: flushes.append(1) or flush(self, *a, **k))
     read_when_drawn = []
-    reader = sweep_module._reprojected_reader
-    monkeypatch.setattr(sweep_module, "_reprojected_reader",
+    reader = sweep_file._reprojected_reader
+    monkeypatch.setattr(sweep_file, "_reprojected_reader",
                         lambda *args: lambda: read_when_drawn.append(args[0]) or reader(*args)())
     streamed = write(tmp_path / "streamed" / "sweep.rrd")
     assert read_when_drawn == [e.run for e in entries]  # each setting's corners, once, when drawn
@@ -72,11 +93,10 @@ def test_the_streamed_sweep_file_equals_the_eager_one(tmp_path, monkeypatch):
     monkeypatch.setattr(overlay, "FLUSH_IMAGE_BYTES", 1 << 62)
     monkeypatch.setattr(overlay, "_copy_layers", _eager_copy_layers)
     monkeypatch.setattr(overlay, "_first_temporal_entity", lambda store: None)
-    monkeypatch.setattr(sweep_module, "_reprojected_reader", lambda *args: reader(*args)())
+    monkeypatch.setattr(sweep_file, "_reprojected_reader", lambda *args: reader(*args)())
     eager = write(tmp_path / "eager" / "sweep.rrd")
 
-    same = subprocess.run([cli, "rrd", "compare", "--unordered", streamed, eager], capture_output=True, text=True,
-                          timeout=120, check=False)
+    same = _compare(cli, streamed, eager)
     assert same.returncode == 0, same.stdout + same.stderr
     # The comparison can fail: the corners drawn are the settings' own, and differ between them.
     drawn = {e.label: points2d(streamed, paths.overlay_reprojected("front", e.key)) for e in entries}
@@ -86,3 +106,34 @@ def test_the_streamed_sweep_file_equals_the_eager_one(tmp_path, monkeypatch):
     for entry in entries:
         own = points2d(entry.run_path, paths.reprojected("front", False))
         assert all((drawn[entry.label][f] == pts).all() for f, pts in own.items())
+
+
+@pytest.mark.parametrize("clock", ["the best's", "another"])
+def test_a_sweep_file_begun_early_equals_one_written_at_the_end(layered, tmp_path, clock):
+    """A sweep ``.rrd`` begun while the settings run (SweepFile: the frames once the first
+    setting ended, on its clock, each setting's layers as it ended — here the second-ranked
+    first) equals the one written whole after the ranking. When the frames went on a clock
+    other than the best setting's, it is written anew: still equal."""
+    cli = _rerun_cli()
+    recording, entries, series = layered
+    whole = sweep_file.write_sweep_file(tmp_path / "whole" / "sweep.rrd", recording, entries, series, entries,
+                                        "position_rmse_mm", True)
+    out = tmp_path / "early" / "sweep.rrd"
+    out.parent.mkdir()
+    early = sweep_file.SweepFile(out, recording, entries, images=True, cache_dir=None)
+    if clock == "another":  # the frames one frame later, as a sweep over time_source could give
+        clocks = run_series.image_clocks(entries[1].run)
+        shifted = {cam: [(frame + 1, t, e) for frame, t, e in rows] for cam, rows in clocks.items()}
+        early.image_clocks = lambda run: shifted
+    for index in (1, 0):
+        early.add(entries[index], series[index])
+    assert early.frames is not None and early.layers == {e.key for e in entries}
+    best = entries[0].run
+    cams = run_series.cameras_of(best)
+    assert early.holds(cams, run_series.image_clocks(best), early.layers) == (clock == "the best's")
+    written = sweep_file.write_sweep_file(out, recording, entries, series, entries, "position_rmse_mm", True,
+                                          early=early)
+    assert written == out and early.overlay is None
+    same = _compare(cli, written, whole)
+    assert same.returncode == 0, same.stdout + same.stderr
+    assert sorted(p.name for p in out.parent.iterdir()) == ["sweep.rrd"]  # no temporary left
