@@ -504,3 +504,22 @@ def test_view_without_a_display_is_one_line(runs, monkeypatch):
 def test_markup_in_messages_is_printed_verbatim(tmp_path):
     result = _invoke("diff", tmp_path / "[bold]a.rrd", tmp_path / "b.rrd")
     assert result.exit_code == 2 and "[bold]a.rrd" in _one_error_line(result)
+
+
+@pytest.mark.parametrize("durable", [True, False], ids=["an output", "a sweep's scratch run"])
+def test_an_output_reaches_the_disk_before_its_rename_a_scratch_run_need_not(runs, tmp_path, monkeypatch, durable):
+    """A run's .rrd is synced to the disk (fsync) before it is moved into place, so a crash never
+    leaves a truncated file under its name; a sweep's layers-only run, which the sweep reads back
+    and removes, is not (durable=False). Either way the file is complete."""
+    synced = []
+    fsync = os.fsync
+
+    def recording_fsync(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    out = tmp_path / "run.rrd"
+    run_recording(runs[0], RunSettings(), out, jobs=1, images=False, writer_process=False, durable=durable)
+    assert looks_complete(out)
+    assert [Path(p).name.startswith(".run.rrd.agvviz-") for p in synced] == ([True] if durable else [])

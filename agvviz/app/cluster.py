@@ -64,12 +64,14 @@ STOP_TIMEOUT_S = 5.0
 @dataclass(frozen=True)
 class RunTask:
     """One run of a sweep: replay ``recording`` under ``settings`` into ``out_path``
-    (``images=False``: the layers only, what a sweep ``.rrd`` takes of a setting)."""
+    (``images=False``: the layers only, what a sweep ``.rrd`` takes of a setting; ``scratch``:
+    a file the sweep reads back and removes, not synced to the disk)."""
 
     recording: Path
     settings: "RunSettings"
     out_path: Path
     images: bool = True
+    scratch: bool = False
 
 
 @dataclass(frozen=True)
@@ -201,7 +203,7 @@ def _run(
         # The .rrd in this process: a sweep keeps every core busy already.
         outcome = run_recording(task.recording, task.settings, task.out_path, progress=progress, jobs=jobs,
                                 images=task.images, writer_process=False, executor=executor,
-                                on_detected=on_detected, **extra)
+                                on_detected=on_detected, durable=not task.scratch, **extra)
     except Exception as exc:  # noqa: BLE001 — any failure of one setting is reported, not raised
         return TaskResult(error=one_line(exc))
     return TaskResult(timing=dict(outcome.timing))

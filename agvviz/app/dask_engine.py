@@ -100,7 +100,7 @@ def _detect_jobs(share: int) -> int:
 
 def run_task(
     recording: str, settings: "RunSettings", out_path: str, cache_dir: str | None, topic: str, stop_name: str,
-    unit: int, images: bool = True, share: int = 1,
+    unit: int, images: bool = True, share: int = 1, scratch: bool = False,
 ) -> TaskResult:
     """Worker: replay one setting. A group's lead (``share`` > 1: its share of the cluster's
     threads) detects on that many processes (in-process in a daemonic worker) and fills the
@@ -109,7 +109,7 @@ def run_task(
 
     cv2.setNumThreads(1)  # one thread per worker: the workers already fill the CPUs
     reporter = _Reporter(topic, stop_name, unit)
-    task = RunTask(Path(recording), settings, Path(out_path), images)
+    task = RunTask(Path(recording), settings, Path(out_path), images, scratch)
     return _run(task, _detect_jobs(share), reporter, Path(cache_dir) if cache_dir is not None else None)
 
 
@@ -139,7 +139,8 @@ class DaskEngine:
         task = self.tasks[index]
         future = self.client.submit(
             run_task, str(task.recording.resolve()), task.settings, str(task.out_path.resolve()), self.cache,
-            self.topic, self.stop_name, index, task.images, share, key=f"agvviz-run-{self.token}-{index}", pure=False,
+            self.topic, self.stop_name, index, task.images, share, task.scratch, key=f"agvviz-run-{self.token}-{index}",
+            pure=False,
         )
         self._pending[future] = index
 

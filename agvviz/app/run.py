@@ -134,6 +134,7 @@ def run_recording(
     writer_process: bool = True,
     executor: Executor | None = None,
     on_detected: Callable[[], None] | None = None,
+    durable: bool = True,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -166,7 +167,9 @@ def run_recording(
 
     ``writer_process`` (default): the ``.rrd`` is written by a process of its own
     (:mod:`agvviz.viz.run_process`), beside the replay; False: in this process (a sweep's runs,
-    which already keep every core busy).
+    which already keep every core busy). ``durable=False``: the ``.rrd`` is a scratch file the
+    caller reads back and removes (a sweep's layers-only runs): it is not synced to the disk
+    before it is moved into place (:class:`agvviz.viz.rrd_file.AtomicRrd`).
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":
@@ -255,6 +258,7 @@ def run_recording(
         out_path, settings, in_process=not writer_process,
         recording_name=recording_name, recording_id=recording_id, inputs=tuple(inputs),
         recording_start_ns=recording_start_ns(prepared), max_reproj_px=settings.max_reproj_px, images=images,
+        durable=durable,
     ) as writer:
         logger = writer.logger
         logger.log_manifest(manifest)

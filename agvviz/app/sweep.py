@@ -302,7 +302,8 @@ def sweep(
     t_start = time.perf_counter()
     all_entries = [e for entries in per_recording for e in entries]
     series: dict[int, RunSeries] = {}  # index in all_entries → its run, read back as it ends
-    tasks = [cluster.RunTask(e.recording, e.settings, e.run_path, images=keep_runs) for e in all_entries]
+    tasks = [cluster.RunTask(e.recording, e.settings, e.run_path, images=keep_runs, scratch=not keep_runs)
+             for e in all_entries]
     workers = min(jobs or os.cpu_count() or 1, len(tasks))
     cache = Path(cache_dir) if cache_dir is not None else None
 

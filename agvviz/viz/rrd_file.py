@@ -151,6 +151,10 @@ class AtomicRrd:
         Shown in the viewer.
     inputs : paths
         Files the caller reads; ``out_path`` must not be one of them (also through links).
+    durable : bool
+        Make the file reach the disk (``fsync``) before it is moved into place, so a crash
+        never leaves a truncated output under its name. False for a scratch file that the same
+        program reads back and removes (a sweep's layers-only runs): ≈5–60 ms less per file.
 
     Raises
     ------
@@ -167,8 +171,10 @@ class AtomicRrd:
         recording_name: str,
         inputs: Iterable[str | os.PathLike] = (),
         tmp_path: str | os.PathLike | None = None,
+        durable: bool = True,
     ):
         self.out_path = outputs.prepare_output(out_path, inputs=inputs)
+        self.durable = durable
         # (another process's name for it: the process that will move it into place, see commit)
         self._tmp_path = Path(tmp_path) if tmp_path is not None else outputs.temp_path(self.out_path)
         self._pump: _Pump | None = None
@@ -235,7 +241,8 @@ class AtomicRrd:
                     raise outputs.output_error(self._pump.error, self.out_path)
                 fd, self._pump.fd = self._pump.fd, -1
                 try:
-                    os.fsync(fd)
+                    if self.durable:
+                        os.fsync(fd)
                 finally:
                     os.close(fd)
             else:

@@ -98,10 +98,11 @@ class RunLogger:
         max_reproj_px: float | None = None,
         images: bool = True,
         tmp_path: str | os.PathLike | None = None,
+        durable: bool = True,
     ):
         # OutputError (from agvviz.errors) when out_path is an input or cannot be written.
         self._file = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=inputs,
-                               tmp_path=tmp_path)
+                               tmp_path=tmp_path, durable=durable)
         self._rec = self._file.rec
         #: ``elapsed`` = log time − this (ns); set from the first frame when not given.
         self.recording_start_ns = None if recording_start_ns is None else int(recording_start_ns)
