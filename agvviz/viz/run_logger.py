@@ -19,7 +19,9 @@ depends only on the data: two identical runs compare equal with ``rerun rrd comp
 
 Logging cost (issue 12): every per-frame value except the image is held in memory
 (:class:`agvviz.viz.columns.Columns`) and sent as columns every :data:`FLUSH_EVERY_FRAMES`
-frames and at :meth:`RunLogger.close`, instead of building a Rerun archetype per frame. The
+frames and at :meth:`RunLogger.close`, instead of building a Rerun archetype per frame; the images
+are sent a camera's few frames per chunk (:class:`agvviz.viz.encoded_image.ImageChunks`) and at
+the same flushes. The
 styling of every per-frame entity (colours, radii, draw order) is logged once as static data, so
 a frame carries only what changes. Every per-frame log is stamped on ``frame``, ``time`` and
 ``elapsed`` (:func:`agvviz.viz.timelines.set_stamp`).
@@ -175,7 +177,7 @@ class RunLogger:
         self._check_open()
         check_frame(frame)
         stamp = self._stamp(frame)
-        self.frames.log_image(frame)
+        self.frames.log_image(frame, stamp)
         self.frames.log_corners(frame, stamp)
 
     def log_frame(self, frame: FrameResult) -> None:
@@ -194,7 +196,7 @@ class RunLogger:
             self._rec.send_recording_start_time_nanos(int(self.recording_start_ns))
             self._start_time_sent = True
         frames = self.frames
-        frames.log_image(frame)
+        frames.log_image(frame, stamp)
         frames.log_corners(frame, stamp)
         frames.log_markers_seen(frame, stamp)
         frames.log_poses(frame, stamp)
@@ -233,6 +235,7 @@ class RunLogger:
 
     def _flush(self) -> None:
         self._columns.flush(self._rec)
+        self.frames.image_chunks.flush()
         self._frames_buffered = 0
 
     def log_run_findings(self, findings) -> None:
