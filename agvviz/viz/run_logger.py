@@ -50,8 +50,11 @@ from agvviz.viz.log_uncertainty import GHOST_MAX_AMBIGUITY_RATIO, UncertaintyLog
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.timelines import elapsed_s, set_stamp
 
-#: Per-frame values are sent as columns every this many frames (and at close).
-FLUSH_EVERY_FRAMES = 64
+#: Per-frame values are sent as columns every this many frames (and at close): a chunk per
+#: entity each time. Rerun's file footer holds a row for every chunk until the file is closed, so
+#: the writer's memory grows with the number of chunks (issue 27: 64 gave ≈1200 chunks at 2000
+#: frames, most of its growth); 256 frames of columns are a few MB held.
+FLUSH_EVERY_FRAMES = 256
 #: A camera without a frame at a time stamp missed one (a dropped image) when this many of its
 #: shortest frame intervals have passed since its last frame: 1 for a synchronised camera, under
 #: 0.75 for cameras that fire between each other's stamps (half a period for two alternating).
