@@ -5,8 +5,7 @@ run (``run --images none``) that ``agvviz view`` opens beside it, and the frames
 The run's own clock decides where each image goes: every camera logs its detected corners on
 every frame (:func:`agvviz.viz.readback.frame_stamps`), so ``(camera, time)`` → ``(frame,
 elapsed)`` is read from the run, never re-derived; the images are the recording's bytes, logged
-in groups of frames per chunk by :class:`agvviz.viz.encoded_image.ImageChunks`, as a run
-logs them.
+by :func:`agvviz.viz.encoded_image.log_encoded_image` as a run logs them.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ import numpy as np
 import rerun as rr
 
 from agvviz.viz import paths
-from agvviz.viz.encoded_image import ImageChunks
+from agvviz.viz.encoded_image import log_encoded_image
 from agvviz.viz.rrd_file import AtomicRrd
 
 #: One camera image of a recording: (camera, time on the replay clock [ns], image format, bytes).
@@ -29,28 +28,13 @@ RecordedImage = tuple[str, int, str, bytes]
 CameraClock = list[tuple[int, int, int]]
 
 
-def clock_columns(stamps: list[tuple[int, int, int]]) -> list[rr.TimeColumn]:
-    """``frame``, ``time`` and ``elapsed`` index columns of (frame, time_ns, elapsed_ns) stamps:
-    the nanoseconds as they were read from the run."""
-    frames, times_ns, elapsed_ns = (np.asarray(column, dtype=np.int64) for column in zip(*stamps))
-    return [
-        rr.TimeColumn(paths.TIMELINE_FRAME, sequence=frames),
-        rr.TimeColumn(paths.TIMELINE_TIME, timestamp=times_ns.astype("datetime64[ns]")),
-        rr.TimeColumn(paths.TIMELINE_ELAPSED, duration=elapsed_ns.astype("timedelta64[ns]")),
-    ]
-
-
 def log_images(
     rec: rr.RecordingStream, images: Iterable[RecordedImage], clocks: dict[str, CameraClock],
-    entity_of: dict[str, str], flush_every_bytes: int | None = None,
+    entity_of: dict[str, str],
 ) -> tuple[int, int]:
     """Log each image of ``images`` whose camera and time have a frame in ``clocks`` at
-    ``entity_of[camera]`` on that frame's ``frame``, ``time`` and ``elapsed``, a camera's group
-    of frames per chunk (:class:`ImageChunks`). ``flush_every_bytes``: the stream is flushed
-    (waiting until the file has what was sent) right after a chunk is sent once this many bytes
-    went out since the last flush, so frames given faster than the file is written do not pile
-    up in memory; the chunks are the same either way. Returns (images logged, frames of
-    ``clocks`` left without an image)."""
+    ``entity_of[camera]`` on that frame's ``frame``, ``time`` and ``elapsed``. Returns
+    (images logged, frames of ``clocks`` left without an image)."""
     pending: dict[str, dict[int, deque]] = {}
     for cam, rows in clocks.items():
         by_time: dict[int, deque] = defaultdict(deque)
@@ -58,19 +42,16 @@ def log_images(
             by_time[time_ns].append((frame, elapsed_ns))
         pending[cam] = by_time
     logged = 0
-    unflushed_bytes = 0
-    chunks = ImageChunks(rec, clock_columns)
     for cam, time_ns, image_format, data in images:
         queue = pending.get(cam, {}).get(int(time_ns))
         if not queue:
             continue  # a frame the run did not log (or another recording's image)
         frame, elapsed_ns = queue.popleft()
-        unflushed_bytes += chunks.add(entity_of[cam], (int(frame), int(time_ns), int(elapsed_ns)), image_format, data)
+        rec.set_time(paths.TIMELINE_FRAME, sequence=frame)
+        rec.set_time(paths.TIMELINE_TIME, timestamp=np.datetime64(int(time_ns), "ns"))
+        rec.set_time(paths.TIMELINE_ELAPSED, duration=np.timedelta64(int(elapsed_ns), "ns"))
+        log_encoded_image(rec, entity_of[cam], image_format, data)
         logged += 1
-        if flush_every_bytes is not None and unflushed_bytes >= flush_every_bytes:
-            rec.flush()
-            unflushed_bytes = 0
-    chunks.flush()
     missing = sum(len(q) for by_time in pending.values() for q in by_time.values())
     return logged, missing
 

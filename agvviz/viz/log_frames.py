@@ -4,9 +4,8 @@ truth and estimated poses and trajectories, and the error series with the reject
 
 :class:`FrameLogger` is one of the modality loggers a :class:`agvviz.viz.run_logger.RunLogger`
 holds (beside :mod:`agvviz.viz.log_lm` and :mod:`agvviz.viz.log_uncertainty`); per-frame values go
-through the run's :class:`agvviz.viz.columns.Columns`. The images go from their bytes, without an
-archetype, a camera's group of frames per chunk (:class:`agvviz.viz.encoded_image.ImageChunks`,
-sent at the columns' flushes too).
+through the run's :class:`agvviz.viz.columns.Columns`. The image is logged per frame (it is large)
+from its bytes without an archetype.
 """
 
 from __future__ import annotations
@@ -21,8 +20,8 @@ from agvviz.markers.charuco import is_chessboard_id
 from agvviz.evaluation.suspect_report import cause_words
 from agvviz.model.frames import FrameResult
 from agvviz.viz import log_rejections, paths
-from agvviz.viz.columns import Columns, Stamp, time_columns
-from agvviz.viz.encoded_image import MEDIA_TYPES, ImageChunks
+from agvviz.viz.columns import Columns, Stamp
+from agvviz.viz.encoded_image import MEDIA_TYPES, log_encoded_image
 from agvviz.viz.log_findings import error_values, rejection_row, suspect_row
 from agvviz.viz.zoom_placeholder import ZOOM_SIDE_PX, crop_around, longest_edge_px, zoom_unseen_png
 from agvviz.viz.style import (
@@ -112,8 +111,6 @@ class FrameLogger:
         #: False: the camera images are not logged (``run --images none``, a sweep's layers);
         #: everything drawn over them still is.
         self.images = True
-        #: The camera images, sent a group of frames at a time (on the columns' timelines).
-        self.image_chunks = ImageChunks(rec, time_columns)
         self._cam_names: list[str] = []
         self._image_width_px: dict[str, int] = {}
         #: Cameras fixed in the world (paper 003's wall cameras).
@@ -311,13 +308,11 @@ class FrameLogger:
             self._cam_names.append(cam_name)
 
     # -- per frame -------------------------------------------------------------------------
-    def log_image(self, frame: FrameResult, stamp: Stamp) -> None:
-        """The recorded image, held with the camera's next few (:class:`ImageChunks`): sent when
-        the group is full or the run's logger flushes."""
+    def log_image(self, frame: FrameResult) -> None:
         if not frame.image_bytes or not self.images:
             return  # corner-only recordings carry no image; a layers-only run logs none
-        self.image_chunks.add(
-            paths.image(frame.cam_name, frame.cam_name in self.fixed_cams), stamp, frame.image_format,
+        log_encoded_image(
+            self._rec, paths.image(frame.cam_name, frame.cam_name in self.fixed_cams), frame.image_format,
             frame.image_bytes,
         )
 

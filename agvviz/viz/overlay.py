@@ -50,7 +50,7 @@ import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import rerun as rr
@@ -61,6 +61,7 @@ from agvviz.viz.frames import CameraClock, RecordedImage, log_images
 from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_blueprint
 from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
 from agvviz.viz.readback import RrdContents, read_rrd
+from agvviz.viz import rrd_file
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
 
@@ -70,8 +71,7 @@ TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 #: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about
 #: the AGV body's size, visible in a view of the whole trajectory.
 ERROR_VECTOR_TARGET_M = 0.5
-#: Camera images are written out (a flush) after this many bytes (right after a chunk of them is
-#: sent: :func:`agvviz.viz.frames.log_images`), or rows of image chunks copied:
+#: Camera images are written out (a flush) after this many bytes, or rows of image chunks:
 #: Rerun queues what it is given without bound, and frames given faster than the file was
 #: written piled up in the process (a sweep's 2000 frames: +100-200 MB).
 FLUSH_IMAGE_BYTES = 8 << 20
@@ -369,8 +369,9 @@ def write_overlay(
             rrd.check()
         if frames is not None and cam_names:
             images, clocks = frames
-            log_images(rec, images, {c: clocks.get(c, []) for c in cam_names},
-                       {c: paths.overlay_image(c) for c in cam_names}, flush_every_bytes=FLUSH_IMAGE_BYTES)
+            log_images(rec, _paced_images(rec, images), {c: clocks.get(c, []) for c in cam_names},
+                       {c: paths.overlay_image(c) for c in cam_names})
+            rec.reset_time()
             rrd.check()
         layer_entities = {}  # run key → the entities its layers hold (for the layout)
         for key, run in (layers or {}).items():
@@ -532,6 +533,22 @@ def _copy_layers(rec: rr.RecordingStream, key: str, run: str | os.PathLike | Rrd
         )
         rec.flush()
     return set(entities)
+
+
+def _paced_images(rec: rr.RecordingStream, images: Iterable[RecordedImage]) -> Iterator[RecordedImage]:
+    """``images`` as they come, the stream flushed after every :data:`FLUSH_IMAGE_BYTES` of
+    them: the file is written as fast as the frames are logged, not queued in memory. A flush
+    cuts the chunk being batched, so it comes only right after an image the batcher has cut a
+    chunk at anyway (one of at least ``rrd_file.BATCHER_FLUSH_NUM_BYTES``): the chunks are an
+    unpaced write's (`rerun rrd compare --unordered` finds them equal). Smaller frames are not
+    paced."""
+    given = 0
+    for image in images:
+        yield image  # logged when the next one is asked for
+        given += len(image[3])
+        if given >= FLUSH_IMAGE_BYTES and len(image[3]) >= rrd_file.BATCHER_FLUSH_NUM_BYTES:
+            rec.flush()
+            given = 0
 
 
 def _send_paced(rec: rr.RecordingStream, chunks: Iterable) -> None:

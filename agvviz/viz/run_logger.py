@@ -19,9 +19,7 @@ depends only on the data: two identical runs compare equal with ``rerun rrd comp
 
 Logging cost (issue 12): every per-frame value except the image is held in memory
 (:class:`agvviz.viz.columns.Columns`) and sent as columns every :data:`FLUSH_EVERY_FRAMES`
-frames and at :meth:`RunLogger.close`, instead of building a Rerun archetype per frame; the images
-are sent a camera's few frames per chunk (:class:`agvviz.viz.encoded_image.ImageChunks`) and at
-the same flushes. The
+frames and at :meth:`RunLogger.close`, instead of building a Rerun archetype per frame. The
 styling of every per-frame entity (colours, radii, draw order) is logged once as static data, so
 a frame carries only what changes. Every per-frame log is stamped on ``frame``, ``time`` and
 ``elapsed`` (:func:`agvviz.viz.timelines.set_stamp`).
@@ -50,10 +48,10 @@ from agvviz.viz.log_uncertainty import GHOST_MAX_AMBIGUITY_RATIO, UncertaintyLog
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.timelines import elapsed_s, set_stamp
 
-#: Per-frame values are sent as columns every this many frames (and at close): a chunk per
-#: entity each time. Rerun's file footer holds a row for every chunk until the file is closed, so
-#: the writer's memory grows with the number of chunks (issue 27: 64 gave ≈1200 chunks at 2000
-#: frames, most of its growth); 256 frames of columns are a few MB held.
+#: Per-frame values are sent as columns every this many frames (and at close): one chunk per
+#: entity each time. Rerun keeps a footer entry for every chunk of the file until it is closed,
+#: so fewer flushes hold the writer's growth with the run's length (issue 27: 64 gave ≈1200 of a
+#: 2000-frame run's 3200 chunks); 256 frames of columns are a few MB held.
 FLUSH_EVERY_FRAMES = 256
 #: A camera without a frame at a time stamp missed one (a dropped image) when this many of its
 #: shortest frame intervals have passed since its last frame: 1 for a synchronised camera, under
@@ -180,7 +178,7 @@ class RunLogger:
         self._check_open()
         check_frame(frame)
         stamp = self._stamp(frame)
-        self.frames.log_image(frame, stamp)
+        self.frames.log_image(frame)
         self.frames.log_corners(frame, stamp)
 
     def log_frame(self, frame: FrameResult) -> None:
@@ -199,7 +197,7 @@ class RunLogger:
             self._rec.send_recording_start_time_nanos(int(self.recording_start_ns))
             self._start_time_sent = True
         frames = self.frames
-        frames.log_image(frame, stamp)
+        frames.log_image(frame)
         frames.log_corners(frame, stamp)
         frames.log_markers_seen(frame, stamp)
         frames.log_poses(frame, stamp)
@@ -238,7 +236,6 @@ class RunLogger:
 
     def _flush(self) -> None:
         self._columns.flush(self._rec)
-        self.frames.image_chunks.flush()
         self._frames_buffered = 0
 
     def log_run_findings(self, findings) -> None:
