@@ -48,11 +48,8 @@ from agvviz.viz.log_uncertainty import GHOST_MAX_AMBIGUITY_RATIO, UncertaintyLog
 from agvviz.viz.rrd_file import AtomicRrd
 from agvviz.viz.timelines import elapsed_s, set_stamp
 
-#: Per-frame values are sent as columns every this many frames (and at close): one chunk per
-#: entity each time. Rerun keeps a footer entry for every chunk of the file until it is closed,
-#: so fewer flushes hold the writer's growth with the run's length (issue 27: 64 gave ≈1200 of a
-#: 2000-frame run's 3200 chunks); 256 frames of columns are a few MB held.
-FLUSH_EVERY_FRAMES = 256
+#: Per-frame values are sent as columns every this many frames (and at close).
+FLUSH_EVERY_FRAMES = 64
 #: A camera without a frame at a time stamp missed one (a dropped image) when this many of its
 #: shortest frame intervals have passed since its last frame: 1 for a synchronised camera, under
 #: 0.75 for cameras that fire between each other's stamps (half a period for two alternating).
