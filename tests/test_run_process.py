@@ -5,6 +5,7 @@ discarded or dies."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -86,3 +87,28 @@ def test_a_run_process_that_dies_leaves_no_temporary(tmp_path):
         time.sleep(0.1)
     assert _files(tmp_path) == []
 
+
+
+def _python(code: str, **env) -> str:
+    """Run ``code`` in a fresh interpreter on this tree (the allocator settings are per process)."""
+    environment = {k: v for k, v in os.environ.items() if not k.startswith("MIMALLOC_")} | env
+    environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(Path(__file__).resolve().parents[1]),
+                                                              environment.get("PYTHONPATH")]))
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=environment,
+                          timeout=60, check=True)
+    return done.stdout.strip()
+
+
+def test_the_writer_module_sets_mimalloc_to_give_freed_memory_back_before_the_fork_server_starts():
+    code = "import os, agvviz.viz.run_process; print(os.environ.get('MIMALLOC_PURGE_DELAY'))"
+    assert _python(code) == "0"
+    assert _python(code, MIMALLOC_PURGE_DELAY="25") == "25"  # the user's own value is kept
+
+
+def test_the_writer_maps_large_blocks_and_arrow_allocates_with_malloc():
+    code = ("import pyarrow, agvviz.viz.run_process as rp; "
+            "took = rp.map_large_blocks(); print(took, pyarrow.default_memory_pool().backend_name)")
+    took, pool = _python(code).split()
+    if took == "False":
+        pytest.skip("not glibc: the allocator is left as it is")
+    assert pool == "system"
