@@ -21,7 +21,7 @@ from agvviz.app.run import run_recording
 from agvviz.app import run_series
 from agvviz.app.run_series import load_run
 from agvviz.settings import RunSettings
-from agvviz.viz import overlay, paths, rrd_file
+from agvviz.viz import overlay, overlay_copy, paths, rrd_file
 from agvviz.viz.readback import points2d, read_rrd
 
 SMALL = ["duration_s=3", "rate_hz=10", "width_px=640", "height_px=512", "focal_px=500", "realism=typical"]
@@ -78,7 +78,7 @@ def test_the_streamed_sweep_file_equals_the_eager_one(layered, tmp_path, monkeyp
     # Streamed, flushed after every image: the batcher cuts a chunk at every image of this
     # recording (≥ 8 kB), as at the default resolution (≈300 kB each) with its default 256 kB.
     monkeypatch.setattr(rrd_file, "BATCHER_FLUSH_NUM_BYTES", 8 << 10)
-    monkeypatch.setattr(overlay, "FLUSH_IMAGE_BYTES", 1)
+    monkeypatch.setattr(overlay_copy, "FLUSH_IMAGE_BYTES", 1)
     flushes = []
     flush = rr.RecordingStream.flush
     monkeypatch.setattr(rr.RecordingStream, "flush", lambda self, *a, **k: flushes.append(1) or flush(self, *a, **k))
@@ -90,8 +90,8 @@ def test_the_streamed_sweep_file_equals_the_eager_one(layered, tmp_path, monkeyp
     assert read_when_drawn == [e.run for e in entries]  # each setting's corners, once, when drawn
     assert len(flushes) >= len(series[0].frames)  # paced: a flush per frame (and per layers entity)
     # Eager, as before.
-    monkeypatch.setattr(overlay, "FLUSH_IMAGE_BYTES", 1 << 62)
-    monkeypatch.setattr(overlay, "_copy_layers", _eager_copy_layers)
+    monkeypatch.setattr(overlay_copy, "FLUSH_IMAGE_BYTES", 1 << 62)
+    monkeypatch.setattr(overlay_copy, "copy_layers", _eager_copy_layers)
     monkeypatch.setattr(overlay, "_first_temporal_entity", lambda store: None)
     monkeypatch.setattr(sweep_file, "_reprojected_reader", lambda *args: reader(*args)())
     eager = write(tmp_path / "eager" / "sweep.rrd")

@@ -35,6 +35,8 @@ frame index (the callers map the other runs' frames onto it). Entity tree::
 With ``layers`` and ``index`` the file is a sweep ``.rrd`` (issue 27): ``FILE#LABEL`` reads one
 run back (:func:`agvviz.viz.readback.read_rrd`). With ``frames`` the images come from the
 recording (logged once, :mod:`agvviz.viz.frames`) instead of being copied from ``source``.
+:class:`OverlayFile` writes it in parts (a sweep begins it while its settings still run); what
+is copied from run files, and its pacing, is :mod:`agvviz.viz.overlay_copy`'s.
 
 Timelines: ``frame`` (what the viewer opens on), ``elapsed`` (seconds since the source run's
 recording start, or since the first frame drawn when that is unknown) and ``time`` (the
@@ -50,7 +52,7 @@ import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterable
 
 import numpy as np
 import rerun as rr
@@ -59,11 +61,11 @@ from agvviz.errors import InputError
 from agvviz.viz import paths
 from agvviz.viz.frames import CameraClock, RecordedImage, log_images
 from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_blueprint
-from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
+from agvviz.viz.log_frames import REPROJECTED_RADIUS
 from agvviz.viz.readback import RrdContents, read_rrd
-from agvviz.viz import rrd_file
+from agvviz.viz import overlay_copy
 from agvviz.viz.rrd_file import AtomicRrd
-from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
+from agvviz.viz.style import COLOR_DELTA, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
 
 #: The per-frame Δ series and its zero line.
 AXIS_LENGTH_M = 0.4
@@ -71,11 +73,6 @@ TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 #: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about
 #: the AGV body's size, visible in a view of the whole trajectory.
 ERROR_VECTOR_TARGET_M = 0.5
-#: Camera images are written out (a flush) after this many bytes, or rows of image chunks:
-#: Rerun queues what it is given without bound, and frames given faster than the file was
-#: written piled up in the process (a sweep's 2000 frames: +100-200 MB).
-FLUSH_IMAGE_BYTES = 8 << 20
-FLUSH_IMAGE_ROWS = 32
 
 
 class OverlayError(InputError):
@@ -339,7 +336,7 @@ def write_overlay(
         (a diff of two settings of one sweep: their layers hold no images).
     """
     _check(runs)
-    sources = tuple(inputs) + ((_opened(source).path,) if source is not None else ())
+    sources = tuple(inputs) + ((overlay_copy.opened(source).path,) if source is not None else ())
     with OverlayFile(out_path, recording_name=recording_name, inputs=sources) as overlay:
         if frames is not None and cam_names:
             overlay.log_frames(*frames, cam_names)
@@ -376,14 +373,14 @@ class OverlayFile:
         frame of ``clocks`` (the first run's clock: see :func:`write_overlay`'s ``frames``)."""
         rec = self._rrd.rec
         clocks = {c: clocks.get(c, []) for c in cam_names}
-        log_images(rec, _paced_images(rec, images), clocks, {c: paths.overlay_image(c) for c in cam_names})
+        log_images(rec, overlay_copy.paced_images(rec, images), clocks, {c: paths.overlay_image(c) for c in cam_names})
         rec.reset_time()
         self._rrd.check()
         self.frames_logged = (list(cam_names), clocks)
 
     def copy_layers(self, key: str, run: str | os.PathLike | RrdContents) -> None:
         """Every entity of the run ``run`` but its camera images under ``settings/<key>/``."""
-        self._layer_entities[key] = _copy_layers(self._rrd.rec, key, run)
+        self._layer_entities[key] = overlay_copy.copy_layers(self._rrd.rec, key, run)
         self._rrd.check()
 
     def finish(
@@ -408,7 +405,7 @@ class OverlayFile:
         # Error arrows only when some run has frames with both an estimate and a truth.
         error_vectors_m = [position_errors_m(run)[1] for run in runs]
         magnification = error_magnification(error_vectors_m) if any(len(v) for v in error_vectors_m) else None
-        store = _opened(source).store if source is not None else None
+        store = overlay_copy.opened(source).store if source is not None else None
         clock = _Clock(_elapsed_origin_ns(store, runs, truth))
         _log_static(rec, runs, truth, report_markdown, list(deltas))
         rec.log(paths.COMPARE_KEY, rr.TextDocument(
@@ -417,12 +414,12 @@ class OverlayFile:
             media_type=rr.MediaType.MARKDOWN), static=True)
         if store is not None:
             images = self.frames_logged is None and frames_from is None
-            _copy_from_source(rec, store, cam_names, fixed_cams, images=images)
+            overlay_copy.copy_from_source(rec, store, cam_names, fixed_cams, images=images)
             self._rrd.check()
         if frames_from is not None and self.frames_logged is None:
             frames_store = read_rrd(frames_from).store
             for cam in cam_names:
-                _send_paced(rec, frames_store.stream().filter(
+                overlay_copy.send_paced(rec, frames_store.stream().filter(
                     content=f"/{paths.overlay_image(cam)}", is_static=False,
                     components=["EncodedImage:blob", "EncodedImage:media_type"]))
             self._rrd.check()
@@ -566,61 +563,6 @@ def _log_static(
         )
 
 
-def _opened(run: str | os.PathLike | RrdContents) -> RrdContents:
-    """A run ``.rrd`` by its path, or opened by the caller (a sweep opens each run once)."""
-    return run if isinstance(run, RrdContents) else read_rrd(run)
-
-
-def _copy_layers(rec: rr.RecordingStream, key: str, run: str | os.PathLike | RrdContents) -> set[str]:
-    """Copy every entity of the run ``.rrd`` ``run`` (a path, or opened) but its camera images (and the
-    recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged. Returns the
-    run's entity paths (without the prefix).
-
-    One entity at a time, each written out (``flush``) before the next is read: Rerun loads a
-    whole stream's chunks ahead of the writer, so a run's layers copied in one stream were
-    held in memory whole (≈45 MB at 2000 frames); one entity's are a few MB."""
-    store = _opened(run).store
-    entities = sorted(p.lstrip("/") for p in store.schema().entity_paths())
-    left_out = {"__properties", *paths.camera_images(entities)}
-    prefix = "/" + paths.sweep_setting(key)
-    for entity in entities:
-        if entity in left_out or entity.startswith("__properties/"):
-            continue
-        rec.send_chunks(
-            store.stream().filter(content=f"/{entity}")
-            .map(lambda chunk: chunk.with_entity_path(prefix + chunk.entity_path))
-        )
-        rec.flush()
-    return set(entities)
-
-
-def _paced_images(rec: rr.RecordingStream, images: Iterable[RecordedImage]) -> Iterator[RecordedImage]:
-    """``images`` as they come, the stream flushed after every :data:`FLUSH_IMAGE_BYTES` of
-    them: the file is written as fast as the frames are logged, not queued in memory. A flush
-    cuts the chunk being batched, so it comes only right after an image the batcher has cut a
-    chunk at anyway (one of at least ``rrd_file.BATCHER_FLUSH_NUM_BYTES``): the chunks are an
-    unpaced write's (`rerun rrd compare --unordered` finds them equal). Smaller frames are not
-    paced."""
-    given = 0
-    for image in images:
-        yield image  # logged when the next one is asked for
-        given += len(image[3])
-        if given >= FLUSH_IMAGE_BYTES and len(image[3]) >= rrd_file.BATCHER_FLUSH_NUM_BYTES:
-            rec.flush()
-            given = 0
-
-
-def _send_paced(rec: rr.RecordingStream, chunks: Iterable) -> None:
-    """Send ``chunks`` (camera images) one by one, a flush after every :data:`FLUSH_IMAGE_ROWS`."""
-    rows = 0
-    for chunk in chunks:
-        rec.send_chunks(chunk)
-        rows += chunk.num_rows
-        if rows >= FLUSH_IMAGE_ROWS:
-            rec.flush()
-            rows = 0
-
-
 def _index_markdown(index: list[dict]) -> str:
     """``sweep/index``: the runs of a sweep ``.rrd`` as a table and a JSON block (read back by
     :func:`agvviz.viz.readback.sweep_index`)."""
@@ -628,32 +570,3 @@ def _index_markdown(index: list[dict]) -> str:
     block = json.dumps({"settings": index}, indent=2, sort_keys=True)
     return "\n".join(["# settings in this file", "", "| rank | setting | entity root |", "| --- | --- | --- |", *rows,
                       "", "```json", block, "```", ""])
-
-
-def _copy_from_source(
-    rec: rr.RecordingStream, store, cam_names: list[str], fixed_cams: set[str] | frozenset[str] = frozenset(),
-    images: bool = True,
-) -> None:
-    """Copy the marker map, each camera's images (unless ``images`` is False) and detected
-    corners of a run (its store), chunk by chunk (the JPEG bytes are never decoded or
-    re-encoded); a camera of ``fixed_cams`` from its world-fixed entity."""
-    rec.send_chunks(store.stream().filter(content=[f"/{paths.MARKERS}", f"/{paths.MARKERS_FILL}"]))
-    for cam in cam_names if images else []:
-        _send_paced(
-            rec,
-            store.stream()
-            .filter(content=f"/{paths.image(cam, cam in fixed_cams)}", is_static=False)
-            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_image(cam)}")),
-        )
-    for cam in cam_names:
-        rec.send_chunks(
-            store.stream()
-            .filter(content=f"/{paths.detected(cam, cam in fixed_cams)}", is_static=False,
-                    components="Points2D:positions")
-            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_detected(cam)}"))
-        )
-        rec.log(
-            paths.overlay_detected(cam),
-            rr.Points2D.from_fields(colors=COLOR_DETECTED, radii=DETECTED_RADIUS, draw_order=10.0),
-            static=True,
-        )
