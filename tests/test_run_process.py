@@ -103,12 +103,3 @@ def test_the_writer_module_sets_mimalloc_to_give_freed_memory_back_before_the_fo
     code = "import os, agvviz.viz.run_process; print(os.environ.get('MIMALLOC_PURGE_DELAY'))"
     assert _python(code) == "0"
     assert _python(code, MIMALLOC_PURGE_DELAY="25") == "25"  # the user's own value is kept
-
-
-def test_the_writer_maps_large_blocks_and_arrow_allocates_with_malloc():
-    code = ("import pyarrow, agvviz.viz.run_process as rp; "
-            "took = rp.map_large_blocks(); print(took, pyarrow.default_memory_pool().backend_name)")
-    took, pool = _python(code).split()
-    if took == "False":
-        pytest.skip("not glibc: the allocator is left as it is")
-    assert pool == "system"

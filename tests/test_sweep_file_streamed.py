@@ -18,7 +18,6 @@ from agvviz import scenarios as scenario_registry
 from agvviz.app import sweep as sweep_module
 from agvviz.app import sweep_file
 from agvviz.app.run import run_recording
-from agvviz.app import run_series
 from agvviz.app.run_series import load_run
 from agvviz.settings import RunSettings
 from agvviz.viz import overlay, overlay_copy, paths, rrd_file
@@ -106,34 +105,3 @@ def test_the_streamed_sweep_file_equals_the_eager_one(layered, tmp_path, monkeyp
     for entry in entries:
         own = points2d(entry.run_path, paths.reprojected("front", False))
         assert all((drawn[entry.label][f] == pts).all() for f, pts in own.items())
-
-
-@pytest.mark.parametrize("clock", ["the best's", "another"])
-def test_a_sweep_file_begun_early_equals_one_written_at_the_end(layered, tmp_path, clock):
-    """A sweep ``.rrd`` begun while the settings run (SweepFile: the frames once the first
-    setting ended, on its clock, each setting's layers as it ended — here the second-ranked
-    first) equals the one written whole after the ranking. When the frames went on a clock
-    other than the best setting's, it is written anew: still equal."""
-    cli = _rerun_cli()
-    recording, entries, series = layered
-    whole = sweep_file.write_sweep_file(tmp_path / "whole" / "sweep.rrd", recording, entries, series, entries,
-                                        "position_rmse_mm", True)
-    out = tmp_path / "early" / "sweep.rrd"
-    out.parent.mkdir()
-    early = sweep_file.SweepFile(out, recording, entries, images=True, cache_dir=None)
-    if clock == "another":  # the frames one frame later, as a sweep over time_source could give
-        clocks = run_series.image_clocks(entries[1].run)
-        shifted = {cam: [(frame + 1, t, e) for frame, t, e in rows] for cam, rows in clocks.items()}
-        early.image_clocks = lambda run: shifted
-    for index in (1, 0):
-        early.add(entries[index], series[index])
-    assert early.frames is not None and early.layers == {e.key for e in entries}
-    best = entries[0].run
-    cams = run_series.cameras_of(best)
-    assert early.holds(cams, run_series.image_clocks(best), early.layers) == (clock == "the best's")
-    written = sweep_file.write_sweep_file(out, recording, entries, series, entries, "position_rmse_mm", True,
-                                          early=early)
-    assert written == out and early.overlay is None
-    same = _compare(cli, written, whole)
-    assert same.returncode == 0, same.stdout + same.stderr
-    assert sorted(p.name for p in out.parent.iterdir()) == ["sweep.rrd"]  # no temporary left

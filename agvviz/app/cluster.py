@@ -9,13 +9,11 @@ settings only solve, from the cache. A lead that failed hands the lead to the ne
 its group. A run's failure — an error of agvviz, a process that died — comes back as that run's
 one-line message; the other runs go on.
 
-**Local** (:class:`LocalEngine`, the default): one pool of ``--jobs`` processes (one more when a
-group has settings to solve after its lead), forked from the fork server, which imports a run's
-modules while the sweep starts. The leads run in the sweep process (:class:`LocalRuns`) and
-detect on the pool; the other settings then solve on the same processes — no process starts
-after the work is known, and none imports anything then — while the sweep process reads each
-run back as it ends and copies it into the sweep ``.rrd`` (:mod:`agvviz.app.sweep_file`): the
-extra process takes the share of the cores the sweep process leaves. (Issue 27: a local
+**Local** (:class:`LocalEngine`, the default): one pool of ``--jobs`` processes, forked from the
+fork server, which imports a run's modules while the sweep starts. The leads run in the sweep
+process (:class:`LocalRuns`) and detect on the pool; the other settings then solve on the same
+processes — no process starts after the work is known, and none imports anything then — and the
+last setting of each group in the sweep process, which would otherwise wait. (Issue 27: a local
 Dask cluster cost about 1 s of CPU — importing Dask in the sweep process and the fork server,
 starting its scheduler and workers — while the lead detected, and its workers were processes of
 their own beside the detection pool's.) Progress comes through an array shared with the pool,
@@ -118,13 +116,15 @@ def detection_groups(tasks: list[RunTask]) -> dict[tuple[str, str], list[int]]:
 # -- the local sweep ------------------------------------------------------------------------------
 class LocalRuns:
     """The runs a local sweep makes in its own process, one after the other, in a thread: each
-    detection group's lead.
+    detection group's lead at once, and then one more setting of each group beside the pool.
 
     A lead (the first setting of a :func:`detection_groups` group) detects the recording on the
-    sweep's process pool (``executor``) and solves meanwhile, in
-    one pass, as ``agvviz run`` does (which fills the detection cache). ``results[i]`` is task
-    i's :class:`TaskResult` once it is done, ``frames[i]`` counts its frames done. :meth:`close`
-    stops the thread at its next frame.
+    sweep's process pool (``executor``, ``jobs`` processes) and solves meanwhile, in one pass, as
+    ``agvviz run`` does (which fills the detection cache). Once the leads are done this process
+    has imported everything a run needs and would only wait: :func:`run_sweep_tasks` hands it
+    one more setting of each group (:meth:`add`) while the pool solves the others.
+    ``results[i]`` is task i's :class:`TaskResult` once it is done, ``frames[i]`` counts its
+    frames done. :meth:`close` stops the thread at its next frame.
     """
 
     def __init__(self, tasks: list[RunTask], cache_dir: Path | None, jobs: int, executor=None):
@@ -133,7 +133,7 @@ class LocalRuns:
         self.results: dict[int, TaskResult] = {}
         self.frames: dict[int, int] = {}
         self.detected: deque[int] = deque()  # leads whose detections are in the cache (they may still solve)
-        self._queue: list[int] = []  # leads to run
+        self._queue: list[tuple[int, bool]] = []  # (task, whether it leads: detects on the pool)
         self._wake = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run_all, name="agvviz sweep local runs", daemon=True)
@@ -149,10 +149,11 @@ class LocalRuns:
         self._thread.start()
         return self
 
-    def add(self, index: int) -> None:
-        """Run the lead task ``index`` here too, after those already given."""
+    def add(self, index: int, lead: bool = False) -> None:
+        """Run task ``index`` here too, after those already given: a lead detects on the pool,
+        the others read their detections from the cache (one process)."""
         with self._wake:
-            self._queue.append(index)
+            self._queue.append((index, lead))
             self._wake.notify()
 
     def _run_all(self) -> None:
@@ -162,15 +163,18 @@ class LocalRuns:
                     self._wake.wait()
                 if self._stop.is_set():
                     return
-                index = self._queue.pop(0)
+                index, lead = self._queue.pop(0)
 
             def progress(frames_done: int, index: int = index) -> None:
                 self.frames[index] = frames_done
                 if self._stop.is_set():
                     raise SweepStopped("the sweep was interrupted")
 
-            result = _run(self.tasks[index], self.jobs, progress, self.cache_dir, executor=self.executor,
-                          on_detected=lambda index=index: self.detected.append(index))
+            if lead:
+                result = _run(self.tasks[index], self.jobs, progress, self.cache_dir, executor=self.executor,
+                              on_detected=lambda index=index: self.detected.append(index))
+            else:
+                result = _run(self.tasks[index], 1, progress, self.cache_dir)
             if self._stop.is_set():  # interrupted: nobody waits for the result
                 return
             self.results[index] = result
@@ -256,16 +260,13 @@ def ended_futures(pending: dict) -> list[tuple[int, TaskResult]]:
 
 
 class LocalEngine:
-    """A local sweep: a pool of processes, forked from the fork server (which has imported a
-    run's modules: :func:`_start_method`) before any run starts, and this process.
+    """A local sweep: a pool of ``jobs`` processes, forked from the fork server (which has
+    imported a run's modules: :func:`_start_method`) before any run starts, and this process.
 
     Each detection group's lead runs here (:class:`LocalRuns`) and detects on the pool; its
-    group's other settings then solve on the pool's processes, which
-    have imported everything and hold nothing else — no process starts after the work is known.
-    Meanwhile this process reads each run back as it ends and writes it into the sweep ``.rrd``;
-    the pool has one process more than ``jobs`` for that time when some group has settings
-    after its lead (:func:`pool_processes`). Progress and the stop come through a shared array
-    and event.
+    group's other settings then solve on the same processes, which have imported everything
+    and hold nothing else — no process starts after the work is known — and the last of them
+    here. Progress and the stop come through a shared array and event.
     """
 
     def __init__(self, tasks: list[RunTask], cache_dir: Path | None, jobs: int):
@@ -277,7 +278,7 @@ class LocalEngine:
         self._frames_done = context.RawArray("q", max(1, len(tasks)))
         self._stop = context.Event()
         self.pool = ProcessPoolExecutor(
-            pool_processes(tasks, jobs), mp_context=context, initializer=_init_pool_worker, initargs=(self._frames_done, self._stop),
+            max(1, jobs), mp_context=context, initializer=_init_pool_worker, initargs=(self._frames_done, self._stop),
         )
         self.here = LocalRuns(tasks, cache_dir, jobs, executor=self.pool)
         self._pending: dict[object, int] = {}  # a pool future → its task
@@ -288,12 +289,16 @@ class LocalEngine:
         return self
 
     def start_lead(self, index: int) -> None:
-        self.here.add(index)
+        self.here.add(index, lead=True)
         self._here.add(index)
 
     def start_followers(self, indices: list[int]) -> None:
-        """The pool solves these (this process writes the sweep file meanwhile)."""
-        for index in indices:
+        """The pool solves these, this process the last of them (it would otherwise wait)."""
+        if not indices:
+            return
+        self.here.add(indices[-1])
+        self._here.add(indices[-1])
+        for index in indices[:-1]:
             future = self.pool.submit(_pool_task, index, self.tasks[index], self.cache_dir)
             self._pending[future] = index
 
@@ -338,20 +343,6 @@ class LocalEngine:
             if process.is_alive():
                 process.kill()
                 process.join(timeout=1.0)
-
-
-def pool_processes(tasks: list[RunTask], jobs: int) -> int:
-    """Processes of a local sweep's pool: ``jobs``, and one more when a detection group has
-    settings to solve after its lead. Those solve on the pool while the sweep process reads
-    each run back and writes it into the sweep ``.rrd``; with the sweep process's share of the
-    cores given to one more of them, the settings that end together leave less to write at the
-    end (issue 27: the sweep of 4 solvers went from 1.39 to 1.30 a cold run's wall time, with the
-    sweep file begun early; the last setting solved in the sweep process instead was slower,
-    sharing its interpreter lock with the writing). A lead's detection runs on every process of
-    the pool (at most ``2·jobs + 1`` segments in flight,
-    :class:`agvviz.replay.detect.pool.DetectionFeed`): its results do not depend on how many."""
-    followers = len(tasks) - len(detection_groups(tasks))
-    return max(1, jobs) + (1 if followers > 0 else 0)
 
 
 # -- the local pool's processes -------------------------------------------------------------------

@@ -34,7 +34,7 @@ from agvviz.evaluation.trajectory import ALIGNMENTS, EvaluationError
 from agvviz.settings import RunSettings, SettingsError, apply_overrides, field_types
 from agvviz.app.diff import CompareError, format_number, format_p
 from agvviz.app import run_series
-from agvviz.app.sweep_file import SweepFile, write_sweep_file
+from agvviz.app.sweep_file import write_sweep_file
 from agvviz.app.sweep_report import HIGHER_IS_BETTER
 from agvviz.viz.readback import SETTING_SEPARATOR, RrdContents, RrdReadError, read_rrd
 
@@ -328,17 +328,6 @@ def sweep(
             name="agvviz count frames", daemon=True,
         )
         counter.start()
-    # Each recording's sweep .rrd is begun as its first setting ends: the frames, then each
-    # setting's layers as it ends, while the others still solve (:class:`~agvviz.app.sweep_file.SweepFile`).
-    early = {path: SweepFile(folder / SWEEP_FILE, path, entries, images, cache)
-             for path, folder, entries in zip(recordings, out_dirs, per_recording)}
-
-    def on_result(i: int, result) -> None:
-        entry = all_entries[i]
-        _read_back(entry, result, series, i, align, rpe_delta)
-        if entry.ok:
-            early[entry.recording].add(entry, series[i])
-
     if scheduler is None:
         engine_context = cluster.local_engine(tasks, jobs=workers, cache_dir=cache, before_start=prepare_dirs,
                                               temp_folders=[folder.resolve() for folder in out_dirs])
@@ -353,22 +342,17 @@ def sweep(
                     on_total(cluster.progress_total(tasks, frames))
             return frames
 
-        try:
-            cluster.run_sweep_tasks(engine, tasks, frames=counted, progress=progress, on_result=on_result)
-        except BaseException:
-            for file in early.values():
-                file.discard()
-            raise
+        cluster.run_sweep_tasks(
+            engine, tasks, frames=counted, progress=progress,
+            on_result=lambda i, result: _read_back(all_entries[i], result, series, i, align, rpe_delta),
+        )
     try:
         done, first = [], 0
         for path, folder, entries in zip(recordings, out_dirs, per_recording):
             own = {i - first: run for i, run in series.items() if first <= i < first + len(entries)}
-            done.append(_finish_recording(path, folder, entries, own, rank_by, align, rpe_delta, images, cache,
-                                          early[path]))
+            done.append(_finish_recording(path, folder, entries, own, rank_by, align, rpe_delta, images, cache))
             first += len(entries)
     finally:
-        for file in early.values():
-            file.discard()  # (a finished one is left as it is)
         if not keep_runs:
             for entry in all_entries:
                 entry.run_path.unlink(missing_ok=True)
@@ -399,7 +383,7 @@ def _read_back(
 
 def _finish_recording(
     recording: Path, out_dir: Path, entries: list[SweepEntry], series: dict[int, RunSeries], rank_by: str,
-    align: str, rpe_delta: int, images: bool, cache_dir: Path | None = None, early: "SweepFile | None" = None,
+    align: str, rpe_delta: int, images: bool, cache_dir: Path | None = None,
 ) -> RecordingSweep:
     """Rank one recording's runs (``series``: each that ran, read back by its index in
     ``entries``), write its tables and its sweep ``.rrd``."""
@@ -410,7 +394,7 @@ def _finish_recording(
     ok = [e for e in ranked if e.ok]
     if ok:
         overlay_path = write_sweep_file(out_dir / SWEEP_FILE, recording, ranked, series, entries, rank_by, images,
-                                         cache_dir, early)
+                                         cache_dir)
     return RecordingSweep(recording, out_dir, ranked, overlay_path, csv_path, markdown_path)
 
 

@@ -1,12 +1,8 @@
 """A sweep's ``.rrd`` (issue 27): the frames and the static world once, each setting's layers
 under ``settings/<key>/`` (its layers-only run, copied as chunks), the ranking with p-values and
 the verdict (:func:`agvviz.app.sweep_report.ranking_markdown`) and a layout that overlays the
-settings, written with :class:`agvviz.viz.overlay.OverlayFile`.
-
-:class:`SweepFile` begins it while the settings still run — the frames once the first setting
-has ended, each setting's layers as it ends — so that only the ranking and the drawing are left
-once the last has ended; :func:`write_sweep_file` finishes it (or writes it whole). The entries
-are :class:`agvviz.app.sweep.SweepEntry`.
+settings (:func:`agvviz.viz.overlay.write_overlay`), once every setting has ended and been
+ranked (:func:`write_sweep_file`). The entries are :class:`agvviz.app.sweep.SweepEntry`.
 """
 
 from __future__ import annotations
@@ -20,7 +16,7 @@ from agvviz.app.sweep_report import ranking_markdown
 from agvviz.evaluation.comparison import RunSeries, match_frames
 from agvviz.replay.run import recording_images
 from agvviz.viz import paths
-from agvviz.viz.overlay import OverlayFile, OverlayRun, write_overlay
+from agvviz.viz.overlay import OverlayRun, write_overlay
 from agvviz.viz.readback import RrdContents
 
 
@@ -39,7 +35,6 @@ def _reprojected_reader(run: RrdContents, cams: list[str], to_first: dict[int, i
 def write_sweep_file(
     out: Path, recording: Path, ranked: list, series: dict[int, RunSeries],
     entries: list, rank_by: str, images: bool, cache_dir: Path | None = None,
-    early: "SweepFile | None" = None,
 ) -> Path:
     """The sweep ``.rrd``: the settings that ran drawn together on the best one's clock, each
     one's layers under ``settings/<key>/``, the frames once (from the recording, or copied from
@@ -75,10 +70,6 @@ def write_sweep_file(
         report_markdown=ranking_markdown(recording.name, ranked, rank_by),
         index=index,
     )
-    if early is not None and early.holds(cams if clocks is not None else None, clocks, {e.key for e in ok}):
-        return early.finish(**drawing)
-    if early is not None:
-        early.discard()  # its frames went on another clock: written anew
     frames = None
     if clocks is not None:
         frames = (
@@ -95,54 +86,3 @@ def write_sweep_file(
 def sweep_file_name(recording: Path) -> str:
     """The recording name of a recording's sweep ``.rrd`` (shown in the viewer)."""
     return f"sweep {recording.stem}"
-
-
-class SweepFile:
-    """A recording's sweep ``.rrd`` begun while its settings still run (issue 27): when the
-    first setting ends, the frames (from the recording, on that run's clock; layers-only runs),
-    then each setting's layers as it ends; what is left once the last has ended is the ranking
-    and the drawing (:func:`_write_sweep_file` calls :meth:`finish`). When the best setting's
-    clock is not the one the frames went on (a sweep over ``time_source``), the file is
-    discarded and written anew."""
-
-    def __init__(self, path: Path, recording: Path, entries: list, images: bool, cache_dir: Path | None):
-        self.path, self.recording, self.images, self.cache_dir = path, recording, images, cache_dir
-        self.inputs = (recording, *[e.run_path for e in entries])
-        self.overlay: OverlayFile | None = None
-        self.frames: tuple[list[str], dict] | None = None  # (cameras, clocks) the frames went on
-        self.layers: set[str] = set()  # keys of the settings whose layers are in
-        self.image_clocks = run_series.image_clocks  # the clock the frames go on (a test shifts it)
-
-    def add(self, entry, run: RunSeries) -> None:
-        """``entry`` ended and was read back (``run``): its layers go in — after the frames, on
-        its clock, when it is the first."""
-        if self.overlay is None:
-            self.overlay = OverlayFile(self.path, recording_name=sweep_file_name(self.recording), inputs=self.inputs)
-            cams = run_series.cameras_of(entry.run) if self.images else []
-            if cams and not paths.camera_images(entry.run.entity_paths):
-                images = recording_images(self.recording, run.manifest.get("roles", {}),
-                                          run.manifest.get("time_source", "log"), self.cache_dir)
-                self.overlay.log_frames(images, self.image_clocks(entry.run), cams)
-                self.frames = self.overlay.frames_logged
-        self.overlay.copy_layers(entry.key, entry.run)
-        self.layers.add(entry.key)
-
-    def holds(self, cams: list[str] | None, clocks: dict | None, keys: set[str]) -> bool:
-        """Whether this file has the frames of ``cams`` on ``clocks`` (None: no frames from the
-        recording) and the layers of exactly the settings ``keys``."""
-        if self.overlay is None or self.layers != keys:
-            return False
-        if cams is None:
-            return self.frames is None
-        return self.frames == (list(cams), {c: clocks.get(c, []) for c in cams})
-
-    def finish(self, **drawing) -> Path:
-        path = self.overlay.finish(**drawing)
-        self.overlay = None
-        return path
-
-    def discard(self) -> None:
-        """Remove the unfinished file, if any (a finished one stays)."""
-        if self.overlay is not None:
-            self.overlay.discard()
-            self.overlay = None

@@ -35,8 +35,8 @@ frame index (the callers map the other runs' frames onto it). Entity tree::
 With ``layers`` and ``index`` the file is a sweep ``.rrd`` (issue 27): ``FILE#LABEL`` reads one
 run back (:func:`agvviz.viz.readback.read_rrd`). With ``frames`` the images come from the
 recording (logged once, :mod:`agvviz.viz.frames`) instead of being copied from ``source``.
-:class:`OverlayFile` writes it in parts (a sweep begins it while its settings still run); what
-is copied from run files, and its pacing, is :mod:`agvviz.viz.overlay_copy`'s.
+:class:`OverlayFile` writes it in parts; what is copied from run files, and its pacing, is
+:mod:`agvviz.viz.overlay_copy`'s.
 
 Timelines: ``frame`` (what the viewer opens on), ``elapsed`` (seconds since the source run's
 recording start, or since the first frame drawn when that is unknown) and ``time`` (the
@@ -349,11 +349,11 @@ def write_overlay(
 
 
 class OverlayFile:
-    """An overlay ``.rrd`` (:func:`write_overlay`) written in parts, for a sweep whose settings
-    end one by one (issue 27): the frames, and each run's layers, as soon as they are known;
-    :meth:`finish` then draws what needs every run (the ranking, the trajectories, the errors, the
-    layout) and moves the file into place. Use as a context manager: an error before
-    :meth:`finish` discards the file; :meth:`discard` does so on purpose.
+    """An overlay ``.rrd`` (:func:`write_overlay`) written in parts: the frames and each run's
+    layers, which need no other run; then :meth:`finish` draws what needs every run (the
+    ranking, the trajectories, the errors, the layout) and moves the file into place. Use as a
+    context manager: an error before :meth:`finish` discards the file; :meth:`discard` does so
+    on purpose.
 
     ``out_path`` must end in ``.rrd`` and must not be one of ``inputs`` (the files it is made
     from, :class:`~agvviz.errors.OutputError`, also through links)."""

@@ -31,7 +31,6 @@ This module imports nothing of Rerun: the run process never needs it.
 
 from __future__ import annotations
 
-import ctypes
 import importlib
 import os
 import pickle
@@ -58,17 +57,9 @@ DISCARD_WAIT_S = 10.0
 QUEUED_BYTES = 32 * 1024 * 1024
 QUEUED_CALLS = 256
 
-#: In the child, Arrow allocates with glibc's malloc (its own mimalloc kept what the writer's
-#: Arrow buffers had used: +8 MiB between 200 and 2000 frames, issue 27), and malloc maps every
-#: block of at least this many bytes on its own and returns it to the system when freed
-#: (``mallopt(M_MMAP_THRESHOLD)``): a frame's call (its pickle and image, ≈300 kB each) and
-#: Arrow's buffers do not leave holes in the heap once glibc has raised its own threshold.
-WRITER_MMAP_THRESHOLD_BYTES = 128 * 1024
-_M_MMAP_THRESHOLD = -3  # glibc's <malloc.h>
-
 _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
 
-#: mimalloc — the allocator of Rerun's extension (and of pyarrow, see :func:`map_large_blocks`) —
+#: mimalloc — the allocator of Rerun's extension (and of pyarrow) —
 #: gives the memory a thread freed back to the system at once, not after a delay. With its
 #: default delay, what the writer freed while it logged (a frame's buffers, the encoded chunks)
 #: stayed with the process and grew with the run's length (issue 27, docs/performance.md).
@@ -352,7 +343,6 @@ def _serve(conn, out_path: str, settings, logger_kwargs: dict) -> None:
     """The child: log every call it is handed, then finish or remove the file."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run process handles Ctrl-C and SIGTERM
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    map_large_blocks()
     logger = None
     error = None
     try:
@@ -394,23 +384,6 @@ def _serve(conn, out_path: str, settings, logger_kwargs: dict) -> None:
             logger.discard()
         _send(conn, _describe(error) if error is not None else ("ok", None))
         return
-
-
-def map_large_blocks(threshold_bytes: int = WRITER_MMAP_THRESHOLD_BYTES) -> bool:
-    """Have this process's malloc map blocks of ``threshold_bytes`` and more on their own, and
-    Arrow allocate with it (:data:`WRITER_MMAP_THRESHOLD_BYTES`). Returns whether malloc took
-    it: False where the C library is not glibc (musl, macOS), whose allocator is left as it is."""
-    import pyarrow  # imported by the logger anyway (the fork server has it)
-
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    if mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)) != 1:
-        return False
-    pyarrow.set_memory_pool(pyarrow.system_memory_pool())
-    return True
 
 
 def _describe(exc: BaseException) -> tuple:
