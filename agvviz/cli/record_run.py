@@ -160,8 +160,9 @@ def _run(
     # import OpenCV themselves).
     from agvviz.recording.scan_cache import seen_before
     from agvviz.replay.detect.workers import start_fork_server
-    from agvviz.viz import run_process  # noqa: F401 — its .rrd writer forks from the server too (preload_too)
+    from agvviz.viz import run_process  # its .rrd writer forks from the server too (preload_too)
 
+    run_process.writer_allocator_settings()  # before the fork server: see its docstring
     start_fork_server(workers=jobs != 1 and (budget or not seen_before(recording, cache_dir)))
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path

@@ -59,15 +59,23 @@ QUEUED_CALLS = 256
 
 _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
 
-#: mimalloc — the allocator of Rerun's extension (and of pyarrow) —
-#: gives the memory a thread freed back to the system at once, not after a delay. With its
-#: default delay, what the writer freed while it logged (a frame's buffers, the encoded chunks)
-#: stayed with the process and grew with the run's length (issue 27, docs/performance.md).
-#: mimalloc reads it when it starts, so it is set before the fork server (and the writer forked
-#: from it) starts; a value the user set is kept.
+#: mimalloc — the allocator of Rerun's extension (and of pyarrow) — gives the memory a thread
+#: freed back to the system at once, not after a delay (:func:`writer_allocator_settings`).
 MIMALLOC_SETTINGS = MappingProxyType({"MIMALLOC_PURGE_DELAY": "0"})
-for _name, _value in MIMALLOC_SETTINGS.items():
-    os.environ.setdefault(_name, _value)
+
+
+def writer_allocator_settings() -> None:
+    """Set :data:`MIMALLOC_SETTINGS` in this process's environment (a value the user set is
+    kept), for the processes started after it: ``agvviz run`` calls it before it starts the
+    fork server its ``.rrd`` writer is forked from. With mimalloc's default delay, what the
+    writer freed while it logged (a frame's buffers, the encoded chunks) stayed with the
+    process and grew with the run's length: at 2000 frames Rerun's arena held 29.5 MiB, 13.4 MiB
+    with the delay at 0 (issue 27, docs/performance.md). mimalloc reads it once, when it starts.
+    The writer then returns and takes pages more often: a 200-frame warm run waits ≈0.05 s more
+    on it. ``agvviz sweep``, whose runs log in their own processes and whose memory did not
+    grow this way, does not set it: there it cost ≈0.2 s of a 6.3 s sweep."""
+    for name, value in MIMALLOC_SETTINGS.items():
+        os.environ.setdefault(name, value)
 
 preload_too(LOGGER_MODULES)  # the fork server imports them for the writer, once this module is imported
 
