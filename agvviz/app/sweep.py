@@ -5,9 +5,10 @@
 (:mod:`agvviz.app.cluster`; each recording detected once per detection settings, by its first
 setting's run), ranks each recording's runs (:func:`ranking_rows`), and writes per recording one
 sweep ``.rrd`` and the ranking as CSV and markdown (issue 27). The sweep ``.rrd``
-(:mod:`agvviz.app.sweep_file`) holds the frames and the static world once, each setting's
-layers under ``settings/<key>/``, the ranking and a layout that overlays the settings;
-``FILE#LABEL`` reads one setting back. Self-contained per-setting ``.rrd`` runs are
+(:func:`agvviz.viz.overlay.write_overlay` with ``layers``) holds the frames and the static world once, each setting's layers under
+``settings/<key>/`` (its layers-only run, copied as chunks), the ranking with p-values and the
+verdict (:func:`agvviz.app.sweep_report.ranking_markdown`) and a layout that overlays the
+settings; ``FILE#LABEL`` reads one setting back. Self-contained per-setting ``.rrd`` runs are
 written only with ``keep_runs``.
 """
 
@@ -34,8 +35,10 @@ from agvviz.evaluation.trajectory import ALIGNMENTS, EvaluationError
 from agvviz.settings import RunSettings, SettingsError, apply_overrides, field_types
 from agvviz.app.diff import CompareError, format_number, format_p
 from agvviz.app import run_series
-from agvviz.app.sweep_file import write_sweep_file
-from agvviz.app.sweep_report import HIGHER_IS_BETTER
+from agvviz.app.sweep_report import HIGHER_IS_BETTER, ranking_markdown
+from agvviz.replay.run import recording_images
+from agvviz.viz import paths
+from agvviz.viz.overlay import OverlayRun, write_overlay
 from agvviz.viz.readback import SETTING_SEPARATOR, RrdContents, RrdReadError, read_rrd
 
 #: The sweep ``.rrd`` of a recording, in its folder.
@@ -393,7 +396,7 @@ def _finish_recording(
     overlay_path = None
     ok = [e for e in ranked if e.ok]
     if ok:
-        overlay_path = write_sweep_file(out_dir / SWEEP_FILE, recording, ranked, series, entries, rank_by, images,
+        overlay_path = _write_sweep_file(out_dir / SWEEP_FILE, recording, ranked, series, entries, rank_by, images,
                                          cache_dir)
     return RecordingSweep(recording, out_dir, ranked, overlay_path, csv_path, markdown_path)
 
@@ -476,3 +479,66 @@ def _write_tables(out_dir: Path, entries: list[SweepEntry], rank_by: str) -> tup
 
 def _entity_key(index: int, label: str) -> str:
     return f"s{index + 1}_" + re.sub(r"[^A-Za-z0-9_-]+", "_", label)
+
+
+def _reprojected_reader(run: RrdContents, cams: list[str], to_first: dict[int, int]):
+    """A function reading a setting's reprojected corners (its ``run``), its frames mapped
+    onto the sweep's clock (``to_first``): called by the writer when it draws that setting, so
+    one setting's corners are in memory at a time."""
+    def read() -> dict[str, dict[int, np.ndarray]]:
+        return {
+            cam: {to_first[f]: pts for f, pts in per.items() if f in to_first}
+            for cam, per in run_series.reprojected_corners(run, cams).items()
+        }
+    return read
+
+
+def _write_sweep_file(
+    out: Path, recording: Path, ranked: list[SweepEntry], series: dict[int, RunSeries],
+    entries: list[SweepEntry], rank_by: str, images: bool, cache_dir: Path | None = None,
+) -> Path:
+    """The sweep ``.rrd``: the settings that ran drawn together on the best one's clock, each
+    one's layers under ``settings/<key>/``, the frames once (from the recording, or copied from
+    the best setting's kept run), the ranking document and the index. ``cache_dir``: the runs'
+    cache folder (None: the default), whose scan of the recording says whether it is intact."""
+    index_of = {id(e): i for i, e in enumerate(entries)}
+    ok = [e for e in ranked if e.ok]
+    first = series[index_of[id(ok[0])]]
+    first_contents = ok[0].run
+    cams = run_series.cameras_of(first_contents) if images else []
+    frames = None
+    if cams and not paths.camera_images(first_contents.entity_paths):  # layers-only runs: frames from the recording
+        frames = (
+            recording_images(recording, first.manifest.get("roles", {}), first.manifest.get("time_source", "log"),
+                             cache_dir),
+            run_series.image_clocks(first_contents),
+        )
+    runs = []
+    for entry in ok:
+        s = series[index_of[id(entry)]]
+        ia, ib = match_frames(first.time_ns, s.time_ns)
+        to_first = {int(s.frames[j]): int(first.frames[i]) for i, j in zip(ia, ib)}
+        runs.append(OverlayRun(
+            entry.key, f"#{entry.rank} {entry.label}",
+            first.frames[ia], first.time_ns[ia], s.T_est[ib], run_series.overlay_errors(s, ib),
+            _reprojected_reader(entry.run, cams, to_first) if images else {},
+            T_truth=None if s.T_truth is None else s.T_truth[ib], short_label=f"#{entry.rank}",
+        ))
+    index = [
+        {"key": e.key, "label": e.label, "rank": e.rank, "settings": series[index_of[id(e)]].settings}
+        for e in ok
+    ]
+    return write_overlay(
+        out,
+        recording_name=f"sweep {recording.stem}",
+        runs=runs,
+        truth=run_series.overlay_truth(first),
+        source=ok[0].run,
+        cam_names=cams,
+        fixed_cams=run_series.fixed_cameras_of(first_contents) & set(cams),
+        report_markdown=ranking_markdown(recording.name, ranked, rank_by),
+        inputs=(recording, *[e.run_path for e in ok]),
+        layers={e.key: e.run for e in ok},
+        index=index,
+        frames=frames,
+    )

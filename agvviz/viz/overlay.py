@@ -35,8 +35,6 @@ frame index (the callers map the other runs' frames onto it). Entity tree::
 With ``layers`` and ``index`` the file is a sweep ``.rrd`` (issue 27): ``FILE#LABEL`` reads one
 run back (:func:`agvviz.viz.readback.read_rrd`). With ``frames`` the images come from the
 recording (logged once, :mod:`agvviz.viz.frames`) instead of being copied from ``source``.
-:class:`OverlayFile` writes it in parts; what is copied from run files, and its pacing, is
-:mod:`agvviz.viz.overlay_copy`'s.
 
 Timelines: ``frame`` (what the viewer opens on), ``elapsed`` (seconds since the source run's
 recording start, or since the first frame drawn when that is unknown) and ``time`` (the
@@ -52,7 +50,7 @@ import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import rerun as rr
@@ -61,11 +59,11 @@ from agvviz.errors import InputError
 from agvviz.viz import paths
 from agvviz.viz.frames import CameraClock, RecordedImage, log_images
 from agvviz.viz.blueprints import ERROR_LABELS, format_magnification, overlay_blueprint
-from agvviz.viz.log_frames import REPROJECTED_RADIUS
+from agvviz.viz.log_frames import DETECTED_RADIUS, REPROJECTED_RADIUS
 from agvviz.viz.readback import RrdContents, read_rrd
-from agvviz.viz import overlay_copy
+from agvviz.viz import rrd_file
 from agvviz.viz.rrd_file import AtomicRrd
-from agvviz.viz.style import COLOR_DELTA, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
+from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZERO, color_name, color_of
 
 #: The per-frame Δ series and its zero line.
 AXIS_LENGTH_M = 0.4
@@ -73,6 +71,11 @@ TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
 #: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about
 #: the AGV body's size, visible in a view of the whole trajectory.
 ERROR_VECTOR_TARGET_M = 0.5
+#: Camera images are written out (a flush) after this many bytes, or rows of image chunks:
+#: Rerun queues what it is given without bound, and frames given faster than the file was
+#: written piled up in the process (a sweep's 2000 frames: +100-200 MB).
+FLUSH_IMAGE_BYTES = 8 << 20
+FLUSH_IMAGE_ROWS = 32
 
 
 class OverlayError(InputError):
@@ -336,105 +339,56 @@ def write_overlay(
         (a diff of two settings of one sweep: their layers hold no images).
     """
     _check(runs)
-    sources = tuple(inputs) + ((overlay_copy.opened(source).path,) if source is not None else ())
-    with OverlayFile(out_path, recording_name=recording_name, inputs=sources) as overlay:
-        if frames is not None and cam_names:
-            overlay.log_frames(*frames, cam_names)
-        for key, run in (layers or {}).items():
-            overlay.copy_layers(key, run)
-        return overlay.finish(
-            runs=runs, truth=truth, source=source, cam_names=cam_names, report_markdown=report_markdown,
-            deltas=deltas, fixed_cams=fixed_cams, index=index, frames_from=frames_from,
-        )
-
-
-class OverlayFile:
-    """An overlay ``.rrd`` (:func:`write_overlay`) written in parts: the frames and each run's
-    layers, which need no other run; then :meth:`finish` draws what needs every run (the
-    ranking, the trajectories, the errors, the layout) and moves the file into place. Use as a
-    context manager: an error before :meth:`finish` discards the file; :meth:`discard` does so
-    on purpose.
-
-    ``out_path`` must end in ``.rrd`` and must not be one of ``inputs`` (the files it is made
-    from, :class:`~agvviz.errors.OutputError`, also through links)."""
-
-    def __init__(self, out_path: str | os.PathLike, *, recording_name: str, inputs: tuple[str | os.PathLike, ...] = ()):
-        out_path = Path(out_path)
-        if out_path.suffix != ".rrd":
-            raise OverlayError(f"the overlay must be a .rrd file, got {out_path}")
-        recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-overlay:{recording_name}"))
-        self._rrd = AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=inputs)
-        #: The cameras whose frames :meth:`log_frames` logged, and on which clocks.
-        self.frames_logged: tuple[list[str], dict[str, CameraClock]] | None = None
-        self._layer_entities: dict[str, set[str]] = {}  # run key → the entities its layers hold
-
-    def log_frames(self, images: Iterable[RecordedImage], clocks: dict[str, CameraClock], cam_names: list[str]) -> None:
-        """The recording's camera ``images`` of ``cam_names`` under ``image/<cam>``, each on the
-        frame of ``clocks`` (the first run's clock: see :func:`write_overlay`'s ``frames``)."""
-        rec = self._rrd.rec
-        clocks = {c: clocks.get(c, []) for c in cam_names}
-        log_images(rec, overlay_copy.paced_images(rec, images), clocks, {c: paths.overlay_image(c) for c in cam_names})
-        rec.reset_time()
-        self._rrd.check()
-        self.frames_logged = (list(cam_names), clocks)
-
-    def copy_layers(self, key: str, run: str | os.PathLike | RrdContents) -> None:
-        """Every entity of the run ``run`` but its camera images under ``settings/<key>/``."""
-        self._layer_entities[key] = overlay_copy.copy_layers(self._rrd.rec, key, run)
-        self._rrd.check()
-
-    def finish(
-        self,
-        *,
-        runs: list[OverlayRun],
-        truth: OverlayTruth | None,
-        source: str | os.PathLike | RrdContents | None,
-        cam_names: list[str],
-        report_markdown: str,
-        deltas: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
-        fixed_cams: set[str] | frozenset[str] = frozenset(),
-        index: list[dict] | None = None,
-        frames_from: str | os.PathLike | None = None,
-    ) -> Path:
-        """Draw ``runs`` (and the rest, as :func:`write_overlay` says) and move the file into place;
-        returns its path. The camera images come from :meth:`log_frames` when it ran, else from
-        ``frames_from``, else from ``source``."""
-        _check(runs)
-        deltas = deltas or {}
-        rec = self._rrd.rec
-        # Error arrows only when some run has frames with both an estimate and a truth.
-        error_vectors_m = [position_errors_m(run)[1] for run in runs]
-        magnification = error_magnification(error_vectors_m) if any(len(v) for v in error_vectors_m) else None
-        store = overlay_copy.opened(source).store if source is not None else None
-        clock = _Clock(_elapsed_origin_ns(store, runs, truth))
+    deltas = deltas or {}
+    out_path = Path(out_path)
+    if out_path.suffix != ".rrd":
+        raise OverlayError(f"the overlay must be a .rrd file, got {out_path}")
+    recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, f"agvviz-overlay:{recording_name}"))
+    sources = tuple(inputs) + ((_opened(source).path,) if source is not None else ())
+    # Error arrows only when some run has frames with both an estimate and a truth.
+    error_vectors_m = [position_errors_m(run)[1] for run in runs]
+    magnification = error_magnification(error_vectors_m) if any(len(v) for v in error_vectors_m) else None
+    store = _opened(source).store if source is not None else None
+    clock = _Clock(_elapsed_origin_ns(store, runs, truth))
+    with AtomicRrd(out_path, recording_id=recording_id, recording_name=recording_name, inputs=sources) as rrd:
+        rec = rrd.rec
         _log_static(rec, runs, truth, report_markdown, list(deltas))
         rec.log(paths.COMPARE_KEY, rr.TextDocument(
             key_markdown(runs, truth is not None and len(truth.T_world_agv) > 0, magnification,
                          bool(cam_names) and store is not None),
             media_type=rr.MediaType.MARKDOWN), static=True)
         if store is not None:
-            images = self.frames_logged is None and frames_from is None
-            overlay_copy.copy_from_source(rec, store, cam_names, fixed_cams, images=images)
-            self._rrd.check()
-        if frames_from is not None and self.frames_logged is None:
+            _copy_from_source(rec, store, cam_names, fixed_cams, images=frames is None and frames_from is None)
+            rrd.check()
+        if frames_from is not None:
             frames_store = read_rrd(frames_from).store
             for cam in cam_names:
-                overlay_copy.send_paced(rec, frames_store.stream().filter(
+                _send_paced(rec, frames_store.stream().filter(
                     content=f"/{paths.overlay_image(cam)}", is_static=False,
                     components=["EncodedImage:blob", "EncodedImage:media_type"]))
-            self._rrd.check()
+            rrd.check()
+        if frames is not None and cam_names:
+            images, clocks = frames
+            log_images(rec, _paced_images(rec, images), {c: clocks.get(c, []) for c in cam_names},
+                       {c: paths.overlay_image(c) for c in cam_names})
+            rec.reset_time()
+            rrd.check()
+        layer_entities = {}  # run key → the entities its layers hold (for the layout)
+        for key, run in (layers or {}).items():
+            layer_entities[key] = _copy_layers(rec, key, run)
+            rrd.check()
         if index is not None:
             rec.log(paths.SWEEP_INDEX, rr.TextDocument(_index_markdown(index), media_type=rr.MediaType.MARKDOWN),
                     static=True)
         if truth is not None:
             _send_transforms(rec, clock, paths.AGV_TRUTH, truth.frames, truth.time_ns, truth.T_world_agv)
-        for number, run in enumerate(runs):
+        for index, run in enumerate(runs):
             solved = np.all(np.isfinite(run.T_est.reshape(len(run.T_est), 16)), axis=1)
             _send_transforms(
                 rec, clock, paths.overlay_agv(run.key), run.frames[solved], run.time_ns[solved], run.T_est[solved]
             )
             if magnification is not None:
-                _send_error_vectors(rec, clock, run, number, magnification)
+                _send_error_vectors(rec, clock, run, index, magnification)
             for key, values in run.errors.items():
                 _send_scalars(rec, clock, paths.overlay_error(key, run.key), run.frames, run.time_ns, values)
             if store is not None:
@@ -442,26 +396,16 @@ class OverlayFile:
                 for cam in cam_names:
                     _send_corners(
                         rec, clock, paths.overlay_reprojected(cam, run.key), run.frames, run.time_ns,
-                        reprojected.get(cam, {}), color_of(number),
+                        reprojected.get(cam, {}), color_of(index),
                     )
         for key, (frames, time_ns, values) in deltas.items():
             _send_scalars(rec, clock, paths.overlay_delta(key), frames, time_ns, values)
             _send_zero_line(rec, clock, key, frames, time_ns)
-        return self._rrd.commit(overlay_blueprint(
+        rrd.commit(overlay_blueprint(
             runs, cam_names if store is not None else [], list(deltas), truth, magnification, fixed_cams,
-            layer_entities=self._layer_entities,
+            layer_entities=layer_entities,
         ))
-
-    def discard(self) -> None:
-        """Delete the unfinished file (nothing is left at its path)."""
-        self._rrd.discard()
-
-    def __enter__(self) -> "OverlayFile":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is not None:
-            self.discard()
+    return out_path
 
 
 def _send_zero_line(rec: rr.RecordingStream, clock: _Clock, key: str, frames, time_ns) -> None:
@@ -563,6 +507,61 @@ def _log_static(
         )
 
 
+def _opened(run: str | os.PathLike | RrdContents) -> RrdContents:
+    """A run ``.rrd`` by its path, or opened by the caller (a sweep opens each run once)."""
+    return run if isinstance(run, RrdContents) else read_rrd(run)
+
+
+def _copy_layers(rec: rr.RecordingStream, key: str, run: str | os.PathLike | RrdContents) -> set[str]:
+    """Copy every entity of the run ``.rrd`` ``run`` (a path, or opened) but its camera images (and the
+    recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged. Returns the
+    run's entity paths (without the prefix).
+
+    One entity at a time, each written out (``flush``) before the next is read: Rerun loads a
+    whole stream's chunks ahead of the writer, so a run's layers copied in one stream were
+    held in memory whole (≈45 MB at 2000 frames); one entity's are a few MB."""
+    store = _opened(run).store
+    entities = sorted(p.lstrip("/") for p in store.schema().entity_paths())
+    left_out = {"__properties", *paths.camera_images(entities)}
+    prefix = "/" + paths.sweep_setting(key)
+    for entity in entities:
+        if entity in left_out or entity.startswith("__properties/"):
+            continue
+        rec.send_chunks(
+            store.stream().filter(content=f"/{entity}")
+            .map(lambda chunk: chunk.with_entity_path(prefix + chunk.entity_path))
+        )
+        rec.flush()
+    return set(entities)
+
+
+def _paced_images(rec: rr.RecordingStream, images: Iterable[RecordedImage]) -> Iterator[RecordedImage]:
+    """``images`` as they come, the stream flushed after every :data:`FLUSH_IMAGE_BYTES` of
+    them: the file is written as fast as the frames are logged, not queued in memory. A flush
+    cuts the chunk being batched, so it comes only right after an image the batcher has cut a
+    chunk at anyway (one of at least ``rrd_file.BATCHER_FLUSH_NUM_BYTES``): the chunks are an
+    unpaced write's (`rerun rrd compare --unordered` finds them equal). Smaller frames are not
+    paced."""
+    given = 0
+    for image in images:
+        yield image  # logged when the next one is asked for
+        given += len(image[3])
+        if given >= FLUSH_IMAGE_BYTES and len(image[3]) >= rrd_file.BATCHER_FLUSH_NUM_BYTES:
+            rec.flush()
+            given = 0
+
+
+def _send_paced(rec: rr.RecordingStream, chunks: Iterable) -> None:
+    """Send ``chunks`` (camera images) one by one, a flush after every :data:`FLUSH_IMAGE_ROWS`."""
+    rows = 0
+    for chunk in chunks:
+        rec.send_chunks(chunk)
+        rows += chunk.num_rows
+        if rows >= FLUSH_IMAGE_ROWS:
+            rec.flush()
+            rows = 0
+
+
 def _index_markdown(index: list[dict]) -> str:
     """``sweep/index``: the runs of a sweep ``.rrd`` as a table and a JSON block (read back by
     :func:`agvviz.viz.readback.sweep_index`)."""
@@ -570,3 +569,32 @@ def _index_markdown(index: list[dict]) -> str:
     block = json.dumps({"settings": index}, indent=2, sort_keys=True)
     return "\n".join(["# settings in this file", "", "| rank | setting | entity root |", "| --- | --- | --- |", *rows,
                       "", "```json", block, "```", ""])
+
+
+def _copy_from_source(
+    rec: rr.RecordingStream, store, cam_names: list[str], fixed_cams: set[str] | frozenset[str] = frozenset(),
+    images: bool = True,
+) -> None:
+    """Copy the marker map, each camera's images (unless ``images`` is False) and detected
+    corners of a run (its store), chunk by chunk (the JPEG bytes are never decoded or
+    re-encoded); a camera of ``fixed_cams`` from its world-fixed entity."""
+    rec.send_chunks(store.stream().filter(content=[f"/{paths.MARKERS}", f"/{paths.MARKERS_FILL}"]))
+    for cam in cam_names if images else []:
+        _send_paced(
+            rec,
+            store.stream()
+            .filter(content=f"/{paths.image(cam, cam in fixed_cams)}", is_static=False)
+            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_image(cam)}")),
+        )
+    for cam in cam_names:
+        rec.send_chunks(
+            store.stream()
+            .filter(content=f"/{paths.detected(cam, cam in fixed_cams)}", is_static=False,
+                    components="Points2D:positions")
+            .map(lambda chunk, cam=cam: chunk.with_entity_path(f"/{paths.overlay_detected(cam)}"))
+        )
+        rec.log(
+            paths.overlay_detected(cam),
+            rr.Points2D.from_fields(colors=COLOR_DETECTED, radii=DETECTED_RADIUS, draw_order=10.0),
+            static=True,
+        )
