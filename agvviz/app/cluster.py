@@ -376,10 +376,6 @@ def start_fork_server() -> None:
     _start_method()
 
 
-#: What the sweep process tells its reaper when it closes the pool itself (:func:`reap`).
-_SWEEP_ALIVE = b"alive"
-
-
 def _start_reaper(folders: list[Path]) -> tuple[subprocess.Popen, int] | None:
     """A process that, once this one has ended (in any way), removes the temporary files that
     dead processes left in ``folders`` (see :func:`reap`). Returns it and the pipe end to close."""
@@ -398,17 +394,15 @@ def _start_reaper(folders: list[Path]) -> tuple[subprocess.Popen, int] | None:
 
 
 def reap(grace_s: float = 5.0) -> None:
-    """Reaper process: wait for the sweep's pool to close (end of standard input), then remove
+    """Reaper process: wait for the sweep process to end (end of standard input), then remove
     agvviz temporaries of dead processes in the folders named on the command line, retrying for
-    ``grace_s`` while the workers finish dying. The sweep process says :data:`_SWEEP_ALIVE` when
-    it closes the pool itself: its own temporaries are then its own to finish or remove (its
-    sweep ``.rrd``, begun while the runs went on); without it, it has died."""
+    ``grace_s`` while the workers finish dying."""
     sweep_pid = os.getppid()
-    said = sys.stdin.buffer.read()
+    sys.stdin.buffer.read()
     folders = sys.argv[1:]
     # The sweep process has ended, though it may linger as a zombie until whoever started it
     # waits for it, and so still look alive: its own temporaries (its local runs') go at once.
-    for folder in folders if said != _SWEEP_ALIVE else []:
+    for folder in folders:
         for name in os.listdir(folder) if os.path.isdir(folder) else []:
             match = outputs.TEMP_RE.match(name)
             if match and int(match["pid"]) == sweep_pid:
@@ -420,8 +414,7 @@ def reap(grace_s: float = 5.0) -> None:
     while True:
         for folder in folders:
             outputs.remove_stale_temps(folder)
-        left = [n for f in folders if os.path.isdir(f) for n in os.listdir(f)
-                if (match := outputs.TEMP_RE.match(n)) and (said != _SWEEP_ALIVE or int(match["pid"]) != sweep_pid)]
+        left = [n for f in folders if os.path.isdir(f) for n in os.listdir(f) if outputs.TEMP_RE.match(n)]
         if not left or time.monotonic() > deadline:
             return
         time.sleep(0.1)
@@ -456,10 +449,6 @@ def local_engine(
                 outputs.remove_stale_temps(folder)
             if reaper is not None:
                 process, write_fd = reaper
-                try:
-                    os.write(write_fd, _SWEEP_ALIVE)
-                except OSError:
-                    pass
                 os.close(write_fd)
                 process.wait()
 
