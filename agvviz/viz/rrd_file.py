@@ -47,10 +47,6 @@ RRD_FOOTER_MAGIC = b"RRF2FOOT"
 #: Bytes moved per read from the pipe, and the pipe's buffer size asked of Linux.
 _CHUNK = 1 << 20
 _F_SETPIPE_SZ = 1031
-#: A durable file's bytes are pushed to the disk (``fdatasync``, in the pump's thread) after every
-#: this many, as they come: what is left for the ``fsync`` before the rename — on the path of
-#: the run's end — is the last of them (a 200-frame run's 44 MB took ≈30 ms at the end).
-SYNC_EVERY_BYTES = 16 << 20
 #: Without a pipe: the longest a flush may make no progress before the write counts as failed.
 _STALL_S = 60.0
 
@@ -69,15 +65,13 @@ def looks_complete(path: str | os.PathLike) -> bool:
 
 
 class _Pump(threading.Thread):
-    """Copies the named pipe Rerun writes into the temporary file; records a write error. A
-    ``durable`` file is synced as it grows (:data:`SYNC_EVERY_BYTES`)."""
+    """Copies the named pipe Rerun writes into the temporary file; records a write error."""
 
-    def __init__(self, fifo: Path, fd: int, tmp: Path, durable: bool = True):
+    def __init__(self, fifo: Path, fd: int, tmp: Path):
         super().__init__(name=f"agvviz-rrd-pump {tmp.name}", daemon=True)
-        self.fifo, self.fd, self.tmp, self.durable = fifo, fd, tmp, durable
+        self.fifo, self.fd, self.tmp = fifo, fd, tmp
         self.error: OSError | None = None
         self.written = 0
-        self._synced = 0
         self.opened = threading.Event()
 
     def run(self) -> None:
@@ -110,7 +104,7 @@ class _Pump(threading.Thread):
                         view = memoryview(data)
                         while view:
                             view = view[os.write(self.fd, view):]
-                        self._wrote(len(data))
+                        self.written += len(data)
                     except OSError as exc:
                         self._fail(exc)  # keep draining so Rerun never blocks
         finally:
@@ -134,19 +128,7 @@ class _Pump(threading.Thread):
                 return False
             if moved == 0:
                 return True
-            try:
-                self._wrote(moved)
-            except OSError as exc:
-                self._fail(exc)
-                return False
-
-    def _wrote(self, size: int) -> None:
-        """``size`` more bytes are in the file; sync what came since the last sync once it is
-        :data:`SYNC_EVERY_BYTES` (a durable file)."""
-        self.written += size
-        if self.durable and self.written - self._synced >= SYNC_EVERY_BYTES:
-            os.fdatasync(self.fd)
-            self._synced = self.written
+            self.written += moved
 
     def _fail(self, exc: OSError) -> None:
         if self.error is None:
@@ -217,7 +199,7 @@ class AtomicRrd:
             self.rec.set_log_tick_enabled(False)
             fifo = _make_fifo()
             if fifo is not None:
-                self._pump = _Pump(fifo, self._fd, self._tmp_path, durable)
+                self._pump = _Pump(fifo, self._fd, self._tmp_path)
                 self._pump.start()
                 try:
                     self.rec.save(fifo)
