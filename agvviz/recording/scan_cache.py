@@ -64,11 +64,6 @@ def cache_folder(cache_dir: Path | None | bool) -> Path | None:
     return Path(cache_dir) if cache_dir not in (None, True) else default_cache_dir()
 
 
-def file_key(recording: Recording) -> list[list]:
-    """What identifies the recording's files on disk (:meth:`Recording.file_key`)."""
-    return recording.file_key()
-
-
 def seen_before(recording_path, cache_dir) -> bool:
     """Whether a single-file recording at ``recording_path`` has a scan entry in the cache
     folder ``cache_dir`` (a path; None or True: the default folder; False: no cache → False),
@@ -163,7 +158,7 @@ def load(cache_dir: Path, recording: Recording):
     reads nothing; marked verified when the scan found it intact), or None: no entry, a changed
     file, or an entry that does not read."""
     try:
-        key = file_key(recording)
+        key = recording.file_key()
         blob = entry_path(cache_dir, key).read_bytes()
         found = _decode(blob, key)
     except (OSError, ValueError, KeyError, TypeError, IndexError, struct.error):  # absent or damaged
@@ -203,13 +198,13 @@ def cached_scan(recording: Recording, cache_dir: Path | None):
     if found is not None:
         return found
     try:
-        key = file_key(recording)
+        key = recording.file_key()
     except OSError:
         key = None
     report = ReadReport()
     result = scan(recording, report)
     try:
-        unchanged = key is not None and file_key(recording) == key
+        unchanged = key is not None and recording.file_key() == key
     except OSError:
         unchanged = False
     if unchanged:
