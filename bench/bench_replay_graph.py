@@ -136,7 +136,7 @@ class TreeSampler:
         children: dict[int, list[int]] = {}
         for entry in os.scandir("/proc"):
             if entry.name.isdigit():
-                stat = _read(f"/proc/{entry.name}/stat")
+                stat = read_proc_file(f"/proc/{entry.name}/stat")
                 if stat:  # "pid (comm) state ppid ...": comm may hold spaces and parentheses
                     fields = stat[stat.rindex(")") + 2:].split()
                     children.setdefault(int(fields[1]), []).append(int(entry.name))
@@ -147,7 +147,7 @@ class TreeSampler:
             todo += children.get(pid, [])
         total_kib = 0
         for pid in tree:
-            rollup, stat = _read(f"/proc/{pid}/smaps_rollup"), _read(f"/proc/{pid}/stat")
+            rollup, stat = read_proc_file(f"/proc/{pid}/smaps_rollup"), read_proc_file(f"/proc/{pid}/stat")
             total_kib += next((int(line.split()[1]) for line in rollup.splitlines() if line.startswith("Pss:")), 0)
             if stat:
                 fields = stat[stat.rindex(")") + 2:].split()  # fields[11], [12]: utime, stime (ticks)
@@ -155,7 +155,7 @@ class TreeSampler:
         self.peak_pss_kib = max(self.peak_pss_kib, total_kib)
 
 
-def _read(path: str) -> str:
+def read_proc_file(path: str) -> str:
     try:
         with open(path) as f:
             return f.read()

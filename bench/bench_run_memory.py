@@ -21,16 +21,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_replay_graph import read_proc_file as _read  # this folder is on sys.path when run as a script
+
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_S = 0.2
-
-
-def _read(path: str) -> str:
-    try:
-        with open(path) as f:
-            return f.read()
-    except OSError:  # the process ended meanwhile
-        return ""
 
 
 def _children() -> dict[int, list[int]]:
