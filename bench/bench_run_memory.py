@@ -3,6 +3,10 @@ moment the tree's summed PSS peaked (the figure 4 of bench_replay_graph.py), and
 anonymous mappings of each process at that moment (glibc's [heap], allocator arenas) — issue 27.
 
 Usage:  python bench/bench_run_memory.py RECORDING [--tree TREE] [--python PYTHON] [--regions 4]
+                                                   [--sweep lm,ippe]
+
+With ``--sweep SOLVERS`` it runs `agvviz sweep RECORDING --set solver=SOLVERS --jobs 2` instead (the
+figure 4 sweep of bench_replay_graph.py is ``--sweep lm,ippe``).
 
 Runs `PYTHON -m agvviz run RECORDING` with TREE first on PYTHONPATH (default: this script's tree),
 a fresh empty detection cache and its output in a temporary folder, sampling /proc every 0.2 s.
@@ -76,10 +80,14 @@ def main() -> None:
     parser.add_argument("--tree", default=str(ROOT), help="source tree put first on PYTHONPATH")
     parser.add_argument("--python", default=sys.executable)
     parser.add_argument("--regions", type=int, default=4, help="anonymous mappings shown per process")
+    parser.add_argument("--sweep", metavar="SOLVERS", help="measure `agvviz sweep --set solver=SOLVERS` instead")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_run_memory-") as work:
         env = dict(os.environ, PYTHONPATH=args.tree, AGVVIZ_CACHE_DIR=str(Path(work) / "cache"), TMPDIR=work)
         cmd = [args.python, "-m", "agvviz", "run", str(args.recording), "--out", str(Path(work) / "run.rrd")]
+        if args.sweep:
+            cmd = [args.python, "-m", "agvviz", "sweep", str(args.recording), "--set", f"solver={args.sweep}",
+                   "--jobs", "2", "--out-dir", str(Path(work) / "sweep")]
         print("$", " ".join(cmd), f"(PYTHONPATH={args.tree})", flush=True)
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
@@ -112,7 +120,7 @@ def main() -> None:
             time.sleep(SAMPLE_S)
         wall_s = time.perf_counter() - t0
         if proc.returncode != 0:
-            raise SystemExit(f"error: agvviz run exited {proc.returncode}: {proc.stderr.read().strip()[-300:]}")
+            raise SystemExit(f"error: agvviz exited {proc.returncode}: {proc.stderr.read().strip()[-300:]}")
     names = _names(proc.pid, seen, parent, writers)
     print(f"wall {wall_s:.1f} s; summed PSS peak {total_peak_kib / 1024:.0f} MiB at {peak_t:.1f} s")
     print(f"  {'process':28s} {'peak PSS':>9s} {'at the peak':>12s}   lived")

@@ -248,3 +248,27 @@ def test_feed_hands_every_detection_over_once_the_last_segment_is_back(recording
     assert [(f.seq, f.cam_name, f.log_time_ns) for f in handed[0]] == [
         (f.seq, f.cam_name, f.log_time_ns) for f in feed.frames]
     assert [_codes(f.detections) for f in handed[0]] == [_codes(f.detections) for f in feed.frames]
+
+
+def test_cache_entry_is_written_and_read_a_row_group_at_a_time(detected_cache, tmp_path, monkeypatch):
+    """An entry holds FRAMES_PER_ROW_GROUP frames per Parquet row group, so what Arrow holds
+    while it is written or read does not grow with the recording (issue 27); it reads back
+    exactly, as does an entry written in one row group (by agvviz before this change)."""
+    import pyarrow.parquet as pq
+
+    _, entry = _copy_cache(detected_cache, tmp_path)
+    frames = detect_cache.load(entry)
+    assert len(frames) == 40
+    monkeypatch.setattr(detect_cache, "FRAMES_PER_ROW_GROUP", 16)
+    grouped = tmp_path / "grouped.parquet"
+    detect_cache.save(grouped, frames)
+    assert pq.ParquetFile(grouped).num_row_groups == 3  # 16 + 16 + 8
+    monkeypatch.setattr(detect_cache, "FRAMES_PER_ROW_GROUP", 1000)
+    whole = tmp_path / "whole.parquet"
+    detect_cache.save(whole, frames)
+    assert pq.ParquetFile(whole).num_row_groups == 1
+    for path in (grouped, whole):
+        back = detect_cache.load(path)
+        assert [(f.seq, f.cam_name, f.log_time_ns) for f in back] == [(f.seq, f.cam_name, f.log_time_ns) for f in frames]
+        assert [_codes(f.detections) for f in back] == [_codes(f.detections) for f in frames]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "grouped.parquet", "whole.parquet"]  # no temporary left

@@ -266,6 +266,28 @@ def test_atomic_rrd_full_disk_raises_output_error_in_process(full_disk):
     assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
 
 
+
+def test_atomic_writer_renames_on_success_and_leaves_the_target_on_failure(tmp_path):
+    """outputs.atomic_writer (a detection cache entry is written through it a row group at a
+    time): the target appears whole or not at all; an existing one is kept when writing fails."""
+    target = tmp_path / "entry.bin"
+    with outputs.atomic_writer(target) as file:
+        file.write(b"first")
+        assert not target.exists()
+    assert target.read_bytes() == b"first"
+    with pytest.raises(RuntimeError, match="stopped"):
+        with outputs.atomic_writer(target) as file:
+            file.write(b"second, half written")
+            raise RuntimeError("stopped")
+    assert target.read_bytes() == b"first" and sorted(p.name for p in tmp_path.iterdir()) == ["entry.bin"]
+
+
+def test_atomic_writer_full_disk_is_output_error_and_leaves_nothing(full_disk):
+    with pytest.raises(OutputError, match="No space left on device"):
+        with outputs.atomic_writer(full_disk / "entry.bin") as file:
+            file.write(bytes(4 << 20))
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
+
 # -- 5. stale temporaries and signals ---------------------------------------------------------
 def _dead_pid() -> int:
     child = subprocess.Popen([sys.executable, "-c", "pass"])

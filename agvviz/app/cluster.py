@@ -283,6 +283,9 @@ class LocalEngine:
         self.here = LocalRuns(tasks, cache_dir, jobs, executor=self.pool)
         self._pending: dict[object, int] = {}  # a pool future → its task
         self._here: set[int] = set()  # tasks given to this process, not yet ended
+        self._given: set[int] = set()  # tasks given to the pool or to this process
+        self._detecting: set[int] = set()  # leads given that have neither detected nor ended
+        self._pool_processes: list = []  # the pool's processes, once it was let go (joined at close)
 
     def start(self) -> "LocalEngine":
         self.here.start()
@@ -291,16 +294,30 @@ class LocalEngine:
     def start_lead(self, index: int) -> None:
         self.here.add(index, lead=True)
         self._here.add(index)
+        self._given.add(index)
+        self._detecting.add(index)
 
     def start_followers(self, indices: list[int]) -> None:
         """The pool solves these, this process the last of them (it would otherwise wait)."""
-        if not indices:
+        if indices:
+            self.here.add(indices[-1])
+            self._here.add(indices[-1])
+            for index in indices[:-1]:
+                future = self.pool.submit(_pool_task, index, self.tasks[index], self.cache_dir)
+                self._pending[future] = index
+            self._given.update(indices)
+        self._let_pool_go()
+
+    def _let_pool_go(self) -> None:
+        """End the pool's processes once nothing is left for them: every task given out, every
+        lead done detecting, no setting solving on the pool. What is left runs in this process
+        (the last settings, the read-back, the sweep file): the pool's idle processes (≈75 MiB
+        each) would otherwise be alive at the sweep's peak of memory (issue 27)."""
+        if self._pool_processes or len(self._given) < len(self.tasks) or self._detecting or self._pending:
             return
-        self.here.add(indices[-1])
-        self._here.add(indices[-1])
-        for index in indices[:-1]:
-            future = self.pool.submit(_pool_task, index, self.tasks[index], self.cache_dir)
-            self._pending[future] = index
+        self._pool_processes = list((getattr(self.pool, "_processes", None) or {}).values())
+        self.here.executor = None
+        self.pool.shutdown(wait=False)
 
     def busy(self) -> bool:
         return bool(self._pending or self._here)
@@ -311,6 +328,7 @@ class LocalEngine:
         done = []
         while self.here.detected:  # (appended to by the thread of this process's runs)
             done.append(self.here.detected.popleft())
+        self._detecting.difference_update(done)
         return done
 
     def frames_done(self, index: int) -> int:
@@ -322,6 +340,8 @@ class LocalEngine:
             if index in self.here.results:
                 self._here.discard(index)
                 done.append((index, self.here.results[index]))
+        self._detecting.difference_update(index for index, _ in done)
+        self._let_pool_go()
         return done
 
     def stop(self) -> None:
@@ -334,7 +354,7 @@ class LocalEngine:
     def close(self, timeout_s: float) -> None:
         """Stop the thread and the pool; processes still busy after ``timeout_s`` are killed."""
         self.here.close()
-        processes = list((getattr(self.pool, "_processes", None) or {}).values())
+        processes = self._pool_processes or list((getattr(self.pool, "_processes", None) or {}).values())
         self.pool.shutdown(wait=False, cancel_futures=True)
         deadline = time.monotonic() + timeout_s
         for process in processes:

@@ -26,7 +26,8 @@ import re
 import threading
 import uuid
 from pathlib import Path
-from typing import Iterable
+from contextlib import contextmanager
+from typing import BinaryIO, Iterable, Iterator
 
 from agvviz.errors import OutputError
 
@@ -224,24 +225,30 @@ def atomic_write_text(path: str | os.PathLike, text: str, *, inputs: Iterable[st
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, inputs: Iterable[str | os.PathLike] = ()) -> Path:
-    """Write ``data`` to ``path`` through a temporary file renamed into place.
+    """Write ``data`` to ``path`` through a temporary file renamed into place
+    (:func:`atomic_writer`)."""
+    with atomic_writer(path, inputs=inputs) as file:
+        file.write(data)
+    return Path(path)
 
-    Every ``OSError`` becomes :class:`OutputError`; the temporary file is removed and ``path``
-    is left as it was.
+
+@contextmanager
+def atomic_writer(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike] = ()) -> Iterator[BinaryIO]:
+    """A binary file to write ``path`` through: a temporary file beside it, synced and renamed
+    into place when the block ends without an error, removed otherwise (``path`` is then left
+    as it was). For what is written in pieces (a detection cache entry, a row group at a time).
+
+    Every ``OSError`` becomes :class:`OutputError`.
     """
     path = Path(path)
     check_not_input(path, inputs)
     tmp = temp_path(path)
     register_temp(tmp)
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view):]
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        with open(tmp, "xb") as file:
+            yield file
+            file.flush()
+            os.fsync(file.fileno())
         os.replace(tmp, path)
     except OSError as exc:
         _unlink_quietly(tmp)
@@ -251,7 +258,6 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, inputs: Iterable
         raise
     finally:
         release_temp(tmp)
-    return path
 
 
 def _unlink_quietly(path: Path) -> None:

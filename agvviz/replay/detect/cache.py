@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -53,11 +54,25 @@ def _array(values, columns: int = 2) -> np.ndarray | None:
     return None if values is None else np.asarray(values, dtype=float).reshape(-1, columns)
 
 
+#: Frames per Parquet row group: an entry is written and read a row group at a time, so what
+#: Arrow holds meanwhile does not grow with the recording's length (issue 27).
+FRAMES_PER_ROW_GROUP = 256
+
+
 def save(path: Path, frames: list[DetectedFrame]) -> None:
-    """Write ``frames`` to ``path`` atomically (:func:`agvviz.recording.outputs.atomic_write_bytes`);
-    :class:`~agvviz.errors.OutputError` when it cannot be written."""
-    import pyarrow as pa
+    """Write ``frames`` to ``path`` atomically (:func:`agvviz.recording.outputs.atomic_writer`),
+    :data:`FRAMES_PER_ROW_GROUP` at a time; :class:`~agvviz.errors.OutputError` when it cannot
+    be written."""
     import pyarrow.parquet as pq
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with _arrow_memory_returned(), outputs.atomic_writer(path) as file, pq.ParquetWriter(file, _schema()) as writer:
+        for start in range(0, len(frames), FRAMES_PER_ROW_GROUP):
+            writer.write_table(_table(frames[start:start + FRAMES_PER_ROW_GROUP]))
+
+
+def _table(frames: list[DetectedFrame]):
+    import pyarrow as pa
 
     rows = []
     for f in frames:
@@ -84,13 +99,19 @@ def save(path: Path, frames: list[DetectedFrame]) -> None:
                 for b in d.chessboards
             ],
         })
+    return pa.Table.from_pylist(rows, schema=_schema())
+
+
+def _schema():
+    import pyarrow as pa
+
     code_type = pa.struct([
         ("kind", pa.string()), ("corners_px", pa.list_(pa.float64())), ("raw_corners_px", pa.list_(pa.float64())),
         ("text", pa.string()), ("payload_bytes", pa.binary()), ("aruco_id", pa.int64()),
         ("n_modules", pa.int64()), ("finder_px", pa.list_(pa.float64())),
         ("finder_modules", pa.list_(pa.float64())), ("refine_method", pa.string()), ("refine_note", pa.string()),
     ])
-    schema = pa.schema([
+    return pa.schema([
         ("seq", pa.int64()), ("cam_name", pa.string()), ("log_time_ns", pa.int64()),
         ("reject_reason", pa.string()), ("reject_detail", pa.string()), ("drop_image", pa.bool_()),
         ("detect_s", pa.float64()), ("keyframe", pa.bool_()), ("tracked", pa.int64()), ("note", pa.string()),
@@ -100,11 +121,19 @@ def save(path: Path, frames: list[DetectedFrame]) -> None:
             ("corners_px", pa.list_(pa.float64())), ("note", pa.string()), ("misplaced_ids", pa.list_(pa.int64())),
         ]))),
     ])
-    table = pa.Table.from_pylist(rows, schema=schema)
-    buffer = pa.BufferOutputStream()
-    pq.write_table(table, buffer)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    outputs.atomic_write_bytes(path, buffer.getvalue().to_pybytes())
+
+
+@contextmanager
+def _arrow_memory_returned():
+    """Give the memory Arrow's allocator kept after the block back to the system: it keeps what
+    was freed for later, and a cache entry is written or read once per run (issue 27: at 2000
+    frames, ≈20 MiB kept through the rest of the run)."""
+    try:
+        yield
+    finally:
+        import pyarrow as pa
+
+        pa.default_memory_pool().release_unused()
 
 
 def load(path: Path) -> list[DetectedFrame] | None:
@@ -115,35 +144,39 @@ def load(path: Path) -> list[DetectedFrame] | None:
     try:
         import pyarrow.parquet as pq
 
-        # One read of the whole file. ParquetFile, not pq.read_table: read_table goes through
-        # pyarrow.dataset, whose import pulls in pandas (≈0.5 s of a warm run's start, issue 27).
-        rows = pq.ParquetFile(path).read().to_pylist()
-        frames = []
-        for r in rows:
-            codes = tuple(
-                CodeDetection(
-                    kind=c["kind"], corners_px=_array(c["corners_px"]), raw_corners_px=_array(c["raw_corners_px"]),
-                    text=c["text"], payload_bytes=c["payload_bytes"], aruco_id=c["aruco_id"],
-                    n_modules=c["n_modules"], finder_px=_array(c["finder_px"]),
-                    finder_modules=_array(c["finder_modules"]), refine_method=c["refine_method"] or "",
-                    refine_note=c["refine_note"] or "",
-                )
-                for c in r["codes"]
-            )
-            chessboards = tuple(
-                ChessboardCorners(int(b["board_index"]), np.asarray(b["corner_ids"], dtype=int),
-                                  _array(b["corners_px"]), b["note"] or "", tuple(b["misplaced_ids"] or ()))
-                for b in r["chessboards"]
-            )
-            reject = (r["reject_reason"], r["reject_detail"] or "") if r["reject_reason"] else None
-            detections = FrameDetections(
-                codes=codes, reject=reject, drop_image=bool(r["drop_image"]), detect_s=0.0,
-                keyframe=bool(r["keyframe"]), tracked=int(r["tracked"]), note=r["note"] or "",
-                chessboards=chessboards,
-            )
-            frames.append(DetectedFrame(int(r["seq"]), r["cam_name"], int(r["log_time_ns"]), detections))
+        # ParquetFile, not pq.read_table: read_table goes through pyarrow.dataset, whose import
+        # pulls in pandas (≈0.5 s of a warm run's start, issue 27). A row group at a time.
+        with _arrow_memory_returned(), pq.ParquetFile(path) as parquet:
+            frames = [_frame(row) for group in range(parquet.num_row_groups)
+                      for row in parquet.read_row_group(group).to_pylist()]
         if [f.seq for f in frames] != list(range(len(frames))):
             return None
         return frames
     except Exception:  # noqa: BLE001 - a damaged entry is a miss, and is rewritten
         return None
+
+
+def _frame(r: dict) -> DetectedFrame:
+    """One row of an entry as the frame it stores."""
+    codes = tuple(
+        CodeDetection(
+            kind=c["kind"], corners_px=_array(c["corners_px"]), raw_corners_px=_array(c["raw_corners_px"]),
+            text=c["text"], payload_bytes=c["payload_bytes"], aruco_id=c["aruco_id"],
+            n_modules=c["n_modules"], finder_px=_array(c["finder_px"]),
+            finder_modules=_array(c["finder_modules"]), refine_method=c["refine_method"] or "",
+            refine_note=c["refine_note"] or "",
+        )
+        for c in r["codes"]
+    )
+    chessboards = tuple(
+        ChessboardCorners(int(b["board_index"]), np.asarray(b["corner_ids"], dtype=int),
+                          _array(b["corners_px"]), b["note"] or "", tuple(b["misplaced_ids"] or ()))
+        for b in r["chessboards"]
+    )
+    reject = (r["reject_reason"], r["reject_detail"] or "") if r["reject_reason"] else None
+    detections = FrameDetections(
+        codes=codes, reject=reject, drop_image=bool(r["drop_image"]), detect_s=0.0,
+        keyframe=bool(r["keyframe"]), tracked=int(r["tracked"]), note=r["note"] or "",
+        chessboards=chessboards,
+    )
+    return DetectedFrame(int(r["seq"]), r["cam_name"], int(r["log_time_ns"]), detections)
