@@ -109,6 +109,9 @@ class Columns:
             )
         self._scalars, self._gaps, self._iterations, self._points, self._transforms = {}, {}, {}, {}, {}
         self._rows = {}
+        # Arrow's allocator keeps what the columns' arrays freed for later; given back at each
+        # flush (≈0.05 ms), it does not pile up over a long run (issue 27: ≈6 MiB at 2000 frames).
+        pa.default_memory_pool().release_unused()
 
 
 class ArrowBatch:
