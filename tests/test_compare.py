@@ -324,6 +324,20 @@ def test_sweep_of_several_recordings_detects_once(tmp_path):
     assert not [n for d in out.iterdir() for n in (p.name for p in d.iterdir()) if n.endswith(".tmp")]
 
 
+def test_sweep_of_one_setting_detects_on_every_process(tmp_path):
+    """A sweep's lead detects on the whole pool of --jobs processes, also when there are fewer
+    settings than processes (the pool was sized to the settings: a sweep of one setting
+    detected on one process, 1.5× the wall time of `agvviz run`)."""
+    recording = tmp_path / "r.mcap"  # 40 frames, untracked: 10 segments, work for two processes (detection_plan)
+    scenario_registry.record("qr_floor", recording, seed=6, overrides=[
+        "duration_s=4", "rate_hz=10", "width_px=640", "height_px=512", "focal_px=500", "realism=ideal"])
+    outcome = sweep(recording, parse_grid(["solver=lm"]), base=RunSettings(tracking=False), out_dir=tmp_path / "one",
+                    jobs=2, images=False, cache_dir=tmp_path / "cache")
+    (entry,) = outcome.entries
+    assert entry.ok, entry.error
+    assert entry.timing["detection_source"] == "detected" and entry.timing["detect_workers"] == 2
+
+
 def test_sweep_lead_that_fails_hands_the_lead_on(tmp_path):
     """The first setting of a detection group (its lead) detects, the others read the cache. A
     lead that fails (here: its kept run's path is a folder) hands the lead to the next setting,

@@ -229,7 +229,7 @@ def sweep(
         the frames once), ``ranking.csv`` and ``ranking.md``; with ``keep_runs`` also
         ``<stem>-<label>.rrd`` per setting (a self-contained run).
     jobs : int, optional
-        Processes of the local pool (default: one per CPU, at most one per run).
+        Processes of the local pool (default: one per CPU), which detect and then solve.
     rank_by : str
         Metric to rank by (lower is better, except ``solved``/``solved_pct``).
     progress : callable, optional
@@ -307,7 +307,9 @@ def sweep(
     series: dict[int, RunSeries] = {}  # index in all_entries → its run, read back as it ends
     tasks = [cluster.RunTask(e.recording, e.settings, e.run_path, images=keep_runs, scratch=not keep_runs)
              for e in all_entries]
-    workers = min(jobs or os.cpu_count() or 1, len(tasks))
+    # Every core: the leads detect on the pool (a sweep of one setting too); processes that
+    # have nothing left to do end early (cluster.LocalEngine).
+    workers = jobs or os.cpu_count() or 1
     cache = Path(cache_dir) if cache_dir is not None else None
 
     def prepare_dirs() -> None:
