@@ -24,6 +24,7 @@ import yaml
 from agvviz.geometry import se3
 from agvviz.replay.detect.family_scan import FamilyMismatchError, family_check, map_skeleton_yaml, scan_recording
 from agvviz.markers.scan import FamilyScan, sample_indices, scan_frame, smallest_dictionary
+from agvviz.errors import InputError
 from agvviz.recording.sidefiles import SideFileError, load_marker_map
 from agvviz.replay.run import SideInputs, prepare
 from agvviz.settings import RunSettings
@@ -319,3 +320,34 @@ def test_a_qr_map_with_an_id_twice_is_named():
     assert map_problem(prepared) == "marker map: id Q7 appears more than once"
     ctx.marker_map = {"dictionary": "qr", "markers": markers[:-1]}
     assert map_problem(prepared) == ""
+
+
+def test_frames_in_the_detection_cache_are_not_scanned_again_the_map_is(recordings, tmp_path, monkeypatch):
+    """A run whose detections are in the cache passed the family check when they were detected
+    (the cache key holds the recording's content and the marker family): its frame scan is not
+    made again. The marker map is still checked, and `detect_recording`, which also fills the
+    cache, refuses frames of the wrong family as `run` does."""
+    from agvviz.app.run import run_recording
+    from agvviz.replay.detect import family_scan
+    from agvviz.replay.run import detect_recording
+
+    with pytest.raises(FamilyMismatchError, match="no marker map, and the frames show ArUco DICT_5X5_100"):
+        detect_recording(recordings["aruco"], RunSettings(), cache_dir=tmp_path / "cache", jobs=1)
+    assert not list((tmp_path / "cache").rglob("*.parquet"))
+
+    scans = []
+    real_scan = family_scan.scan_recording
+    monkeypatch.setattr(family_scan, "scan_recording", lambda *a, **k: scans.append(1) or real_scan(*a, **k))
+    rec, cache = recordings["qr"], tmp_path / "cache"
+    first = run_recording(rec, RunSettings(), tmp_path / "a.rrd", cache_dir=cache, jobs=1)
+    assert first.timing["detection_source"] == "detected" and len(scans) == 1
+    second = run_recording(rec, RunSettings(solver="ippe"), tmp_path / "b.rrd", cache_dir=cache, jobs=1)
+    assert second.timing["detection_source"] == "cache" and len(scans) == 1  # no second scan
+    run_recording(rec, RunSettings(), tmp_path / "c.rrd", cache_dir=False, jobs=1)
+    assert len(scans) == 2  # without a cache: scanned
+    # the map is checked still (here one carried by the recording, with an id listed twice)
+    corners = [[0, 0.1, 1.1], [0.2, 0.1, 1.1], [0.2, 0.1, 0.9], [0, 0.1, 0.9]]
+    dup = write_recording(tmp_path / "dup.mcap", "apriltag", {"dictionary": "DICT_APRILTAG_36h11", "markers": [
+        {"id": "1", "side_m": 0.2, "corners_world_m": corners}, {"id": "1", "side_m": 0.2, "corners_world_m": corners}]})
+    with pytest.raises(InputError, match="the marker map cannot be used: id 1 appears more than once"):
+        family_check(prepare(dup, RunSettings()), str(dup), frames_checked=True)

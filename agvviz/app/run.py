@@ -32,6 +32,7 @@ from agvviz.replay.run import (
     NoUsableFrameError,
     Prepared,
     SideInputs,
+    detection_cache_path,
     detection_plan,
     prepare,
     recording_start_ns,
@@ -194,7 +195,11 @@ def run_recording(
         # line naming the family and what to run next, before any work (issue 23)
         from agvviz.replay.detect.family_scan import family_check
 
-        family_check(prepared, str(recording_path))
+        # Frames with an entry in the detection cache (same recording content, detection
+        # settings and marker family) passed this check when they were detected: their scan
+        # (≈30 ms) is not made again, the marker map is checked still.
+        entry = detection_cache_path(prepared, recording.sha256(), side, cache_dir)
+        family_check(prepared, str(recording_path), frames_checked=entry is not None and entry.is_file())
     corners_only = not composition.cameras and composition.corners and not composition.uwb
     if corners_only and settings.correction == "none" and study is None:
         raise InputError(

@@ -290,6 +290,18 @@ def detection_inputs(prepared: "Prepared", side: SideInputs | None) -> dict:
     }
 
 
+def detection_cache_path(
+    prepared: "Prepared", recording_sha256: str, side: SideInputs | None, cache_dir: Path | None | bool,
+) -> Path | None:
+    """Where the detection cache keeps the detections of ``prepared`` (its recording's
+    ``recording_sha256``, its detection settings and inputs); None without a cache
+    (``cache_dir`` False)."""
+    if cache_dir is False:
+        return None
+    key = detect_cache.cache_key(prepared.replay.detect_params, detection_inputs(prepared, side))
+    return detect_cache.entry_path(scan_cache.cache_folder(cache_dir), recording_sha256, key)
+
+
 def detection_plan(
     prepared: "Prepared", recording_sha256: str, side: SideInputs | None, jobs: int | None,
     cache_dir: Path | None | bool, executor: Executor | None = None,
@@ -300,14 +312,8 @@ def detection_plan(
     ``executor``, a process pool of the caller's (``jobs``: its processes; see
     :class:`DetectionFeed`)."""
     params = prepared.replay.detect_params
-    cache_path = None
-    cached = None
-    if cache_dir is not False:
-        folder = scan_cache.cache_folder(cache_dir)
-        cache_path = detect_cache.entry_path(
-            folder, recording_sha256, detect_cache.cache_key(params, detection_inputs(prepared, side))
-        )
-        cached = detect_cache.load(cache_path)
+    cache_path = detection_cache_path(prepared, recording_sha256, side, cache_dir)
+    cached = detect_cache.load(cache_path) if cache_path is not None else None
     # Worker processes take a while to start: not worth it for a few segments of work.
     frames = sum(prepared.scan.topics[prepared.roles.roles[image_role(c)]].count for c in prepared.roles.cameras())
     workers = min(jobs or default_jobs(), max(1, frames // (2 * params.segment_frames)))
@@ -430,6 +436,12 @@ def detect_recording(
     prepared = prepare(recording_path, settings, topics, roles_file, side)
     if not prepared.can_run:
         raise unusable_run_error(prepared.recording, {}, prepared.causes)
+    if prepared.roles.cameras():
+        # as `agvviz run` does before it detects: an entry in the cache means frames that
+        # passed this check (agvviz.app.run skips the frame scan then)
+        from agvviz.replay.detect.family_scan import family_check
+
+        family_check(prepared, str(recording_path))
     plan = detection_plan(prepared, prepared.recording.sha256(), side, jobs, cache_dir if cache_dir is not None else None)
     if plan.from_cache:
         return {"source": "cache", "frames": len(plan.feed.cached), "cache": str(plan.cache_path)}

@@ -149,7 +149,9 @@ def map_problem(prepared) -> str:
     return ""
 
 
-def family_check(prepared, recording_arg: str, frames_per_camera: int = DEFAULT_FRAMES_PER_CAMERA) -> None:
+def family_check(
+    prepared, recording_arg: str, frames_per_camera: int = DEFAULT_FRAMES_PER_CAMERA, frames_checked: bool = False,
+) -> None:
     """Refuse, before a run, frames whose marker family the run cannot use
     (:class:`FamilyMismatchError`, one line naming the family and the command to run next):
 
@@ -159,11 +161,15 @@ def family_check(prepared, recording_arg: str, frames_per_camera: int = DEFAULT_
 
     Nothing is refused when the expected family is seen, or when no family is (the run then
     rejects its frames as it always did). ``recording_arg`` is the recording as the user named
-    it, for the command in the message."""
+    it, for the command in the message. ``frames_checked``: these frames passed the check under
+    the same expected family before (their detections are in the cache): the map alone is
+    checked."""
     marker_map = prepared.replay.ctx.marker_map
     problem = map_problem(prepared)
     if problem:
         raise InputError(f"the marker map cannot be used: {problem.removeprefix('marker map: ')}")
+    if frames_checked:
+        return
     expected = _map_family(marker_map) or QR_FAMILY
     if not prepared.roles.cameras():
         return
