@@ -44,7 +44,7 @@ def _engine(tasks: int) -> cluster.LocalEngine:
     engine.pool = _Pool()
     engine.here = _Here(engine.pool)
     engine._pending, engine._here, engine._given, engine._detecting = {}, set(), set(), set()
-    engine._pool_processes = []
+    engine._pool_processes = None
     return engine
 
 
@@ -89,7 +89,7 @@ def test_a_failed_lead_keeps_the_pool_for_the_setting_that_leads_next():
     assert _released(engine)
 
 
-def test_run_sweep_tasks_lets_the_pool_go_and_gives_every_task_out():
+def test_run_sweep_tasks_lets_the_pool_go_and_gives_every_task_out(monkeypatch):
     """The loop itself (run_sweep_tasks) on the stand-ins: two groups of two settings (two
     recordings); the pool is let go only after both leads detected."""
     import json
@@ -99,13 +99,15 @@ def test_run_sweep_tasks_lets_the_pool_go_and_gives_every_task_out():
     tasks = [cluster.RunTask(Path(f"r{i // 2}.mcap"), None, Path(f"o{i}.rrd")) for i in range(4)]
     engine.tasks = tasks
     keys = {id(t): (str(t.recording), json.dumps({})) for t in tasks}
-    original = cluster.detection_key
-    cluster.detection_key = lambda task: keys[id(task)]
+    monkeypatch.setattr(cluster, "detection_key", lambda task: keys[id(task)])
     finished = []
 
-    def step():  # the sweep process's thread: detect, then end each task given to it
+    detected = set()
+
+    def step():  # the sweep process's thread: a lead detects, then each task given to it ends
         for index, lead in list(engine.here.given):
-            if lead and index not in engine.here.results and index not in engine.here.detected:
+            if lead and index not in detected:
+                detected.add(index)
                 engine.here.detected.append(index)
                 return
             if index not in engine.here.results:
@@ -113,9 +115,7 @@ def test_run_sweep_tasks_lets_the_pool_go_and_gives_every_task_out():
                 return
 
     engine.busy = lambda: (step() or True) and bool(engine._pending or engine._here)
-    try:
-        results = cluster.run_sweep_tasks(engine, tasks, on_result=lambda i, r: finished.append(i))
-    finally:
-        cluster.detection_key = original
+    results = cluster.run_sweep_tasks(engine, tasks, on_result=lambda i, r: finished.append(i))
+    assert detected == {0, 2}  # each recording's lead, once
     assert sorted(finished) == [0, 1, 2, 3] and all(r.error is None for r in results)
     assert _released(engine) and engine.pool.submitted == []

@@ -285,7 +285,7 @@ class LocalEngine:
         self._here: set[int] = set()  # tasks given to this process, not yet ended
         self._given: set[int] = set()  # tasks given to the pool or to this process
         self._detecting: set[int] = set()  # leads given that have neither detected nor ended
-        self._pool_processes: list = []  # the pool's processes, once it was let go (joined at close)
+        self._pool_processes: list | None = None  # the pool's processes once it was let go (joined at close)
 
     def start(self) -> "LocalEngine":
         self.here.start()
@@ -313,7 +313,7 @@ class LocalEngine:
         lead done detecting, no setting solving on the pool. What is left runs in this process
         (the last settings, the read-back, the sweep file): the pool's idle processes (≈75 MiB
         each) would otherwise be alive at the sweep's peak of memory (issue 27)."""
-        if self._pool_processes or len(self._given) < len(self.tasks) or self._detecting or self._pending:
+        if self._pool_processes is not None or len(self._given) < len(self.tasks) or self._detecting or self._pending:
             return
         self._pool_processes = list((getattr(self.pool, "_processes", None) or {}).values())
         self.here.executor = None
@@ -354,7 +354,9 @@ class LocalEngine:
     def close(self, timeout_s: float) -> None:
         """Stop the thread and the pool; processes still busy after ``timeout_s`` are killed."""
         self.here.close()
-        processes = self._pool_processes or list((getattr(self.pool, "_processes", None) or {}).values())
+        processes = self._pool_processes
+        if processes is None:
+            processes = list((getattr(self.pool, "_processes", None) or {}).values())
         self.pool.shutdown(wait=False, cancel_futures=True)
         deadline = time.monotonic() + timeout_s
         for process in processes:

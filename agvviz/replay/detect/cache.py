@@ -66,12 +66,13 @@ def save(path: Path, frames: list[DetectedFrame]) -> None:
     import pyarrow.parquet as pq
 
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with _arrow_memory_returned(), outputs.atomic_writer(path) as file, pq.ParquetWriter(file, _schema()) as writer:
+    schema = _schema()
+    with _arrow_memory_returned(), outputs.atomic_writer(path) as file, pq.ParquetWriter(file, schema) as writer:
         for start in range(0, len(frames), FRAMES_PER_ROW_GROUP):
-            writer.write_table(_table(frames[start:start + FRAMES_PER_ROW_GROUP]))
+            writer.write_table(_table(frames[start:start + FRAMES_PER_ROW_GROUP], schema))
 
 
-def _table(frames: list[DetectedFrame]):
+def _table(frames: list[DetectedFrame], schema):
     import pyarrow as pa
 
     rows = []
@@ -99,7 +100,7 @@ def _table(frames: list[DetectedFrame]):
                 for b in d.chessboards
             ],
         })
-    return pa.Table.from_pylist(rows, schema=_schema())
+    return pa.Table.from_pylist(rows, schema=schema)
 
 
 def _schema():
