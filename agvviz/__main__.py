@@ -69,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     interrupts.install()
     try:
         try:
+            from agvviz.cli.early import start_fork_server_for
+
+            start_fork_server_for(sys.argv[1:] if argv is None else list(argv))  # before the imports below
             from agvviz.cli.main import app
 
             app(args=argv, prog_name="agvviz")

@@ -102,12 +102,12 @@ def _python(code: str, **env) -> str:
 def test_agvviz_run_sets_mimalloc_to_give_freed_memory_back_before_the_fork_server_starts():
     """``agvviz run`` sets it before its fork server starts; a sweep, which imports the writer's
     module too, does not; a value the user set is kept."""
-    code = ("import os, sys, agvviz.viz.run_process as rp; print(os.environ.get('MIMALLOC_PURGE_DELAY')); "
-            "rp.writer_allocator_settings(); print(os.environ.get('MIMALLOC_PURGE_DELAY'))")
+    code = ("import os, sys, agvviz.replay.detect.workers as w; print(os.environ.get('MIMALLOC_PURGE_DELAY')); "
+            "w.writer_allocator_settings(); print(os.environ.get('MIMALLOC_PURGE_DELAY'))")
     assert _python(code).split() == ["None", "0"]
     assert _python(code, MIMALLOC_PURGE_DELAY="25").split() == ["25", "25"]  # the user's own value is kept
-    import agvviz.cli.record_run as record_run
+    import agvviz.cli.early as early
     import inspect
 
-    source = inspect.getsource(record_run._run)
-    assert source.index("writer_allocator_settings()") < source.index("start_fork_server(")
+    source = inspect.getsource(early.start_run_fork_server)
+    assert source.index("writer_allocator_settings()") < source.index("_started(start_fork_server)")

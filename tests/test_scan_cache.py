@@ -132,26 +132,6 @@ def test_an_unwritable_cache_folder_only_costs_the_scan(recording_file, tmp_path
     _same_scan(scan_cache.cached_scan(_fresh(recording_file), blocked), reference)
 
 
-def test_seen_before_names_a_recording_scanned_with_this_cache(recording_file, tmp_path, monkeypatch):
-    """The guess `agvviz run` makes before starting detection workers: True only for the file
-    as it was scanned into this cache folder (the default folder through AGVVIZ_CACHE_DIR)."""
-    path = tmp_path / "copy.mcap"
-    shutil.copyfile(recording_file, path)
-    cache = tmp_path / "cache"
-    assert not scan_cache.seen_before(path, cache)
-    scan_cache.cached_scan(_fresh(path), cache)
-    assert scan_cache.seen_before(path, cache)
-    monkeypatch.setenv(scan_cache.CACHE_ENV, str(cache))
-    assert scan_cache.seen_before(path, None) and scan_cache.seen_before(path, True)
-    assert not scan_cache.seen_before(path, False)  # --no-cache
-    assert not scan_cache.seen_before(path, tmp_path / "other-cache")
-    assert not scan_cache.seen_before(tmp_path, cache)  # a folder (a rosbag2 bag): no guess
-    assert not scan_cache.seen_before(tmp_path / "missing.mcap", cache)
-    st = os.stat(path)
-    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1))
-    assert not scan_cache.seen_before(path, cache)  # changed since
-
-
 def test_a_file_changed_during_the_scan_is_not_stored(recording_file, tmp_path, monkeypatch):
     from agvviz.recording import source
 

@@ -384,9 +384,9 @@ def _start_method() -> str:
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return "spawn"
-    from agvviz.viz.run_process import LOGGER_MODULES
+    from agvviz.replay.detect.workers import WRITER_MODULES
 
-    multiprocessing.forkserver.set_forkserver_preload(["agvviz.app.run", *LOGGER_MODULES])  # no effect once it runs
+    multiprocessing.forkserver.set_forkserver_preload(["agvviz.app.run", *WRITER_MODULES])  # no effect once it runs
     with signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"

@@ -130,7 +130,7 @@ def sweep(
 
     Example: agvviz sweep recordings/qr_floor.mcap --set solver=p4p,lm,ippe --set lm_max_iterations=3,10
     """
-    if scheduler is None:  # its imports run beside this process's (agvviz.app.cluster imports little)
+    if scheduler is None:  # `agvviz sweep` started it already (agvviz.cli.early); main(argv) in process not
         from agvviz.app.cluster import start_fork_server
 
         start_fork_server()

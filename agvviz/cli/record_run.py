@@ -155,15 +155,11 @@ def _run(
     images: str = "all",
 ) -> Path:
     # The fork server of the .rrd writer and the detection workers: their imports run on
-    # another core while this one starts up. The workers' not for a recording run before with
-    # this cache (its detections are likely cached; a run that needs workers after all has them
-    # import OpenCV themselves).
-    from agvviz.recording.scan_cache import seen_before
-    from agvviz.replay.detect.workers import start_fork_server
-    from agvviz.viz import run_process  # its .rrd writer forks from the server too (preload_too)
+    # another core while this one starts up. `agvviz run` started it before its command line
+    # was imported (agvviz.cli.early); here for `demo` and a call of main(argv) in process.
+    from agvviz.cli.early import start_run_fork_server
 
-    run_process.writer_allocator_settings()  # before the fork server: see its docstring
-    start_fork_server(workers=jobs != 1 and (budget or not seen_before(recording, cache_dir)))
+    start_run_fork_server()
     from agvviz.recording.roles import parse_topic_options
     from agvviz.recording.source import require_recording_path
     from agvviz.app.run import run_recording

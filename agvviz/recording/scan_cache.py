@@ -36,8 +36,7 @@ from agvviz.recording.file_identity import files_key
 if TYPE_CHECKING:
     from agvviz.recording.raw import Recording
 
-# Only the standard library at import: :func:`seen_before` runs before the fork server starts
-# (agvviz.cli.record_run); the readers (zstandard, protobuf, mcap) come later.
+# Only the standard library at import; the readers (zstandard, protobuf, mcap) come later.
 
 #: The cache folder's environment variable (detections and scans share the folder).
 CACHE_ENV = "AGVVIZ_CACHE_DIR"
@@ -62,25 +61,6 @@ def cache_folder(cache_dir: Path | None | bool) -> Path | None:
     if cache_dir is False:
         return None
     return Path(cache_dir) if cache_dir not in (None, True) else default_cache_dir()
-
-
-def seen_before(recording_path, cache_dir) -> bool:
-    """Whether a single-file recording at ``recording_path`` has a scan entry in the cache
-    folder ``cache_dir`` (a path; None or True: the default folder; False: no cache → False),
-    i.e. was run before with this cache, as it is now: its detections are likely cached, so the
-    fork server need not import the detection workers' modules ahead of time. A guess, never a
-    result: a run whose detections turn out not to be cached still starts its workers (they
-    import what the server lacks). Stat calls only; a folder (a rosbag2 bag) or anything
-    unreadable → False."""
-    if cache_dir is False:
-        return False
-    try:
-        path = Path(recording_path)
-        if not path.is_file():
-            return False
-        return entry_path(cache_folder(cache_dir), files_key([path])).is_file()
-    except (OSError, ValueError):
-        return False
 
 
 def entry_path(cache_dir: Path, key: list[list]) -> Path:

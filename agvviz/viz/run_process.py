@@ -12,8 +12,8 @@ s for 200 frames of images).
 
 - The child is forked from the detection workers' fork server
   (:func:`agvviz.replay.detect.workers.pool_context`; spawned where there is none), which
-  imports the logging modules beside the run's own start-up (:data:`LOGGER_MODULES`, named to
-  it when this module is imported).
+  imports the logging modules beside the run's own start-up
+  (:data:`~agvviz.replay.detect.workers.WRITER_MODULES`).
 - :meth:`RrdWriter.close` asks the child to finish the file (blueprint, footer) and waits; the
   child writes under the run process's temporary name, which the run process then moves into
   place itself — an interruption before that removes it, as with a logger in process. An error
@@ -40,14 +40,12 @@ from collections import deque
 from pathlib import Path
 from types import MappingProxyType
 
-from agvviz.replay.detect.workers import pool_context, preload_too
+from agvviz.replay.detect.workers import pool_context
 
 #: Sink callbacks :class:`~agvviz.viz.run_sinks.RrdSink` acts on; the others are not sent.
 SINK_CALLS = ("cameras_changed", "frame", "fused", "corrected", "finished")
 #: What the run process calls on the logger itself.
 LOGGER_CALLS = ("log_manifest", "log_world_static", "log_summary", "log_error_budget")
-#: What the fork server imports for the child (besides the detection workers' modules).
-LOGGER_MODULES = ("agvviz.viz.run_sinks",)
 #: How long :meth:`RrdWriter.discard` waits for the child to remove its file (seconds).
 DISCARD_WAIT_S = 10.0
 #: Pickled calls waiting for the child at most, in bytes and in calls: the run goes on meanwhile
@@ -58,27 +56,6 @@ QUEUED_BYTES = 32 * 1024 * 1024
 QUEUED_CALLS = 256
 
 _CALL, _CLOSE, _DISCARD = "call", "close", "discard"
-
-#: mimalloc — the allocator of Rerun's extension (and of pyarrow) — gives the memory a thread
-#: freed back to the system at once, not after a delay (:func:`writer_allocator_settings`).
-MIMALLOC_SETTINGS = MappingProxyType({"MIMALLOC_PURGE_DELAY": "0"})
-
-
-def writer_allocator_settings() -> None:
-    """Set :data:`MIMALLOC_SETTINGS` in this process's environment (a value the user set is
-    kept), for the processes started after it: ``agvviz run`` calls it before it starts the
-    fork server its ``.rrd`` writer is forked from. With mimalloc's default delay, what the
-    writer freed while it logged (a frame's buffers, the encoded chunks) stayed with the
-    process and grew with the run's length: at 2000 frames Rerun's arena held 29.5 MiB, 13.4 MiB
-    with the delay at 0 (issue 27, docs/performance.md). mimalloc reads it once, when it starts.
-    The writer then returns and takes pages more often: a 200-frame warm run waits ≈0.05 s more
-    on it. ``agvviz sweep``, whose runs log in their own processes and whose memory did not
-    grow this way, does not set it: there it cost ≈0.2 s of a 6.3 s sweep."""
-    for name, value in MIMALLOC_SETTINGS.items():
-        os.environ.setdefault(name, value)
-
-preload_too(LOGGER_MODULES)  # the fork server imports them for the writer, once this module is imported
-
 
 def rrd_writer(
     out_path: str | os.PathLike, settings, in_process: bool = False, **logger_kwargs,

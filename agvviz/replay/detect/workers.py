@@ -23,6 +23,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator
+from types import MappingProxyType
 
 #: The modules a detection worker needs (the functions and values it unpickles, and what they
 #: import), imported once by the fork server.
@@ -33,31 +34,43 @@ def has_fork_server() -> bool:
     return "forkserver" in multiprocessing.get_all_start_methods()
 
 
-#: Modules the fork server imports besides :data:`WORKER_MODULES`, named by the other processes
-#: forked from it (:func:`preload_too`; the ``.rrd`` writer's, :mod:`agvviz.viz.run_process`).
-_PRELOAD_TOO: list[str] = []
+#: The modules of the ``.rrd`` writer (:mod:`agvviz.viz.run_process`), which a run forks from
+#: the same server; imported by it first. Named here, not registered by the writer's module, so
+#: that the server can start before anything heavy is imported (:mod:`agvviz.cli.early`).
+WRITER_MODULES = ("agvviz.viz.run_sinks",)
+
+#: mimalloc — the allocator of Rerun's extension (and of pyarrow) — gives the memory a thread
+#: freed back to the system at once, not after a delay (:func:`writer_allocator_settings`).
+MIMALLOC_SETTINGS = MappingProxyType({"MIMALLOC_PURGE_DELAY": "0"})
 
 
-def preload_too(modules: tuple[str, ...]) -> None:
-    """Have the fork server import ``modules`` as well, when it starts after this call."""
-    for module in modules:
-        if module not in _PRELOAD_TOO:
-            _PRELOAD_TOO.append(module)
+def writer_allocator_settings() -> None:
+    """Set :data:`MIMALLOC_SETTINGS` in this process's environment (a value the user set is
+    kept), for the processes started after it: ``agvviz run`` calls it before it starts the
+    fork server its ``.rrd`` writer is forked from. With mimalloc's default delay, what the
+    writer freed while it logged (a frame's buffers, the encoded chunks) stayed with the
+    process and grew with the run's length: at 2000 frames Rerun's arena held 29.5 MiB, 13.4 MiB
+    with the delay at 0 (issue 27, docs/performance.md). mimalloc reads it once, when it starts.
+    The writer then returns and takes pages more often: a 200-frame warm run waits ≈0.05 s more
+    on it. ``agvviz sweep``, whose runs log in their own processes and whose memory did not
+    grow this way, does not set it: there it cost ≈0.2 s of a 6.3 s sweep."""
+    for name, value in MIMALLOC_SETTINGS.items():
+        os.environ.setdefault(name, value)
 
 
-def start_fork_server(workers: bool = True) -> None:
+def start_fork_server() -> None:
     """Start the fork server of detection workers (and of the ``.rrd`` writer) now, without
-    waiting for it: it imports :data:`WORKER_MODULES` (unless ``workers`` is False: a run whose
-    detections are likely cached) and those of :func:`preload_too` while this process goes on. A
-    no-op where there is no fork server, or when this process runs one already (then it is used
-    as it is, and its children import what it lacks on their own)."""
+    waiting for it: it imports :data:`WRITER_MODULES` and :data:`WORKER_MODULES` while this
+    process goes on. A no-op where there is no fork server, or when this process runs one
+    already (then it is used as it is, and its children import what it lacks on their own)."""
     if not has_fork_server():
         return
     import multiprocessing.forkserver as forkserver
 
     # No effect once it runs. The server forks nothing before its imports are done: the writer's
-    # (what every run needs) first.
-    forkserver.set_forkserver_preload([*_PRELOAD_TOO, *(WORKER_MODULES if workers else ())])
+    # (what every run needs) first. They import the workers' too (≈0.65 s of CPU with or without
+    # them), so the server is the same whether the run's detections are cached or not.
+    forkserver.set_forkserver_preload([*WRITER_MODULES, *WORKER_MODULES])
     # Started ignoring Ctrl-C: the server ignores SIGINT only after its imports, and a Ctrl-C
     # during them (it goes to the whole process group) printed a KeyboardInterrupt traceback.
     with signals_ignored(signal.SIGINT):
