@@ -170,3 +170,26 @@ def test_run_images_none_writes_the_layers_and_view_adds_the_frames(swept, tmp_p
     layers.out_path.rename(moved)
     result = CliRunner().invoke(app, ["view", str(moved), "--web", "--port", "0"])
     assert result.exit_code == 2 and "give it with --recording" in result.output, result.output
+
+
+def test_the_elapsed_origin_is_read_without_pyarrow_compute(swept):
+    """The sweep file's ``elapsed`` origin (its run's first per-frame row: time − elapsed) is read
+    from the timeline buffers, not with ``Array.cast`` (which imports pyarrow.compute, ≈0.08 s of
+    a sweep's last step): the value equals the cast's, in a process that never imports it."""
+    import pyarrow as pa
+
+    _, _, standalone = swept
+    run = read_rrd(standalone["lm"])
+    for chunk in run.store.stream().filter(is_static=False):
+        if {paths.TIMELINE_TIME, paths.TIMELINE_ELAPSED} <= set(chunk.timeline_names) and chunk.num_rows:
+            batch = chunk.to_record_batch()
+            expected = (batch.column(paths.TIMELINE_TIME).cast(pa.int64())[0].as_py()
+                        - batch.column(paths.TIMELINE_ELAPSED).cast(pa.int64())[0].as_py())
+            break
+    code = (
+        "import sys; from agvviz.viz.overlay import _elapsed_origin_ns; from agvviz.viz.readback import read_rrd; "
+        f"print(_elapsed_origin_ns(read_rrd({str(standalone['lm'])!r}).store, [], None), "
+        "'pyarrow.compute' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == [str(expected), "False"]

@@ -352,11 +352,11 @@ def test_timelines_read_as_int64_equal_pyarrows_cast():
     (no pyarrow.compute): equal to ``cast(pa.int64())``, with nulls and on a slice."""
     import pyarrow as pa
 
-    from agvviz.viz.readback import _as_int64
+    from agvviz.viz.readback import as_int64
 
     values = [0, 1_700_000_000_123_456_789, None, -5, 2**62, None, 7]
     for kind in (pa.timestamp("ns"), pa.duration("ns"), pa.timestamp("us")):
         column = pa.array(values, type=kind)
         for part in (column, column.slice(2, 4), column.slice(1)):
-            assert _as_int64(part).equals(part.cast(pa.int64()))
-            assert _as_int64(part).to_pylist() == part.cast(pa.int64()).to_pylist()
+            assert as_int64(part).equals(part.cast(pa.int64()))
+            assert as_int64(part).to_pylist() == part.cast(pa.int64()).to_pylist()

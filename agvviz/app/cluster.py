@@ -386,7 +386,9 @@ def _start_method() -> str:
         return "spawn"
     from agvviz.replay.detect.workers import WRITER_MODULES
 
-    multiprocessing.forkserver.set_forkserver_preload(["agvviz.app.run", *WRITER_MODULES])  # no effect once it runs
+    # No effect once it runs. pyarrow.parquet: every setting reads its detections from the
+    # cache (≈0.02 s a process otherwise, at its first setting).
+    multiprocessing.forkserver.set_forkserver_preload(["agvviz.app.run", *WRITER_MODULES, "pyarrow.parquet"])
     with signals_ignored(signal.SIGINT, signal.SIGTERM):
         multiprocessing.forkserver.ensure_running()
     return "forkserver"

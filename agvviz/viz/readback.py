@@ -164,13 +164,13 @@ def _contents(src: str | os.PathLike | RrdContents) -> RrdContents:
 def _int_times(batch: pa.RecordBatch) -> pa.RecordBatch:
     """``batch`` with timestamp/duration timelines as int64 nanoseconds (not datetime objects)."""
     columns = [
-        _as_int64(col) if pa.types.is_timestamp(col.type) or pa.types.is_duration(col.type) else col
+        as_int64(col) if pa.types.is_timestamp(col.type) or pa.types.is_duration(col.type) else col
         for col in batch.columns
     ]
     return pa.RecordBatch.from_arrays(columns, names=batch.schema.names)
 
 
-def _as_int64(column: pa.Array) -> pa.Array:
+def as_int64(column: pa.Array) -> pa.Array:
     """A timestamp or duration column as its stored int64 values — what ``cast(pa.int64())``
     gives — read from the same buffers: ``Array.cast`` imports pyarrow.compute, ≈0.3 s of CPU
     the first time (a sweep reading its settings back, a diff)."""
