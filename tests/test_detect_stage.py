@@ -272,3 +272,54 @@ def test_cache_entry_is_written_and_read_a_row_group_at_a_time(detected_cache, t
         assert [(f.seq, f.cam_name, f.log_time_ns) for f in back] == [(f.seq, f.cam_name, f.log_time_ns) for f in frames]
         assert [_codes(f.detections) for f in back] == [_codes(f.detections) for f in frames]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "grouped.parquet", "whole.parquet"]  # no temporary left
+
+
+def _distorted_calibration(width_px: int = 320) -> "CalibrationMsg":
+    from agvviz.geometry import PinholeCamera
+    from agvviz.model.messages import CalibrationMsg
+
+    K = np.array([[300.0, 0.0, width_px / 2], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
+    camera = PinholeCamera(K, np.array([-0.2, 0.05, 0.001, -0.001, 0.0]), width_px, 240)
+    return CalibrationMsg("front", "cam_front", camera, "plumb_bob")
+
+
+def test_the_solve_stage_does_not_build_undistortion_maps(monkeypatch):
+    """Only detection undistorts: the solve stage's model has the camera without the maps (≈20-30
+    ms and 10 MB for 1280×1024, in every process that solves); detection's then builds them,
+    equal to OpenCV's own."""
+    import cv2
+
+    from agvviz.replay.detect import stage
+
+    monkeypatch.setattr(stage, "_CAMERA_MODELS", {})
+    built = []
+    real = stage.cv2.initUndistortRectifyMap
+    monkeypatch.setattr(stage.cv2, "initUndistortRectifyMap", lambda *a: built.append(a) or real(*a))
+    calibration = _distorted_calibration()
+    solving = stage.camera_model(calibration, maps=False)
+    assert solving.camera is calibration.camera and solving.undistort_maps is None and not solving.maps_built
+    assert built == []
+    detecting = stage.camera_model(calibration)
+    assert detecting.camera is calibration.camera and detecting.maps_built and len(built) == 1
+    c = calibration.camera
+    expected = real(c.K, c.dist, None, c.K, (c.width_px, c.height_px), cv2.CV_32FC2)
+    np.testing.assert_array_equal(detecting.undistort_maps[0], expected[0])
+    assert stage.camera_model(calibration, maps=False) is detecting  # built once, kept
+    assert stage.camera_model(calibration) is detecting and len(built) == 1
+
+
+def test_maps_that_cannot_be_built_reject_the_frames_as_uncalibrated(monkeypatch):
+    from agvviz.model.frames import REJECT_NO_CALIBRATION
+    from agvviz.replay.detect import stage
+
+    def fails(*args):
+        raise stage.cv2.error("OpenCV(4) error: (-4:Insufficient memory) Failed to allocate")
+
+    monkeypatch.setattr(stage, "_CAMERA_MODELS", {})
+    monkeypatch.setattr(stage.cv2, "initUndistortRectifyMap", fails)
+    calibration = _distorted_calibration(width_px=336)
+    assert stage.camera_model(calibration, maps=False).camera is not None  # the solve stage cannot know
+    job = stage.FrameJob("front", "jpeg", b"\xff\xd8", calibration)
+    detections = SegmentDetector(DetectParams()).detect(job)
+    assert detections.reject[0] == REJECT_NO_CALIBRATION
+    assert "undistortion maps could not be built" in detections.reject[1] and "'front'" in detections.reject[1]

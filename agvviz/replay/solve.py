@@ -377,7 +377,7 @@ class Replay:
             if calib is None:
                 cam = replace(cam, calibration=None, camera=None)
             else:
-                model = camera_model(calib)  # shared with the detect stage
+                model = camera_model(calib, maps=False)  # shared with the detect stage, which builds the maps
                 cam = replace(cam, calibration=calib, camera=model.camera, calibration_problem=model.problem)
         T_body_cam, T_world_cam, why = self.sync.extrinsic(cam_name, frame_id, t_ns)
         if not (T_body_cam is None and T_world_cam is None and keep_extrinsic) and not (

@@ -44,7 +44,7 @@ from agvviz.recording.checks import frame_problem
 from agvviz.model.detections import CodeDetection, FrameDetections
 from agvviz.model.messages import CalibrationMsg
 from agvviz.recording.values import image_size_problem
-from agvviz.model.frames import REJECT_DECODE, REJECT_IMAGE
+from agvviz.model.frames import REJECT_DECODE, REJECT_IMAGE, REJECT_NO_CALIBRATION
 from agvviz.settings import RunSettings
 
 #: The run settings that change what the detect stage outputs; every other setting (solver,
@@ -131,43 +131,51 @@ class FrameJob:
 
 @dataclass
 class CameraModel:
-    """A calibration made usable: the camera, its undistortion maps, or why it was refused."""
+    """A calibration made usable: the camera, its undistortion maps (once built: ``maps_built``),
+    or why it was refused."""
 
     camera: PinholeCamera | None
     undistort_maps: tuple[np.ndarray, np.ndarray] | None = None
     problem: str = ""
+    #: False for a model asked for without its maps (:func:`camera_model`), until they are.
+    maps_built: bool = True
 
 
-def camera_model(calibration: CalibrationMsg) -> CameraModel:
+def camera_model(calibration: CalibrationMsg, maps: bool = True) -> CameraModel:
     """The camera of ``calibration`` with its undistortion maps (when it has distortion), or a
-    refusal (an absurd image size, maps that cannot be built). Cached per calibration value
-    (the maps of a 1280×1024 camera are 10 MB and take ≈20 ms to build)."""
+    refusal (an absurd image size, maps that cannot be built). Without ``maps`` (the solve
+    stage: it never undistorts an image) they are not built, and their failure is not known:
+    the maps of a 1280×1024 camera are 10 MB and take ≈20-30 ms, in every process that solves
+    (a warm run, each setting of a sweep) where only detection needs them. Cached per
+    calibration value."""
     c = calibration.camera
     key = (c.width_px, c.height_px, np.asarray(c.K, float).tobytes(), np.asarray(c.dist, float).tobytes())
     model = _CAMERA_MODELS.get(key)
-    if model is None:
-        if len(_CAMERA_MODELS) >= 8:
+    if model is None or (maps and not model.maps_built):
+        if model is None and len(_CAMERA_MODELS) >= 8:
             _CAMERA_MODELS.clear()
-        model = _CAMERA_MODELS[key] = _build_camera_model(c)
+        model = _CAMERA_MODELS[key] = _build_camera_model(c, maps)
     return model
 
 
 _CAMERA_MODELS: dict[tuple, CameraModel] = {}
 
 
-def _build_camera_model(camera: PinholeCamera) -> CameraModel:
+def _build_camera_model(camera: PinholeCamera, maps: bool) -> CameraModel:
     problem = image_size_problem(camera.width_px, camera.height_px)
-    maps = None
+    undistort_maps = None
+    if problem is None and not maps:
+        return CameraModel(camera, None, maps_built=not camera.has_distortion)
     if problem is None and camera.has_distortion:
         try:
-            maps = cv2.initUndistortRectifyMap(
+            undistort_maps = cv2.initUndistortRectifyMap(
                 camera.K, camera.dist, None, camera.K, (camera.width_px, camera.height_px), cv2.CV_32FC2
             )
         except (cv2.error, MemoryError) as exc:
             problem = f"undistortion maps could not be built ({str(exc).strip().splitlines()[-1]})"
     if problem is not None:
         return CameraModel(None, None, f"calibration refused: {problem}")
-    return CameraModel(camera, maps)
+    return CameraModel(camera, undistort_maps)
 
 
 def _decode(
@@ -247,7 +255,13 @@ class SegmentDetector:
         self._frames += 1
         model = camera_model(job.calibration)
         if model.camera is None:
-            return FrameDetections(reject=None, detect_s=time.perf_counter() - t0, note=model.problem)
+            # The solve stage, which checks the calibration without building the maps, rejects
+            # the frame on its own for an absurd image size; maps that cannot be built are
+            # known here only.
+            return FrameDetections(
+                reject=(REJECT_NO_CALIBRATION, f"camera {job.cam_name!r}: {model.problem}"),
+                detect_s=time.perf_counter() - t0, note=model.problem,
+            )
         # A tracked frame reads only the parts of the image around its codes: when the camera
         # has distortion, only those are undistorted (the whole frame if it turns out a keyframe).
         partial = self.params.tracks and model.undistort_maps is not None
