@@ -10,9 +10,8 @@ frame index (the callers map the other runs' frames onto it). Entity tree::
     world/trajectory/<key>                  LineStrips3D, whole estimated trajectory of a run
     world/agv/truth                         Transform3D per frame + axes + body
     world/agv/<key>                         Transform3D per solved frame of a run + axes
-    world/error/<key>                       Arrows3D per frame: the run's position error
-                                            (estimate − truth) × magnification, drawn from
-                                            the truth position (runs given with their truth)
+    world/error/<key>                       Arrows3D per frame: the run's position error (estimate
+                                            − truth) × magnification, from the truth position
     world/error_path/<key>                  LineStrips3D (static): truth + that error, the
                                             run's path with its errors magnified
     image/<cam>                             EncodedImage of the first run (copied, not re-encoded;
@@ -36,10 +35,9 @@ With ``layers`` and ``index`` the file is a sweep ``.rrd`` (issue 27): ``FILE#LA
 run back (:func:`agvviz.viz.readback.read_rrd`). With ``frames`` the images come from the
 recording (logged once, :mod:`agvviz.viz.frames`) instead of being copied from ``source``.
 
-Timelines: ``frame`` (what the viewer opens on), ``elapsed`` (seconds since the source run's
-recording start, or since the first frame drawn when that is unknown) and ``time`` (the
-absolute stamps, as in the runs). Written like a run: explicit recording stream with a pinned
-id, size-only chunking, streamed to a temporary file beside the target and renamed into place.
+Timelines: ``frame`` (what the viewer opens on), ``elapsed`` (since the source run's recording
+start, else the first frame drawn) and ``time`` (the runs' absolute stamps). Written like a run:
+pinned recording id, size-only chunking, a temporary file renamed into place.
 """
 
 from __future__ import annotations
@@ -68,19 +66,14 @@ from agvviz.viz.style import COLOR_DELTA, COLOR_DETECTED, COLOR_TRUTH, COLOR_ZER
 #: The per-frame Δ series and its zero line.
 AXIS_LENGTH_M = 0.4
 TRUTH_BODY_HALF_SIZES_M = (0.30, 0.40, 0.10)
-#: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about
-#: the AGV body's size, visible in a view of the whole trajectory.
+#: Length [m] the larger run's 95th-percentile position error is magnified to, at most: about the
+#: AGV body's size, visible in a view of the whole trajectory.
 ERROR_VECTOR_TARGET_M = 0.5
-#: Camera images are written out (a flush) after this many bytes, or rows of image chunks:
-#: Rerun queues what it is given without bound, and frames given faster than the file was
-#: written piled up in the process (a sweep's 2000 frames: +100-200 MB).
+#: Camera images are written out (a flush) after this many bytes, or rows of image chunks: Rerun
+#: queues what it is given without bound (a sweep's 2000 frames piled up: +100-200 MB).
 FLUSH_IMAGE_BYTES = 8 << 20
 FLUSH_IMAGE_ROWS = 32
-#: A setting's layers are copied entity by entity, written out (a flush) once this many rows
-#: were sent since the last: what waits for the file stays a few MB on a long run (at 2000
-#: frames a layer entity has 2000 rows or more), while a short run's ≈50 small entities do not
-#: each wait for the disk (≈0.4 ms a flush: 200 flushes were ≈0.09 s of a 4-setting sweep).
-FLUSH_LAYER_ROWS = 4096
+FLUSH_LAYER_ROWS = 4096  # copied layers, rows sent between flushes: ≈50 small entities, not 50 waits
 
 
 class OverlayError(InputError):
@@ -327,9 +320,8 @@ def write_overlay(
     inputs : paths
         Other files the overlay is made from (the runs compared).
     fixed_cams : set of str
-        Those of ``cam_names`` fixed in the world (``world/cameras/cam_<name>``, e.g.
-        uwb_room's wall cameras): their images and detected corners are read from there, not
-        from under the AGV. The reprojected corners of each run are in its ``reprojected``.
+        Those of ``cam_names`` fixed in the world (``world/cameras/cam_<name>``, e.g. uwb_room's
+        wall cameras): their images and detected corners are read from there, not the AGV's.
     layers : dict, optional
         Run key → run ``.rrd`` (full or layers-only; its path, or opened already) whose every entity but the camera images
         is copied under ``settings/<key>/`` (:func:`paths.sweep_setting`), chunk by chunk.
@@ -518,32 +510,26 @@ def _opened(run: str | os.PathLike | RrdContents) -> RrdContents:
 
 
 def _copy_layers(rec: rr.RecordingStream, key: str, run: str | os.PathLike | RrdContents) -> set[str]:
-    """Copy every entity of the run ``.rrd`` ``run`` (a path, or opened) but its camera images (and the
-    recording's properties) under ``settings/<key>/``, chunk by chunk, unchanged. Returns the
-    run's entity paths (without the prefix).
-
-    One entity at a time, written out (``flush``) every :data:`FLUSH_LAYER_ROWS` rows before
-    the next is read: Rerun loads a whole stream's chunks ahead of the writer, so a run's layers
-    copied in one stream were held in memory whole (≈45 MB at 2000 frames); one entity's are a
-    few MB."""
+    """Copy every entity of the run ``.rrd`` ``run`` (a path, or opened) but its camera images and
+    properties under ``settings/<key>/``, chunk by chunk, unchanged; returns its entity paths. One
+    entity at a time, written out (``flush``) every :data:`FLUSH_LAYER_ROWS` rows: Rerun loads a
+    stream's chunks ahead of the writer (a run's layers in one stream: ≈45 MB at 2000 frames)."""
     store = _opened(run).store
     entities = sorted(p.lstrip("/") for p in store.schema().entity_paths())
     left_out = {"__properties", *paths.camera_images(entities)}
-    prefix = "/" + paths.sweep_setting(key)
-    rows_sent = 0
+    prefix, rows = "/" + paths.sweep_setting(key), []
 
     def moved(chunk):
-        nonlocal rows_sent
-        rows_sent += chunk.num_rows
+        rows.append(chunk.num_rows)
         return chunk.with_entity_path(prefix + chunk.entity_path)
 
     for entity in entities:
         if entity in left_out or entity.startswith("__properties/"):
             continue
         rec.send_chunks(store.stream().filter(content=f"/{entity}").map(moved))
-        if rows_sent >= FLUSH_LAYER_ROWS:
+        if sum(rows) >= FLUSH_LAYER_ROWS:
             rec.flush()
-            rows_sent = 0
+            rows.clear()
     rec.flush()
     return set(entities)
 
