@@ -16,6 +16,7 @@ from agvviz.viz.rrd_file import AtomicRrd
 def _invoke(*args) -> tuple[int, list[str]]:
     result = CliRunner().invoke(app, [str(a) for a in args])
     assert "Traceback" not in result.output, result.output
+    assert "sweeping" not in result.output, result.output  # no progress bar for a refused input
     return result.exit_code, [line for line in result.output.splitlines() if line.startswith("error:")]
 
 

@@ -142,20 +142,27 @@ def sweep(
     grid = parse_grid(set_)
     n_runs = len(grid_settings(grid)) * len(recordings)
     what = f"{n_runs} runs" if len(recordings) > 1 else f"{n_runs} settings"
-    with progress_bar() as progress:
-        task = progress.add_task(f"sweeping {what}", total=None, rate="starting")
+    # The bar appears once the runs start (as `run`'s): an input refused first prints its line only.
+    progress = progress_bar()
+    task = progress.add_task(f"sweeping {what}", total=None, rate="starting")
 
-        def on_total(frames: int) -> None:
-            progress.update(task, total=frames or None)
+    def on_total(frames: int) -> None:
+        progress.start()
+        progress.update(task, total=frames or None)
 
-        def on_progress(frames_done: int, runs_done: int) -> None:
-            progress.update(task, completed=frames_done, rate=f"{runs_done}/{n_runs} done")
+    def on_progress(frames_done: int, runs_done: int) -> None:
+        progress.start()
+        progress.update(task, completed=frames_done, rate=f"{runs_done}/{n_runs} done")
 
+    try:
         outcome = sweep_runs(
             recordings[0] if len(recordings) == 1 else recordings, grid, out_dir=out_dir, jobs=jobs,
             rank_by=rank_by, align=align, images=images, progress=on_progress, on_total=on_total,
             scheduler=scheduler, cache_dir=cache_dir, keep_runs=keep_runs,
         )
+    finally:
+        if progress.live.is_started:
+            progress.stop()
     wanted = ["rank", "setting", outcome.rank_by, "solved", "position_p95_mm",
               "heading_rmse_deg", "p_vs_best", "time_per_frame_ms", "status"]
     for result in outcome.recordings:
