@@ -9,6 +9,7 @@ it with SIGINT ignored, which an exec keeps.
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -33,7 +34,10 @@ print(ignored, signal.getsignal(signal.SIGINT) is signal.default_int_handler)
 @pytest.mark.skipif(not (workers.has_fork_server() and Path("/proc/self/status").exists()),
                     reason="needs a fork server and /proc (Linux)")
 def test_the_fork_server_ignores_sigint_from_its_start_and_the_caller_keeps_its_handler():
-    out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=120, check=True)
+    # The probe starts with Ctrl-C at its default, as from a terminal: a test run started as a
+    # background job of a shell has it ignored, and the probe would inherit that.
+    out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=120, check=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     ignored, caller_handler_back = out.stdout.split()
     assert int(ignored) & SIGINT_BIT, "the fork server was started with Ctrl-C live"
     assert caller_handler_back == "True", "the caller's own Ctrl-C handler was not restored"
