@@ -26,6 +26,7 @@ def _interrupted(message: bool = True) -> int:
     KeyboardInterrupt sometimes still ended the process *by* SIGINT (exit -2) — measured in
     about 1 of 4 interrupts — and an interrupted process has nothing left to finish.
     """
+    _release_semaphores()
     try:
         if message:
             sys.stderr.write("error: interrupted; unfinished outputs were removed\n")
@@ -34,6 +35,22 @@ def _interrupted(message: bool = True) -> int:
     except (OSError, ValueError):
         pass
     os._exit(EXIT_INTERRUPTED)
+
+
+def _release_semaphores() -> None:
+    """Unlink this process's multiprocessing semaphores (the locks of a worker pool's queues, a
+    sweep's stop event) before an interrupted command's hard exit, which skips the finalizers
+    that do it at a normal exit: multiprocessing's resource tracker then printed "There appear
+    to be 5 leaked semaphore objects to clean up at shutdown" after the one-line error. Only
+    the finalizers of exit priority ≥ 0 run (the semaphores' unlinking, a queue's closing);
+    those that join threads or processes (negative priority) do not."""
+    util = sys.modules.get("multiprocessing.util")
+    if util is None:
+        return
+    try:
+        util._run_finalizers(0)
+    except BaseException:  # noqa: BLE001 — best effort while exiting
+        pass
 
 
 def _remove_temps() -> None:
