@@ -64,3 +64,14 @@ def test_the_console_script_starts_it_before_the_command_line_is_imported():
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60, check=True)
     assert done.stdout.strip().splitlines()[-1] == "[(False, ['version'])]"
+
+
+def test_a_run_sets_its_writers_allocator_even_without_a_fork_server(monkeypatch):
+    """Where there is no fork server (macOS, Windows) the writer is spawned: it reads the
+    allocator setting from the environment all the same."""
+    from agvviz.replay.detect import workers
+
+    monkeypatch.delenv("MIMALLOC_PURGE_DELAY", raising=False)
+    monkeypatch.setattr(workers, "has_fork_server", lambda: False)
+    early.start_run_fork_server()
+    assert os.environ["MIMALLOC_PURGE_DELAY"] == workers.MIMALLOC_SETTINGS["MIMALLOC_PURGE_DELAY"]

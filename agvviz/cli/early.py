@@ -35,14 +35,14 @@ def start_fork_server_for(argv: list[str]) -> None:
 
 def start_run_fork_server() -> None:
     """Start the fork server of a run's ``.rrd`` writer and detection workers
-    (:func:`agvviz.replay.detect.workers.start_fork_server`), the writer's allocator settings
-    first (:func:`~agvviz.replay.detect.workers.writer_allocator_settings`); without waiting
-    for its imports. A no-op where there is no fork server or one runs already."""
-    from agvviz.replay.detect.workers import has_fork_server, start_fork_server, writer_allocator_settings
+    (:func:`agvviz.replay.detect.workers.start_fork_server`; a no-op where there is none or one
+    runs already), the writer's allocator settings first
+    (:func:`~agvviz.replay.detect.workers.writer_allocator_settings`: a writer spawned where
+    there is no fork server reads them too); without waiting for its imports."""
+    from agvviz.replay.detect.workers import start_fork_server, writer_allocator_settings
 
-    if has_fork_server():
-        writer_allocator_settings()
-        _started(start_fork_server)
+    writer_allocator_settings()
+    _started(start_fork_server)
 
 
 def _started(start) -> None:
