@@ -70,6 +70,13 @@ def fail(message: str) -> None:
     raise InputError(message)
 
 
+def stop_progress(progress: Progress) -> None:
+    """Stop a bar that was started (Rich prints a blank line when stopping on a non-terminal);
+    a bar drawn only once work starts may never have been."""
+    if progress.live.is_started:
+        progress.stop()
+
+
 def progress_bar() -> Progress:
     """The progress bar of every long command, on stderr."""
     return Progress(

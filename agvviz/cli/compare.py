@@ -15,7 +15,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from agvviz.cli.common import console, err_console, error_line, fail, handle_errors, progress_bar
+from agvviz.cli.common import console, err_console, error_line, fail, handle_errors, progress_bar, stop_progress
 from agvviz.cli import options
 from agvviz.cli.record_run import error_budget_with_progress
 from agvviz.errors import EXIT_BAD_INPUT, EXIT_OUTPUT
@@ -161,8 +161,7 @@ def sweep(
             scheduler=scheduler, cache_dir=cache_dir, keep_runs=keep_runs,
         )
     finally:
-        if progress.live.is_started:
-            progress.stop()
+        stop_progress(progress)
     wanted = ["rank", "setting", outcome.rank_by, "solved", "position_p95_mm",
               "heading_rmse_deg", "p_vs_best", "time_per_frame_ms", "status"]
     for result in outcome.recordings:

@@ -10,13 +10,12 @@ from typing import List, Optional
 
 import typer
 from rich.markup import escape
-from rich.progress import Progress
 from rich.table import Table
 from rich.text import Text
 
 from agvviz import __version__
 from agvviz.cli import interrupts
-from agvviz.cli.common import console, err_console, fail, handle_errors, progress_bar
+from agvviz.cli.common import console, err_console, fail, handle_errors, progress_bar, stop_progress
 from agvviz.cli import options
 from agvviz.errors import InputError
 from agvviz.recording import outputs
@@ -211,12 +210,12 @@ def _run(
             images=images == "all",
         )
     except NoUsableFrameError as exc:
-        _stop_started(progress)
+        stop_progress(progress)
         for cause in exc.causes:  # one line per cause, then the one-line error
             err_console.print(Text.assemble(("cause:", "bold"), " ", cause), soft_wrap=True, highlight=False)
         raise
     finally:
-        _stop_started(progress)
+        stop_progress(progress)
     # The run's .rrd is complete and in place: an interrupt from here on would only make the exit
     # code say it failed (the robustness campaign's "output of a failed command").
     interrupts.outputs_complete()
@@ -231,12 +230,6 @@ def _run(
     if fail_if:
         _gates(outcome, list(fail_if), junit_xml, recording)
     return outcome.out_path
-
-
-def _stop_started(progress: Progress) -> None:
-    """Stop a bar that was started (Rich prints a blank line when stopping on a non-terminal)."""
-    if progress.live.is_started:
-        progress.stop()
 
 
 def _budget_hint(scenario: Optional[dict]) -> None:
