@@ -379,18 +379,15 @@ def _start_method() -> str:
     pool's processes ignore SIGINT (:func:`agvviz.replay.detect.workers.init_worker`) — the
     sweep process alone handles it, stopping the runs. A fork server already running in this
     process (a library user's) is used as it is."""
-    import multiprocessing
-    import multiprocessing.forkserver
+    from agvviz.replay.detect import workers
 
-    if "forkserver" not in multiprocessing.get_all_start_methods():
+    if not workers.has_fork_server():
         return "spawn"
-    from agvviz.replay.detect.workers import WRITER_MODULES
-
-    # No effect once it runs. pyarrow.parquet: every setting reads its detections from the
-    # cache (≈0.02 s a process otherwise, at its first setting).
-    multiprocessing.forkserver.set_forkserver_preload(["agvviz.app.run", *WRITER_MODULES, "pyarrow.parquet"])
-    with signals_ignored(signal.SIGINT, signal.SIGTERM):
-        multiprocessing.forkserver.ensure_running()
+    # pyarrow.parquet: every setting reads its detections from the cache (≈0.02 s a process
+    # otherwise, at its first setting).
+    workers.start_fork_server(
+        ("agvviz.app.run", *workers.WRITER_MODULES, "pyarrow.parquet"), ignored=(signal.SIGINT, signal.SIGTERM),
+    )
     return "forkserver"
 
 

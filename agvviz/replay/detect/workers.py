@@ -58,22 +58,24 @@ def writer_allocator_settings() -> None:
         os.environ.setdefault(name, value)
 
 
-def start_fork_server() -> None:
-    """Start the fork server of detection workers (and of the ``.rrd`` writer) now, without
-    waiting for it: it imports :data:`WRITER_MODULES` and :data:`WORKER_MODULES` while this
-    process goes on. A no-op where there is no fork server, or when this process runs one
-    already (then it is used as it is, and its children import what it lacks on their own)."""
+def start_fork_server(
+    preload: tuple[str, ...] = (*WRITER_MODULES, *WORKER_MODULES), ignored: tuple[int, ...] = (signal.SIGINT,),
+) -> None:
+    """Start this process's fork server now, without waiting for it: it imports ``preload``
+    while this process goes on, and keeps ignoring ``ignored``. By default a run's: the
+    :data:`WRITER_MODULES` first (what every run needs), then the :data:`WORKER_MODULES` (the
+    writer's import them anyway: ≈0.65 s of CPU with or without them), Ctrl-C ignored (the
+    server ignores SIGINT only after its imports, and a Ctrl-C during them — it goes to the
+    whole process group — printed a KeyboardInterrupt traceback). A local sweep's pool asks
+    for its own (:func:`agvviz.app.cluster.start_fork_server`). A no-op where there is no fork
+    server, or when this process runs one already (then it is used as it is, and its children
+    import what it lacks on their own)."""
     if not has_fork_server():
         return
     import multiprocessing.forkserver as forkserver
 
-    # No effect once it runs. The server forks nothing before its imports are done: the writer's
-    # (what every run needs) first. They import the workers' too (≈0.65 s of CPU with or without
-    # them), so the server is the same whether the run's detections are cached or not.
-    forkserver.set_forkserver_preload([*WRITER_MODULES, *WORKER_MODULES])
-    # Started ignoring Ctrl-C: the server ignores SIGINT only after its imports, and a Ctrl-C
-    # during them (it goes to the whole process group) printed a KeyboardInterrupt traceback.
-    with signals_ignored(signal.SIGINT):
+    forkserver.set_forkserver_preload(list(preload))  # no effect once it runs
+    with signals_ignored(*ignored):
         forkserver.ensure_running()
 
 
