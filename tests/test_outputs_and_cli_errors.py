@@ -340,6 +340,63 @@ def test_signal_mid_run_removes_the_temporary_and_exits_130(longer_recording, tm
     assert not target.exists() and not _temps(tmp_path)
 
 
+@pytest.fixture
+def console_handlers():
+    """The console script's signal handlers (agvviz.cli.interrupts) for one test, then Python's."""
+    from agvviz.cli import interrupts
+
+    before = signal.signal(signal.SIGINT, interrupts._on_signal)
+    try:
+        yield interrupts
+    finally:
+        signal.signal(signal.SIGINT, before)
+        interrupts.signalled = False
+
+
+def _publish_with_a_signal_right_after_the_rename(tmp_path, monkeypatch) -> Path:
+    target = tmp_path / "out.rrd"
+    target.write_bytes(b"an earlier run")
+    tmp = outputs.temp_path(target)
+    tmp.write_bytes(b"this run")
+    outputs.register_temp(tmp)
+    real_replace = os.replace
+
+    def replace_then_signal(src, dst):
+        real_replace(src, dst)
+        signal.raise_signal(signal.SIGINT)  # Ctrl-C lands between the rename and publish's return
+
+    monkeypatch.setattr(os, "replace", replace_then_signal)
+    try:
+        outputs.publish(tmp, target)
+    finally:
+        monkeypatch.setattr(os, "replace", real_replace)
+        assert target.read_bytes() == b"this run" and not tmp.exists()
+        assert tmp not in outputs._live_temps  # nothing left for the interrupt's clean-up to remove
+    return target
+
+
+def test_a_signal_while_a_file_is_put_in_place_acts_once_it_is_there(console_handlers, tmp_path, monkeypatch):
+    """The CI failure of the robustness case "SIGINT mid-run": the signal landed after the .rrd was
+    renamed into place and before the run command knew, and the run exited 130 beside a complete
+    output. A signal during outputs.publish now takes effect after it: the file is in place and
+    forgotten as a temporary, and the interrupt follows."""
+    with pytest.raises(KeyboardInterrupt):
+        _publish_with_a_signal_right_after_the_rename(tmp_path, monkeypatch)
+    assert console_handlers.signalled
+
+
+def test_a_signal_while_a_commands_last_output_is_put_in_place_is_ignored(console_handlers, tmp_path, monkeypatch):
+    """The run command's .rrd (on_published): the command is complete once it is in place, and a
+    signal landing then is dropped — exit 0 with the output, never 130 beside it."""
+    calls = []
+    outputs.when_published(tmp_path / "out.rrd", lambda: calls.append("complete"))
+    _publish_with_a_signal_right_after_the_rename(tmp_path, monkeypatch)
+    assert calls == ["complete"] and not console_handlers.signalled
+    # the registration was used up: the next file of that name is an ordinary one
+    with pytest.raises(KeyboardInterrupt):
+        _publish_with_a_signal_right_after_the_rename(tmp_path, monkeypatch)
+
+
 def test_sigkill_of_a_run_leaves_no_temporary(longer_recording, runs, tmp_path):
     """SIGKILL mid-run: the process writing the .rrd (viz.run_process, a child of the fork
     server) sees its pipe close and removes the unfinished file; the folder is then as before and

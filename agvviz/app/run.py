@@ -136,6 +136,7 @@ def run_recording(
     executor: Executor | None = None,
     on_detected: Callable[[], None] | None = None,
     durable: bool = True,
+    on_published: Callable[[], None] | None = None,
 ) -> RunOutcome:
     """Replay ``recording_path`` (an ``.mcap`` or a rosbag2 directory) under ``settings``
     and write the run to ``out_path``.
@@ -170,7 +171,9 @@ def run_recording(
     (:mod:`agvviz.viz.run_process`), beside the replay; False: in this process (a sweep's runs,
     which already keep every core busy). ``durable=False``: the ``.rrd`` is a scratch file the
     caller reads back and removes (a sweep's layers-only runs): it is not synced to the disk
-    before it is moved into place (:class:`agvviz.viz.rrd_file.AtomicRrd`).
+    before it is moved into place (:class:`agvviz.viz.rrd_file.AtomicRrd`). ``on_published`` is
+    called the moment the ``.rrd`` is in place (:func:`agvviz.recording.outputs.when_published`;
+    the ``run`` command: a signal no longer interrupts it).
     """
     recording_path = require_recording_path(recording_path)
     if out_path is not None and Path(out_path).suffix != ".rrd":
@@ -216,6 +219,8 @@ def run_recording(
     if out_path is None:
         out_path = default_run_path(recording_path, settings)
         outputs.prepare_output(out_path, inputs=inputs)
+    if on_published is not None:
+        outputs.when_published(out_path, on_published)
     # The progress unit: a camera run's frames (the busiest camera's image count), a corner-only
     # correction run's corner-observation messages; a run of neither (UWB alone) has no total
     # known in advance: its bar counts without one.

@@ -16,7 +16,16 @@ signalled = False
 
 
 def _on_signal(signum, frame) -> None:
-    """SIGINT and SIGTERM alike: unwind, remove temporaries, exit 130."""
+    """SIGINT and SIGTERM alike: unwind, remove temporaries, exit 130 — once a file being put in
+    place is there (:func:`agvviz.recording.outputs.hold_while_publishing`), so that the exit
+    code and the outputs agree."""
+    outputs = sys.modules.get("agvviz.recording.outputs")  # not imported yet: nothing is being put in place
+    if outputs is not None and outputs.hold_while_publishing(_interrupt):
+        return
+    _interrupt()
+
+
+def _interrupt() -> None:
     global signalled
     signalled = True
     raise KeyboardInterrupt

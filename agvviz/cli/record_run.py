@@ -207,7 +207,7 @@ def _run(
         outcome = run_recording(
             recording, settings, out, progress=on_frame, topics=topic_map, roles_file=roles,
             side=side, on_total=on_total, jobs=jobs, cache_dir=cache_dir, error_budget=error_budget,
-            images=images == "all",
+            images=images == "all", on_published=interrupts.outputs_complete,
         )
     except NoUsableFrameError as exc:
         stop_progress(progress)
@@ -216,9 +216,9 @@ def _run(
         raise
     finally:
         stop_progress(progress)
-    # The run's .rrd is complete and in place: an interrupt from here on would only make the exit
-    # code say it failed (the robustness campaign's "output of a failed command").
-    interrupts.outputs_complete()
+    # The run's .rrd is in place: outputs_complete was called the moment it was (on_published),
+    # with no signal handled in between; an interrupt from then on would only make the exit code
+    # say it failed (the robustness campaign's "output of a failed command").
     for name, item in outcome.manifest.get("ignored_settings", {}).items():
         text = f" {name}={item['value']} does not apply: {item['reason']}; ignored (not in the run name)"
         err_console.print(Text.assemble(("warning:", "yellow"), text), soft_wrap=True, highlight=False)

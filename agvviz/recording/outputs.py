@@ -14,6 +14,11 @@ One set of rules, used by the run writer, the overlays, ``export``, ``sweep`` an
   (:func:`register_temp`) so an interrupted process removes them (:func:`remove_live_temps`);
   a file of that pattern whose process is gone (killed with SIGKILL, power loss) is removed by
   the next agvviz command writing into that folder (:func:`remove_stale_temps`).
+* **A finished file is put in place by one call** (:func:`publish`): the rename and the
+  forgetting of its temporary name. The console script's signal handler
+  (:mod:`agvviz.cli.interrupts`) holds a Ctrl-C or SIGTERM that lands meanwhile until the file
+  is in place (:func:`hold_while_publishing`); a command whose output is then complete
+  (:func:`when_published`) ignores it rather than exiting 130 beside a complete output.
 
 This module imports nothing from agvviz but :mod:`agvviz.errors`.
 """
@@ -27,7 +32,7 @@ import threading
 import uuid
 from pathlib import Path
 from contextlib import contextmanager
-from typing import BinaryIO, Iterable, Iterator
+from typing import BinaryIO, Callable, Iterable, Iterator
 
 from agvviz.errors import OutputError
 
@@ -36,6 +41,12 @@ TEMP_RE = re.compile(r"^\.(?P<name>.+)\.agvviz-(?P<pid>[0-9]+)-(?P<token>[0-9a-f
 
 _live_lock = threading.Lock()
 _live_temps: set[Path] = set()
+
+#: While the main thread is in :func:`publish`: the signal handler's actions it holds.
+_publishing = False
+_held: list[Callable[[], None]] = []
+#: Outputs whose being in place completes the command, with what to call then (:func:`when_published`).
+_on_published: dict[Path, Callable[[], None]] = {}
 
 
 # -- temporary files ---------------------------------------------------------------------------
@@ -70,6 +81,47 @@ def remove_live_temps() -> list[Path]:
         except OSError:
             pass
     return removed
+
+
+# -- putting a finished file in place ----------------------------------------------------------
+def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Rename the finished temporary ``tmp`` into place as ``path`` and forget ``tmp``. In the
+    main thread, a signal that lands meanwhile acts once ``path`` is in place (raises ``OSError``
+    as ``os.replace`` does; ``tmp`` stays registered then, for the caller to remove)."""
+    global _publishing
+    main = threading.current_thread() is threading.main_thread()
+    if main:
+        _publishing = True
+    try:
+        os.replace(tmp, path)
+        release_temp(tmp)
+        completed = _on_published.pop(Path(os.path.abspath(path)), None) if main else None
+        if completed is not None:
+            completed()
+            _held.clear()  # the command's output is in place: the signal is ignored
+    finally:
+        if main:
+            _publishing = False
+            held = list(_held)
+            _held.clear()
+            for action in held:  # the signal acts now (on a failed rename too)
+                action()
+
+
+def hold_while_publishing(action: Callable[[], None]) -> bool:
+    """For a signal handler: when the main thread is in :func:`publish`, keep ``action`` (the
+    handler's own, e.g. raising ``KeyboardInterrupt``) for when the file is in place and return
+    True; else return False (the handler acts now)."""
+    if not _publishing:
+        return False
+    _held.append(action)
+    return True
+
+
+def when_published(path: str | os.PathLike, action: Callable[[], None]) -> None:
+    """Call ``action`` as soon as :func:`publish` has put ``path`` in place, with no signal
+    handled in between (a command whose outputs are then complete: ``run``)."""
+    _on_published[Path(os.path.abspath(path))] = action
 
 
 def pid_alive(pid: int) -> bool:
@@ -249,7 +301,7 @@ def atomic_writer(path: str | os.PathLike, *, inputs: Iterable[str | os.PathLike
             yield file
             file.flush()
             os.fsync(file.fileno())
-        os.replace(tmp, path)
+        publish(tmp, path)
     except OSError as exc:
         _unlink_quietly(tmp)
         raise output_error(exc, path) from exc

@@ -147,8 +147,7 @@ class RecordingWriter:
             self._file.flush()
             os.fsync(self._file.fileno())  # a full disk shows here at the latest, not after the rename
             self._file.close()
-            os.replace(self._tmp_path, self.path)
-            outputs.release_temp(self._tmp_path)
+            outputs.publish(self._tmp_path, self.path)
         except OSError as exc:
             self._discard()
             raise outputs.output_error(exc, self.path) from exc

@@ -255,7 +255,7 @@ class AtomicRrd:
                 )
             if publish:
                 try:
-                    os.replace(self._tmp_path, self.out_path)
+                    outputs.publish(self._tmp_path, self.out_path)
                 except OSError as exc:
                     raise outputs.output_error(exc, self.out_path) from exc
         except BaseException:

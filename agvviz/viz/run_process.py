@@ -169,13 +169,12 @@ class RrdWriter:
         if reply[0] != "ok":
             self._remove_temp()
             raise _error(reply)
+        self.recording_start_ns = reply[1]
         try:
-            os.replace(self._tmp_path, self._out_path)
+            outputs.publish(self._tmp_path, self._out_path)
         except OSError as exc:
             self._remove_temp()
             raise outputs.output_error(exc, self._out_path) from exc
-        outputs.release_temp(self._tmp_path)
-        self.recording_start_ns = reply[1]
 
     def _remove_temp(self) -> None:
         from agvviz.recording import outputs
