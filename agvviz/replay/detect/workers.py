@@ -41,6 +41,8 @@ WRITER_MODULES = ("agvviz.viz.run_sinks",)
 
 #: mimalloc — the allocator of Rerun's extension (and of pyarrow) — gives the memory a thread
 #: freed back to the system at once, not after a delay (:func:`writer_allocator_settings`).
+#: Imported after the preload: freezes the fork server's objects (:mod:`agvviz.replay.detect.gc_freeze`).
+GC_FREEZE_MODULE = "agvviz.replay.detect.gc_freeze"
 MIMALLOC_SETTINGS = MappingProxyType({"MIMALLOC_PURGE_DELAY": "0"})
 
 
@@ -74,7 +76,8 @@ def start_fork_server(
         return
     import multiprocessing.forkserver as forkserver
 
-    forkserver.set_forkserver_preload(list(preload))  # no effect once it runs
+    # gc_freeze last: what the server imported stays shared with its processes (its docstring)
+    forkserver.set_forkserver_preload([*preload, GC_FREEZE_MODULE])  # no effect once it runs
     with signals_ignored(*ignored):
         forkserver.ensure_running()
 
