@@ -39,10 +39,11 @@ def has_fork_server() -> bool:
 #: that the server can start before anything heavy is imported (:mod:`agvviz.cli.early`).
 WRITER_MODULES = ("agvviz.viz.run_sinks",)
 
-#: mimalloc — the allocator of Rerun's extension (and of pyarrow) — gives the memory a thread
-#: freed back to the system at once, not after a delay (:func:`writer_allocator_settings`).
 #: Imported after the preload: freezes the fork server's objects (:mod:`agvviz.replay.detect.gc_freeze`).
 GC_FREEZE_MODULE = "agvviz.replay.detect.gc_freeze"
+
+#: mimalloc — the allocator of Rerun's extension (and of pyarrow) — gives the memory a thread
+#: freed back to the system at once, not after a delay (:func:`writer_allocator_settings`).
 MIMALLOC_SETTINGS = MappingProxyType({"MIMALLOC_PURGE_DELAY": "0"})
 
 
