@@ -261,7 +261,8 @@ class AtomicRrd:
         except BaseException:
             self._cleanup(disconnect=False)
             raise
-        outputs.release_temp(self._tmp_path)
+        if not publish:  # publish forgot it; else it is the caller's to move into place now
+            outputs.release_temp(self._tmp_path)
         return self.out_path if publish else self._tmp_path
 
     def discard(self) -> None:
